@@ -1,0 +1,126 @@
+"""Tests of depthgt.io: image, EXR, JSON and pose helpers, including bad input."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from depthgt.errors import FrameError
+from depthgt.io import read_depth_png, read_exr, read_pose_txt, read_rgb, write_exr, write_json, write_rgb_png
+
+
+def test_read_depth_png_scales_to_metres(tmp_path):
+    raw = np.array([[0, 1000, 2500], [65535, 1, 5000]], dtype=np.uint16)
+    cv2.imwrite(str(tmp_path / "d.png"), raw)
+    d = read_depth_png(tmp_path / "d.png", 1000.0)
+    assert d.dtype == np.float32 and d.shape == (2, 3)
+    np.testing.assert_allclose(d, raw.astype(np.float64) / 1000.0, rtol=1e-6)
+    assert d[0, 0] == 0
+    d5 = read_depth_png(tmp_path / "d.png", 5000.0)
+    assert d5[1, 2] == pytest.approx(1.0)
+
+
+def test_read_depth_png_errors_name_the_path(tmp_path):
+    with pytest.raises(FrameError, match="nope.png") as e:
+        read_depth_png(tmp_path / "nope.png", 1000.0)
+    assert e.value.reason == "missing_file"
+    (tmp_path / "junk.png").write_bytes(b"not a png at all")
+    with pytest.raises(FrameError, match="junk.png") as e:
+        read_depth_png(tmp_path / "junk.png", 1000.0)
+    assert e.value.reason == "unreadable"
+    cv2.imwrite(str(tmp_path / "u8.png"), np.full((4, 4), 7, np.uint8))
+    with pytest.raises(FrameError, match="uint16") as e:
+        read_depth_png(tmp_path / "u8.png", 1000.0)
+    assert e.value.reason == "unreadable"
+    with pytest.raises(ValueError):
+        read_depth_png(tmp_path / "u8.png", 0.0)
+
+
+def test_rgb_png_round_trip_keeps_channel_order(tmp_path):
+    rgb = np.zeros((5, 7, 3), np.uint8)
+    rgb[..., 0] = 200  # pure red must stay in channel 0
+    rgb[2, 3] = (1, 2, 3)
+    write_rgb_png(tmp_path / "sub" / "c.png", rgb)
+    back = read_rgb(tmp_path / "sub" / "c.png")
+    assert back.dtype == np.uint8
+    np.testing.assert_array_equal(back, rgb)
+    # cv2 on disk is BGR: red is the last channel there
+    assert cv2.imread(str(tmp_path / "sub" / "c.png"))[0, 0, 2] == 200
+
+
+def test_rgb_errors(tmp_path):
+    with pytest.raises(FrameError, match="missing.jpg") as e:
+        read_rgb(tmp_path / "missing.jpg")
+    assert e.value.reason == "missing_file"
+    (tmp_path / "bad.jpg").write_bytes(b"\xff\xd8\xff garbage")
+    with pytest.raises(FrameError, match="bad.jpg") as e:
+        read_rgb(tmp_path / "bad.jpg")
+    assert e.value.reason == "unreadable"
+    with pytest.raises(ValueError, match=r"\(H, W, 3\) uint8"):
+        write_rgb_png(tmp_path / "x.png", np.zeros((4, 4), np.uint8))
+    with pytest.raises(ValueError):
+        write_rgb_png(tmp_path / "x.png", np.zeros((4, 4, 3), np.float32))
+
+
+def test_exr_round_trip_and_deterministic_bytes(tmp_path):
+    rng = np.random.default_rng(0)
+    z = rng.uniform(0.5, 4.0, (6, 9)).astype(np.float32)
+    z[0, :3] = 0
+    w = rng.uniform(0, 1, (6, 9)).astype(np.float32)
+    write_exr(tmp_path / "a.exr", {"Z": z, "W": w})
+    write_exr(tmp_path / "b.exr", {"W": w, "Z": z})  # channel order must not matter
+    assert (tmp_path / "a.exr").read_bytes() == (tmp_path / "b.exr").read_bytes()
+    back = read_exr(tmp_path / "a.exr")
+    assert sorted(back) == ["W", "Z"]
+    assert back["Z"].dtype == np.float32 and back["Z"].shape == (6, 9)
+    np.testing.assert_array_equal(back["Z"], z)
+    np.testing.assert_array_equal(back["W"], w)
+
+
+def test_exr_errors(tmp_path):
+    with pytest.raises(ValueError, match="no channel"):
+        write_exr(tmp_path / "e.exr", {})
+    with pytest.raises(ValueError, match="'Z'.*float32"):
+        write_exr(tmp_path / "e.exr", {"Z": np.zeros((3, 3), np.float64)})
+    with pytest.raises(ValueError, match="differ in shape"):
+        write_exr(tmp_path / "e.exr", {"Z": np.zeros((3, 3), np.float32), "W": np.zeros((3, 4), np.float32)})
+    with pytest.raises(FrameError, match="none.exr") as e:
+        read_exr(tmp_path / "none.exr")
+    assert e.value.reason == "missing_file"
+    (tmp_path / "bad.exr").write_bytes(b"definitely not exr")
+    with pytest.raises(FrameError, match="bad.exr") as e:
+        read_exr(tmp_path / "bad.exr")
+    assert e.value.reason == "unreadable"
+
+
+def test_write_json_sorted_and_numpy(tmp_path):
+    write_json(tmp_path / "j" / "a.json", {"b": np.float32(1.5), "a": np.arange(3), "c": {"z": 1, "y": np.int64(2)}})
+    text = (tmp_path / "j" / "a.json").read_text()
+    assert text.index('"a"') < text.index('"b"') < text.index('"c"')
+    assert text.index('"y"') < text.index('"z"')
+    assert json.loads(text) == {"a": [0, 1, 2], "b": 1.5, "c": {"y": 2, "z": 1}}
+    with pytest.raises(TypeError, match="a.json"):
+        write_json(tmp_path / "j" / "a.json", {"x": object()})
+
+
+def test_read_pose_txt(tmp_path):
+    T = np.eye(4)
+    T[:3, 3] = (0.1, -2.0, 3.25)
+    np.savetxt(tmp_path / "p.txt", T)
+    np.testing.assert_array_equal(read_pose_txt(tmp_path / "p.txt"), T)
+    assert read_pose_txt(tmp_path / "p.txt").dtype == np.float64
+    (tmp_path / "inf.txt").write_text("\n".join(["-inf -inf -inf -inf"] * 4))
+    assert np.isneginf(read_pose_txt(tmp_path / "inf.txt")).all()
+    (tmp_path / "short.txt").write_text("1 0 0\n0 1 0\n0 0 1\n")
+    with pytest.raises(FrameError, match="9 numbers") as e:
+        read_pose_txt(tmp_path / "short.txt")
+    assert e.value.reason == "unreadable"
+    (tmp_path / "text.txt").write_text("a b c d\n" * 4)
+    with pytest.raises(FrameError, match="text.txt"):
+        read_pose_txt(tmp_path / "text.txt")
+    with pytest.raises(FrameError, match="absent.txt") as e:
+        read_pose_txt(tmp_path / "absent.txt")
+    assert e.value.reason == "missing_file"
