@@ -1,0 +1,167 @@
+"""LapDEN: Laplacian-pyramid depth enhancement network (Jeon & Lee, ECCV 2018).
+
+The network takes a raw depth image and its hole mask, encodes it down to 1/4
+resolution with strided 4x4 convolutions, then predicts the enhanced depth coarse
+to fine: at each level (1/4, 1/2, 1) a stack of residual blocks (3x3 conv,
+LeakyReLU 0.2, 3x3 conv, identity skip) refines the features, a 3x3 convolution
+predicts a residual depth map, and the level's output is that residual plus the
+bilinearly upsampled output of the coarser level (the Laplacian-pyramid scheme of
+LapSRN). The coarsest level's base is the valid-aware 4x4 average of the input.
+Features go up one level with a transposed 4x4 stride-2 convolution.
+
+Size is configuration (:class:`LapDENConfig`), never a code fork:
+
+* ``paper``: 64 channels, 10/20/40 convs in the decoder levels (the released
+  model's blocks). The paper's text does not pin the encoder; 10 convs at full and
+  10 at half resolution bring the count to ~3.6 M parameters, the released size.
+* ``default``: 32 channels, 2/4/6 decoder convs, 2/2 encoder convs: trains in
+  minutes on 2 CPU cores.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+__all__ = ["LapDENConfig", "LapDEN", "PRESETS", "lapden_from_preset", "masked_avg_pool", "count_parameters"]
+
+
+@dataclass(frozen=True)
+class LapDENConfig:
+    """Size of a LapDEN network.
+
+    Attributes:
+        channels: feature channels at every level.
+        level_convs: number of 3x3 convs in the residual blocks of the decoder levels
+            (1/4, 1/2, 1); each must be even (two convs per residual block).
+        encoder_convs: number of 3x3 convs in the encoder at full and 1/2 resolution
+            (before each strided down-convolution); even.
+        negative_slope: LeakyReLU slope.
+    """
+
+    channels: int = 32
+    level_convs: tuple[int, int, int] = (2, 4, 6)
+    encoder_convs: tuple[int, int] = (2, 2)
+    negative_slope: float = 0.2
+
+    def __post_init__(self):
+        if self.channels < 1:
+            raise ValueError(f"LapDENConfig.channels must be >= 1, got {self.channels}")
+        if len(self.level_convs) != 3 or len(self.encoder_convs) != 2:
+            raise ValueError(
+                f"LapDENConfig needs 3 level_convs and 2 encoder_convs, got {self.level_convs}, {self.encoder_convs}"
+            )
+        for name, convs in (("level_convs", self.level_convs), ("encoder_convs", self.encoder_convs)):
+            if any(c < 0 or c % 2 for c in convs):
+                raise ValueError(f"LapDENConfig.{name} must be even and >= 0 (2 convs per block), got {convs}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+PRESETS: dict[str, LapDENConfig] = {
+    "paper": LapDENConfig(channels=64, level_convs=(10, 20, 40), encoder_convs=(10, 10)),
+    "default": LapDENConfig(channels=32, level_convs=(2, 4, 6), encoder_convs=(2, 2)),
+}
+
+
+def lapden_from_preset(name: str, **overrides) -> "LapDEN":
+    """Build a LapDEN from a preset name (``paper`` or ``default``), with field overrides."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown LapDEN preset {name!r}; known: {sorted(PRESETS)}")
+    cfg = asdict(PRESETS[name])
+    cfg.update(overrides)
+    for key in ("level_convs", "encoder_convs"):
+        cfg[key] = tuple(cfg[key])
+    return LapDEN(LapDENConfig(**cfg))
+
+
+def count_parameters(model: nn.Module) -> int:
+    """Number of trainable parameters (shared tensors counted once)."""
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+def masked_avg_pool(depth_m: torch.Tensor, valid: torch.Tensor, factor: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Valid-aware average pooling of depth by an integer factor.
+
+    Args:
+        depth_m: (B, 1, H, W) metres, 0 = invalid.
+        valid: (B, 1, H, W) bool or {0, 1} float.
+        factor: pooling factor; H and W must be divisible by it.
+
+    Returns:
+        depth (B, 1, H/f, W/f), mean of the valid pixels of each block (0 where none),
+        and its validity (B, 1, H/f, W/f) bool.
+    """
+    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
+        raise ValueError(f"depth_m must be (B, 1, H, W), got {tuple(depth_m.shape)}")
+    if depth_m.shape[-1] % factor or depth_m.shape[-2] % factor:
+        raise ValueError(f"depth shape {tuple(depth_m.shape)} not divisible by pooling factor {factor}")
+    if factor == 1:
+        v = valid.bool()
+        return depth_m * v, v
+    w = valid.to(depth_m.dtype)
+    num = F.avg_pool2d(depth_m * w, factor)
+    den = F.avg_pool2d(w, factor)
+    out_valid = den > 0
+    return torch.where(out_valid, num / den.clamp_min(1e-12), torch.zeros_like(num)), out_valid
+
+
+class _ResBlock(nn.Module):
+    def __init__(self, channels: int, slope: float):
+        super().__init__()
+        self.conv1 = nn.Conv2d(channels, channels, 3, padding=1)
+        self.conv2 = nn.Conv2d(channels, channels, 3, padding=1)
+        self.slope = slope
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.conv2(F.leaky_relu(self.conv1(x), self.slope))
+        return F.leaky_relu(x + y, self.slope)
+
+
+def _blocks(channels: int, convs: int, slope: float) -> nn.Sequential:
+    return nn.Sequential(*[_ResBlock(channels, slope) for _ in range(convs // 2)])
+
+
+class LapDEN(nn.Module):
+    """Laplacian-pyramid depth enhancement network.
+
+    ``forward(depth_m)`` takes (B, 1, H, W) metres (0 = hole; H, W divisible by 4),
+    builds the input (B, 2, H, W) = (depth, hole mask) and returns the multi-scale
+    outputs ``[(B,1,H/4,W/4), (B,1,H/2,W/2), (B,1,H,W)]`` in metres, finest last.
+    """
+
+    def __init__(self, config: LapDENConfig = LapDENConfig()):
+        super().__init__()
+        self.config = config
+        c, s = config.channels, config.negative_slope
+        self.conv_in = nn.Conv2d(2, c, 3, padding=1)
+        self.enc = nn.ModuleList([_blocks(c, n, s) for n in config.encoder_convs])
+        self.down = nn.ModuleList([nn.Conv2d(c, c, 4, stride=2, padding=1) for _ in range(2)])
+        self.levels = nn.ModuleList([_blocks(c, n, s) for n in config.level_convs])
+        self.up = nn.ModuleList([nn.ConvTranspose2d(c, c, 4, stride=2, padding=1) for _ in range(2)])
+        self.heads = nn.ModuleList([nn.Conv2d(c, 1, 3, padding=1) for _ in range(3)])
+
+    def forward(self, depth_m: torch.Tensor) -> list[torch.Tensor]:
+        if depth_m.ndim != 4 or depth_m.shape[1] != 1:
+            raise ValueError(f"LapDEN expects depth (B, 1, H, W), got {tuple(depth_m.shape)}")
+        if depth_m.shape[-1] % 4 or depth_m.shape[-2] % 4:
+            raise ValueError(f"LapDEN needs H and W divisible by 4, got {tuple(depth_m.shape)}")
+        s = self.config.negative_slope
+        valid = depth_m > 0
+        hole = (~valid).to(depth_m.dtype)
+        x = F.leaky_relu(self.conv_in(torch.cat([depth_m, hole], dim=1)), s)
+        for enc, down in zip(self.enc, self.down):
+            x = F.leaky_relu(down(enc(x)), s)
+        base, _ = masked_avg_pool(depth_m, valid, 4)
+        outputs = []
+        for level in range(3):
+            if level > 0:
+                x = F.leaky_relu(self.up[level - 1](x), s)
+                base = F.interpolate(outputs[-1], scale_factor=2.0, mode="bilinear", align_corners=False)
+            x = self.levels[level](x)
+            outputs.append(base + self.heads[level](x))
+        return outputs
