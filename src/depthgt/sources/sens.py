@@ -1,0 +1,269 @@
+"""Lazy reader of ScanNet's raw ``.sens`` RGB-D stream files (format version 4).
+
+Layout (little-endian; ScanNet ``SensReader/c++/src/sensorData.h``)::
+
+    uint32  version (= 4)
+    uint64  strlen, then strlen bytes of sensor name
+    float32 4x4 intrinsic_color, extrinsic_color, intrinsic_depth, extrinsic_depth (row-major)
+    int32   color_compression_type  (-1 unknown, 0 raw, 1 png, 2 jpeg)
+    int32   depth_compression_type  (-1 unknown, 0 raw_ushort, 1 zlib_ushort, 2 occi_ushort)
+    uint32  color_width, color_height, depth_width, depth_height
+    float32 depth_shift             (raw depth units per metre, typically 1000)
+    uint64  num_frames
+    num_frames x {
+        float32 4x4 camera_to_world
+        uint64  timestamp_color, timestamp_depth, color_size_bytes, depth_size_bytes
+        color_size_bytes of colour payload, depth_size_bytes of depth payload
+    }
+    (IMU frames may follow; they are not used)
+
+Opening a file parses the header and walks the frame headers once with seeks, building
+an offset table; no payload is decoded or held. :meth:`SensFile.read_color` and
+:meth:`SensFile.read_depth_m` seek to one frame and decode it. The per-frame header
+walk is a Python loop over frames (not pixels): each frame's position depends on the
+previous frame's payload sizes, so it cannot be vectorised.
+
+Python's :mod:`struct` and :mod:`zlib` and OpenCV's ``imdecode`` do the decoding; no
+library reads this container, hence this module.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from depthgt.errors import FrameError, SourceError
+
+__all__ = ["SensHeader", "SensFile", "COLOR_COMPRESSION", "DEPTH_COMPRESSION"]
+
+log = logging.getLogger(__name__)
+
+COLOR_COMPRESSION = {-1: "unknown", 0: "raw", 1: "png", 2: "jpeg"}
+DEPTH_COMPRESSION = {-1: "unknown", 0: "raw_ushort", 1: "zlib_ushort", 2: "occi_ushort"}
+SUPPORTED_COLOR = {"raw", "png", "jpeg"}
+SUPPORTED_DEPTH = {"raw_ushort", "zlib_ushort"}
+
+_VERSION = 4
+_MAX_NAME = 1 << 16  # a longer sensor name means the header is not a .sens header
+_MATS = struct.Struct("<64f")  # four 4x4 float32 calibration matrices
+_TAIL = struct.Struct("<iiIIIIfQ")  # compressions, sizes, depth_shift, num_frames
+_FRAME = struct.Struct("<16fQQQQ")  # pose, timestamps, payload sizes (96 bytes)
+
+
+@dataclass(frozen=True)
+class SensHeader:
+    """The fixed header of a ``.sens`` file.
+
+    Matrices are (4, 4) float64 (stored as float32). Sizes are ``(H, W)`` in pixels.
+    ``depth_shift`` is raw depth units per metre.
+    """
+
+    version: int
+    sensor_name: str
+    intrinsic_color: np.ndarray
+    extrinsic_color: np.ndarray
+    intrinsic_depth: np.ndarray
+    extrinsic_depth: np.ndarray
+    color_compression: str
+    depth_compression: str
+    color_hw: tuple[int, int]
+    depth_hw: tuple[int, int]
+    depth_shift: float
+    num_frames: int
+    header_bytes: int
+
+
+def _read_exact(f, n: int, path: Path, what: str) -> bytes:
+    data = f.read(n)
+    if len(data) != n:
+        raise SourceError(f"{path}: truncated .sens header (while reading {what}: {len(data)} of {n} bytes)")
+    return data
+
+
+def read_header(path: str | Path) -> SensHeader:
+    """Parse the fixed header of a ``.sens`` file.
+
+    Raises:
+        SourceError: file missing, truncated header, wrong version, nonsensical sizes
+            or unsupported compression types; the message names the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise SourceError(f"{path}: .sens file not found")
+    with path.open("rb") as f:
+        (version,) = struct.unpack("<I", _read_exact(f, 4, path, "version"))
+        if version != _VERSION:
+            raise SourceError(f"{path}: .sens version {version} is not supported (expected {_VERSION})")
+        (strlen,) = struct.unpack("<Q", _read_exact(f, 8, path, "sensor name length"))
+        if strlen > _MAX_NAME:
+            raise SourceError(f"{path}: corrupt .sens header (sensor name length {strlen})")
+        name = _read_exact(f, strlen, path, "sensor name").decode("utf-8", errors="replace")
+        mats = np.array(_MATS.unpack(_read_exact(f, _MATS.size, path, "calibration")), dtype=np.float64)
+        mats = mats.reshape(4, 4, 4)
+        c_comp, d_comp, cw, ch, dw, dh, shift, n = _TAIL.unpack(_read_exact(f, _TAIL.size, path, "image format"))
+        header_bytes = f.tell()
+    color_compression = COLOR_COMPRESSION.get(c_comp, f"invalid({c_comp})")
+    depth_compression = DEPTH_COMPRESSION.get(d_comp, f"invalid({d_comp})")
+    if color_compression not in SUPPORTED_COLOR:
+        raise SourceError(f"{path}: colour compression {color_compression!r} is not supported ({sorted(SUPPORTED_COLOR)})")
+    if depth_compression not in SUPPORTED_DEPTH:
+        raise SourceError(f"{path}: depth compression {depth_compression!r} is not supported ({sorted(SUPPORTED_DEPTH)})")
+    if min(cw, ch, dw, dh) == 0:
+        raise SourceError(f"{path}: corrupt .sens header (colour {cw}x{ch}, depth {dw}x{dh})")
+    if not (np.isfinite(shift) and shift > 0):
+        raise SourceError(f"{path}: corrupt .sens header (depth_shift {shift})")
+    return SensHeader(
+        version=version,
+        sensor_name=name,
+        intrinsic_color=mats[0],
+        extrinsic_color=mats[1],
+        intrinsic_depth=mats[2],
+        extrinsic_depth=mats[3],
+        color_compression=color_compression,
+        depth_compression=depth_compression,
+        color_hw=(int(ch), int(cw)),
+        depth_hw=(int(dh), int(dw)),
+        depth_shift=float(shift),
+        num_frames=int(n),
+        header_bytes=header_bytes,
+    )
+
+
+class SensFile:
+    """Random access to the frames of one ``.sens`` file.
+
+    Attributes:
+        path: the file.
+        header: :class:`SensHeader`.
+        poses: (N, 4, 4) float64 camera-to-world (may hold -inf/NaN where ScanNet's
+            tracking was lost).
+        timestamps_color, timestamps_depth: (N,) uint64.
+        color_offsets, color_sizes, depth_offsets, depth_sizes: (N,) int64 byte
+            positions and lengths of each payload.
+        problems: human-readable notes on what could not be indexed (e.g. a
+            truncated file); empty when the file is complete.
+
+    ``N = len(self)`` is the number of frames that could be indexed; it is smaller
+    than ``header.num_frames`` for a truncated file (a warning is logged).
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.header = read_header(self.path)
+        self.problems: list[str] = []
+        self._index()
+
+    def _index(self) -> None:
+        h = self.header
+        file_size = self.path.stat().st_size
+        n = h.num_frames
+        # num_frames comes from the file: never pre-allocate more than could fit.
+        cap = min(n, max(0, (file_size - h.header_bytes) // _FRAME.size))
+        poses = np.empty((cap, 16), dtype=np.float64)
+        ts = np.empty((cap, 2), dtype=np.uint64)
+        sizes = np.empty((cap, 2), dtype=np.int64)
+        offsets = np.empty(cap, dtype=np.int64)  # start of the colour payload
+        found = 0
+        reason = ""
+        with self.path.open("rb") as f:
+            pos = h.header_bytes
+            for i in range(cap):
+                f.seek(pos)
+                raw = f.read(_FRAME.size)
+                if len(raw) != _FRAME.size:
+                    reason = f"frame {i} header cut at byte {pos + len(raw)}"
+                    break
+                vals = _FRAME.unpack(raw)
+                c_size, d_size = vals[18], vals[19]
+                payload_start = pos + _FRAME.size
+                end = payload_start + c_size + d_size
+                if end > file_size:
+                    reason = f"frame {i} payload ends at byte {end} beyond the file size {file_size}"
+                    break
+                poses[i] = vals[:16]
+                ts[i] = vals[16:18]
+                sizes[i] = (c_size, d_size)
+                offsets[i] = payload_start
+                pos = end
+                found += 1
+            else:
+                if cap < n:
+                    reason = f"file of {file_size} bytes cannot hold frame {cap}"
+        if found < n:
+            msg = f"{self.path}: truncated .sens: header announces {n} frames, {found} found ({reason})"
+            log.warning(msg)
+            self.problems.append(msg)
+        self.poses = poses[:found].reshape(found, 4, 4)
+        self.timestamps_color = ts[:found, 0].copy()
+        self.timestamps_depth = ts[:found, 1].copy()
+        self.color_offsets = offsets[:found].copy()
+        self.color_sizes = sizes[:found, 0].copy()
+        self.depth_offsets = self.color_offsets + self.color_sizes
+        self.depth_sizes = sizes[:found, 1].copy()
+
+    def __len__(self) -> int:
+        return int(self.poses.shape[0])
+
+    def _check_index(self, i: int) -> int:
+        if not 0 <= i < len(self):
+            raise IndexError(f"{self.path}: frame {i} out of range 0..{len(self) - 1}")
+        return int(i)
+
+    def _payload(self, offset: int, size: int) -> bytes:
+        with self.path.open("rb") as f:
+            f.seek(offset)
+            data = f.read(size)
+        if len(data) != size:
+            raise FrameError(f"{self.path}: payload at byte {offset} is cut short", "unreadable")
+        return data
+
+    def read_color(self, i: int) -> np.ndarray:
+        """Colour of frame ``i`` as (H, W, 3) uint8 RGB at ``header.color_hw``.
+
+        Raises:
+            FrameError: corrupt payload ("unreadable") or decoded size differing from
+                the header ("size_mismatch"); the message names file and frame.
+        """
+        i = self._check_index(i)
+        h, w = self.header.color_hw
+        data = self._payload(int(self.color_offsets[i]), int(self.color_sizes[i]))
+        where = f"{self.path} frame {i} colour"
+        if self.header.color_compression == "raw":
+            if len(data) != h * w * 3:
+                raise FrameError(f"{where}: raw payload has {len(data)} bytes, expected {h * w * 3}", "unreadable")
+            return np.frombuffer(data, dtype=np.uint8).reshape(h, w, 3).copy()
+        bgr = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise FrameError(f"{where}: cannot decode {self.header.color_compression} payload", "unreadable")
+        if bgr.shape[:2] != (h, w):
+            raise FrameError(f"{where}: decoded {bgr.shape[1]}x{bgr.shape[0]}, header says {w}x{h}", "size_mismatch")
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+    def read_depth_raw(self, i: int) -> np.ndarray:
+        """Depth of frame ``i`` as (H, W) uint16 raw units (``header.depth_shift`` per metre).
+
+        Raises:
+            FrameError: corrupt zlib stream or wrong payload length ("unreadable").
+        """
+        i = self._check_index(i)
+        h, w = self.header.depth_hw
+        data = self._payload(int(self.depth_offsets[i]), int(self.depth_sizes[i]))
+        where = f"{self.path} frame {i} depth"
+        if self.header.depth_compression == "zlib_ushort":
+            try:
+                data = zlib.decompress(data)
+            except zlib.error as exc:
+                raise FrameError(f"{where}: corrupt zlib payload ({exc})", "unreadable") from exc
+        if len(data) != h * w * 2:
+            raise FrameError(f"{where}: {len(data)} bytes of depth, expected {h * w * 2} ({w}x{h} uint16)", "unreadable")
+        return np.frombuffer(data, dtype="<u2").reshape(h, w).astype(np.uint16)
+
+    def read_depth_m(self, i: int) -> np.ndarray:
+        """Depth of frame ``i`` as (H, W) float32 metres, 0 = invalid."""
+        return self.read_depth_raw(i).astype(np.float32) / np.float32(self.header.depth_shift)
