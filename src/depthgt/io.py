@@ -27,6 +27,7 @@ __all__ = [
     "read_exr",
     "write_json",
     "read_pose_txt",
+    "fit_rgb_to_depth",
 ]
 
 
@@ -187,3 +188,33 @@ def read_pose_txt(path: str | Path) -> np.ndarray:
     if values.size != 16:
         raise FrameError(f"{path}: pose has {values.size} numbers, expected 16 (4x4)", "unreadable")
     return values.reshape(4, 4)
+
+
+def fit_rgb_to_depth(rgb: np.ndarray, depth_hw: tuple[int, int], where: str, max_aspect_change: float = 0.05) -> np.ndarray:
+    """Bring a colour image to the depth resolution (cv2.INTER_AREA when sizes differ).
+
+    Args:
+        rgb: (Hc, Wc, 3) uint8.
+        depth_hw: (H, W) of the depth image.
+        where: file or frame named in errors.
+        max_aspect_change: largest relative difference of the aspect ratios W/H that
+            is resized silently (ScanNet: 1296x968 vs 640x480 differ by 0.4%).
+
+    Returns:
+        (H, W, 3) uint8.
+
+    Raises:
+        FrameError: ("size_mismatch") when the aspect ratios differ by more than
+            ``max_aspect_change``: resizing would distort the image.
+    """
+    h, w = depth_hw
+    hc, wc = rgb.shape[:2]
+    if (hc, wc) == (h, w):
+        return rgb
+    change = abs((wc / hc) / (w / h) - 1.0)
+    if change > max_aspect_change:
+        raise FrameError(
+            f"{where}: colour {wc}x{hc} cannot be fitted to depth {w}x{h} (aspect ratios differ by {change:.1%})",
+            "size_mismatch",
+        )
+    return cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
