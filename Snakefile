@@ -1,0 +1,19 @@
+# depthgt: ground-truth depth datasets from raw RGB-D video (see README.md).
+from snakemake.utils import min_version
+
+min_version("9.21")
+
+
+configfile: "config/config.yaml"
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/index.smk"
+include: "workflow/rules/framesets.smk"
+include: "workflow/rules/dataset.smk"
+
+
+rule all:
+    default_target: True
+    input:
+        rules.dataset.output,

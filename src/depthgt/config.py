@@ -1,0 +1,55 @@
+"""Factories from the validated config (a plain dict) to per-stage settings.
+
+Components never see the config object: the workflow passes plain dicts of one
+section, and these factories turn them into frozen dataclasses, raising
+:class:`~depthgt.errors.ConfigError` that names the key at fault.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, TypeVar
+
+from depthgt.errors import ConfigError
+
+T = TypeVar("T")
+
+
+def build(cls: type[T], section: dict[str, Any] | None, where: str) -> T:
+    """``cls(**section)`` with errors that name ``where.key``.
+
+    >>> from depthgt.patches import PatchSettings
+    >>> build(PatchSettings, {"count": 3}, "patches").count
+    3
+    """
+    section = dict(section or {})
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(section) - names)
+    if unknown:
+        raise ConfigError(f"unknown key(s) {', '.join(f'{where}.{k}' for k in unknown)}; allowed: {', '.join(sorted(names))}")
+    try:
+        return cls(**section)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"invalid {where}: {err}") from err
+
+
+def job_settings(config: dict[str, Any]):
+    """The :class:`~depthgt.pipeline.JobSettings` of the per-frame-set job."""
+    from depthgt.framesets import FrameSetSettings
+    from depthgt.patches import PatchSettings
+    from depthgt.pipeline import JobSettings
+    from depthgt.render import GTRenderSettings
+
+    reg = dict(config.get("registration") or {})
+    method = reg.pop("method", "given")
+    size = int(config.get("resize", 256))
+    return JobSettings(
+        size_hw=(size, size),
+        frameset=build(FrameSetSettings, config.get("frameset"), "frameset"),
+        patches=build(PatchSettings, config.get("patches"), "patches"),
+        render=build(GTRenderSettings, config.get("render"), "render"),
+        registration_method=method,
+        registration=reg,
+        seed=int(config.get("seed", 0)),
+        device=str(config.get("device", "auto")),
+    )

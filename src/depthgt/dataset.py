@@ -1,0 +1,148 @@
+"""Per-scene summaries and the dataset manifests.
+
+* :func:`summarize_scene` turns a scene's index and its frame-set outputs into two
+  tidy tables: one row per frame set (skipped ones included, with reasons) and one
+  row per drawn patch (kept or rejected, with missing ratios).
+* :func:`assemble` concatenates the scenes into ``{train,val,test}.parquet`` (one row
+  per kept patch pair), ``framesets.parquet`` (one row per frame set, for full-frame
+  evaluation), a summary and the GT quality table.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from depthgt.framesets import SPLITS
+
+FRAMESET_COLUMNS = ["dataset", "scene", "target", "frame_id", "split", "status", "reason", "frameset_dir", "has_truth",
+                    "patches_drawn", "patches_kept", "input_missing", "gt_missing"]
+PATCH_COLUMNS = ["dataset", "scene", "target", "split", "patch", "path", "y0", "x0", "size", "missing_input", "missing_gt", "kept"]
+
+
+def read_index(index_parquet: str | Path) -> tuple[pd.DataFrame, dict]:
+    """The scene index table and its metadata (``index.json`` beside it)."""
+    table = pd.read_parquet(index_parquet)
+    meta = json.loads((Path(index_parquet).with_name("index.json")).read_text())
+    return table, meta
+
+
+def summarize_scene(index_parquet: str | Path, frameset_dirs: list[str | Path]) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+    """Tables of one scene: frame sets, patches, and GT quality (tidy long form).
+
+    Frame sets skipped by the index appear with their reason; frame sets whose job
+    ran appear with the statistics of their frameset.json.
+    """
+    table, meta = read_index(index_parquet)
+    dataset, scene = meta["dataset"], meta["scene"]
+    rows, patch_rows, quality = [], [], []
+    by_target = {int(Path(d).name): Path(d) for d in frameset_dirs}
+    for rec in table[table["is_target"]].itertuples():
+        target = int(rec.position)
+        row = {"dataset": dataset, "scene": scene, "target": target, "frame_id": rec.frame_id, "split": rec.frameset_split,
+               "status": rec.frameset_status, "reason": rec.frameset_reason, "frameset_dir": "", "has_truth": False,
+               "patches_drawn": 0, "patches_kept": 0, "input_missing": np.nan, "gt_missing": np.nan}
+        if rec.frameset_status == "ok":
+            d = by_target.get(target)
+            if d is None:
+                raise FileNotFoundError(f"{dataset}/{scene}: frame set {target} is in the index but its outputs were not given")
+            doc = json.loads((d / "frameset.json").read_text())
+            st = doc["statistics"]
+            row.update(status=doc["status"], reason=doc["reason"], frameset_dir=str(d), has_truth="gt_vs_truth" in st,
+                       patches_drawn=st["patches_drawn"], patches_kept=st["patches_kept"],
+                       input_missing=st["input_missing"], gt_missing=st["gt_missing"])
+            with np.load(d / "patches.npz") as npz:
+                kept, boxes = npz["kept"], npz["all_boxes"]
+                miss_in, miss_gt = npz["all_missing_input"], npz["all_missing_gt"]
+            kept_index = np.cumsum(kept) - 1
+            for i in range(len(kept)):
+                patch_rows.append({"dataset": dataset, "scene": scene, "target": target, "split": doc["split"],
+                                   "patch": int(kept_index[i]) if kept[i] else -1, "path": str(d / "patches.npz"),
+                                   "y0": int(boxes[i, 0]), "x0": int(boxes[i, 1]), "size": int(boxes[i, 2]),
+                                   "missing_input": float(miss_in[i]), "missing_gt": float(miss_gt[i]), "kept": bool(kept[i])})
+            for estimate, key in (("gt", "gt_vs_truth"), ("input", "input_vs_truth"), ("leave_target_out", "leave_target_out")):
+                if key not in st:
+                    continue
+                reference = "target_raw" if key == "leave_target_out" else "truth"
+                for metric, value in st[key].items():
+                    unit = "m" if metric.startswith(("mae", "rmse")) else ("fraction" if metric == "completeness" else "pixels")
+                    quality.append({"dataset": dataset, "scene": scene, "target": target, "split": doc["split"],
+                                    "estimate": estimate, "reference": reference, "metric": metric, "unit": unit,
+                                    "value": float(value)})
+        rows.append(row)
+    return (pd.DataFrame(rows, columns=FRAMESET_COLUMNS), pd.DataFrame(patch_rows, columns=PATCH_COLUMNS),
+            pd.DataFrame(quality, columns=["dataset", "scene", "target", "split", "estimate", "reference", "metric", "unit", "value"]))
+
+
+def assemble(scene_dirs: list[str | Path], out_dir: str | Path) -> dict:
+    """Write the dataset manifests from the per-scene summaries in ``scene_dirs``.
+
+    Each scene dir holds ``framesets.parquet``, ``patches.parquet``, ``quality.parquet``
+    and ``index.json``. Returns the summary dict (also written as summary.json/.md).
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    fs = _concat([Path(d) / "framesets.parquet" for d in scene_dirs], FRAMESET_COLUMNS)
+    patches = _concat([Path(d) / "patches.parquet" for d in scene_dirs], PATCH_COLUMNS)
+    quality = _concat([Path(d) / "quality.parquet" for d in scene_dirs], None)
+    metas = [json.loads((Path(d) / "index.json").read_text()) for d in scene_dirs]
+
+    kept = patches[patches["kept"]].reset_index(drop=True)
+    for split in SPLITS:
+        kept[kept["split"] == split].reset_index(drop=True).to_parquet(out / f"{split}.parquet", index=False)
+    fs.to_parquet(out / "framesets.parquet", index=False)
+
+    if len(quality):
+        per_scene = (quality.groupby(["dataset", "scene", "estimate", "reference", "metric", "unit"], as_index=False)["value"]
+                     .mean())
+    else:
+        per_scene = pd.DataFrame(columns=["dataset", "scene", "estimate", "reference", "metric", "unit", "value"])
+    per_scene.to_csv(out / "gt_quality.csv", index=False)
+
+    summary = {
+        "pairs": {s: int((kept["split"] == s).sum()) for s in SPLITS},
+        "patches_drawn": int(len(patches)),
+        "patches_kept": int(len(kept)),
+        "patches_rejected": int(len(patches) - len(kept)),
+        "framesets": {s: int(((fs["split"] == s) & (fs["status"] == "ok")).sum()) for s in SPLITS},
+        "framesets_skipped": [
+            {"dataset": r.dataset, "scene": r.scene, "target": int(r.target), "reason": r.reason}
+            for r in fs[fs["status"] != "ok"].itertuples()
+        ],
+        "scene_problems": [{"dataset": m["dataset"], "scene": m["scene"], "problem": p} for m in metas for p in m["problems"]],
+        "frames_skipped": int(sum(m["n_frames"] - m["n_valid_frames"] for m in metas)),
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    (out / "summary.md").write_text(_summary_md(summary, per_scene))
+    return summary
+
+
+def _concat(paths: list[Path], columns: list[str] | None) -> pd.DataFrame:
+    frames = [pd.read_parquet(p) for p in paths]
+    frames = [f for f in frames if len(f)]
+    if not frames:
+        return pd.DataFrame(columns=columns or [])
+    return pd.concat(frames, ignore_index=True)
+
+
+def _summary_md(summary: dict, quality: pd.DataFrame) -> str:
+    lines = ["# Dataset summary", "", "| split | frame sets | patch pairs |", "|---|---:|---:|"]
+    for s in SPLITS:
+        lines.append(f"| {s} | {summary['framesets'][s]} | {summary['pairs'][s]} |")
+    lines += ["", f"Patches drawn: {summary['patches_drawn']}, kept: {summary['patches_kept']}, "
+                  f"rejected by the missing filter: {summary['patches_rejected']}.",
+              f"Frames skipped: {summary['frames_skipped']}. Frame sets skipped: {len(summary['framesets_skipped'])}.", ""]
+    if summary["framesets_skipped"]:
+        lines += ["| dataset | scene | target | reason |", "|---|---|---:|---|"]
+        lines += [f"| {r['dataset']} | {r['scene']} | {r['target']} | {r['reason']} |" for r in summary["framesets_skipped"]]
+        lines.append("")
+    if summary["scene_problems"]:
+        lines += ["Scene problems:", ""] + [f"- {p['dataset']}/{p['scene']}: {p['problem']}" for p in summary["scene_problems"]] + [""]
+    if len(quality):
+        table = quality[quality["metric"].isin(["mae_valid", "mae_missing_counted", "rmse_valid", "completeness"])]
+        wide = table.pivot_table(index=["dataset", "estimate", "reference"], columns="metric", values="value", aggfunc="mean")
+        lines += ["## GT quality (mean over scenes; metres, completeness as a fraction)", "", wide.round(4).to_markdown(), ""]
+    return "\n".join(lines)

@@ -1,0 +1,119 @@
+"""Entry points of the workflow's jobs: plain arguments in, files out.
+
+Each Snakemake script is two lines that call one of these with the paths and the
+config sections of its rule, so every job can also be run and tested without
+Snakemake.
+"""
+
+from __future__ import annotations
+
+import logging
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Iterator
+
+from depthgt import io
+
+log = logging.getLogger("depthgt")
+
+
+@contextmanager
+def logging_to(path: str | Path | None, level: int = logging.INFO) -> Iterator[None]:
+    """Send depthgt's log records (and warnings) to ``path`` for the duration."""
+    if path is None:
+        yield
+        return
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(path, mode="w")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.addHandler(handler)
+    old = root.level
+    root.setLevel(level)
+    logging.captureWarnings(True)
+    try:
+        yield
+    except Exception:
+        log.exception("job failed")
+        raise
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(old)
+        handler.close()
+
+
+def open_source_scene(source: dict[str, Any], scene: str):
+    """Open ``scene`` of a config source entry (name, kind, root, options)."""
+    from depthgt.sources.base import open_scene
+
+    return open_scene(source["kind"], source.get("root"), scene, **(source.get("options") or {}))
+
+
+def run_scene_index(source: dict[str, Any], scene: str, config: dict[str, Any], out_parquet: str, out_json: str) -> None:
+    """Check every frame of a scene and write its index (parquet + json)."""
+    from depthgt.config import build
+    from depthgt.framesets import FrameSetSettings, SplitSettings
+    from depthgt.scene_index import build_index
+
+    sc = open_source_scene(source, scene)
+    method = (config.get("registration") or {}).get("method", "given")
+    index = build_index(
+        sc, source["name"], source.get("split", "auto"), need_poses=(method == "given"),
+        fs_settings=build(FrameSetSettings, config.get("frameset"), "frameset"),
+        split_settings=build(SplitSettings, config.get("split"), "split"),
+        seed=int(config.get("seed", 0)), progress=True,
+    )
+    meta = dict(index.meta)
+    meta["framesets_ok"] = [int(t) for t in index.framesets.loc[index.framesets["status"] == "ok", "target"]]
+    meta["source"] = source
+    Path(out_parquet).parent.mkdir(parents=True, exist_ok=True)
+    index.to_table().to_parquet(out_parquet, index=False)
+    io.write_json(out_json, meta)
+    log.info("%s/%s: %d frames (%d valid), %d frame sets (%d skipped)", source["name"], scene, meta["n_frames"],
+             meta["n_valid_frames"], meta["n_framesets"], meta["n_framesets_skipped"])
+    for p in meta["problems"]:
+        log.warning("%s/%s: %s", source["name"], scene, p)
+
+
+def run_frameset(source: dict[str, Any], scene: str, target: int, config: dict[str, Any], index_parquet: str, out_dir: str,
+                 encoder: str | None = None) -> None:
+    """Build one frame set's outputs in ``out_dir``."""
+    import pandas as pd
+
+    from depthgt.config import job_settings
+    from depthgt.pipeline import process_frameset
+
+    table = pd.read_parquet(index_parquet)
+    row = table[(table["position"] == target) & table["is_target"]]
+    if row.empty or row.iloc[0]["frameset_status"] != "ok":
+        raise ValueError(f"{index_parquet}: target {target} is not a runnable frame set of this scene")
+    row = row.iloc[0]
+    state = None
+    if encoder:
+        import torch
+
+        state = torch.load(encoder, map_location="cpu", weights_only=True)
+    settings = job_settings(config)
+    doc = process_frameset(open_source_scene(source, scene), source["name"], target, [int(m) for m in row["members"]],
+                           row["frameset_split"], out_dir, settings, encoder_state=state)
+    log.info("frame set %s/%s/%06d: status %s, %d/%d patches kept, GT missing %.3f (input %.3f)", source["name"], scene,
+             target, doc["status"], doc["statistics"]["patches_kept"], doc["statistics"]["patches_drawn"],
+             doc["statistics"]["gt_missing"], doc["statistics"]["input_missing"])
+
+
+def run_scene_summary(index_parquet: str, frameset_jsons: list[str], out_framesets: str, out_patches: str, out_quality: str) -> None:
+    """Summarise a scene's frame sets, patches and GT quality into three parquet tables."""
+    from depthgt.dataset import summarize_scene
+
+    fs, patches, quality = summarize_scene(index_parquet, [str(Path(p).parent) for p in frameset_jsons])
+    fs.to_parquet(out_framesets, index=False)
+    patches.to_parquet(out_patches, index=False)
+    quality.to_parquet(out_quality, index=False)
+
+
+def run_dataset(scene_framesets: list[str], out_dir: str) -> None:
+    """Assemble the dataset manifests from the per-scene summaries."""
+    from depthgt.dataset import assemble
+
+    summary = assemble([str(Path(p).parent) for p in scene_framesets], out_dir)
+    log.info("dataset: %s pairs, %d frame sets skipped", summary["pairs"], len(summary["framesets_skipped"]))

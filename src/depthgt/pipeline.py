@@ -1,0 +1,263 @@
+"""The per-frame-set job: load -> resize -> align -> render GT -> patches -> write.
+
+``process_frameset`` reads like the algorithm; each step is a small function on
+tensors that the tests call on their own. Outputs (DESIGN.md layout) are written
+atomically (temporary name, then rename) so that a killed job leaves no half file.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from depthgt import geometry, io
+from depthgt.errors import FrameError
+from depthgt.framesets import FrameSetSettings, stable_seed
+from depthgt.patches import PatchSettings, make_patches
+from depthgt.quality import error_stats
+from depthgt.render import GTRenderSettings, render_gt
+from depthgt.sources.base import Scene, check_frame
+
+log = logging.getLogger(__name__)
+
+OUTPUT_FILES = ("gt.exr", "input.exr", "rgb.png", "poses.json", "patches.npz", "frameset.json")
+
+
+def resolve_device(name: str = "auto") -> torch.device:
+    """``auto`` -> CUDA when available, else CPU; ``cuda`` without a GPU is an error."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError("config device: cuda was asked for but no CUDA device is available")
+    return torch.device(name)
+
+
+@dataclass(frozen=True)
+class JobSettings:
+    """Everything a frame-set job needs besides the scene (built from the config)."""
+
+    size_hw: tuple[int, int] = (256, 256)
+    frameset: FrameSetSettings = field(default_factory=FrameSetSettings)
+    patches: PatchSettings = field(default_factory=PatchSettings)
+    render: GTRenderSettings = field(default_factory=GTRenderSettings)
+    registration_method: str = "given"
+    registration: dict = field(default_factory=dict)
+    seed: int = 0
+    device: str = "auto"
+
+
+@dataclass
+class FrameSetData:
+    """The members of one frame set at the working resolution (target first).
+
+    Attributes:
+        rgb: (F, 3, H, W) float in [0, 1].
+        depth_m: (F, 1, H, W) raw depth, 0 = invalid.
+        K: (3, 3) float64 intrinsics at (H, W).
+        T_world_cam: (F, 4, 4) float64 camera-to-world poses, or None.
+        truth_m: (F, 1, H, W) clean depth when the source knows it, else None.
+        frame_ids: the source's ids of the members.
+    """
+
+    rgb: torch.Tensor
+    depth_m: torch.Tensor
+    K: torch.Tensor
+    T_world_cam: torch.Tensor | None
+    truth_m: torch.Tensor | None
+    frame_ids: list[str]
+
+
+def load_frameset(scene: Scene, members: list[int], size_hw: tuple[int, int], need_poses: bool, device: torch.device) -> FrameSetData:
+    """Read the member frames and bring them to ``size_hw``.
+
+    Raises:
+        FrameError: a member frame is unusable (it was valid when the index was built
+            only if the data changed since; the job records it and fails loudly).
+    """
+    frames = []
+    for m in members:
+        where = f"{scene.name} frame {scene.frame_id(m)}"
+        frames.append(check_frame(scene.read(m), scene.image_size, where, need_pose=need_poses))
+    depth = torch.from_numpy(np.stack([f.depth_m for f in frames]))[:, None].to(device)
+    rgb = torch.from_numpy(np.stack([f.rgb for f in frames])).permute(0, 3, 1, 2).to(device).float() / 255.0
+    truth = None
+    if all(f.clean_depth_m is not None for f in frames):
+        truth = geometry.resize_depth_nearest(torch.from_numpy(np.stack([f.clean_depth_m for f in frames]))[:, None].to(device), size_hw)
+    poses = None
+    if all(f.T_world_cam is not None for f in frames) and all(np.isfinite(f.T_world_cam).all() for f in frames):
+        poses = torch.from_numpy(np.stack([f.T_world_cam for f in frames])).to(device)
+    K = torch.as_tensor(geometry.scale_intrinsics(np.asarray(scene.intrinsics, dtype=np.float64), scene.image_size, size_hw), device=device)
+    return FrameSetData(
+        rgb=geometry.resize_rgb(rgb, size_hw),
+        depth_m=geometry.resize_depth_nearest(depth, size_hw),
+        K=K,
+        T_world_cam=poses,
+        truth_m=truth,
+        frame_ids=[scene.frame_id(m) for m in members],
+    )
+
+
+def poses_from_source(data: FrameSetData) -> torch.Tensor:
+    """``T_j_to_t`` (F-1, 4, 4) float64 of each neighbour from the source's poses."""
+    if data.T_world_cam is None:
+        raise FrameError("registration.method 'given' needs poses, but this source provides none or some are non-finite",
+                         "missing_pose")
+    T = data.T_world_cam
+    return torch.linalg.inv(T[:1]) @ T[1:]
+
+
+def points_in_target(data: FrameSetData, T_j_to_t: torch.Tensor, depth_m: torch.Tensor | None = None,
+                     members: slice = slice(None)) -> tuple[torch.Tensor, torch.Tensor]:
+    """Back-project members and move them into the target camera.
+
+    Args:
+        T_j_to_t: (F-1, 4, 4) poses of the neighbours (the target's is the identity).
+        depth_m: (F, 1, H, W) depth to back-project (default: the raw depth).
+        members: which members to use (e.g. ``slice(1, None)`` leaves the target out).
+
+    Returns:
+        points (1, M, 3) in the target camera (metres) and valid (1, M) bool.
+    """
+    depth = (data.depth_m if depth_m is None else depth_m)[members]
+    eye = torch.eye(4, dtype=T_j_to_t.dtype, device=T_j_to_t.device)[None]
+    T = torch.cat([eye, T_j_to_t], dim=0)[members]
+    K = data.K[None].expand(depth.shape[0], 3, 3).to(depth.dtype)
+    pts = geometry.backproject(depth, K)  # (F, HW, 3)
+    pts_t = geometry.transform_points(T.to(pts.dtype), pts)
+    valid = (depth.reshape(depth.shape[0], -1) > 0)
+    return pts_t.reshape(1, -1, 3), valid.reshape(1, -1)
+
+
+def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: GTRenderSettings, depth_m: torch.Tensor | None = None,
+         members: slice = slice(None)):
+    """Render the aligned members into the target view (paper eq. 5)."""
+    pts, valid = points_in_target(data, T_j_to_t, depth_m, members)
+    h, w = data.depth_m.shape[-2:]
+    return render_gt(pts, data.K[None].to(pts.dtype), (h, w), valid, settings)
+
+
+def _atomic(path: Path, writer, *args) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
+    writer(tmp, *args)
+    os.replace(tmp, path)
+
+
+def _save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    with open(path, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
+
+
+def process_frameset(scene: Scene, dataset: str, target: int, members: list[int], split: str, out_dir: str | Path,
+                     settings: JobSettings, encoder_state: dict | None = None) -> dict[str, Any]:
+    """Build every output of one frame set in ``out_dir`` and return frameset.json's content."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    device = resolve_device(settings.device)
+    timings: dict[str, float] = {}
+    clock = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timings[name] = round(now - clock, 4)
+        clock = now
+
+    method = settings.registration_method
+    data = load_frameset(scene, members, settings.size_hw, need_poses=(method == "given"), device=device)
+    lap("load_resize")
+
+    registration_info: dict[str, Any] = {"method": method}
+    status, reason = "ok", ""
+    if method == "given":
+        T_j_to_t = poses_from_source(data)
+    elif method == "overfit":
+        from depthgt.registration import register_frameset, settings_from_config
+
+        offsets = [m - target for m in members]
+        result = register_frameset(data.rgb, data.depth_m, data.K, offsets, settings_from_config(settings.registration),
+                                   encoder_state=encoder_state, seed=stable_seed(settings.seed, dataset, scene.name, target))
+        T_j_to_t = torch.as_tensor(result.T_j_to_t, dtype=torch.float64, device=device)
+        registration_info.update(result.to_json())
+        status, reason = result.status, result.reason
+    else:
+        raise ValueError(f"registration.method must be 'given' or 'overfit', got {method!r}")
+    lap("align")
+
+    gt = fuse(data, T_j_to_t, settings.render)
+    lap("render")
+
+    depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
+    gt_depth = gt.depth[0, 0].detach().cpu().numpy().astype(np.float32)
+    truth = data.truth_m[0, 0].cpu().numpy().astype(np.float32) if data.truth_m is not None else None
+    rgb8 = (data.rgb[0].permute(1, 2, 0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+
+    # Leave-target-out consistency: fuse the neighbours alone and compare with the
+    # target's raw valid depth (the only check possible on real data without truth).
+    lto = fuse(data, T_j_to_t, settings.render, members=slice(1, None)).depth[0, 0].detach().cpu().numpy()
+    stats: dict[str, Any] = {
+        "input_missing": float((depth_in <= 0).mean()),
+        "gt_missing": float((gt_depth <= 0).mean()),
+        "gt_mean_points": float(gt.count[0, 0].float().mean()),
+        "leave_target_out": error_stats(lto.astype(np.float32), depth_in),
+    }
+    if truth is not None:
+        stats["gt_vs_truth"] = error_stats(gt_depth, truth)
+        stats["input_vs_truth"] = error_stats(depth_in, truth)
+    lap("quality")
+
+    rng = np.random.default_rng(stable_seed(settings.seed, dataset, scene.name, target, "patches"))
+    patches = make_patches(depth_in, gt_depth, rgb8, settings.patches, rng, truth_m=truth)
+    stats["patches_drawn"] = int(len(patches["kept"]))
+    stats["patches_kept"] = int(patches["kept"].sum())
+    lap("patches")
+
+    input_channels = {"Z": depth_in}
+    if truth is not None:
+        input_channels["T"] = truth
+    _atomic(out / "gt.exr", io.write_exr, {"Z": gt_depth, "W": gt.weight_sum[0, 0].detach().cpu().numpy().astype(np.float32),
+                                          "N": gt.count[0, 0].cpu().numpy().astype(np.float32)})
+    _atomic(out / "input.exr", io.write_exr, input_channels)
+    _atomic(out / "rgb.png", io.write_rgb_png, rgb8)
+    _atomic(out / "patches.npz", _save_npz, patches)
+    T_np = T_j_to_t.detach().cpu().numpy().astype(np.float64)
+    offsets = [m - target for m in members]
+    poses_doc = {
+        "T_j_to_t": {str(o): T_np[i].tolist() for i, o in enumerate(offsets[1:])},
+        "registration": registration_info,
+    }
+    if data.T_world_cam is not None:
+        ref = poses_from_source(data).cpu().numpy()
+        poses_doc["T_j_to_t_reference"] = {str(o): ref[i].tolist() for i, o in enumerate(offsets[1:])}
+    lap("write")
+    poses_doc["timings_s"] = timings
+    _atomic(out / "poses.json", io.write_json, poses_doc)
+    doc = {
+        "dataset": dataset,
+        "scene": scene.name,
+        "target": target,
+        "members": members,
+        "offsets": offsets,
+        "frame_ids": data.frame_ids,
+        "split": split,
+        "status": status,
+        "reason": reason,
+        "K": data.K.cpu().numpy().tolist(),
+        "size_hw": list(settings.size_hw),
+        "statistics": stats,
+        "settings": _settings_doc(settings),
+    }
+    _atomic(out / "frameset.json", io.write_json, doc)
+    return doc
+
+
+def _settings_doc(settings: JobSettings) -> dict:
+    doc = asdict(settings)
+    doc["size_hw"] = list(settings.size_hw)
+    return doc

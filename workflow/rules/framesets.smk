@@ -1,0 +1,41 @@
+rule frameset:
+    input:
+        index="results/scenes/{dataset}/{scene}/index.parquet",
+    output:
+        gt="results/framesets/{dataset}/{scene}/{target}/gt.exr",
+        input="results/framesets/{dataset}/{scene}/{target}/input.exr",
+        rgb="results/framesets/{dataset}/{scene}/{target}/rgb.png",
+        poses="results/framesets/{dataset}/{scene}/{target}/poses.json",
+        patches="results/framesets/{dataset}/{scene}/{target}/patches.npz",
+        meta="results/framesets/{dataset}/{scene}/{target}/frameset.json",
+    params:
+        source=source_of,
+        config=FRAMESET_CONFIG,
+    log:
+        "logs/framesets/{dataset}/{scene}/{target}.log",
+    benchmark:
+        "benchmarks/framesets/{dataset}/{scene}/{target}.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../scripts/frameset.py"
+
+
+rule scene_summary:
+    input:
+        index="results/scenes/{dataset}/{scene}/index.parquet",
+        framesets=frameset_jsons,
+    output:
+        framesets="results/scenes/{dataset}/{scene}/framesets.parquet",
+        patches="results/scenes/{dataset}/{scene}/patches.parquet",
+        quality="results/scenes/{dataset}/{scene}/quality.parquet",
+    log:
+        "logs/scenes/{dataset}/{scene}/summary.log",
+    script:
+        "../scripts/scene_summary.py"
+
+
+rule framesets:
+    input:
+        scene_summaries("framesets"),

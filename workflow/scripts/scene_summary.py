@@ -1,0 +1,5 @@
+from depthgt.jobs import logging_to, run_scene_summary
+
+with logging_to(snakemake.log[0]):
+    run_scene_summary(snakemake.input.index, list(snakemake.input.framesets), snakemake.output.framesets,
+                      snakemake.output.patches, snakemake.output.quality)
