@@ -1,0 +1,291 @@
+"""TUM RGB-D benchmark adapter.
+
+A sequence folder (``rgbd_dataset_freiburg1_xyz``, ...) holds::
+
+    rgb.txt, depth.txt     "timestamp filename" per line, "#" comments
+    groundtruth.txt        "timestamp tx ty tz qx qy qz qw" (colour camera in the
+                           motion-capture world: camera-to-world), optional
+    rgb/*.png              640x480 colour
+    depth/*.png            640x480 uint16, 5000 units per metre, 0 = invalid,
+                           registered to the colour camera by the OpenNI driver
+
+``root`` is a folder of sequence folders (or a sequence folder itself, scene ``"."``
+or its name). Frames are the depth images in ``depth.txt`` order; ``frame_id`` is the
+depth timestamp as written there. Each depth image is associated with the colour image
+and the ground-truth pose nearest in time; an association further than ``max_dt``
+seconds (default 0.02) makes the frame fail with ``FrameError("no_association")``
+(the pose one only when ``require_pose``; otherwise the pose is None).
+
+Intrinsics (TUM's published calibration of each Kinect's colour camera, to which the
+depth is registered; lens distortion, small for fr1/fr2 and already removed for fr3, is
+ignored): chosen by the sequence name (``freiburg1``/``fr1`` ...), overridable with the
+option ``camera`` (one of :data:`CAMERAS`) or ``intrinsics`` (3x3). A name without a
+camera falls back to fr1 with a warning.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from pathlib import Path
+
+import numpy as np
+
+from depthgt.errors import FrameError, SourceError
+from depthgt.io import fit_rgb_to_depth, read_depth_png, read_rgb
+from depthgt.sources.base import Frame, check_frame
+
+__all__ = ["CAMERAS", "DEPTH_SCALE", "TumScene", "associate", "poses_from_tum", "open_scene", "list_scenes"]
+
+log = logging.getLogger(__name__)
+
+#: fx, fy, cx, cy at 640x480 (TUM RGB-D "intrinsic calibration" page).
+CAMERAS: dict[str, tuple[float, float, float, float]] = {
+    "fr1": (517.3, 516.5, 318.6, 255.3),
+    "fr2": (520.9, 521.0, 325.1, 249.7),
+    "fr3": (535.4, 539.2, 320.1, 247.6),
+    "ros_default": (525.0, 525.0, 319.5, 239.5),
+}
+DEPTH_SCALE = 5000.0  # raw units per metre in TUM depth PNGs
+
+_CAMERA_IN_NAME = re.compile(r"(?:freiburg|fr)([123])", re.IGNORECASE)
+
+
+def _read_list(path: Path, columns: int) -> np.ndarray:
+    """Rows of a TUM text file (comments skipped) as an (N, columns) str array."""
+    if not path.is_file():
+        raise SourceError(f"{path}: file not found")
+    try:
+        rows = np.loadtxt(path, dtype=str, comments="#", ndmin=2)
+    except ValueError as exc:
+        raise SourceError(f"{path}: malformed TUM list ({exc})") from exc
+    if rows.size == 0:
+        return np.empty((0, columns), dtype=str)
+    if rows.shape[1] != columns:
+        raise SourceError(f"{path}: expected {columns} columns per line, found {rows.shape[1]}")
+    return rows
+
+
+def _timestamps(col: np.ndarray, path: Path) -> np.ndarray:
+    try:
+        return col.astype(np.float64)
+    except ValueError as exc:
+        raise SourceError(f"{path}: timestamps do not parse as numbers ({exc})") from exc
+
+
+def associate(t_query: np.ndarray, t_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest reference timestamp of each query timestamp.
+
+    Args:
+        t_query: (N,) float64 seconds.
+        t_ref: (M,) float64 seconds, any order.
+
+    Returns:
+        (N,) int64 index into ``t_ref`` (-1 when ``t_ref`` is empty) and (N,) float64
+        absolute time difference in seconds (inf when ``t_ref`` is empty).
+    """
+    t_query = np.asarray(t_query, dtype=np.float64)
+    if t_ref.size == 0:
+        return np.full(t_query.shape, -1, np.int64), np.full(t_query.shape, np.inf)
+    order = np.argsort(t_ref, kind="stable")
+    ts = t_ref[order]
+    right = np.clip(np.searchsorted(ts, t_query), 0, ts.size - 1)
+    left = np.clip(right - 1, 0, ts.size - 1)
+    take_left = np.abs(t_query - ts[left]) <= np.abs(ts[right] - t_query)
+    nearest = np.where(take_left, left, right)
+    return order[nearest].astype(np.int64), np.abs(ts[nearest] - t_query)
+
+
+def poses_from_tum(rows: np.ndarray) -> np.ndarray:
+    """TUM trajectory rows ``tx ty tz qx qy qz qw`` -> camera-to-world matrices.
+
+    Args:
+        rows: (N, 7) float64.
+
+    Returns:
+        (N, 4, 4) float64; a row with a non-finite or zero quaternion gives NaN rotation.
+    """
+    import torch
+    from kornia.geometry.conversions import quaternion_to_rotation_matrix
+
+    rows = np.asarray(rows, dtype=np.float64)
+    if rows.ndim != 2 or rows.shape[1] != 7:
+        raise ValueError(f"TUM pose rows must be (N, 7), got {rows.shape}")
+    q_xyzw = rows[:, 3:7]
+    bad = ~np.isfinite(q_xyzw).all(1) | (np.linalg.norm(np.nan_to_num(q_xyzw), axis=1) < 1e-9)
+    q_wxyz = torch.from_numpy(np.nan_to_num(q_xyzw[:, [3, 0, 1, 2]]))  # kornia is real-part first
+    q_wxyz[torch.from_numpy(bad)] = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    R = quaternion_to_rotation_matrix(q_wxyz).numpy()
+    R[bad] = np.nan
+    T = np.tile(np.eye(4), (rows.shape[0], 1, 1))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = rows[:, :3]
+    return T
+
+
+class TumScene:
+    """One TUM RGB-D sequence (see the module docstring)."""
+
+    has_clean_depth = False
+
+    def __init__(
+        self,
+        folder: str | Path,
+        name: str,
+        max_dt: float = 0.02,
+        camera: str | None = None,
+        intrinsics: np.ndarray | None = None,
+        depth_scale: float = DEPTH_SCALE,
+        require_pose: bool = True,
+    ):
+        self.path = Path(folder)
+        self.name = name
+        if not max_dt >= 0:
+            raise SourceError(f"{self.path}: max_dt must be >= 0 seconds, got {max_dt}")
+        if not depth_scale > 0:
+            raise SourceError(f"{self.path}: depth_scale must be > 0, got {depth_scale}")
+        self.max_dt = float(max_dt)
+        self.depth_scale = float(depth_scale)
+        self.require_pose = bool(require_pose)
+        self.problems: list[str] = []
+        self.intrinsics = self._intrinsics(camera, intrinsics)
+
+        depth_rows = _read_list(self.path / "depth.txt", 2)
+        rgb_rows = _read_list(self.path / "rgb.txt", 2)
+        if depth_rows.shape[0] == 0:
+            raise SourceError(f"{self.path / 'depth.txt'}: no depth frames listed")
+        self._depth_ids = depth_rows[:, 0]
+        self._depth_files = depth_rows[:, 1]
+        self._rgb_files = rgb_rows[:, 1]
+        t_depth = _timestamps(depth_rows[:, 0], self.path / "depth.txt")
+        t_rgb = _timestamps(rgb_rows[:, 0], self.path / "rgb.txt")
+        self._rgb_index, self._rgb_dt = associate(t_depth, t_rgb)
+
+        gt_path = self.path / "groundtruth.txt"
+        self.has_poses = gt_path.is_file()
+        if self.has_poses:
+            gt = _read_list(gt_path, 8)
+            try:
+                values = gt.astype(np.float64)
+            except ValueError as exc:
+                raise SourceError(f"{gt_path}: values do not parse as numbers ({exc})") from exc
+            self._poses = poses_from_tum(values[:, 1:])
+            self._pose_index, self._pose_dt = associate(t_depth, values[:, 0])
+        n_rgb = int((self._rgb_dt > self.max_dt).sum())
+        if n_rgb:
+            log.info("%s: %d of %d depth frames have no colour within %.3f s", self.path, n_rgb, t_depth.size, self.max_dt)
+        self.image_size = self._probe_size()
+
+    def _intrinsics(self, camera: str | None, intrinsics) -> np.ndarray:
+        self.camera = None
+        if intrinsics is not None:
+            K = np.asarray(intrinsics, dtype=np.float64)
+            if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+                raise SourceError(f"{self.path} (option intrinsics): need a finite 3x3 matrix, got {K.tolist()}")
+            return K.copy()
+        if camera is None:
+            m = _CAMERA_IN_NAME.search(self.path.resolve().name)
+            if m:
+                camera = f"fr{m.group(1)}"
+            else:
+                log.warning("%s: sequence name names no freiburg camera, using fr1 intrinsics", self.path)
+                camera = "fr1"
+        if camera not in CAMERAS:
+            raise SourceError(f"{self.path}: unknown TUM camera {camera!r}; known: {', '.join(CAMERAS)}")
+        self.camera = camera
+        fx, fy, cx, cy = CAMERAS[camera]
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    def _probe_size(self) -> tuple[int, int]:
+        for rel in self._depth_files[:10]:
+            try:
+                return tuple(read_depth_png(self.path / rel, self.depth_scale).shape)  # type: ignore[return-value]
+            except FrameError as exc:
+                log.warning("%s", exc)
+        raise SourceError(f"{self.path}: none of the first depth images is readable, cannot tell the image size")
+
+    def __len__(self) -> int:
+        return int(self._depth_ids.size)
+
+    def frame_id(self, i: int) -> str:
+        return str(self._depth_ids[i])
+
+    def read(self, i: int) -> Frame:
+        """Frame at position ``i``; raises FrameError naming the file at fault."""
+        if not 0 <= i < len(self):
+            raise IndexError(f"{self.path}: frame position {i} out of range 0..{len(self) - 1}")
+        depth_path = self.path / str(self._depth_files[i])
+        where = f"{self.path} depth {self._depth_ids[i]}"
+        if self._rgb_dt[i] > self.max_dt:
+            raise FrameError(
+                f"{depth_path}: no colour image within {self.max_dt} s (nearest {self._rgb_dt[i]:.4f} s)", "no_association"
+            )
+        need_pose = self.require_pose and self.has_poses
+        T = None
+        if self.has_poses:
+            if self._pose_dt[i] <= self.max_dt:
+                T = self._poses[self._pose_index[i]].copy()
+                if not need_pose and not np.isfinite(T).all():
+                    T = None
+            elif need_pose:
+                raise FrameError(
+                    f"{depth_path}: no ground-truth pose within {self.max_dt} s (nearest {self._pose_dt[i]:.4f} s)",
+                    "no_association",
+                )
+        depth_m = read_depth_png(depth_path, self.depth_scale)
+        if depth_m.shape != self.image_size:
+            raise FrameError(
+                f"{depth_path}: depth is {depth_m.shape[1]}x{depth_m.shape[0]}, the scene's intrinsics are for "
+                f"{self.image_size[1]}x{self.image_size[0]}",
+                "size_mismatch",
+            )
+        color_path = self.path / str(self._rgb_files[self._rgb_index[i]])
+        rgb = fit_rgb_to_depth(read_rgb(color_path), self.image_size, str(color_path))
+        return check_frame(Frame(rgb, depth_m, T), self.image_size, where, need_pose)
+
+
+def _is_sequence(folder: Path) -> bool:
+    return (folder / "depth.txt").is_file()
+
+
+def _root(root: str | Path | None) -> Path:
+    if root is None:
+        raise SourceError("tum source needs a root folder (got None)")
+    path = Path(root)
+    if not path.is_dir():
+        raise SourceError(f"{path}: tum root folder not found")
+    return path
+
+
+def list_scenes(root: str | Path | None, **options) -> list[str]:
+    """Sorted sequence names under ``root`` (``[root's name]`` when root is one)."""
+    path = _root(root)
+    if _is_sequence(path):
+        return [path.resolve().name]
+    return sorted(p.name for p in path.iterdir() if p.is_dir() and _is_sequence(p))
+
+
+def open_scene(
+    root: str | Path | None,
+    scene: str,
+    max_dt: float = 0.02,
+    camera: str | None = None,
+    intrinsics: np.ndarray | None = None,
+    depth_scale: float = DEPTH_SCALE,
+    require_pose: bool = True,
+) -> TumScene:
+    """Open TUM sequence ``scene`` under ``root``.
+
+    Raises:
+        SourceError: root or scene not found (the message lists the known scenes),
+            malformed lists, unknown camera.
+    """
+    path = _root(root)
+    opts = dict(max_dt=max_dt, camera=camera, intrinsics=intrinsics, depth_scale=depth_scale, require_pose=require_pose)
+    if _is_sequence(path) and scene in (".", path.resolve().name):
+        return TumScene(path, path.resolve().name, **opts)
+    folder = path / scene
+    if scene not in (".", "") and _is_sequence(folder):
+        return TumScene(folder, scene, **opts)
+    known = list_scenes(path)
+    raise SourceError(f"{path}: unknown tum scene {scene!r}; known scenes: {', '.join(known) or '(none)'}")
