@@ -1,0 +1,210 @@
+"""Losses of the depth-enhancement networks (LapDEN as in the paper, Sec. 3.3).
+
+L = L_D(y_hat, y) + lambda_s * L_S(y_hat, y), summed over the pyramid levels:
+
+* L_D: L1 on depth + L1 on the depth gradient + L1 on the surface normal (normals
+  from depth and intrinsics with kornia's ``depth_to_normals``);
+* L_S (paper eq. 6): mean over pixels p of
+  ``(max_{q in W(p)} |grad y_hat_q| - max_{q in W(p)} |grad y_q|)^2``, W a 5x5
+  window; the paper's change: the GT y replaces the raw input x; lambda_s = 5.
+
+Supervision only where the GT is valid (> 0): depth terms on valid GT pixels,
+gradient terms on pixels whose forward neighbours are valid too, normal terms on
+pixels whose 3x3 neighbourhood (the Sobel support of kornia's normals) is valid.
+Coarser levels are supervised with the GT average-pooled over its valid pixels and
+the intrinsics rescaled to that level.
+
+Every loss function takes ``(outputs, batch)``: ``outputs`` a list of depth maps
+(B, 1, h, w) in metres, finest last; ``batch`` a dict with ``input`` (B,1,H,W) raw
+depth, ``gt`` (B,1,H,W) GT depth (0 = none), ``K`` (B,3,3) intrinsics of the
+(H, W) images, ``rgb`` (B,3,H,W) in [0,1]; and returns ``(total, terms)`` with
+``terms`` a dict of floats for the loss log.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from kornia.geometry.depth import depth_to_normals
+
+from depthgt.enhance.lapden import masked_avg_pool
+from depthgt.geometry import scale_intrinsics
+
+__all__ = [
+    "LossConfig",
+    "masked_mean",
+    "forward_gradients",
+    "depth_l1",
+    "gradient_l1",
+    "normal_l1",
+    "max_gradient_magnitude",
+    "structure_loss",
+    "lapden_loss",
+]
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """Weights of the LapDEN loss.
+
+    Attributes:
+        w_depth, w_grad, w_normal: weights of the three L_D terms.
+        lambda_s: weight of L_S (the paper: 5, the original LapDEN: 10).
+        window: side of the max window of L_S (pixels, odd).
+        scale_weights: weight of each pyramid level, coarse to fine.
+    """
+
+    w_depth: float = 1.0
+    w_grad: float = 1.0
+    w_normal: float = 1.0
+    lambda_s: float = 5.0
+    window: int = 5
+    scale_weights: tuple[float, ...] = (1.0, 1.0, 1.0)
+
+
+def _check_depth(name: str, t: torch.Tensor) -> None:
+    if t.ndim != 4 or t.shape[1] != 1:
+        raise ValueError(f"{name} must be (B, 1, H, W), got {tuple(t.shape)}")
+
+
+def masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of ``x`` over ``mask`` (broadcast); 0 when the mask is empty (no NaN)."""
+    m = mask.to(x.dtype).expand_as(x)
+    return (x * m).sum() / m.sum().clamp_min(1.0)
+
+
+def forward_gradients(depth_m: torch.Tensor, valid: torch.Tensor):
+    """Forward-difference depth gradients with their validity.
+
+    Hand-written rather than kornia's ``spatial_gradient``: a 2-pixel forward
+    difference lets the validity be exact (both pixels valid) where a Sobel kernel
+    would mix in holes from a 3x3 support.
+
+    Args:
+        depth_m: (B, 1, H, W) metres.
+        valid: (B, 1, H, W) bool.
+
+    Returns:
+        gx, gy (B, 1, H, W) metres per pixel (last column / row 0) and their
+        validity vx, vy (B, 1, H, W) bool.
+    """
+    _check_depth("depth_m", depth_m)
+    gx = F.pad(depth_m[..., :, 1:] - depth_m[..., :, :-1], (0, 1, 0, 0))
+    gy = F.pad(depth_m[..., 1:, :] - depth_m[..., :-1, :], (0, 0, 0, 1))
+    v = valid.bool()
+    vx = F.pad(v[..., :, 1:] & v[..., :, :-1], (0, 1, 0, 0))
+    vy = F.pad(v[..., 1:, :] & v[..., :-1, :], (0, 0, 0, 1))
+    return gx, gy, vx, vy
+
+
+def depth_l1(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Mean |pred - gt| (metres) over valid GT pixels. pred, gt, valid: (B, 1, H, W)."""
+    return masked_mean((pred - gt).abs(), valid)
+
+
+def gradient_l1(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Mean L1 of the forward-difference gradient error, x and y terms averaged over
+    their own valid pixels and summed. Inputs (B, 1, H, W); metres per pixel."""
+    pgx, pgy, _, _ = forward_gradients(pred, valid)
+    ggx, ggy, vx, vy = forward_gradients(gt, valid)
+    return masked_mean((pgx - ggx).abs(), vx) + masked_mean((pgy - ggy).abs(), vy)
+
+
+def normal_l1(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """Mean over valid pixels of ||n_pred - n_gt||_1 (unit normals, kornia).
+
+    Args:
+        pred, gt: (B, 1, H, W) metres; valid: (B, 1, H, W) bool; K: (B, 3, 3) at (H, W).
+    """
+    if K.ndim != 3 or K.shape[-2:] != (3, 3) or K.shape[0] != pred.shape[0]:
+        raise ValueError(f"K must be (B, 3, 3) with B={pred.shape[0]}, got {tuple(K.shape)}")
+    K = K.to(pred.dtype)
+    n_pred = depth_to_normals(pred, K)
+    n_gt = depth_to_normals(gt, K)
+    # the Sobel support of the normal is 3x3: all of it must be valid GT
+    v = valid.to(pred.dtype)
+    v3 = 1.0 - F.max_pool2d(1.0 - v, 3, stride=1, padding=1)
+    return masked_mean((n_pred - n_gt).abs().sum(dim=1, keepdim=True), v3 > 0.5)
+
+
+def max_gradient_magnitude(depth_m: torch.Tensor, valid: torch.Tensor, window: int = 5, eps: float = 1e-12):
+    """max_{q in W(p)} |grad d_q| of eq. 6 over a ``window`` x ``window`` neighbourhood.
+
+    |grad d| uses forward differences; pixels whose gradient is undefined (a hole
+    among p, its right or lower neighbour) contribute 0 to the max.
+
+    Args:
+        depth_m: (B, 1, H, W) metres; valid: (B, 1, H, W) bool; window: odd int.
+
+    Returns:
+        (B, 1, H, W) metres per pixel.
+    """
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"window must be a positive odd int, got {window}")
+    gx, gy, vx, vy = forward_gradients(depth_m, valid)
+    vg = vx & vy
+    mag = torch.sqrt(gx * gx + gy * gy + eps) * vg.to(depth_m.dtype)
+    return F.max_pool2d(mag, window, stride=1, padding=window // 2)
+
+
+def structure_loss(pred: torch.Tensor, target: torch.Tensor, valid: torch.Tensor, window: int = 5) -> torch.Tensor:
+    """L_S (paper eq. 6): mean over valid pixels of the squared difference of the
+    windowed max gradient magnitudes of ``pred`` and ``target`` (units m^2/px^2).
+
+    Args:
+        pred, target: (B, 1, H, W) metres; valid: (B, 1, H, W) bool, where the
+            target's gradients are trusted (both images are masked with it).
+    """
+    _check_depth("pred", pred)
+    _check_depth("target", target)
+    if pred.shape != target.shape:
+        raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} differ in shape")
+    mp = max_gradient_magnitude(pred, valid, window)
+    mt = max_gradient_magnitude(target, valid, window)
+    return masked_mean((mp - mt) ** 2, valid)
+
+
+def _level_targets(gt: torch.Tensor, K: torch.Tensor, shape_hw: tuple[int, int]):
+    H, W = gt.shape[-2:]
+    factor = H // shape_hw[0]
+    if factor * shape_hw[0] != H or factor * shape_hw[1] != W:
+        raise ValueError(f"output size {shape_hw} is not an integer fraction of the GT size {(H, W)}")
+    gt_l, valid_l = masked_avg_pool(gt, gt > 0, factor)
+    K_l = scale_intrinsics(K, (H, W), shape_hw) if factor > 1 else K
+    return gt_l, valid_l, K_l
+
+
+def lapden_loss(outputs: list[torch.Tensor], batch: dict, config: LossConfig = LossConfig()):
+    """The paper's LapDEN loss summed over pyramid levels (see module docstring).
+
+    Args:
+        outputs: list of (B, 1, h_l, w_l) predictions, coarse to fine; finest at GT size.
+        batch: dict with ``gt`` (B, 1, H, W) and ``K`` (B, 3, 3).
+
+    Returns:
+        (total loss tensor, dict of float terms summed over levels: depth, grad,
+        normal, structure, total).
+    """
+    if isinstance(outputs, torch.Tensor):
+        outputs = [outputs]
+    gt, K = batch["gt"], batch["K"]
+    _check_depth("batch['gt']", gt)
+    weights = config.scale_weights[-len(outputs):]
+    if len(weights) != len(outputs):
+        raise ValueError(f"{len(outputs)} outputs but only {len(config.scale_weights)} scale_weights")
+    total = gt.new_zeros(())
+    terms = {"depth": 0.0, "grad": 0.0, "normal": 0.0, "structure": 0.0}
+    for w_l, pred in zip(weights, outputs):
+        gt_l, valid_l, K_l = _level_targets(gt, K, tuple(pred.shape[-2:]))
+        t_d = depth_l1(pred, gt_l, valid_l)
+        t_g = gradient_l1(pred, gt_l, valid_l)
+        t_n = normal_l1(pred, gt_l, valid_l, K_l)
+        t_s = structure_loss(pred, gt_l, valid_l, config.window)
+        level = config.w_depth * t_d + config.w_grad * t_g + config.w_normal * t_n + config.lambda_s * t_s
+        total = total + w_l * level
+        for k, t in (("depth", t_d), ("grad", t_g), ("normal", t_n), ("structure", t_s)):
+            terms[k] += w_l * float(t.detach())
+    terms["total"] = float(total.detach())
+    return total, terms

@@ -1,0 +1,147 @@
+"""LapDEN shapes and sizes, its losses on hand-computed cases, training and resume."""
+
+import math
+
+import pytest
+import torch
+
+from depthgt.enhance.lapden import PRESETS, LapDEN, LapDENConfig, count_parameters, lapden_from_preset, masked_avg_pool
+from depthgt.enhance.losses import (
+    LossConfig,
+    depth_l1,
+    gradient_l1,
+    lapden_loss,
+    normal_l1,
+    structure_loss,
+)
+
+torch.set_num_threads(2)
+
+
+def _expected_params(cfg: LapDENConfig) -> int:
+    c = cfg.channels
+    conv3 = 9 * c * c + c
+    conv4 = 16 * c * c + c
+    n_conv3 = sum(cfg.level_convs) + sum(cfg.encoder_convs)
+    return (9 * 2 * c + c) + n_conv3 * conv3 + 4 * conv4 + 3 * (9 * c + 1)
+
+
+@pytest.mark.parametrize("name", ["paper", "default"])
+def test_lapden_parameter_counts_no_shared_layers(name):
+    model = lapden_from_preset(name)
+    n = count_parameters(model)
+    assert n == _expected_params(PRESETS[name])
+    # a layer registered twice would be counted once by parameters() but twice here
+    assert len(list(model.named_parameters(remove_duplicate=False))) == len(list(model.parameters()))
+    if name == "paper":
+        assert 3.4e6 < n < 3.8e6  # the released model: ~3.6 M
+    else:
+        assert n < 0.5e6
+
+
+def test_lapden_multiscale_shapes_and_gradients():
+    torch.manual_seed(0)
+    model = LapDEN(PRESETS["default"])
+    depth = 1.0 + torch.rand(2, 1, 32, 48)
+    depth[:, :, 5:9, 5:9] = 0.0
+    outs = model(depth)
+    assert [tuple(o.shape) for o in outs] == [(2, 1, 8, 12), (2, 1, 16, 24), (2, 1, 32, 48)]
+    outs[-1].mean().backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.parameters())
+    with pytest.raises(ValueError, match="divisible by 4"):
+        model(torch.rand(1, 1, 30, 32))
+    with pytest.raises(ValueError, match=r"\(B, 1, H, W\)"):
+        model(torch.rand(1, 2, 32, 32))
+
+
+def test_lapden_config_rejects_odd_blocks():
+    with pytest.raises(ValueError, match="even"):
+        LapDENConfig(level_convs=(1, 2, 2))
+    with pytest.raises(ValueError, match="unknown LapDEN preset"):
+        lapden_from_preset("huge")
+
+
+def test_masked_avg_pool_ignores_holes():
+    d = torch.tensor([[[[1.0, 0.0], [3.0, 0.0]]]])
+    out, valid = masked_avg_pool(d, d > 0, 2)
+    assert out.item() == pytest.approx(2.0) and valid.item()
+    out, valid = masked_avg_pool(torch.zeros(1, 1, 2, 2), torch.zeros(1, 1, 2, 2, dtype=torch.bool), 2)
+    assert out.item() == 0.0 and not valid.item()
+
+
+def test_depth_and_gradient_l1_hand_computed():
+    pred = torch.tensor([[[[1.0, 2.0], [3.0, 4.0]]]])
+    gt = torch.tensor([[[[1.0, 0.0], [2.0, 5.0]]]])
+    # valid GT: errors 0, 1, 1
+    assert depth_l1(pred, gt, gt > 0).item() == pytest.approx(2.0 / 3.0)
+    # x-ramp against a flat GT: |dx| = 1 on the 2 valid columns of differences, dy = 0
+    ramp = torch.arange(3.0).repeat(3, 1)[None, None]
+    flat = torch.ones(1, 1, 3, 3)
+    assert gradient_l1(ramp, flat, flat > 0).item() == pytest.approx(1.0)
+    # a hole kills the differences that touch it: only row 0 and 2 remain, still 1
+    holed = flat.clone()
+    holed[0, 0, 1, 1] = 0
+    assert gradient_l1(ramp, holed, holed > 0).item() == pytest.approx(1.0)
+
+
+def test_structure_loss_hand_computed():
+    pred = torch.ones(1, 1, 4, 4)
+    pred[..., 2:] = 2.0
+    flat = torch.ones(1, 1, 4, 4)
+    valid = flat > 0
+    assert structure_loss(pred, flat, valid, 5).item() == pytest.approx(1.0, rel=1e-5)
+    assert structure_loss(pred, flat, valid, 3).item() == pytest.approx(0.75, rel=1e-5)
+    # symmetric in the sense of eq. 6 (squared difference)
+    assert structure_loss(flat, pred, valid, 3).item() == pytest.approx(0.75, rel=1e-5)
+
+
+def _tilted_plane(s: float, n: int = 12, f: float = 100.0):
+    """Depth of the plane Z = 1 + s * X seen by a camera with fx = fy = f."""
+    K = torch.tensor([[[f, 0.0, (n - 1) / 2], [0.0, f, (n - 1) / 2], [0.0, 0.0, 1.0]]])
+    u = torch.arange(n, dtype=torch.float32) - K[0, 0, 2]
+    z = 1.0 / (1.0 - s * u / f)
+    return z.repeat(n, 1)[None, None], K
+
+
+def test_normal_l1_hand_computed():
+    flat, K = _tilted_plane(0.0)
+    tilted, _ = _tilted_plane(1.0)
+    valid = flat > 0
+    # normals (0,0,1) and (-1,0,1)/sqrt(2): L1 = 1/sqrt(2) + 1 - 1/sqrt(2) = 1
+    assert normal_l1(tilted, flat, valid, K).item() == pytest.approx(1.0, abs=1e-3)
+    # scaling a plane's depth keeps its normal
+    assert normal_l1(2.0 * tilted, tilted, valid, K).item() == pytest.approx(0.0, abs=1e-4)
+    with pytest.raises(ValueError, match="K must be"):
+        normal_l1(flat, flat, valid, K[0])
+
+
+def test_lapden_loss_multiscale_zero_at_gt_and_masks_holes():
+    gt, K = _tilted_plane(0.5, n=16)
+    gt = gt.clone()
+    gt[..., :4, :4] = 0.0  # GT hole
+    pooled2, _ = masked_avg_pool(gt, gt > 0, 2)
+    pooled4, _ = masked_avg_pool(gt, gt > 0, 4)
+    # predicting the (pooled) GT, anything in the hole, costs nothing
+    fine = torch.where(gt > 0, gt, torch.full_like(gt, 7.0))
+    outs = [pooled4.clone(), pooled2.clone(), fine]
+    outs[1][..., :2, :2] = 5.0  # the hole at 1/2
+    total, terms = lapden_loss(outs, {"gt": gt, "K": K})
+    assert total.item() == pytest.approx(0.0, abs=1e-5)
+    # a constant offset of 0.1 m at full scale only: depth term 0.1, others 0
+    outs2 = [pooled4, pooled2, gt + 0.1]
+    total2, terms2 = lapden_loss(outs2, {"gt": gt, "K": K}, LossConfig(w_normal=0.0))
+    assert terms2["depth"] == pytest.approx(0.1, rel=1e-4)
+    assert terms2["grad"] == pytest.approx(0.0, abs=1e-6)
+    assert terms2["structure"] == pytest.approx(0.0, abs=1e-8)
+    assert total2.item() == pytest.approx(0.1, rel=1e-4)
+
+
+def test_lapden_loss_gradients_flow():
+    torch.manual_seed(0)
+    model = LapDEN(LapDENConfig(channels=8, level_convs=(2, 2, 2), encoder_convs=(0, 0)))
+    gt, K = _tilted_plane(0.3, n=16)
+    noisy = gt + 0.01 * torch.randn_like(gt)
+    total, terms = lapden_loss(model(noisy), {"gt": gt, "K": K})
+    total.backward()
+    assert math.isfinite(terms["total"])
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters())
