@@ -53,3 +53,22 @@ def job_settings(config: dict[str, Any]):
         seed=int(config.get("seed", 0)),
         device=str(config.get("device", "auto")),
     )
+
+
+def check_config(config: dict[str, Any], schema_path: str) -> None:
+    """Validate ``config`` against the JSON schema and raise one :class:`ConfigError`
+    listing every problem as ``key.path: message`` (Snakemake's own validation, run
+    afterwards to fill defaults, reports only the first error with the whole schema)."""
+    import jsonschema
+    import yaml
+
+    with open(schema_path) as fh:
+        schema = yaml.safe_load(fh)
+    validator = jsonschema.Draft202012Validator(schema)
+    errors = sorted(validator.iter_errors(config), key=lambda e: list(map(str, e.absolute_path)))
+    if errors:
+        lines = []
+        for err in errors:
+            path = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in err.absolute_path).lstrip(".") or "(top level)"
+            lines.append(f"  config key {path}: {err.message}")
+        raise ConfigError("invalid configuration:\n" + "\n".join(lines))
