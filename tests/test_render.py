@@ -1,0 +1,125 @@
+"""Tests of depthgt.render: soft splat (gradients, occlusion, reference) and the GT renderer."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from depthgt.render import SoftSplat, splat_soft
+from render_reference import splat_soft_reference
+
+torch.set_num_threads(2)
+
+
+def _K(b: int, f: float, cx: float, cy: float, dtype=torch.float64) -> torch.Tensor:
+    return torch.tensor([[f, 0, cx], [0, f, cy], [0, 0, 1]], dtype=dtype).expand(b, 3, 3).clone()
+
+
+def _unproject(uv: torch.Tensor, z: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """(N, 2) pixel positions and (N,) depths -> (N, 3) points for a (3, 3) K."""
+    x = (uv[:, 0] - K[0, 2]) / K[0, 0] * z
+    y = (uv[:, 1] - K[1, 2]) / K[1, 1] * z
+    return torch.stack([x, y, z], dim=1)
+
+
+# ------------------------------------------------------------------ splat_soft
+
+
+def test_splat_single_point_footprint():
+    K = _K(1, 10.0, 4.0, 4.0)
+    p = _unproject(torch.tensor([[4.0, 4.0]], dtype=torch.float64), torch.tensor([2.0], dtype=torch.float64), K[0])
+    out = splat_soft(p[None], torch.tensor([[[0.25, 0.75]]], dtype=torch.float64), K, (9, 9), radius_px=2.0)
+    assert isinstance(out, SoftSplat)
+    assert out.features.shape == (1, 2, 9, 9) and out.depth.shape == (1, 1, 9, 9) and out.weight.shape == (1, 1, 9, 9)
+    assert out.weight[0, 0, 4, 4] == pytest.approx(1.0)
+    assert out.weight[0, 0, 4, 5] == pytest.approx((1 - 1 / 4) ** 2)
+    assert out.weight[0, 0, 4, 6] == 0  # exactly at the radius: weight falls to zero
+    assert out.weight[0, 0, 5, 5] == pytest.approx((1 - 2 / 4) ** 2)
+    covered = out.weight[0, 0] > 0
+    assert int(covered.sum()) == 9  # pixel centres strictly within 2 px of (4, 4): 3x3 block
+    assert torch.allclose(out.depth[0, 0][covered], torch.tensor(2.0, dtype=torch.float64))
+    assert torch.allclose(out.features[0, 1][covered], torch.tensor(0.75, dtype=torch.float64))
+    assert (out.depth[0, 0][~covered] == 0).all() and (out.features[0][:, ~covered] == 0).all()
+
+
+def test_splat_occlusion_and_cap():
+    K = _K(1, 10.0, 4.0, 4.0)
+    uv = torch.tensor([[4.0, 4.0], [4.2, 4.1], [3.9, 4.0]], dtype=torch.float64)
+    z = torch.tensor([1.0, 3.0, 1.02], dtype=torch.float64)
+    p = _unproject(uv, z, K[0])[None]
+    f = torch.tensor([[[1.0], [5.0], [1.0]]], dtype=torch.float64)
+    out = splat_soft(p, f, K, (9, 9), radius_px=1.5)
+    assert float(out.depth[0, 0, 4, 4]) < 1.03  # the point at 3 m is hidden behind the front ones
+    assert float(out.features[0, 0, 4, 4]) == pytest.approx(1.0)
+    # without the band, the cap alone (nearest in depth) still hides the farthest point
+    out = splat_soft(p, f, K, (9, 9), radius_px=1.5, depth_band_rel=None, max_points=2)
+    assert float(out.features[0, 0, 4, 4]) == pytest.approx(1.0)
+    out = splat_soft(p, f, K, (9, 9), radius_px=1.5, depth_band_rel=None, max_points=3)
+    assert float(out.features[0, 0, 4, 4]) > 1.5  # now it bleeds through, as documented
+
+
+def test_splat_ignores_invalid_behind_and_outside():
+    K = _K(1, 10.0, 4.0, 4.0)
+    p = torch.tensor([[[0.0, 0.0, 2.0], [0.0, 0.0, -2.0], [50.0, 0.0, 1.0], [0.1, 0.1, 2.0]]], dtype=torch.float64)
+    valid = torch.tensor([[True, True, True, False]])
+    out = splat_soft(p, torch.ones(1, 4, 1, dtype=torch.float64), K, (9, 9), valid=valid, radius_px=1.0)
+    assert int((out.weight > 0).sum()) == 1 and float(out.depth[0, 0, 4, 4]) == 2.0
+
+
+def test_splat_matches_reference():
+    g = torch.Generator().manual_seed(3)
+    b, n, h, w = 2, 40, 12, 14
+    K = _K(b, 12.0, 6.3, 5.8)
+    uv = torch.rand(b, n, 2, generator=g, dtype=torch.float64) * torch.tensor([w + 2.0, h + 2.0], dtype=torch.float64) - 1
+    z = 1.0 + torch.rand(b, n, generator=g, dtype=torch.float64) * 0.3
+    p = torch.stack([_unproject(uv[i], z[i], K[i]) for i in range(b)])
+    f = torch.rand(b, n, 3, generator=g, dtype=torch.float64)
+    valid = torch.rand(b, n, generator=g) > 0.1
+    out = splat_soft(p, f, K, (h, w), valid=valid, radius_px=1.7, max_points=3, depth_band_rel=0.1)
+    for i in range(b):
+        rf, rz, rw = splat_soft_reference(p[i].numpy(), f[i].numpy(), K[i].numpy(), (h, w), valid[i].numpy(),
+                                          radius_px=1.7, max_points=3, depth_band_rel=0.1)
+        np.testing.assert_allclose(out.weight[i, 0].numpy(), rw, atol=1e-12)
+        np.testing.assert_allclose(out.depth[i, 0].numpy(), rz, atol=1e-12)
+        np.testing.assert_allclose(out.features[i].numpy(), rf, atol=1e-12)
+
+
+def test_splat_gradcheck():
+    K = _K(1, 8.0, 3.5, 3.0)
+    uv = torch.tensor([[2.3, 2.7], [3.65, 3.25], [4.1, 2.15]], dtype=torch.float64)
+    z = torch.tensor([1.0, 1.01, 1.02], dtype=torch.float64)
+    p = _unproject(uv, z, K[0])[None].requires_grad_()
+    f = torch.tensor([[[0.2, 0.9], [0.5, 0.1], [0.7, 0.4]]], dtype=torch.float64, requires_grad=True)
+
+    def fn(p, f):
+        out = splat_soft(p, f, K, (6, 7), radius_px=2.0, max_points=16)
+        return out.features, out.depth, out.weight
+
+    assert torch.autograd.gradcheck(fn, (p, f), eps=1e-6, atol=1e-6)
+    fn(p, f)[1].sum().backward()
+    assert p.grad is not None and p.grad.abs().sum() > 0
+
+
+def test_splat_bad_shapes():
+    K = _K(1, 10.0, 4.0, 4.0)
+    with pytest.raises(ValueError, match="points_cam"):
+        splat_soft(torch.zeros(1, 5, 2), torch.zeros(1, 5, 1), K, (9, 9))
+    with pytest.raises(ValueError, match="features"):
+        splat_soft(torch.zeros(1, 5, 3), torch.zeros(1, 4, 1), K, (9, 9))
+    with pytest.raises(ValueError, match="K must be"):
+        splat_soft(torch.zeros(2, 5, 3), torch.zeros(2, 5, 1), K, (9, 9))
+    with pytest.raises(ValueError, match="valid"):
+        splat_soft(torch.zeros(1, 5, 3), torch.zeros(1, 5, 1), K, (9, 9), valid=torch.ones(1, 5))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_splat_cuda_matches_cpu():
+    g = torch.Generator().manual_seed(1)
+    K = _K(1, 30.0, 16.0, 16.0, torch.float32)
+    p = torch.rand(1, 500, 3, generator=g) * torch.tensor([1.0, 1.0, 1.0]) + torch.tensor([-0.5, -0.5, 1.0])
+    f = torch.rand(1, 500, 3, generator=g)
+    a = splat_soft(p, f, K, (32, 32))
+    c = splat_soft(p.cuda(), f.cuda(), K.cuda(), (32, 32))
+    assert c.depth.device.type == "cuda"
+    assert torch.allclose(a.depth, c.depth.cpu(), atol=1e-5) and torch.allclose(a.features, c.features.cpu(), atol=1e-5)
