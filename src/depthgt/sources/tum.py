@@ -52,18 +52,19 @@ _CAMERA_IN_NAME = re.compile(r"(?:freiburg|fr)([123])", re.IGNORECASE)
 
 
 def _read_list(path: Path, columns: int) -> np.ndarray:
-    """Rows of a TUM text file (comments skipped) as an (N, columns) str array."""
+    """Rows of a TUM text file ("#" comments and blank lines skipped) as an
+    (N, columns) str array."""
     if not path.is_file():
         raise SourceError(f"{path}: file not found")
-    try:
-        rows = np.loadtxt(path, dtype=str, comments="#", ndmin=2)
-    except ValueError as exc:
-        raise SourceError(f"{path}: malformed TUM list ({exc})") from exc
-    if rows.size == 0:
-        return np.empty((0, columns), dtype=str)
-    if rows.shape[1] != columns:
-        raise SourceError(f"{path}: expected {columns} columns per line, found {rows.shape[1]}")
-    return rows
+    rows = []
+    for number, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+        fields = line.split()
+        if not fields or fields[0].startswith("#"):
+            continue
+        if len(fields) != columns:
+            raise SourceError(f"{path}: line {number} has {len(fields)} fields, expected {columns}")
+        rows.append(fields)
+    return np.array(rows, dtype=str).reshape(len(rows), columns)
 
 
 def _timestamps(col: np.ndarray, path: Path) -> np.ndarray:
