@@ -124,3 +124,20 @@ def test_read_pose_txt(tmp_path):
     with pytest.raises(FrameError, match="absent.txt") as e:
         read_pose_txt(tmp_path / "absent.txt")
     assert e.value.reason == "missing_file"
+
+
+def test_fit_rgb_to_depth_area_downscale_and_aspect_check():
+    from depthgt.io import fit_rgb_to_depth
+
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (8, 12, 3), dtype=np.uint8)
+    assert fit_rgb_to_depth(rgb, (8, 12), "x") is rgb  # same size: untouched
+    out = fit_rgb_to_depth(rgb, (4, 6), "x")
+    block_mean = rgb.reshape(4, 2, 6, 2, 3).astype(float).mean((1, 3))  # area average of 2x2 blocks
+    assert out.dtype == np.uint8 and out.shape == (4, 6, 3)
+    assert np.abs(out - block_mean).max() <= 0.5 + 1e-9
+    # ScanNet's 1296x968 colour vs 640x480 depth differ by 0.4% in aspect: accepted
+    assert fit_rgb_to_depth(np.zeros((968, 1296, 3), np.uint8), (480, 640), "x").shape == (480, 640, 3)
+    with pytest.raises(FrameError, match=r"c\.jpg: colour 12x12 cannot be fitted to depth 12x8") as e:
+        fit_rgb_to_depth(np.zeros((12, 12, 3), np.uint8), (8, 12), "c.jpg")
+    assert e.value.reason == "size_mismatch"
