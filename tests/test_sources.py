@@ -223,6 +223,11 @@ def test_sens_truncated_header(tmp_path):
     bad.write_bytes(b"\x03\x00\x00\x00" + data[4:])
     with pytest.raises(SourceError, match="version 3"):
         SensFile(bad)
+    pos = 4 + 8 + len("test-sensor") + 4 * 64 + 4  # depth_compression_type
+    bad = tmp_path / "occi.sens"
+    bad.write_bytes(data[:pos] + (2).to_bytes(4, "little") + data[pos + 4:])
+    with pytest.raises(SourceError, match="occi.sens: depth compression 'occi_ushort' is not supported"):
+        SensFile(bad)
 
 
 def test_sens_truncated_frames(tmp_path, caplog):
