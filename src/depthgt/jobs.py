@@ -42,11 +42,26 @@ def logging_to(path: str | Path | None, level: int = logging.INFO) -> Iterator[N
         handler.close()
 
 
-def open_source_scene(source: dict[str, Any], scene: str):
-    """Open ``scene`` of a config source entry (name, kind, root, options)."""
+POSE_OPTIONAL_KINDS = ("scannet", "sevenscenes", "tum")
+
+
+def open_source_scene(source: dict[str, Any], scene: str, need_poses: bool = True):
+    """Open ``scene`` of a config source entry (name, kind, root, options).
+
+    When the registration does not need the source's poses, real sources are opened
+    with ``require_pose=False`` so that frames with non-finite poses (ScanNet has them)
+    stay usable.
+    """
+    from depthgt.errors import ConfigError
     from depthgt.sources.base import open_scene
 
-    return open_scene(source["kind"], source.get("root"), scene, **(source.get("options") or {}))
+    options = dict(source.get("options") or {})
+    if not need_poses and source["kind"] in POSE_OPTIONAL_KINDS:
+        options.setdefault("require_pose", False)
+    try:
+        return open_scene(source["kind"], source.get("root"), scene, **options)
+    except TypeError as err:
+        raise ConfigError(f"config sources entry {source.get('name')!r} (kind {source['kind']}): bad options: {err}") from err
 
 
 def run_scene_index(source: dict[str, Any], scene: str, config: dict[str, Any], out_parquet: str, out_json: str) -> None:
@@ -55,8 +70,8 @@ def run_scene_index(source: dict[str, Any], scene: str, config: dict[str, Any], 
     from depthgt.framesets import FrameSetSettings, SplitSettings
     from depthgt.scene_index import build_index
 
-    sc = open_source_scene(source, scene)
     method = (config.get("registration") or {}).get("method", "given")
+    sc = open_source_scene(source, scene, need_poses=(method == "given"))
     index = build_index(
         sc, source["name"], source.get("split", "auto"), need_poses=(method == "given"),
         fs_settings=build(FrameSetSettings, config.get("frameset"), "frameset"),
@@ -94,7 +109,8 @@ def run_frameset(source: dict[str, Any], scene: str, target: int, config: dict[s
 
         state = torch.load(encoder, map_location="cpu", weights_only=True)
     settings = job_settings(config)
-    doc = process_frameset(open_source_scene(source, scene), source["name"], target, [int(m) for m in row["members"]],
+    scene_obj = open_source_scene(source, scene, need_poses=(settings.registration_method == "given"))
+    doc = process_frameset(scene_obj, source["name"], target, [int(m) for m in row["members"]],
                            row["frameset_split"], out_dir, settings, encoder_state=state)
     log.info("frame set %s/%s/%06d: status %s, %d/%d patches kept, GT missing %.3f (input %.3f)", source["name"], scene,
              target, doc["status"], doc["statistics"]["patches_kept"], doc["statistics"]["patches_drawn"],
