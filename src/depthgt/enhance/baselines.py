@@ -1,0 +1,230 @@
+"""Depth-enhancement baselines behind one interface (paper Sec. 4.3).
+
+Every baseline is a function ``f(depth_m, rgb, **params) -> (H, W) float32``:
+``depth_m`` (H, W) float32 metres (0 = invalid), ``rgb`` (H, W, 3) uint8; the output
+is depth in metres, 0 where the method leaves a pixel undefined. They are registered
+by name in :data:`BASELINES`; :func:`run_baseline` checks the inputs and calls one.
+
+* ``input``: the raw depth unchanged (the reference row of the tables).
+* ``rgf``: rolling guidance filter (Zhang et al. ECCV 2014): a Gaussian-smoothed
+  initial guidance, then joint bilateral iterations of the input guided by the last
+  result. OpenCV's ``cv2.ximgproc`` (opencv-contrib) is not installed here, so the
+  joint bilateral step is kornia's ``joint_bilateral_blur``; invalid pixels are
+  excluded by normalised convolution (filter(depth * valid) / filter(valid) with the
+  same guidance, hence the same weights), so zeros never bleed in.
+* ``jf``: mutual-structure joint filtering (Shen et al. ICCV 2015), see :func:`jf`.
+* ``learned``: a network checkpoint written by :func:`depthgt.enhance.train.train`
+  (LapDEN, RDE = LapDEN on another GT, DDRNet, SDD); ``checkpoint=`` is required.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from kornia.color import rgb_to_grayscale
+from kornia.filters import box_blur, gaussian_blur2d, joint_bilateral_blur
+
+__all__ = ["BASELINES", "register_baseline", "run_baseline", "identity", "rgf", "jf", "learned", "fill_holes"]
+
+BASELINES: dict[str, Callable[..., np.ndarray]] = {}
+
+
+def register_baseline(name: str):
+    """Decorator registering ``f(depth_m, rgb, **params) -> (H, W) float32`` as ``name``."""
+
+    def deco(fn):
+        if name in BASELINES:
+            raise ValueError(f"baseline {name!r} registered twice")
+        BASELINES[name] = fn
+        return fn
+
+    return deco
+
+
+def _check_inputs(depth_m: np.ndarray, rgb: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    d = np.asarray(depth_m)
+    if d.ndim != 2:
+        raise ValueError(f"depth_m must be (H, W), got {d.shape}")
+    d = np.nan_to_num(d.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    d[d < 0] = 0.0
+    if rgb is not None:
+        rgb = np.asarray(rgb)
+        if rgb.shape != (*d.shape, 3):
+            raise ValueError(f"rgb must be (H, W, 3) = {(*d.shape, 3)} to match depth_m, got {rgb.shape}")
+    return d, rgb
+
+
+def run_baseline(name: str, depth_m: np.ndarray, rgb: np.ndarray | None, **params) -> np.ndarray:
+    """Run the baseline ``name`` on one frame; returns (H, W) float32 metres."""
+    if name not in BASELINES:
+        raise ValueError(f"unknown baseline {name!r}; known: {sorted(BASELINES)}")
+    d, rgb = _check_inputs(depth_m, rgb)
+    out = BASELINES[name](d, rgb, **params)
+    out = np.asarray(out, dtype=np.float32)
+    if out.shape != d.shape:
+        raise RuntimeError(f"baseline {name!r} returned {out.shape}, expected {d.shape}")
+    return out
+
+
+def _t(a: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))[None, None]
+
+
+@register_baseline("input")
+def identity(depth_m: np.ndarray, rgb: np.ndarray | None = None) -> np.ndarray:
+    """The raw depth, unchanged."""
+    return np.asarray(depth_m, dtype=np.float32).copy()
+
+
+def fill_holes(depth: torch.Tensor, valid: torch.Tensor, kernel: int = 5, max_iter: int = 1000) -> torch.Tensor:
+    """Fill holes by repeated normalised box filtering (each pass grows the filled
+    region by ``kernel // 2`` pixels; valid pixels are kept).
+
+    Args:
+        depth: (B, 1, H, W); valid: (B, 1, H, W) bool.
+
+    Returns:
+        (B, 1, H, W), every pixel filled unless an image has no valid pixel.
+    """
+    d = torch.where(valid, depth, torch.zeros_like(depth))
+    w = valid.to(depth.dtype)
+    for _ in range(max_iter):
+        if bool((w > 0).all()):
+            break
+        num = F.avg_pool2d(d * w, kernel, stride=1, padding=kernel // 2, count_include_pad=False)
+        den = F.avg_pool2d(w, kernel, stride=1, padding=kernel // 2, count_include_pad=False)
+        new = (w == 0) & (den > 0)
+        d = torch.where(new, num / den.clamp_min(1e-12), d)
+        w = torch.where(new, torch.ones_like(w), w)
+    return d
+
+
+@register_baseline("rgf")
+def rgf(depth_m: np.ndarray, rgb: np.ndarray | None = None, sigma_s: float = 3.0, sigma_r: float = 0.05,
+        iterations: int = 4) -> np.ndarray:
+    """Rolling guidance filter of depth with invalid pixels excluded.
+
+    Args:
+        depth_m: (H, W) metres, 0 = invalid. rgb: unused (RGF guides with itself).
+        sigma_s: spatial sigma (pixels); the kernel is 2*ceil(2*sigma_s)+1 wide.
+        sigma_r: range sigma (metres).
+        iterations: joint bilateral iterations after the Gaussian guidance.
+
+    Returns:
+        (H, W) float32 metres; holes are filled where a valid pixel lies within the
+        kernel, 0 elsewhere.
+    """
+    if sigma_s <= 0 or sigma_r <= 0 or iterations < 0:
+        raise ValueError(f"rgf: sigma_s, sigma_r must be > 0 and iterations >= 0, got {sigma_s}, {sigma_r}, {iterations}")
+    d = _t(depth_m)
+    valid = (d > 0).to(d.dtype)
+    k = 2 * math.ceil(2 * sigma_s) + 1
+    num = gaussian_blur2d(d * valid, k, (sigma_s, sigma_s))
+    den = gaussian_blur2d(valid, k, (sigma_s, sigma_s))
+    covered = den > 1e-6
+    J = torch.where(covered, num / den.clamp_min(1e-12), torch.zeros_like(num))
+    for _ in range(iterations):
+        num = joint_bilateral_blur(d * valid, J, k, sigma_r, (sigma_s, sigma_s))
+        den = joint_bilateral_blur(valid, J, k, sigma_r, (sigma_s, sigma_s))
+        covered = den > 1e-6
+        J = torch.where(covered, num / den.clamp_min(1e-12), torch.zeros_like(num))
+    return J[0, 0].numpy()
+
+
+@register_baseline("jf")
+def jf(depth_m: np.ndarray, rgb: np.ndarray, r: int = 3, eps_I: float = 1e-4, eps_G: float = 5e-4,
+       lambda_I: float = 1.0, lambda_G: float = 30.0, iterations: int = 20) -> np.ndarray:
+    """Mutual-structure joint filtering of depth I with the grey image G.
+
+    The energy (Shen et al. 2015) couples I and G by local linear models in every
+    (2r+1)^2 window k in both directions, with fidelity to the inputs I0, G0::
+
+        E = sum_k sum_{i in w_k} [(a_k I_i + b_k - G_i)^2 + (c_k G_i + e_k - I_i)^2]
+            + eps_I sum_k a_k^2 + eps_G sum_k c_k^2
+            + lambda_I sum_i (I_i - I0_i)^2 + lambda_G sum_i (G_i - G0_i)^2
+
+    solved by alternation: with I, G fixed, (a, b) and (c, e) are guided-filter
+    regressions (box filters); with them fixed, the normal equations of each pixel
+    are a 2x2 linear system in (I_i, G_i) whose coefficients are window averages of
+    a^2, a, a b, ... (the structure term is averaged over the windows that cover a
+    pixel, so lambda weighs against 1). Depth is scaled by its maximum to [0, 1] so
+    that the authors' eps apply; holes are pre-filled by normalised box filtering and
+    carry no fidelity term (lambda_I = 0 there).
+
+    Args:
+        depth_m: (H, W) metres; rgb: (H, W, 3) uint8.
+        r, eps_I, eps_G, lambda_I, lambda_G, iterations: the authors' RGB-D values
+        by default.
+
+    Returns:
+        (H, W) float32 metres, every pixel filled (0 only if the input is empty).
+    """
+    if rgb is None:
+        raise ValueError("jf needs the rgb image as guidance")
+    d = _t(depth_m)
+    valid = d > 0
+    if not valid.any():
+        return np.zeros_like(depth_m, dtype=np.float32)
+    scale = float(d[valid].max())
+    I0 = fill_holes(d / scale, valid)
+    G0 = rgb_to_grayscale(torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None].float() / 255.0)
+    lam_I = lambda_I * valid.to(I0.dtype)
+    k = 2 * r + 1
+
+    def box(x):
+        return box_blur(x, k, border_type="reflect")
+
+    I, G = I0.clone(), G0.clone()
+    for _ in range(iterations):
+        mI, mG = box(I), box(G)
+        cov = box(I * G) - mI * mG
+        var_I = (box(I * I) - mI * mI).clamp_min(0.0)
+        var_G = (box(G * G) - mG * mG).clamp_min(0.0)
+        a = cov / (var_I + eps_I)  # G ~ a I + b
+        b = mG - a * mI
+        c = cov / (var_G + eps_G)  # I ~ c G + e
+        e = mI - c * mG
+        A, AA, AB = box(a), box(a * a), box(a * b)
+        C, CC, CE = box(c), box(c * c), box(c * e)
+        B, E = box(b), box(e)
+        # [p11 p12; p12 p22] [I; G] = [q1; q2]
+        p11 = AA + 1.0 + lam_I
+        p22 = 1.0 + CC + lambda_G
+        p12 = -(A + C)
+        q1 = -AB + E + lam_I * I0
+        q2 = B - CE + lambda_G * G0
+        det = p11 * p22 - p12 * p12
+        I = (p22 * q1 - p12 * q2) / det
+        G = (p11 * q2 - p12 * q1) / det
+    return (I * scale)[0, 0].clamp_min(0.0).numpy()
+
+
+@lru_cache(maxsize=8)
+def _cached_model(checkpoint: str, device: str):
+    from depthgt.enhance.train import load_model
+
+    return load_model(checkpoint, device)
+
+
+@register_baseline("learned")
+def learned(depth_m: np.ndarray, rgb: np.ndarray | None = None, checkpoint: str | Path | None = None,
+            device: str = "cpu") -> np.ndarray:
+    """Enhance with a trained network checkpoint (LapDEN, RDE, DDRNet, SDD).
+
+    Args:
+        depth_m: (H, W) metres; rgb: unused (the networks take depth only).
+        checkpoint: a ``best.pt``/``last.pt`` written by ``train``.
+        device: where to run it.
+    """
+    if checkpoint is None:
+        raise ValueError("learned baseline needs checkpoint=<path to best.pt>")
+    from depthgt.enhance.train import predict_depth
+
+    model = _cached_model(str(Path(checkpoint).resolve()), device)
+    return predict_depth(model, depth_m)

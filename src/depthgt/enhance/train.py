@@ -1,0 +1,515 @@
+"""Training and inference of the depth-enhancement networks (small step functions).
+
+A model is chosen by name from :data:`MODELS` (``lapden``, ``ddrnet``, ``sdd``); each
+entry pairs a builder (plain keyword parameters -> ``nn.Module``) with its loss
+(``loss(outputs, batch, **loss_params) -> (total, terms)``, see
+:mod:`depthgt.enhance.losses`). Every model maps depth (B, 1, H, W) metres to a list
+of depth maps, finest last.
+
+:func:`train` reads the patch manifests (``results/dataset/{train,val}.parquet``: one
+row per kept patch pair with ``path`` (the ``patches.npz``) and ``patch`` (its index
+there)), trains with Adam and random flips, validates each epoch and writes to
+``out_dir``::
+
+    last.pt        model + optimiser state after the last finished epoch (resume point)
+    best.pt        the checkpoint with the lowest validation loss
+    loss_log.csv   epoch, split, loss terms, batches, seconds
+    train.json     resolved settings, parameter count, best epoch, versions
+
+An interrupted run resumes from ``last.pt``; with the same seed it ends with the same
+weights as an uninterrupted one (the shuffling and flips of epoch e depend only on
+``(seed, e)``).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+import torch
+import torch.nn as nn
+from torch.utils.data import Dataset
+
+from depthgt.errors import ConfigError
+
+__all__ = [
+    "TrainSettings",
+    "MODELS",
+    "build_model",
+    "build_loss",
+    "PatchDataset",
+    "collate",
+    "flip_batch",
+    "train_epoch",
+    "evaluate",
+    "train",
+    "load_model",
+    "predict",
+    "predict_depth",
+]
+
+log = logging.getLogger(__name__)
+
+LOG_COLUMNS = ["epoch", "split", "total", "depth", "grad", "normal", "structure", "smooth", "batches", "seconds"]
+
+
+# --------------------------------------------------------------------------- models
+
+
+def _build_lapden(preset: str = "default", **overrides) -> nn.Module:
+    from depthgt.enhance.lapden import lapden_from_preset
+
+    return lapden_from_preset(preset, **overrides)
+
+
+def _lapden_loss(outputs, batch, **params):
+    from depthgt.enhance.losses import LossConfig, lapden_loss
+
+    if "scale_weights" in params:
+        params = {**params, "scale_weights": tuple(params["scale_weights"])}
+    return lapden_loss(outputs, batch, LossConfig(**params))
+
+
+def _build_ddrnet(**params) -> nn.Module:
+    from depthgt.enhance.learned import DDRNetDenoise
+
+    return DDRNetDenoise(**params)
+
+
+def _ddrnet_loss(outputs, batch, **params):
+    from depthgt.enhance.learned import ddrnet_loss
+
+    return ddrnet_loss(outputs, batch, **params)
+
+
+def _build_sdd(**params) -> nn.Module:
+    from depthgt.enhance.learned import SDDUNet
+
+    return SDDUNet(**params)
+
+
+def _sdd_loss(outputs, batch, **params):
+    from depthgt.enhance.learned import sdd_loss
+
+    return sdd_loss(outputs, batch, **params)
+
+
+MODELS: dict[str, tuple[Callable[..., nn.Module], Callable]] = {
+    "lapden": (_build_lapden, _lapden_loss),
+    "ddrnet": (_build_ddrnet, _ddrnet_loss),
+    "sdd": (_build_sdd, _sdd_loss),
+}
+
+
+def build_model(name: str, params: dict | None = None) -> nn.Module:
+    """Model ``name`` from :data:`MODELS` built with keyword ``params``."""
+    if name not in MODELS:
+        raise ConfigError(f"train.model: unknown model {name!r}; known: {sorted(MODELS)}")
+    return MODELS[name][0](**(params or {}))
+
+
+def build_loss(name: str, params: dict | None = None) -> Callable:
+    """Loss of model ``name``: ``loss(outputs, batch) -> (total, terms)``."""
+    if name not in MODELS:
+        raise ConfigError(f"train.model: unknown model {name!r}; known: {sorted(MODELS)}")
+    return partial(MODELS[name][1], **(params or {}))
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """Settings of one training run.
+
+    Attributes:
+        model: name in :data:`MODELS`.
+        model_params: keyword arguments of the builder (``lapden``: ``preset`` and
+            LapDENConfig overrides).
+        loss_params: keyword arguments of the model's loss (``lapden``: LossConfig fields).
+        epochs: number of epochs; batch_size: patches per step; lr: Adam learning rate.
+        weight_decay: Adam weight decay.
+        seed: seeds the initial weights, the shuffling and the flips.
+        flips: random horizontal and vertical flips (intrinsics flipped too).
+        max_batches_per_epoch: cap on training steps per epoch (None: all).
+        device: "auto" (CUDA when available), "cpu" or "cuda".
+        progress: show a tqdm bar per epoch.
+    """
+
+    model: str = "lapden"
+    model_params: dict = field(default_factory=lambda: {"preset": "default"})
+    loss_params: dict = field(default_factory=dict)
+    epochs: int = 10
+    batch_size: int = 16
+    lr: float = 1e-4
+    weight_decay: float = 0.0
+    seed: int = 0
+    flips: bool = True
+    max_batches_per_epoch: int | None = None
+    device: str = "auto"
+    progress: bool = True
+
+    def __post_init__(self):
+        if self.model not in MODELS:
+            raise ConfigError(f"train.model: unknown model {self.model!r}; known: {sorted(MODELS)}")
+        for key in ("epochs", "batch_size"):
+            if int(getattr(self, key)) < 1:
+                raise ConfigError(f"train.{key} must be >= 1, got {getattr(self, key)}")
+        if self.lr <= 0:
+            raise ConfigError(f"train.lr must be > 0, got {self.lr}")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ConfigError(f"train.device must be auto, cpu or cuda, got {self.device!r}")
+
+    def identity(self) -> dict:
+        """The settings that define the result (a resumed run must match them)."""
+        d = asdict(self)
+        for key in ("epochs", "progress", "device"):
+            d.pop(key)
+        return json.loads(json.dumps(d))
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+# --------------------------------------------------------------------------- data
+
+
+class PatchDataset(Dataset):
+    """Patch pairs listed in a manifest, read from their ``patches.npz`` (cached).
+
+    Items are dicts of tensors: ``input`` (1, h, w) raw depth m, ``gt`` (1, h, w) GT
+    depth m, ``rgb`` (3, h, w) float in [0, 1], ``K`` (3, 3) intrinsics of the crop
+    (the frame set's 256x256 ``K`` from ``frameset.json`` shifted by the crop box),
+    and ``truth`` (1, h, w) when the npz has it (else zeros).
+
+    Args:
+        manifest: parquet path or DataFrame with columns ``path`` and ``patch``.
+    """
+
+    REQUIRED = ("input", "gt", "rgb", "boxes")
+
+    def __init__(self, manifest: str | Path | pd.DataFrame):
+        table = manifest if isinstance(manifest, pd.DataFrame) else pd.read_parquet(manifest)
+        missing = {"path", "patch"} - set(table.columns)
+        if missing:
+            raise ValueError(f"manifest {manifest if not isinstance(manifest, pd.DataFrame) else '<DataFrame>'}: "
+                             f"missing columns {sorted(missing)}")
+        self.paths = [str(p) for p in table["path"]]
+        self.index = table["patch"].astype(int).to_numpy()
+        self._cache: dict[str, dict[str, np.ndarray]] = {}
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def _load(self, path: str) -> dict[str, np.ndarray]:
+        if path not in self._cache:
+            p = Path(path)
+            if not p.is_file():
+                raise FileNotFoundError(f"{p}: patches file listed in the manifest does not exist")
+            with np.load(p) as npz:
+                missing = [k for k in self.REQUIRED if k not in npz.files]
+                if missing:
+                    raise ValueError(f"{p}: missing arrays {missing}")
+                arrays = {k: npz[k] for k in (*self.REQUIRED, "truth") if k in npz.files}
+            fs_json = p.with_name("frameset.json")
+            if not fs_json.is_file():
+                raise FileNotFoundError(f"{fs_json}: needed for the intrinsics of {p}")
+            K = np.asarray(json.loads(fs_json.read_text())["K"], dtype=np.float32)
+            if K.shape != (3, 3):
+                raise ValueError(f"{fs_json}: key 'K' must be 3x3, got {K.shape}")
+            arrays["K"] = K
+            self._cache[path] = arrays
+        return self._cache[path]
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        a = self._load(self.paths[i])
+        j = int(self.index[i])
+        if not 0 <= j < len(a["input"]):
+            raise IndexError(f"{self.paths[i]}: patch {j} out of range ({len(a['input'])} patches)")
+        y0, x0 = int(a["boxes"][j][0]), int(a["boxes"][j][1])
+        K = a["K"].copy()
+        K[0, 2] -= x0
+        K[1, 2] -= y0
+        inp = torch.from_numpy(np.ascontiguousarray(a["input"][j], dtype=np.float32))[None]
+        truth = a["truth"][j] if "truth" in a else np.zeros_like(a["input"][j])
+        return {
+            "input": inp,
+            "gt": torch.from_numpy(np.ascontiguousarray(a["gt"][j], dtype=np.float32))[None],
+            "rgb": torch.from_numpy(np.ascontiguousarray(a["rgb"][j])).permute(2, 0, 1).float() / 255.0,
+            "K": torch.from_numpy(K),
+            "truth": torch.from_numpy(np.ascontiguousarray(truth, dtype=np.float32))[None],
+        }
+
+
+def collate(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """Stack a list of dataset items into a batch dict."""
+    return {k: torch.stack([it[k] for it in items]) for k in items[0]}
+
+
+def flip_batch(batch: dict[str, torch.Tensor], flip_h: torch.Tensor, flip_v: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Flip the images of the samples selected by ``flip_h`` / ``flip_v`` ((B,) bool).
+
+    A flipped image is the image of the mirrored scene, so the intrinsics follow:
+    cx -> W - 1 - cx (horizontal), cy -> H - 1 - cy (vertical).
+    """
+    out = dict(batch)
+    H, W = batch["gt"].shape[-2:]
+    for key, t in batch.items():
+        if key == "K" or t.ndim != 4:
+            continue
+        t = torch.where(flip_h.view(-1, 1, 1, 1), t.flip(-1), t)
+        out[key] = torch.where(flip_v.view(-1, 1, 1, 1), t.flip(-2), t)
+    K = batch["K"].clone()
+    K[:, 0, 2] = torch.where(flip_h, (W - 1) - K[:, 0, 2], K[:, 0, 2])
+    K[:, 1, 2] = torch.where(flip_v, (H - 1) - K[:, 1, 2], K[:, 1, 2])
+    out["K"] = K
+    return out
+
+
+def _epoch_generator(seed: int, epoch: int) -> torch.Generator:
+    return torch.Generator().manual_seed(int(seed) * 100_003 + int(epoch))
+
+
+def _batches(n: int, batch_size: int, order: torch.Tensor | None):
+    idx = order if order is not None else torch.arange(n)
+    return [idx[i:i + batch_size].tolist() for i in range(0, n, batch_size)]
+
+
+def _to(batch: dict, device: torch.device) -> dict:
+    return {k: v.to(device) for k, v in batch.items()}
+
+
+# --------------------------------------------------------------------------- steps
+
+
+def train_epoch(model: nn.Module, loss_fn: Callable, optimizer: torch.optim.Optimizer, dataset: Dataset,
+                settings: TrainSettings, epoch: int, device: torch.device) -> dict[str, float]:
+    """One epoch of training; returns the mean loss terms (plus batches, seconds)."""
+    from tqdm import tqdm
+
+    model.train()
+    g = _epoch_generator(settings.seed, epoch)
+    order = torch.randperm(len(dataset), generator=g)
+    batches = _batches(len(dataset), settings.batch_size, order)
+    if settings.max_batches_per_epoch is not None:
+        batches = batches[: settings.max_batches_per_epoch]
+    sums: dict[str, float] = {}
+    t0 = time.perf_counter()
+    bar = tqdm(batches, desc=f"epoch {epoch}", disable=not settings.progress, leave=False)
+    for idx in bar:
+        batch = collate([dataset[i] for i in idx])
+        if settings.flips:
+            flips = torch.rand(len(idx), 2, generator=g) < 0.5
+            batch = flip_batch(batch, flips[:, 0], flips[:, 1])
+        batch = _to(batch, device)
+        optimizer.zero_grad(set_to_none=True)
+        total, terms = loss_fn(model(batch["input"]), batch)
+        if not torch.isfinite(total):
+            raise FloatingPointError(f"epoch {epoch}: non-finite training loss {terms}")
+        total.backward()
+        optimizer.step()
+        for k, v in terms.items():
+            sums[k] = sums.get(k, 0.0) + v
+        bar.set_postfix(loss=f"{terms['total']:.4f}")
+    n = max(len(batches), 1)
+    return {**{k: v / n for k, v in sums.items()}, "batches": len(batches), "seconds": time.perf_counter() - t0}
+
+
+@torch.no_grad()
+def evaluate(model: nn.Module, loss_fn: Callable, dataset: Dataset, batch_size: int, device: torch.device) -> dict[str, float]:
+    """Mean loss terms over a dataset (no flips, eval mode)."""
+    model.eval()
+    batches = _batches(len(dataset), batch_size, None)
+    sums: dict[str, float] = {}
+    t0 = time.perf_counter()
+    for idx in batches:
+        batch = _to(collate([dataset[i] for i in idx]), device)
+        _, terms = loss_fn(model(batch["input"]), batch)
+        for k, v in terms.items():
+            sums[k] = sums.get(k, 0.0) + v * len(idx)
+    n = max(len(dataset), 1)
+    return {**{k: v / n for k, v in sums.items()}, "batches": len(batches), "seconds": time.perf_counter() - t0}
+
+
+def _save_atomic(obj: dict, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _read_log(path: Path, upto_epoch: int) -> list[dict]:
+    if not path.is_file():
+        return []
+    with path.open(newline="") as f:
+        return [r for r in csv.DictReader(f) if int(r["epoch"]) <= upto_epoch]
+
+
+def _write_log(path: Path, rows: list[dict]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=LOG_COLUMNS, extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: r.get(k, "") for k in LOG_COLUMNS})
+    os.replace(tmp, path)
+
+
+def _log_row(epoch: int, split: str, terms: dict) -> dict:
+    row = {"epoch": epoch, "split": split}
+    for k in LOG_COLUMNS[2:]:
+        if k in terms:
+            row[k] = f"{terms[k]:.6g}" if k != "batches" else int(terms[k])
+    return row
+
+
+def train(manifest_train: str | Path | pd.DataFrame, manifest_val: str | Path | pd.DataFrame | None,
+          out_dir: str | Path, settings: TrainSettings = TrainSettings(),
+          model: nn.Module | None = None, loss_fn: Callable | None = None) -> dict:
+    """Train a depth-enhancement model on the patch manifests, resuming if possible.
+
+    Args:
+        manifest_train, manifest_val: parquet paths (or DataFrames) of the splits;
+            ``manifest_val`` may be None or empty (then the last epoch is the best).
+        out_dir: where ``last.pt``, ``best.pt``, ``loss_log.csv``, ``train.json`` go.
+        settings: :class:`TrainSettings`.
+        model, loss_fn: override the model and loss built from ``settings`` (then the
+            checkpoint stores ``settings.model``/``model_params`` for :func:`load_model`,
+            which must rebuild the same architecture).
+
+    Returns:
+        dict with ``best`` and ``last`` checkpoint paths, ``best_epoch``,
+        ``best_val`` (validation total), ``log`` (CSV path), ``epochs_run``.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    device = _device(settings.device)
+    train_set = PatchDataset(manifest_train)
+    if len(train_set) == 0:
+        raise ValueError(f"training manifest {manifest_train}: no patch pairs")
+    val_set = PatchDataset(manifest_val) if manifest_val is not None else None
+    if val_set is not None and len(val_set) == 0:
+        val_set = None
+
+    torch.manual_seed(settings.seed)
+    if model is None:
+        model = build_model(settings.model, settings.model_params)
+    model = model.to(device)
+    if loss_fn is None:
+        loss_fn = build_loss(settings.model, settings.loss_params)
+    optimizer = torch.optim.Adam(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
+
+    last_path, best_path, log_path = out / "last.pt", out / "best.pt", out / "loss_log.csv"
+    start, best_val, best_epoch = 0, float("inf"), -1
+    if last_path.is_file():
+        ckpt = torch.load(last_path, map_location=device, weights_only=False)
+        if ckpt["identity"] != settings.identity():
+            diff = sorted(k for k in settings.identity() if ckpt["identity"].get(k) != settings.identity()[k])
+            raise ConfigError(f"{last_path}: checkpoint was trained with other settings ({diff}); "
+                              f"remove {out} or restore the settings")
+        model.load_state_dict(ckpt["model_state"])
+        optimizer.load_state_dict(ckpt["optimizer_state"])
+        start, best_val, best_epoch = ckpt["epoch"] + 1, ckpt["best_val"], ckpt["best_epoch"]
+        log.info("resuming %s from epoch %d", out, start)
+    rows = _read_log(log_path, start - 1)
+
+    n_params = sum(p.numel() for p in model.parameters() if p.requires_grad)
+    for epoch in range(start, settings.epochs):
+        tr = train_epoch(model, loss_fn, optimizer, train_set, settings, epoch, device)
+        rows.append(_log_row(epoch, "train", tr))
+        if val_set is not None:
+            va = evaluate(model, loss_fn, val_set, settings.batch_size, device)
+            rows.append(_log_row(epoch, "val", va))
+            score = va["total"]
+        else:
+            score = tr["total"]
+        log.info("epoch %d: train %.5f val %.5f", epoch, tr["total"], score)
+        ckpt = {
+            "epoch": epoch,
+            "model": settings.model,
+            "model_params": settings.model_params,
+            "identity": settings.identity(),
+            "model_state": model.state_dict(),
+            "optimizer_state": optimizer.state_dict(),
+            "best_val": best_val,
+            "best_epoch": best_epoch,
+        }
+        if score < best_val or val_set is None:
+            best_val, best_epoch = score, epoch
+            ckpt["best_val"], ckpt["best_epoch"] = best_val, best_epoch
+            _save_atomic(ckpt, best_path)
+        _write_log(log_path, rows)
+        _save_atomic(ckpt, last_path)
+
+    result = {"best": str(best_path), "last": str(last_path), "best_epoch": best_epoch, "best_val": best_val,
+              "log": str(log_path), "epochs_run": settings.epochs - start}
+    meta = {"settings": {**asdict(settings)}, "parameters": n_params, "best_epoch": best_epoch, "best_val": best_val,
+            "train_pairs": len(train_set), "val_pairs": len(val_set) if val_set is not None else 0,
+            "versions": {"torch": torch.__version__, "numpy": np.__version__}, "device": str(device)}
+    (out / "train.json").write_text(json.dumps(meta, indent=2, sort_keys=True, default=str) + "\n")
+    return result
+
+
+# --------------------------------------------------------------------------- inference
+
+
+def load_model(checkpoint: str | Path, device: str | torch.device = "cpu") -> nn.Module:
+    """Rebuild the model stored in a checkpoint written by :func:`train` (eval mode)."""
+    path = Path(checkpoint)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: checkpoint not found")
+    ckpt = torch.load(path, map_location=device, weights_only=False)
+    for key in ("model", "model_params", "model_state"):
+        if key not in ckpt:
+            raise ValueError(f"{path}: not a depthgt checkpoint (missing key {key!r})")
+    model = build_model(ckpt["model"], ckpt["model_params"]).to(device)
+    model.load_state_dict(ckpt["model_state"])
+    return model.eval()
+
+
+@torch.no_grad()
+def predict(model: nn.Module, depth_m: torch.Tensor, chunk: int = 8) -> torch.Tensor:
+    """Enhanced depth of full frames.
+
+    Args:
+        model: a model of :data:`MODELS` (any input size that is a multiple of its
+            ``size_multiple`` attribute, default 4; other sizes are padded by
+            replication and cropped back).
+        depth_m: (B, 1, H, W) metres, 0 = invalid; on any device (the model's is used).
+        chunk: frames per forward pass.
+
+    Returns:
+        (B, 1, H, W) metres on the input's device, negatives clamped to 0.
+    """
+    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
+        raise ValueError(f"predict expects depth (B, 1, H, W), got {tuple(depth_m.shape)}")
+    model.eval()
+    dev = next(model.parameters()).device
+    H, W = depth_m.shape[-2:]
+    m = int(getattr(model, "size_multiple", 4))
+    ph, pw = (-H) % m, (-W) % m
+    outs = []
+    for i in range(0, depth_m.shape[0], chunk):
+        x = depth_m[i:i + chunk].to(dev).float()
+        if ph or pw:
+            x = torch.nn.functional.pad(x, (0, pw, 0, ph), mode="replicate")
+        y = model(x)
+        y = y[-1] if isinstance(y, (list, tuple)) else y
+        outs.append(y[..., :H, :W].clamp_min(0.0).to(depth_m.device))
+    return torch.cat(outs)
+
+
+def predict_depth(model: nn.Module, depth_m: np.ndarray) -> np.ndarray:
+    """:func:`predict` for one (H, W) float32 depth image in metres -> (H, W) float32."""
+    d = np.asarray(depth_m, dtype=np.float32)
+    if d.ndim != 2:
+        raise ValueError(f"predict_depth expects (H, W) depth, got {d.shape}")
+    return predict(model, torch.from_numpy(d)[None, None])[0, 0].numpy()
