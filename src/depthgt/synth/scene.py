@@ -20,11 +20,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from depthgt.synth.textures import make_texture
 
-__all__ = ["Material", "Primitive", "Layout", "RayHits", "generate_layout", "raycast", "shade", "camera_rays"]
+__all__ = ["Material", "Primitive", "Layout", "RayHits", "generate_layout", "raycast", "albedo", "shade", "camera_rays"]
 
 _NEAR_M = 0.05
 # inward normals of the room faces, in hit-id order: x=0, x=Lx, y=0, y=Ly, floor, ceiling
@@ -441,18 +442,14 @@ _T_FUNCS = {"box": _t_box, "cylinder": _t_cylinder, "sphere": _t_sphere}
 def _attributes_box(p, prim):
     R = _rotz(prim.yaw).astype(np.float32)
     p_l = (p - prim.center.astype(np.float32)) @ R
-    q = np.abs(p_l) / prim.half.astype(np.float32)
-    axis = q.argmax(-1)
-    n_l = np.zeros_like(p_l)
-    n_l[np.arange(len(p_l)), axis] = np.sign(p_l[np.arange(len(p_l)), axis])
+    half = prim.half.astype(np.float32)
+    axis = (np.abs(p_l) / half).argmax(-1)
+    sign = np.sign(np.take_along_axis(p_l, axis[:, None], 1))
+    n_l = np.eye(3, dtype=np.float32)[axis] * sign
     # texture axes: the two other local axes, the longer one first (wood grain along it)
-    order = np.argsort(-prim.half)
-    uv = np.empty((len(p_l), 2), np.float32)
-    for ax in range(3):
-        sel = axis == ax
-        others = [k for k in order if k != ax]
-        uv[sel, 0] = p_l[sel, others[0]]
-        uv[sel, 1] = p_l[sel, others[1]]
+    order = np.argsort(-prim.half, kind="stable")
+    pairs = np.array([[k for k in order if k != ax] for ax in range(3)])
+    uv = np.take_along_axis(p_l, pairs[axis], 1)
     return n_l @ R.T, uv
 
 
@@ -560,42 +557,55 @@ def raycast(layout: Layout, T_world_cam: np.ndarray, K: np.ndarray, hw: tuple[in
 
 def _sample_bilinear(tex: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear, wrap-around lookup of a tileable (S, S, 3) uint8 texture at (N, 2)
-    texture coordinates in tiles; returns (N, 3) float32 in [0, 1]. Hand-written
-    because cv2.remap works on image-shaped maps and would sample the whole frame
-    once per material."""
+    texture coordinates in tiles; returns (N, 3) float32 in [0, 1].
+
+    The N lookups are laid out as an image of 1024-wide rows for cv2.remap (which
+    takes image-shaped maps), so only the pixels of this texture are sampled.
+    """
     s = tex.shape[0]
-    x = (uv[:, 0] % 1.0) * s - 0.5
-    y = (uv[:, 1] % 1.0) * s - 0.5
-    x0, y0 = np.floor(x), np.floor(y)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    x0, y0 = x0.astype(np.int64) % s, y0.astype(np.int64) % s
-    x1, y1 = (x0 + 1) % s, (y0 + 1) % s
-    t = tex.astype(np.float32) if tex.dtype != np.float32 else tex
-    top = t[y0, x0] * (1 - fx) + t[y0, x1] * fx
-    bot = t[y1, x0] * (1 - fx) + t[y1, x1] * fx
-    out = top * (1 - fy) + bot * fy
-    return out / 255.0 if tex.dtype == np.uint8 else out
+    n = len(uv)
+    cols = 1024
+    rows = -(-n // cols)
+    maps = np.zeros((2, rows * cols), np.float32)
+    maps[0, :n] = (uv[:, 0] % 1.0) * s - 0.5
+    maps[1, :n] = (uv[:, 1] % 1.0) * s - 0.5
+    out = cv2.remap(tex, maps[0].reshape(rows, cols), maps[1].reshape(rows, cols), cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    return out.reshape(-1, 3)[:n].astype(np.float32) * np.float32(1.0 / 255.0)
 
 
-def shade(layout: Layout, hits: RayHits) -> np.ndarray:
-    """Colour of every pixel: texture albedo x (ambient + lambertian point light).
+def albedo(layout: Layout, hits: RayHits) -> np.ndarray:
+    """Texture albedo of every pixel.
 
     Returns:
         (H, W, 3) float32 RGB in [0, 1].
     """
     h, w = hits.depth_m.shape
-    albedo = np.zeros((h * w, 3), np.float32)
+    out = np.zeros((h * w, 3), np.float32)
     mat_flat = hits.material.ravel()
     uv_flat = hits.uv.reshape(-1, 2)
     order = np.argsort(mat_flat, kind="stable")
     ids, starts = np.unique(mat_flat[order], return_index=True)
     for m, s, e in zip(ids, starts, list(starts[1:]) + [len(order)]):
         idx = order[s:e]
-        albedo[idx] = _sample_bilinear(layout.textures[layout.materials[int(m)].texture], uv_flat[idx])
-    albedo = albedo.reshape(h, w, 3)
+        out[idx] = _sample_bilinear(layout.textures[layout.materials[int(m)].texture], uv_flat[idx])
+    return out.reshape(h, w, 3)
+
+
+def shade(layout: Layout, hits: RayHits, albedo_rgb: np.ndarray | None = None) -> np.ndarray:
+    """Colour of every pixel: texture albedo x (ambient + lambertian point light with
+    a soft distance falloff).
+
+    Args:
+        albedo_rgb: (H, W, 3) albedo from :func:`albedo` (computed when None).
+
+    Returns:
+        (H, W, 3) float32 RGB in [0, 1].
+    """
+    if albedo_rgb is None:
+        albedo_rgb = albedo(layout, hits)
     to_light = layout.light_pos.astype(np.float32) - hits.points_world
     dist = np.sqrt((to_light * to_light).sum(-1))
     cos = (hits.normals_world * to_light).sum(-1) / np.maximum(dist, 1e-6)
     falloff = 1.0 / (1.0 + (dist / 3.0) ** 2)
     light = layout.ambient + 1.1 * np.clip(cos, 0, 1) * falloff
-    return np.clip(albedo * light[..., None], 0, 1)
+    return np.clip(albedo_rgb * light[..., None], 0, 1)

@@ -1,0 +1,191 @@
+"""Kinect v1 (structured light) depth-sensor model applied to exact synthetic depth.
+
+The model, in the order applied by :func:`kinect_noise`:
+
+1. Lateral jitter: depth is resampled (nearest, so depths never mix) through a smooth
+   random displacement field of ``jitter_px`` pixels, which makes edges ragged.
+2. Projector shadows: the IR projector sits ``baseline_m`` to the right (+x) of the IR
+   camera. A point is unlit, hence without depth, when a nearer point hides it from the
+   projector. With projector column ``u_p = u - fx * b / z`` a pixel is shadowed when
+   some pixel to its right on the same row has a smaller ``u_p``; a reverse running
+   minimum along each row finds them all at once. This gives the bands on the left of
+   foreground objects seen in real Kinect frames.
+3. Unmatched pattern next to depth discontinuities (``edge_band_px``), on surfaces
+   seen at grazing angles (``grazing_cos``), on dark / low-IR surfaces (``dark_level``),
+   below ``min_range_m`` and towards ``max_range_m``; random small dropout blobs.
+   Probabilistic drops are decided against a spatially smooth random field so that
+   they form patches, not salt noise.
+4. Disparity noise and quantisation: disparity ``fx * b / z`` gets Gaussian noise
+   (``sigma_disp_px``, partly spatially correlated), is quantised to 1/8 pixel and
+   converted back, so that the depth error grows as z^2 (step ~2.85e-3 z^2 m at
+   fx = 585, b = 7.5 cm, as the 7-Scenes fixture shows) and the depth takes the
+   discrete Kinect levels; then rounded to millimetres as in the uint16 PNGs.
+5. The sensor's invalid right border (``border_right_px`` columns).
+
+Defaults are calibrated against the 7-Scenes kitchen fixture with the estimator of
+:mod:`depthgt.synth.calibration` (bench/calibrate_noise.py). The procedure is written
+here because no installed library simulates a structured-light sensor; OpenCV does
+the filtering and resampling.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import cv2
+import numpy as np
+
+__all__ = ["KinectNoise", "kinect_noise", "smooth_field"]
+
+
+@dataclass(frozen=True)
+class KinectNoise:
+    """Settings of the Kinect v1 model (units in the names)."""
+
+    baseline_m: float = 0.075
+    disparity_step_px: float = 0.125
+    sigma_disp_px: float = 0.035
+    sigma_disp_smooth_px: float = 0.02
+    jitter_px: float = 0.6
+    shadow_tol_px: float = 0.5
+    edge_band_px: int = 1
+    edge_rel_jump: float = 0.04
+    grazing_cos: float = 0.2
+    dark_level: float = 0.015
+    min_range_m: float = 0.45
+    max_range_m: float = 3.7
+    far_ramp_m: float = 0.3
+    blob_fraction: float = 0.003
+    border_right_px: int = 8
+    round_mm: bool = True
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool):
+                continue
+            if not np.isfinite(v) or v < 0:
+                raise ValueError(f"KinectNoise.{f.name} must be a finite number >= 0, got {v!r}")
+        if self.disparity_step_px <= 0 or self.baseline_m <= 0:
+            raise ValueError("KinectNoise.baseline_m and disparity_step_px must be > 0")
+        if self.max_range_m <= self.min_range_m:
+            raise ValueError(f"KinectNoise.max_range_m ({self.max_range_m}) must exceed min_range_m ({self.min_range_m})")
+
+
+def smooth_field(rng: np.random.Generator, hw: tuple[int, int], sigma_px: float) -> np.ndarray:
+    """Gaussian random field of unit standard deviation, correlated over ``sigma_px``.
+
+    Returns:
+        (H, W) float32.
+    """
+    h, w = hw
+    f = rng.standard_normal((h, w)).astype(np.float32)
+    if sigma_px > 0:
+        f = cv2.GaussianBlur(f, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
+    return f / max(float(f.std()), 1e-6)
+
+
+def _uniform_field(rng, hw, sigma_px):
+    # a smooth field mapped through a logistic approximation of the normal CDF:
+    # marginally ~uniform in (0, 1), spatially coherent
+    return 1.0 / (1.0 + np.exp(-1.702 * smooth_field(rng, hw, sigma_px)))
+
+
+def kinect_noise(
+    depth_m: np.ndarray,
+    K: np.ndarray,
+    rng: np.random.Generator,
+    settings: KinectNoise = KinectNoise(),
+    normals_cam: np.ndarray | None = None,
+    ir_reflectance: np.ndarray | None = None,
+) -> np.ndarray:
+    """Simulate a Kinect v1 depth image from exact depth.
+
+    Args:
+        depth_m: (H, W) float32 exact z-depth in metres, 0 = no surface.
+        K: (3, 3) intrinsics of the depth camera.
+        rng: generator (seed it per frame for independent, reproducible noise).
+        settings: model parameters.
+        normals_cam: (H, W, 3) unit surface normals in the camera frame, for the
+            grazing-angle dropout (skipped when None).
+        ir_reflectance: (H, W) infrared reflectance in [0, 1] (albedo times the
+            material's IR return), for the dark-surface dropout (skipped when None).
+
+    Returns:
+        (H, W) float32 noisy depth in metres, 0 = invalid.
+    """
+    depth_m = np.asarray(depth_m, np.float32)
+    if depth_m.ndim != 2:
+        raise ValueError(f"depth_m must be (H, W), got shape {depth_m.shape}")
+    h, w = depth_m.shape
+    if normals_cam is not None and normals_cam.shape != (h, w, 3):
+        raise ValueError(f"normals_cam must be {(h, w, 3)}, got {normals_cam.shape}")
+    if ir_reflectance is not None and ir_reflectance.shape != (h, w):
+        raise ValueError(f"ir_reflectance must be {(h, w)}, got {ir_reflectance.shape}")
+    s = settings
+    fx = float(K[0, 0])
+    fb = fx * s.baseline_m  # disparity (px) = fb / z
+
+    # 1. lateral jitter of the whole image (visible at edges only)
+    u = np.arange(w, dtype=np.float32)[None, :].repeat(h, 0)
+    v = np.arange(h, dtype=np.float32)[:, None].repeat(w, 1)
+    map_x = u + s.jitter_px * smooth_field(rng, (h, w), 3.0)
+    map_y = v + s.jitter_px * smooth_field(rng, (h, w), 3.0)
+    z = cv2.remap(depth_m, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+    if normals_cam is not None:
+        normals_cam = cv2.remap(np.ascontiguousarray(normals_cam, np.float32), map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+    if ir_reflectance is not None:
+        ir_reflectance = cv2.remap(np.ascontiguousarray(ir_reflectance, np.float32), map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+    valid = z > 0
+    zs = np.where(valid, z, np.float32(np.inf))
+
+    # 2. projector shadows: u_p must increase strictly to the right of every lit pixel
+    u_p = u - fb / zs
+    right_min = np.minimum.accumulate(u_p[:, ::-1], axis=1)[:, ::-1]
+    right_min = np.concatenate([right_min[:, 1:], np.full((h, 1), np.inf, np.float32)], 1)
+    drop = right_min < u_p - s.shadow_tol_px
+
+    # 3a. pattern not matched at depth discontinuities
+    if s.edge_band_px > 0:
+        k = 2 * s.edge_band_px + 1
+        kernel = np.ones((k, k), np.uint8)
+        hi = cv2.dilate(z, kernel)
+        lo = cv2.erode(np.where(valid, z, np.float32(1e6)), kernel)
+        edge = (hi - lo) > s.edge_rel_jump * np.where(valid, z, 1.0)
+        drop |= edge & (rng.uniform(size=(h, w)) < 0.5)
+    # 3b. probabilistic dropouts, decided against a coherent field
+    p = np.zeros((h, w), np.float32)
+    if normals_cam is not None:
+        # cosine between the viewing ray and the normal
+        x_n = (u - K[0, 2]) / fx
+        y_n = (v - K[1, 2]) / K[1, 1]
+        ray_norm = np.sqrt(x_n * x_n + y_n * y_n + 1)
+        cos = np.abs(normals_cam[..., 0] * x_n + normals_cam[..., 1] * y_n + normals_cam[..., 2]) / ray_norm
+        p = np.maximum(p, np.clip((s.grazing_cos - cos) / max(s.grazing_cos, 1e-6), 0, 1))
+    if ir_reflectance is not None and s.dark_level > 0:
+        # the returned IR falls off with distance squared
+        signal = ir_reflectance / np.maximum(z, 0.3) ** 2
+        p = np.maximum(p, np.clip(1.0 - signal / s.dark_level, 0, 1) ** 0.5)
+    if s.far_ramp_m > 0:
+        p = np.maximum(p, np.clip((z - (s.max_range_m - s.far_ramp_m)) / s.far_ramp_m, 0, 1))
+    drop |= _uniform_field(rng, (h, w), 2.0) < p
+    drop |= z > s.max_range_m
+    drop |= z < s.min_range_m
+    if s.blob_fraction > 0:
+        blobs = smooth_field(rng, (h, w), 4.0)
+        drop |= blobs > np.quantile(blobs[::4, ::4], 1.0 - s.blob_fraction)
+
+    # 4. disparity noise and 1/8-pixel quantisation
+    disp = fb / zs
+    disp = disp + s.sigma_disp_px * rng.standard_normal((h, w)).astype(np.float32)
+    if s.sigma_disp_smooth_px > 0:
+        disp = disp + s.sigma_disp_smooth_px * smooth_field(rng, (h, w), 4.0)
+    disp = np.round(disp / s.disparity_step_px) * s.disparity_step_px
+    out = np.where(disp > 0, fb / np.maximum(disp, 1e-6), 0).astype(np.float32)
+    if s.round_mm:
+        out = np.round(out * 1000) / 1000
+    out[drop | ~valid] = 0
+    # 5. the sensor's invalid right border
+    if s.border_right_px > 0:
+        out[:, w - s.border_right_px :] = 0
+    return out.astype(np.float32)
