@@ -1,0 +1,123 @@
+"""Feature-space correspondences between two feature-carrying point clouds (R&R).
+
+For a pair (a, b) every candidate point of b looks up its two nearest neighbours among
+the candidates of a in feature space (and vice versa); the ratio test gives the weight
+``w = 1 - d1 / d2`` and the ``top_k`` most confident matches of each direction are
+kept. The nearest-neighbour search runs without gradient in row chunks (no N x M
+matrix larger than ``chunk`` x M per pair); the kept distances are recomputed with
+gradient so that the weights are differentiable with respect to the features.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+__all__ = ["Correspondences", "sample_candidates", "knn2", "ratio_weights", "find_correspondences"]
+
+
+class Correspondences(NamedTuple):
+    """Matches of a batch of pairs; both directions concatenated (2 * top_k rows).
+
+    Attributes:
+        points_src: (P, K, 3) points of frame b (metres, b's camera).
+        points_dst: (P, K, 3) matched points of frame a (metres, a's camera).
+        weights: (P, K) ratio-test weights in [0, 1], 0 for padding.
+    """
+
+    points_src: torch.Tensor
+    points_dst: torch.Tensor
+    weights: torch.Tensor
+
+
+def sample_candidates(valid: torch.Tensor, n: int, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Draw up to ``n`` valid pixels per frame, uniformly without replacement.
+
+    Args:
+        valid: (F, 1, H, W) bool mask of valid depth.
+        n: candidates per frame.
+        generator: CPU generator (deterministic draw for a given seed).
+
+    Returns:
+        index (F, n) long flat pixel indices and mask (F, n) bool, False where a frame
+        has fewer than ``n`` valid pixels (those slots hold invalid pixels).
+    """
+    if valid.ndim != 4 or valid.shape[1] != 1:
+        raise ValueError(f"valid must be (F, 1, H, W), got {tuple(valid.shape)}")
+    flat = valid.flatten(1)
+    n = min(n, flat.shape[1])
+    score = torch.rand(flat.shape, generator=generator).to(flat.device) + flat.float() * 2.0
+    index = score.topk(n, dim=1).indices
+    return index, torch.gather(flat, 1, index)
+
+
+def knn2(f_query: torch.Tensor, f_ref: torch.Tensor, ref_mask: torch.Tensor, chunk: int = 1024) -> torch.Tensor:
+    """Indices of the two nearest reference features of every query feature.
+
+    Args:
+        f_query: (P, N, C) features.
+        f_ref: (P, M, C) features.
+        ref_mask: (P, M) bool, False entries are never returned while valid ones exist.
+        chunk: query rows per step (memory ~ P * chunk * M floats).
+
+    Returns:
+        (P, N, 2) long indices into M (first and second neighbour).
+    """
+    with torch.no_grad():
+        ref_sq = f_ref.pow(2).sum(-1)  # (P, M)
+        ref_sq = torch.where(ref_mask, ref_sq, torch.full_like(ref_sq, float("inf")))
+        out = []
+        for s in range(0, f_query.shape[1], chunk):
+            q = f_query[:, s : s + chunk]
+            # |q|^2 is constant per row and does not change the ranking.
+            d = ref_sq[:, None, :] - 2.0 * (q @ f_ref.transpose(1, 2))
+            out.append(d.topk(2, dim=-1, largest=False).indices)
+        return torch.cat(out, dim=1)
+
+
+def ratio_weights(f_query: torch.Tensor, f_ref: torch.Tensor, nn_idx: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
+    """``w = 1 - d1 / d2`` from the two neighbours ``nn_idx`` (P, N, 2); differentiable, (P, N)."""
+    C = f_ref.shape[-1]
+    g = torch.gather(f_ref, 1, nn_idx.flatten(1)[..., None].expand(-1, -1, C)).reshape(*nn_idx.shape, C)
+    d = (g - f_query[:, :, None]).pow(2).sum(-1).add(eps).sqrt()  # (P, N, 2)
+    return (1.0 - d[..., 0] / d[..., 1].clamp(min=eps)).clamp(min=0.0)
+
+
+def _one_direction(pts_q, f_q, m_q, pts_r, f_r, m_r, top_k, chunk):
+    nn_idx = knn2(f_q, f_r, m_r, chunk)
+    w = ratio_weights(f_q, f_r, nn_idx) * m_q.to(f_q.dtype)
+    k = min(top_k, w.shape[1])
+    sel = w.detach().topk(k, dim=1).indices  # (P, k)
+    w_k = torch.gather(w, 1, sel)
+    q_k = torch.gather(pts_q, 1, sel[..., None].expand(-1, -1, 3))
+    r_idx = torch.gather(nn_idx[..., 0], 1, sel)
+    r_k = torch.gather(pts_r, 1, r_idx[..., None].expand(-1, -1, 3))
+    return q_k, r_k, w_k
+
+
+def find_correspondences(
+    points_a: torch.Tensor, feats_a: torch.Tensor, mask_a: torch.Tensor,
+    points_b: torch.Tensor, feats_b: torch.Tensor, mask_b: torch.Tensor,
+    top_k: int = 200, chunk: int = 1024,
+) -> Correspondences:
+    """Bidirectional ratio-test matches between frames b (source) and a (destination).
+
+    Args:
+        points_a, points_b: (P, N, 3) candidate points in their own cameras (metres).
+        feats_a, feats_b: (P, N, C) their features (compared by Euclidean distance).
+        mask_a, mask_b: (P, N) bool validity of the candidates.
+        top_k: matches kept per direction (R&R: 200).
+
+    Returns:
+        :class:`Correspondences` with ``points_src`` in b and ``points_dst`` in a, so
+        that Procrustes on them estimates ``T_b_to_a``.
+    """
+    for name, x in (("points_a", points_a), ("feats_a", feats_a), ("points_b", points_b), ("feats_b", feats_b)):
+        if x.ndim != 3:
+            raise ValueError(f"{name} must be (P, N, D), got {tuple(x.shape)}")
+    if feats_a.shape[-1] != feats_b.shape[-1]:
+        raise ValueError(f"feature sizes differ: {feats_a.shape[-1]} vs {feats_b.shape[-1]}")
+    b_q, a_r, w_ba = _one_direction(points_b, feats_b, mask_b, points_a, feats_a, mask_a, top_k, chunk)
+    a_q, b_r, w_ab = _one_direction(points_a, feats_a, mask_a, points_b, feats_b, mask_b, top_k, chunk)
+    return Correspondences(torch.cat([b_q, b_r], 1), torch.cat([a_r, a_q], 1), torch.cat([w_ba, w_ab], 1))

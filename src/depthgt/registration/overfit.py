@@ -1,0 +1,545 @@
+"""Overfit-trained unsupervised registration of one local frame set (paper Sec. 3.2).
+
+``register_frameset`` is the entry point: the R&R encoder is trained (Adam) on the
+single frame set with the consistency losses of every pair (eq. 4); the poses of the
+neighbours in the target camera come from the weighted Procrustes of the last (or
+best-loss) iteration; then, beyond the paper, far neighbours may be initialised by
+chaining through nearer ones and all poses are refined jointly over SE(3)
+(:mod:`depthgt.registration.refine`). Failures are flagged per neighbour and per set,
+never silently kept.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Iterable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from depthgt.errors import ConfigError
+from depthgt.registration.correspondences import find_correspondences, sample_candidates
+from depthgt.registration.encoder import build_encoder, lift_points
+from depthgt.registration.losses import correspondence_loss, default_render_fn, render_losses
+from depthgt.registration.metrics import pose_delta
+from depthgt.registration.procrustes import procrustes_random_subsets
+from depthgt.registration.refine import RefineSettings, _Level, _normal_system, refine_poses
+
+__all__ = ["RegistrationSettings", "RegistrationResult", "PRESETS", "make_settings", "register_frameset",
+           "pretrain_encoder", "frameset_loss"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RegistrationSettings:
+    """Settings of the overfit registration (defaults: the paper / R&R values).
+
+    Encoder: ``n_blocks`` BasicBlocks of ``channels`` at full resolution, ``feat_dim``-d
+    output. Matching: ``n_candidates`` random valid pixels per frame, ``top_k`` matches
+    per direction, chunks of ``knn_chunk`` query rows. Alignment: ``n_subsets`` random
+    subsets of ``subset_fraction`` of the matches. Training: Adam, ``lr``,
+    ``iterations`` (= the paper's epochs on a single batch), ``weight_decay``; loss
+    weights ``w_depth`` (per metre), ``w_photo``, ``w_corr`` (per m^2); ``pairs`` "all"
+    (every pair, eq. 4) or "target"; rendering radius (px), points per pixel and source
+    pixel stride. ``pose_from``: "last" or "best" (lowest loss) iteration.
+    Beyond the paper: ``chaining`` (compose far neighbours through nearer ones when
+    that aligns better), ``refine`` with ``refine_settings``.
+    Failure checks: a neighbour fails with fewer than ``min_confident`` target-pair
+    matches of weight >= ``confident_weight``; a final motion above
+    ``max_translation_m`` / ``max_rotation_deg``; an inlier fraction below
+    ``min_inlier_fraction``; an information matrix condition number above
+    ``max_condition`` (no texture/geometry); the set fails when fewer than
+    ``min_ok_fraction`` of its neighbours are ok, or (without refinement) when the
+    training loss does not decrease.
+    """
+
+    n_blocks: int = 2
+    channels: int = 64
+    feat_dim: int = 32
+    n_candidates: int = 4096
+    top_k: int = 200
+    knn_chunk: int = 1024
+    n_subsets: int = 10
+    subset_fraction: float = 0.2
+    lr: float = 1e-4
+    iterations: int = 30
+    weight_decay: float = 0.0
+    w_depth: float = 1.0
+    w_photo: float = 1.0
+    w_corr: float = 0.1
+    pairs: str = "all"
+    render_radius_px: float = 2.0
+    render_max_points: int = 16
+    render_stride: int = 1
+    pose_from: str = "last"
+    chaining: bool = True
+    refine: bool = True
+    refine_settings: RefineSettings = RefineSettings()
+    confident_weight: float = 0.1
+    min_confident: int = 20
+    max_translation_m: float = 0.3
+    max_rotation_deg: float = 20.0
+    min_inlier_fraction: float = 0.3
+    max_condition: float = 1e5
+    min_ok_fraction: float = 0.5
+    num_threads: int | None = None
+
+    def __post_init__(self):
+        if self.pairs not in ("all", "target"):
+            raise ConfigError(f"registration.pairs must be 'all' or 'target', got {self.pairs!r}")
+        if self.pose_from not in ("last", "best"):
+            raise ConfigError(f"registration.pose_from must be 'last' or 'best', got {self.pose_from!r}")
+        if self.iterations < 0 or self.top_k < 3 or self.n_candidates < 3:
+            raise ConfigError("registration: need iterations >= 0, top_k >= 3 and n_candidates >= 3")
+
+
+PRESETS: dict[str, dict] = {
+    # The paper: R&R encoder and matching, Adam 1e-4 for 30 iterations, plus refinement.
+    "paper": {},
+    # The paper without the beyond-the-paper steps (for the with/without comparison).
+    "paper_only": {"chaining": False, "refine": False},
+    # CPU-friendly: smaller encoder, fewer candidates and iterations, sparser rendering.
+    "fast": {
+        "n_blocks": 1, "channels": 32, "n_candidates": 2048, "iterations": 8, "render_stride": 2,
+        "refine_settings": RefineSettings(scales=(4, 2, 1), iters=(8, 5, 3), point_stride=(1, 2, 3)),
+    },
+}
+
+
+def make_settings(preset: str = "paper", **overrides) -> RegistrationSettings:
+    """Settings of a preset with overrides (keys are field names; raises ConfigError)."""
+    if preset not in PRESETS:
+        raise ConfigError(f"registration.preset {preset!r} unknown; known: {', '.join(PRESETS)}")
+    values = {**PRESETS[preset], **overrides}
+    names = {f.name for f in dataclasses.fields(RegistrationSettings)}
+    bad = sorted(set(values) - names)
+    if bad:
+        raise ConfigError(f"registration: unknown setting(s) {', '.join(bad)}")
+    if isinstance(values.get("refine_settings"), dict):
+        values["refine_settings"] = RefineSettings(**{k: tuple(v) if isinstance(v, list) else v
+                                                      for k, v in values["refine_settings"].items()})
+    return RegistrationSettings(**values)
+
+
+@dataclass
+class RegistrationResult:
+    """Outcome of :func:`register_frameset`.
+
+    Attributes:
+        T_j_to_t: (F-1, 4, 4) float64, neighbour j's camera points into the target camera.
+        offsets: the frame offsets (``offsets[0] == 0`` is the target).
+        neighbour_status: "ok" | "failed" per neighbour; ``neighbour_reasons`` the why
+            ("" when ok).
+        status, reason: overall "ok" | "failed" and reason.
+        loss_curve: total training loss per iteration.
+        pose_history: per iteration, per neighbour ``{"dt_m", "dr_deg"}`` change of
+            T_j_to_t from the previous iteration.
+        n_correspondences: per neighbour, target-pair matches with weight >=
+            ``confident_weight`` at the final estimate.
+        timings: seconds per phase.
+        diagnostics: refinement cost, inlier fractions, condition numbers, chaining
+            choices, poses before refinement.
+    """
+
+    T_j_to_t: torch.Tensor
+    offsets: list[int]
+    neighbour_status: list[str]
+    neighbour_reasons: list[str]
+    status: str
+    reason: str
+    loss_curve: list[float] = field(default_factory=list)
+    pose_history: list[list[dict]] = field(default_factory=list)
+    n_correspondences: list[int] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    diagnostics: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        T = self.T_j_to_t.detach().cpu().numpy()
+        return {
+            "status": self.status,
+            "reason": self.reason,
+            "neighbours": [
+                {"offset": int(o), "T_j_to_t": T[i].tolist(), "status": self.neighbour_status[i],
+                 "reason": self.neighbour_reasons[i], "n_correspondences": int(self.n_correspondences[i])}
+                for i, o in enumerate(self.offsets[1:])
+            ],
+            "loss_curve": [float(x) for x in self.loss_curve],
+            "pose_history": self.pose_history,
+            "timings_s": {k: round(float(v), 4) for k, v in self.timings.items()},
+            "diagnostics": self.diagnostics,
+        }
+
+    def to_json(self, indent: int | None = 1) -> str:
+        """poses.json content: poses per neighbour, statuses, loss curve, timings."""
+        return json.dumps(self.to_dict(), indent=indent)
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+@dataclass
+class _Frameset:
+    rgb: torch.Tensor  # (F, 3, H, W)
+    depth: torch.Tensor  # (F, 1, H, W)
+    K: torch.Tensor  # (3, 3)
+    cand_idx: torch.Tensor  # (F, n)
+    cand_mask: torch.Tensor  # (F, n)
+    rpts: torch.Tensor  # (F, M, 3) render points
+    rrgb: torch.Tensor  # (F, M, 3)
+    rmask: torch.Tensor  # (F, M)
+    pairs: torch.Tensor  # (P, 2) unordered (a, b), a < b
+
+
+def _check_inputs(rgb, depth_m, K, offsets):
+    if rgb.ndim != 4 or rgb.shape[1] != 3:
+        raise ValueError(f"rgb must be (F, 3, H, W), got {tuple(rgb.shape)}")
+    if depth_m.shape != (rgb.shape[0], 1, *rgb.shape[-2:]):
+        raise ValueError(f"depth_m must be {(rgb.shape[0], 1, *rgb.shape[-2:])}, got {tuple(depth_m.shape)}")
+    if K.shape != (3, 3):
+        raise ValueError(f"K must be (3, 3), got {tuple(K.shape)}")
+    if len(offsets) != rgb.shape[0] or offsets[0] != 0:
+        raise ValueError(f"offsets must have one entry per frame ({rgb.shape[0]}) with offsets[0] == 0, got {offsets}")
+    if rgb.shape[0] < 2:
+        raise ValueError("a frame set needs a target and at least one neighbour")
+    if not torch.isfinite(depth_m).all():
+        raise ValueError("depth_m holds non-finite values")
+
+
+def _prepare(rgb, depth_m, K, s: RegistrationSettings, gen: torch.Generator) -> _Frameset:
+    Fn, _, H, W = depth_m.shape
+    valid = depth_m > 0
+    cand_idx, cand_mask = sample_candidates(valid, s.n_candidates, gen)
+    ys = torch.arange(0, H, s.render_stride, device=depth_m.device)
+    xs = torch.arange(0, W, s.render_stride, device=depth_m.device)
+    ridx = (ys[:, None] * W + xs[None, :]).reshape(-1)
+    from depthgt.geometry import backproject
+
+    pts = backproject(depth_m, K.expand(Fn, 3, 3).to(depth_m.dtype))
+    rpts = pts[:, ridx]
+    rrgb = rgb.flatten(2)[:, :, ridx].transpose(1, 2)
+    rmask = valid.flatten(1)[:, ridx]
+    if s.pairs == "all":
+        a, b = torch.triu_indices(Fn, Fn, offset=1)
+    else:
+        b = torch.arange(1, Fn)
+        a = torch.zeros_like(b)
+    pairs = torch.stack([a, b], 1).to(depth_m.device)
+    return _Frameset(rgb, depth_m, K, cand_idx, cand_mask, rpts, rrgb, rmask, pairs)
+
+
+# --------------------------------------------------------------------------- loss
+
+
+def frameset_loss(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettings, gen: torch.Generator,
+                  render_fn: Callable | None, with_render: bool = True):
+    """Set-wide loss (eq. 4) and the pairwise Procrustes estimates.
+
+    Returns:
+        loss (scalar), T_b_to_a (P, 4, 4) for ``fs.pairs``, confident match counts (P,)
+        and a dict of the mean loss terms.
+    """
+    Fn = fs.rgb.shape[0]
+    feats = F.normalize(encoder(fs.rgb), dim=1)
+    Kb = fs.K.expand(Fn, 3, 3).to(fs.depth.dtype)
+    pts, f = lift_points(fs.depth, Kb, feats, fs.cand_idx)
+    a, b = fs.pairs[:, 0], fs.pairs[:, 1]
+    corr = find_correspondences(pts[a], f[a], fs.cand_mask[a], pts[b], f[b], fs.cand_mask[b], s.top_k, s.knn_chunk)
+    T_ba, _ = procrustes_random_subsets(corr.points_src, corr.points_dst, corr.weights, s.n_subsets,
+                                        s.subset_fraction, gen)
+    l_corr = correspondence_loss(T_ba, corr.points_src, corr.points_dst, corr.weights)
+    n_conf = (corr.weights.detach() >= s.confident_weight).sum(1)
+    loss = s.w_corr * l_corr.sum()
+    terms = {"corr": float(l_corr.detach().mean())}
+    if with_render and (s.w_depth > 0 or s.w_photo > 0):
+        T_ab = torch.linalg.inv(T_ba)
+        P = fs.pairs.shape[0]
+        # both directions: b rendered into a with T_ba, a rendered into b with T_ab
+        src = torch.cat([b, a])
+        dst = torch.cat([a, b])
+        T = torch.cat([T_ba, T_ab])
+        l_d, l_p = render_losses(fs.rpts[src], fs.rrgb[src], fs.rmask[src], T, fs.depth[dst], fs.rgb[dst],
+                                 Kb[dst], render_fn, s.render_radius_px, s.render_max_points)
+        loss = loss + s.w_depth * l_d.sum() + s.w_photo * l_p.sum()
+        terms["depth"] = float(l_d.detach().mean())
+        terms["photo"] = float(l_p.detach().mean())
+        del P
+    return loss, T_ba, n_conf, terms
+
+
+def _target_poses(T_ba: torch.Tensor, pairs: torch.Tensor, Fn: int) -> torch.Tensor:
+    """(F, 4, 4) T_f_to_t from the pairs (0, j) (target = a)."""
+    T = torch.eye(4, dtype=torch.float64, device=T_ba.device).repeat(Fn, 1, 1)
+    sel = pairs[:, 0] == 0
+    T[pairs[sel, 1]] = T_ba[sel].detach().to(torch.float64)
+    return T
+
+
+def _pair_table(T_ba: torch.Tensor, pairs: torch.Tensor, Fn: int) -> dict[tuple[int, int], torch.Tensor]:
+    """T_b_to_a for every available ordered pair (inverse added)."""
+    out = {}
+    for i, (a, b) in enumerate(pairs.tolist()):
+        T = T_ba[i].detach().to(torch.float64)
+        out[(a, b)] = T
+        out[(b, a)] = torch.linalg.inv(T)
+    return out
+
+
+# --------------------------------------------------------------------------- chaining
+
+
+def _chain(fs: _Frameset, T_init: torch.Tensor, table, offsets, s: RegistrationSettings, extra=None):
+    """Choose per neighbour between the direct estimate and compositions through nearer
+    neighbours (and an external initial guess) by their alignment cost into the target
+    (robust point-to-plane + photometric cost at half resolution)."""
+    Fn = len(offsets)
+    rs = s.refine_settings
+    level = _Level(fs.rgb, fs.depth, fs.K, 2, 1)
+    cands, owners, labels = [], [], []
+    for j in range(1, Fn):
+        options = [("direct", T_init[j])]
+        for k in range(1, Fn):
+            if k != j and abs(offsets[k]) < abs(offsets[j]) and offsets[k] * offsets[j] > 0 and (k, j) in table:
+                options.append((f"via{offsets[k]:+d}", T_init[k] @ table[(k, j)]))
+        if extra is not None:
+            options.append(("init", extra[j]))
+        for lab, T in options:
+            cands.append(T)
+            owners.append(j)
+            labels.append(lab)
+    T_c = torch.stack(cands)  # candidate T_j_to_t
+    pairs = torch.stack([torch.zeros(len(owners), dtype=torch.long), torch.tensor(owners)], 1).to(fs.depth.device)
+    # _normal_system works on absolute poses T (F', 4, 4); build a virtual frame list:
+    # reuse the real frames by pairing (0, j) with the candidate pose in place of T_j.
+    Tv = torch.eye(4, dtype=torch.float64, device=fs.depth.device).repeat(len(owners) + 1, 1, 1)
+    Tv[1:] = T_c
+    vpairs = torch.stack([torch.zeros(len(owners), dtype=torch.long), torch.arange(1, len(owners) + 1)], 1)
+    level.points = torch.cat([level.points[:1], level.points[pairs[:, 1]]])
+    level.gray = torch.cat([level.gray[:1], level.gray[pairs[:, 1]]])
+    level.valid = torch.cat([level.valid[:1], level.valid[pairs[:, 1]]])
+    level.maps = torch.cat([level.maps[:1], level.maps[pairs[:, 1]]])
+    _, _, cost, _, _ = _normal_system(level, Tv, vpairs.to(fs.depth.device), rs, rs.max_dist_m[1])
+    T_out = T_init.clone()
+    choice = {}
+    owners_t = torch.tensor(owners)
+    for j in range(1, Fn):
+        idx = torch.nonzero(owners_t == j)[:, 0]
+        best = idx[cost[idx].argmin()]
+        T_out[j] = T_c[best]
+        choice[int(offsets[j])] = labels[int(best)]
+    return T_out, choice
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def register_frameset(
+    rgb: torch.Tensor,
+    depth_m: torch.Tensor,
+    K: torch.Tensor,
+    offsets: list[int],
+    settings: RegistrationSettings = RegistrationSettings(),
+    encoder_state: dict | None = None,
+    init_T_j_to_t: torch.Tensor | None = None,
+    seed: int = 0,
+    render_fn: Callable | None = None,
+) -> RegistrationResult:
+    """Register the neighbours of a local frame set to its target (frame 0).
+
+    Args:
+        rgb: (F, 3, H, W) float colour in [0, 1] at the working resolution (256x256).
+        depth_m: (F, 1, H, W) depth in metres, 0 = invalid.
+        K: (3, 3) intrinsics at (H, W).
+        offsets: frame offsets, ``offsets[0] == 0`` (the target), e.g. [0, -6, -4, -2, 2, 4, 6].
+        settings: :class:`RegistrationSettings` (see :data:`PRESETS`).
+        encoder_state: pretrained encoder weights (:func:`pretrain_encoder`), else a
+            random initialisation from ``seed``.
+        init_T_j_to_t: (F-1, 4, 4) optional initial guess, used as one more candidate
+            of the chaining step.
+        seed: seed of the initialisation, candidate draw and random subsets.
+        render_fn: differentiable splatting (default :func:`depthgt.render.splat_soft`).
+
+    Returns:
+        :class:`RegistrationResult`; the device of the computation is that of ``rgb``.
+    """
+    t_start = time.perf_counter()
+    _check_inputs(rgb, depth_m, K, offsets)
+    s = settings
+    if s.num_threads:
+        torch.set_num_threads(s.num_threads)
+    dev = rgb.device
+    Fn = rgb.shape[0]
+    if init_T_j_to_t is not None and init_T_j_to_t.shape != (Fn - 1, 4, 4):
+        raise ValueError(f"init_T_j_to_t must be ({Fn - 1}, 4, 4), got {tuple(init_T_j_to_t.shape)}")
+    rgb = rgb.float()
+    depth_m = depth_m.float()
+    K = K.to(dev, torch.float32)
+    if render_fn is None and (s.w_depth > 0 or s.w_photo > 0) and s.iterations > 0:
+        render_fn = default_render_fn()
+    gen = torch.Generator().manual_seed(seed)
+    fs = _prepare(rgb, depth_m, K, s, gen)
+    encoder = build_encoder(s.n_blocks, s.channels, s.feat_dim, seed=seed).to(dev)
+    if encoder_state is not None:
+        encoder.load_state_dict(encoder_state)
+    encoder.train()
+    timings: dict[str, float] = {}
+
+    # -- overfit training on the single frame set (paper: Adam 1e-4, 30 epochs)
+    t0 = time.perf_counter()
+    opt = torch.optim.Adam(encoder.parameters(), lr=s.lr, weight_decay=s.weight_decay)
+    loss_curve: list[float] = []
+    pose_history: list[list[dict]] = []
+    prev = None
+    best = (math.inf, None, None)
+    for _ in range(s.iterations):
+        opt.zero_grad(set_to_none=True)
+        loss, T_ba, n_conf, _terms = frameset_loss(encoder, fs, s, gen, render_fn)
+        if not torch.isfinite(loss):
+            log.warning("non-finite training loss; stopping the overfit training early")
+            break
+        loss.backward()
+        opt.step()
+        loss_curve.append(float(loss.detach()))
+        T_now = _target_poses(T_ba, fs.pairs, Fn)
+        if loss_curve[-1] < best[0]:
+            best = (loss_curve[-1], T_ba.detach(), n_conf)
+        if prev is not None:
+            dt, dr = pose_delta(torch.linalg.inv(prev[1:]) @ T_now[1:])
+            pose_history.append([{"dt_m": float(a), "dr_deg": float(b)} for a, b in zip(dt, dr)])
+        prev = T_now
+    timings["overfit"] = time.perf_counter() - t0
+
+    # -- final estimate from the trained encoder (the paper's output poses)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        _, T_ba, n_conf, _ = frameset_loss(encoder, fs, s, gen, render_fn, with_render=False)
+    if s.pose_from == "best" and best[1] is not None:
+        T_ba, n_conf = best[1], best[2]
+    T_paper = _target_poses(T_ba, fs.pairs, Fn)
+    if prev is not None:
+        dt, dr = pose_delta(torch.linalg.inv(prev[1:]) @ T_paper[1:])
+        pose_history.append([{"dt_m": float(a), "dr_deg": float(b)} for a, b in zip(dt, dr)])
+    tsel = fs.pairs[:, 0] == 0
+    n_corr = torch.zeros(Fn, dtype=torch.long)
+    n_corr[fs.pairs[tsel, 1].cpu()] = n_conf[tsel].cpu()
+    timings["estimate"] = time.perf_counter() - t0
+
+    diagnostics: dict = {"poses_paper": T_paper[1:].cpu().numpy().tolist()}
+    T = T_paper
+    extra = None
+    if init_T_j_to_t is not None:
+        extra = torch.cat([torch.eye(4, dtype=torch.float64)[None], init_T_j_to_t.to(torch.float64).cpu()]).to(dev)
+    if s.chaining or extra is not None:
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            table = _pair_table(T_ba, fs.pairs, Fn) if s.chaining else {}
+            T, choice = _chain(fs, T, table, offsets, s, extra)
+        diagnostics["chaining"] = choice
+        timings["chaining"] = time.perf_counter() - t0
+
+    refined = None
+    if s.refine:
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            refined = refine_poses(rgb, depth_m, K, T, s.refine_settings, offsets)
+        T = refined.T_f_to_t
+        diagnostics["refine_cost_curve"] = refined.cost_curve
+        diagnostics["inlier_fraction"] = refined.inlier_fraction[1:].cpu().tolist()
+        diagnostics["condition"] = refined.condition[1:].cpu().tolist()
+        timings["refine"] = time.perf_counter() - t0
+
+    # -- failure handling
+    statuses, reasons = [], []
+    dt, dr = pose_delta(T[1:])
+    for i in range(Fn - 1):
+        why = []
+        if int(n_corr[i + 1]) < s.min_confident:
+            why.append(f"too_few_confident_correspondences({int(n_corr[i + 1])}<{s.min_confident})")
+        if dt[i] > s.max_translation_m or dr[i] > s.max_rotation_deg:
+            why.append(f"pose_jump({dt[i]:.3f}m,{dr[i]:.1f}deg)")
+        if refined is not None:
+            fr = float(refined.inlier_fraction[i + 1])
+            cond = float(refined.condition[i + 1])
+            if fr < s.min_inlier_fraction:
+                why.append(f"low_inlier_fraction({fr:.2f})")
+            if not cond < s.max_condition:
+                why.append(f"degenerate_alignment(condition={cond:.3g})")
+        if not torch.isfinite(T[i + 1]).all():
+            why.append("non_finite_pose")
+        statuses.append("failed" if why else "ok")
+        reasons.append(";".join(why))
+    n_ok = statuses.count("ok")
+    status, reason = "ok", ""
+    if not s.refine and len(loss_curve) >= 4:
+        k = max(1, len(loss_curve) // 4)
+        if np.mean(loss_curve[-k:]) > np.mean(loss_curve[:k]):
+            status, reason = "failed", "loss_not_decreasing"
+    if n_ok < s.min_ok_fraction * (Fn - 1):
+        status = "failed"
+        reason = ";".join(x for x in [reason, f"only {n_ok} of {Fn - 1} neighbours registered"] if x)
+    timings["total"] = time.perf_counter() - t_start
+    return RegistrationResult(
+        T_j_to_t=T[1:].detach().cpu().to(torch.float64),
+        offsets=list(offsets),
+        neighbour_status=statuses,
+        neighbour_reasons=reasons,
+        status=status,
+        reason=reason,
+        loss_curve=loss_curve,
+        pose_history=pose_history,
+        n_correspondences=[int(x) for x in n_corr[1:]],
+        timings=timings,
+        diagnostics=diagnostics,
+    )
+
+
+def pretrain_encoder(
+    framesets: Iterable[tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[int]]],
+    settings: RegistrationSettings = RegistrationSettings(),
+    epochs: int = 1,
+    seed: int = 0,
+    render_fn: Callable | None = None,
+) -> dict:
+    """Stream-only unsupervised pretraining of the encoder (no poses used).
+
+    Args:
+        framesets: (rgb (F, 3, H, W), depth_m (F, 1, H, W), K (3, 3), offsets) tuples
+            from the training scenes; re-iterated once per epoch (pass a list when
+            ``epochs > 1``).
+        settings: the registration settings (same encoder size and losses).
+        epochs: passes over ``framesets``; one Adam step per frame set.
+
+    Returns:
+        The encoder's ``state_dict`` (CPU tensors).
+    """
+    s = settings
+    gen = torch.Generator().manual_seed(seed)
+    encoder = None
+    opt = None
+    steps = 0
+    for _ in range(epochs):
+        for rgb, depth_m, K, offsets in framesets:
+            _check_inputs(rgb, depth_m, K, offsets)
+            if encoder is None:
+                encoder = build_encoder(s.n_blocks, s.channels, s.feat_dim, seed=seed).to(rgb.device)
+                encoder.train()
+                opt = torch.optim.Adam(encoder.parameters(), lr=s.lr, weight_decay=s.weight_decay)
+                if render_fn is None and (s.w_depth > 0 or s.w_photo > 0):
+                    render_fn = default_render_fn()
+            fs = _prepare(rgb.float(), depth_m.float(), K.to(rgb.device, torch.float32), s, gen)
+            opt.zero_grad(set_to_none=True)
+            loss, _, _, _ = frameset_loss(encoder, fs, s, gen, render_fn)
+            if torch.isfinite(loss):
+                loss.backward()
+                opt.step()
+            steps += 1
+    if encoder is None:
+        raise ValueError("pretrain_encoder: no frame set given")
+    log.info("pretrained the encoder for %d steps", steps)
+    return {k: v.detach().cpu() for k, v in encoder.state_dict().items()}

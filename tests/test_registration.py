@@ -1,0 +1,289 @@
+"""Tests of the overfit registration (issue 3): small sizes, CPU, a few seconds each."""
+
+from __future__ import annotations
+
+import math
+from collections import namedtuple
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from depthgt.geometry import project
+from depthgt.registration.correspondences import find_correspondences, sample_candidates
+from depthgt.registration.encoder import build_encoder, lift_points
+from depthgt.registration.metrics import pose_errors
+from depthgt.registration.overfit import (
+    PRESETS, RegistrationSettings, _prepare, frameset_loss, make_settings, register_frameset,
+)
+from depthgt.registration.procrustes import procrustes_random_subsets, weighted_procrustes
+from depthgt.registration.refine import RefineSettings, adjoint, refine_poses
+
+torch.set_num_threads(2)
+
+SEVEN = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
+
+
+# ----------------------------------------------------------------------------- helpers
+
+_Splat = namedtuple("_Splat", "features depth weight")
+
+
+def _splat_bilinear(points_cam, features, K, size_hw, valid=None, radius_px=2.0, max_points=16):
+    """Temporary stand-in for depthgt.render.splat_soft: bilinear forward splatting with
+    a normalised weighted sum (no z-buffer); differentiable in the point positions."""
+    B, N, C = features.shape
+    H, W = size_hw
+    uv, z = project(points_cam, K)
+    ok = torch.isfinite(uv).all(-1) & (z > 1e-3)
+    if valid is not None:
+        ok = ok & valid
+    uv = torch.where(ok[..., None], uv, torch.zeros_like(uv))
+    x0 = uv[..., 0].detach().floor()
+    y0 = uv[..., 1].detach().floor()
+    acc = torch.zeros(B, C + 2, H * W, dtype=features.dtype)
+    vals = torch.cat([features, z[..., None], torch.ones_like(z[..., None])], -1)  # (B, N, C+2)
+    for dx in (0, 1):
+        for dy in (0, 1):
+            xi, yi = x0 + dx, y0 + dy
+            w = (1 - (uv[..., 0] - xi).abs()) * (1 - (uv[..., 1] - yi).abs())
+            inside = ok & (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
+            w = torch.where(inside, w, torch.zeros_like(w))
+            idx = (yi.clamp(0, H - 1) * W + xi.clamp(0, W - 1)).long()
+            acc = acc.scatter_add(2, idx[:, None].expand(-1, C + 2, -1), (vals * w[..., None]).transpose(1, 2))
+    wsum = acc[:, -1:]
+    norm = acc[:, :-1] / wsum.clamp(min=1e-8)
+    return _Splat(norm[:, :C].reshape(B, C, H, W), norm[:, C:C + 1].reshape(B, 1, H, W), wsum.reshape(B, 1, H, W))
+
+
+def _raycast_room(T_world_cam: np.ndarray, K: np.ndarray, hw, textured=True, flat=False):
+    """Depth (H, W) and colour (H, W, 3) of a textured box room with a cube inside
+    (or, with ``flat``, a single uniform wall at z = 2 m) seen from ``T_world_cam``."""
+    H, W = hw
+    v, u = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1)
+    d = rays @ T_world_cam[:3, :3].T
+    o = T_world_cam[:3, 3]
+    if flat:
+        t = (2.0 - o[2]) / d[..., 2]
+    else:
+        lo, hi = np.array([-2.0, -1.5, -1.0]), np.array([2.0, 1.5, 4.0])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_room = np.where(d > 0, (hi - o) / d, (lo - o) / d).min(-1)
+            clo, chi = np.array([-0.6, 0.2, 1.8]), np.array([0.3, 1.5, 2.6])
+            t1, t2 = (clo - o) / d, (chi - o) / d
+            tmin = np.minimum(t1, t2).max(-1)
+            tmax = np.maximum(t1, t2).min(-1)
+        hit = (tmax >= tmin) & (tmin > 0)
+        t = np.where(hit & (tmin < t_room), tmin, t_room)
+    X = o + t[..., None] * d
+    depth = (t * (d @ T_world_cam[:3, 2])).astype(np.float32)  # z in the camera
+    if textured:
+        rgb = np.stack([0.5 + 0.2 * np.sin(5 * X[..., 0] + 3 * X[..., 2]) + 0.15 * np.sin(11 * X[..., 1] + 7 * X[..., 2]),
+                        0.5 + 0.2 * np.sin(7 * X[..., 1] - 4 * X[..., 0]) + 0.15 * np.cos(13 * X[..., 2] + 5 * X[..., 0]),
+                        0.5 + 0.25 * np.cos(6 * X[..., 2] + 9 * X[..., 1] - 2 * X[..., 0])], -1)
+    else:
+        rgb = np.full(depth.shape + (3,), 0.6)
+    return depth, np.clip(rgb, 0, 1).astype(np.float32)
+
+
+def _rot(axis_angle):
+    a = np.asarray(axis_angle, float)
+    th = np.linalg.norm(a)
+    if th == 0:
+        return np.eye(3)
+    k = a / th
+    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(th) * Kx + (1 - math.cos(th)) * Kx @ Kx
+
+
+def _frameset(offsets, hw=(64, 64), flat=False, textured=True, step_t=0.02, step_deg=1.0, noise_m=0.0, seed=0):
+    """Synthetic frame set on a smooth trajectory; returns rgb, depth, K, true T_j_to_t."""
+    K = np.array([[0.9 * hw[1], 0, hw[1] / 2 - 0.5], [0, 0.9 * hw[1], hw[0] / 2 - 0.5], [0, 0, 1.0]])
+    rng = np.random.default_rng(seed)
+    poses = {}
+    for o in offsets:
+        T = np.eye(4)
+        T[:3, :3] = _rot(np.radians(step_deg) * o * np.array([0.3, 1.0, 0.2]) / 1.06)
+        T[:3, 3] = step_t * o * np.array([1.0, 0.3, 0.4])
+        poses[o] = T
+    rgbs, depths = [], []
+    for o in offsets:
+        dep, col = _raycast_room(poses[o], K, hw, textured=textured, flat=flat)
+        if noise_m:
+            dep = dep + rng.normal(0, noise_m, dep.shape).astype(np.float32) * dep ** 2
+        rgbs.append(col)
+        depths.append(dep)
+    rgb = torch.from_numpy(np.stack(rgbs)).permute(0, 3, 1, 2).contiguous()
+    depth = torch.from_numpy(np.stack(depths))[:, None]
+    T_true = np.stack([np.linalg.inv(poses[0]) @ poses[o] for o in offsets[1:]])
+    return rgb, depth, torch.from_numpy(K).float(), T_true
+
+
+def _random_T(gen, angle_deg=10.0, trans=0.2):
+    axis = torch.randn(3, generator=gen, dtype=torch.float64)
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3] = torch.from_numpy(_rot((axis / axis.norm() * math.radians(angle_deg)).numpy()))
+    T[:3, 3] = torch.randn(3, generator=gen, dtype=torch.float64) * trans
+    return T
+
+
+# ----------------------------------------------------------------------------- procrustes
+
+
+def test_procrustes_recovers_known_transform_exactly():
+    gen = torch.Generator().manual_seed(1)
+    T = torch.stack([_random_T(gen), _random_T(gen, 40.0, 1.0)])
+    p = torch.randn(2, 50, 3, generator=gen, dtype=torch.float64)
+    q = p @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
+    w = torch.rand(2, 50, generator=gen, dtype=torch.float64) + 0.1
+    T_est = weighted_procrustes(p, q, w)
+    assert torch.allclose(T_est, T, atol=1e-10)
+    # zero weights on outliers: still exact
+    q_bad = q.clone()
+    q_bad[:, :10] += 5.0
+    w2 = w.clone()
+    w2[:, :10] = 0
+    assert torch.allclose(weighted_procrustes(p, q_bad, w2), T, atol=1e-10)
+
+
+def test_procrustes_fixes_reflections_and_random_subsets_pick_inliers():
+    gen = torch.Generator().manual_seed(2)
+    p = torch.randn(1, 60, 3, generator=gen, dtype=torch.float64)
+    q = p.clone()
+    q[..., 2] *= -1  # a mirror: the best rotation must still have det +1
+    T = weighted_procrustes(p, q, torch.ones(1, 60, dtype=torch.float64))
+    assert torch.linalg.det(T[0, :3, :3]).item() == pytest.approx(1.0, abs=1e-9)
+    T_true = _random_T(gen)
+    q = p @ T_true[:3, :3].T + T_true[:3, 3]
+    T_r, res = procrustes_random_subsets(p, q, torch.ones(1, 60, dtype=torch.float64), 10, 0.2, gen)
+    assert torch.allclose(T_r[0], T_true, atol=1e-9) and res.item() < 1e-18
+
+
+def test_gradients_reach_the_encoder_through_the_weights():
+    torch.manual_seed(0)
+    rgb, depth, K, _ = _frameset([0, 2], hw=(24, 24))
+    enc = build_encoder(n_blocks=1, channels=8, feat_dim=8, seed=0)
+    feats = torch.nn.functional.normalize(enc(rgb), dim=1)
+    gen = torch.Generator().manual_seed(0)
+    idx, mask = sample_candidates(depth > 0, 200, gen)
+    pts, f = lift_points(depth, K.expand(2, 3, 3), feats, idx)
+    corr = find_correspondences(pts[:1], f[:1], mask[:1], pts[1:], f[1:], mask[1:], top_k=30)
+    assert corr.weights.shape == (1, 60) and (corr.weights >= 0).all() and (corr.weights <= 1).all()
+    T, _ = procrustes_random_subsets(corr.points_src, corr.points_dst, corr.weights, 4, 0.5, gen)
+    T[0, :3, 3].sum().backward()  # a scalar of the pose only: gradient must come via the weights
+    grads = [p.grad for p in enc.parameters() if p.requires_grad]
+    assert all(g is not None for g in grads)
+    assert sum(float(g.abs().sum()) for g in grads) > 0
+
+
+def test_weight_gradient_matches_finite_differences():
+    gen = torch.Generator().manual_seed(3)
+    p = torch.randn(1, 12, 3, generator=gen, dtype=torch.float64)
+    q = p + 0.05 * torch.randn(1, 12, 3, generator=gen, dtype=torch.float64)
+    w = (torch.rand(1, 12, generator=gen, dtype=torch.float64) + 0.2).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda ww: weighted_procrustes(p, q, ww)[:, :3, :], (w,))
+
+
+def test_encoder_parameter_count_has_no_shared_layers():
+    enc = build_encoder(n_blocks=2, channels=64, feat_dim=32)
+    n = sum(p.numel() for p in enc.parameters())
+    stem = 3 * 64 * 9 + 2 * 64
+    block = 2 * (64 * 64 * 9 + 2 * 64)
+    head = 64 * 32 + 2 * 32
+    assert n == stem + 2 * block + head
+    ids = [id(m) for m in enc.modules()]
+    assert len(ids) == len(set(ids))
+
+
+# ----------------------------------------------------------------------------- refinement
+
+
+def test_adjoint_moves_a_twist_between_frames():
+    from kornia.geometry.liegroup import Se3
+
+    gen = torch.Generator().manual_seed(4)
+    T = _random_T(gen)
+    xi = torch.randn(1, 6, generator=gen, dtype=torch.float64) * 0.1
+    lhs = T @ Se3.exp(xi).matrix()[0].double() @ torch.linalg.inv(T)
+    rhs = Se3.exp((adjoint(T) @ xi[0])[None]).matrix()[0].double()
+    assert torch.allclose(lhs, rhs, atol=1e-9)
+
+
+def test_refinement_recovers_poses_from_a_perturbed_start():
+    offsets = [0, -2, 2, 4]
+    rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64))
+    gen = torch.Generator().manual_seed(5)
+    T0 = torch.eye(4, dtype=torch.float64).repeat(4, 1, 1)
+    T0[1:] = torch.from_numpy(T_true)
+    for j in range(1, 4):
+        T0[j] = _random_T(gen, 1.5, 0.015) @ T0[j]
+    r0, t0 = pose_errors(T0[1:], T_true)
+    res = refine_poses(rgb, depth, K, T0, RefineSettings(scales=(2, 1), iters=(10, 10), point_stride=(1, 1),
+                                                         max_dist_m=(0.1, 0.05)), offsets)
+    r1, t1 = pose_errors(res.T_f_to_t[1:], T_true)
+    assert np.median(r1) < 0.05 and np.median(t1) < 0.05, (r1, t1)
+    assert np.median(r1) < 0.1 * np.median(r0)
+    assert res.final_cost.sum() < res.initial_cost.sum()
+
+
+# ----------------------------------------------------------------------------- the frame set
+
+
+FAST_TEST = dict(n_blocks=1, channels=16, feat_dim=16, n_candidates=600, top_k=60, render_stride=1)
+
+
+def test_overfit_training_reduces_the_pose_error():
+    offsets = [0, -2, 2]
+    rgb, depth, K, T_true = _frameset(offsets, hw=(48, 48), step_t=0.03, step_deg=2.0)
+    s = RegistrationSettings(**FAST_TEST, iterations=40, lr=3e-3, chaining=False, refine=False)
+    res = register_frameset(rgb, depth, K, offsets, s, seed=0, render_fn=_splat_bilinear)
+    T0 = torch.tensor(res.diagnostics["poses_paper"])
+    assert len(res.loss_curve) == 40 and len(res.pose_history) == 40
+    s0 = RegistrationSettings(**FAST_TEST, iterations=0, chaining=False, refine=False)
+    res0 = register_frameset(rgb, depth, K, offsets, s0, seed=0, render_fn=_splat_bilinear)
+    r_before, t_before = pose_errors(res0.T_j_to_t, T_true)
+    r_after, t_after = pose_errors(T0, T_true)
+    assert r_after.mean() + t_after.mean() < r_before.mean() + t_before.mean(), (r_before, t_before, r_after, t_after)
+    assert np.mean(res.loss_curve[-5:]) < np.mean(res.loss_curve[:5])
+
+
+def test_full_pipeline_reaches_millimetre_accuracy_and_writes_json():
+    import json
+
+    offsets = [0, -4, -2, 2, 4]
+    rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64))
+    s = RegistrationSettings(**FAST_TEST, iterations=3, refine_settings=RefineSettings(
+        scales=(2, 1), iters=(10, 8), point_stride=(1, 1), max_dist_m=(0.1, 0.05)))
+    res = register_frameset(rgb, depth, K, offsets, s, seed=0, render_fn=_splat_bilinear)
+    r, t = pose_errors(res.T_j_to_t, T_true)
+    assert np.median(r) < 0.05 and np.median(t) < 0.05, (r, t, res.neighbour_reasons)
+    assert res.status == "ok" and res.neighbour_status == ["ok"] * 4
+    d = json.loads(res.to_json())
+    assert [n["offset"] for n in d["neighbours"]] == offsets[1:]
+    assert set(d["timings_s"]) >= {"overfit", "refine", "total"}
+
+
+def test_textureless_flat_wall_is_flagged():
+    offsets = [0, -2, 2]
+    rgb, depth, K, _ = _frameset(offsets, hw=(48, 48), flat=True, textured=False)
+    s = RegistrationSettings(**FAST_TEST, iterations=2, refine_settings=RefineSettings(
+        scales=(2, 1), iters=(5, 5), point_stride=(1, 1), max_dist_m=(0.1, 0.05)))
+    res = register_frameset(rgb, depth, K, offsets, s, seed=0, render_fn=_splat_bilinear)
+    assert res.status == "failed"
+    assert res.neighbour_status == ["failed", "failed"]
+    assert all("degenerate" in r or "confident" in r for r in res.neighbour_reasons)
+
+
+def test_settings_presets_and_bad_inputs():
+    assert make_settings("fast").n_blocks <= make_settings("paper").n_blocks
+    assert set(PRESETS) >= {"paper", "fast"}
+    from depthgt.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="unknown"):
+        make_settings("paper", nonsense=1)
+    with pytest.raises(ValueError, match="offsets"):
+        register_frameset(torch.rand(2, 3, 8, 8), torch.ones(2, 1, 8, 8), torch.eye(3), [1, 0])
+    with pytest.raises(ValueError, match="depth_m"):
+        register_frameset(torch.rand(2, 3, 8, 8), torch.ones(2, 1, 8, 9), torch.eye(3), [0, 1])
