@@ -10,16 +10,20 @@ The model, in the order applied by :func:`kinect_noise`:
    some pixel to its right on the same row has a smaller ``u_p``; a reverse running
    minimum along each row finds them all at once. This gives the bands on the left of
    foreground objects seen in real Kinect frames.
-3. Unmatched pattern next to depth discontinuities (``edge_band_px``), on surfaces
+3. Unmatched pattern next to depth discontinuities (``edge_band_px``, dropped with
+   ``edge_drop_prob``), on surfaces
    seen at grazing angles (``grazing_cos``), on dark / low-IR surfaces (``dark_level``),
    below ``min_range_m`` and towards ``max_range_m``; random small dropout blobs.
    Probabilistic drops are decided against a spatially smooth random field so that
    they form patches, not salt noise.
 4. Disparity noise and quantisation: disparity ``fx * b / z`` gets Gaussian noise
-   (``sigma_disp_px``, partly spatially correlated), is quantised to 1/8 pixel and
-   converted back, so that the depth error grows as z^2 (step ~2.85e-3 z^2 m at
-   fx = 585, b = 7.5 cm, as the 7-Scenes fixture shows) and the depth takes the
-   discrete Kinect levels; then rounded to millimetres as in the uint16 PNGs.
+   (``sigma_disp_px`` at 1 m, an i.i.d. and a spatially correlated part), is
+   quantised to 1/8 pixel and converted back, so that the depth takes the discrete
+   Kinect levels (step ~2.85e-3 z^2 m at fx = 585, b = 7.5 cm, as the 7-Scenes
+   fixture shows) and its error grows as z^2; then rounded to millimetres as in the
+   uint16 PNGs. The disparity noise std falls as 1/sqrt(z) (fitted: on the fixture
+   the residual at 2.5-3.5 m is little more than the quantisation's own, at 1-1.5 m
+   it is ~1.3x larger; a constant std overshoots the far bins by ~1.4x).
 5. The sensor's invalid right border (``border_right_px`` columns).
 
 Defaults are calibrated against the 7-Scenes kitchen fixture with the estimator of
@@ -45,17 +49,18 @@ class KinectNoise:
     baseline_m: float = 0.075
     disparity_step_px: float = 0.125
     sigma_disp_px: float = 0.035
-    sigma_disp_smooth_px: float = 0.02
+    sigma_disp_smooth_px: float = 0.015
     jitter_px: float = 0.6
     shadow_tol_px: float = 0.5
-    edge_band_px: int = 1
+    edge_band_px: int = 2
     edge_rel_jump: float = 0.04
+    edge_drop_prob: float = 0.7
     grazing_cos: float = 0.2
-    dark_level: float = 0.015
+    dark_level: float = 0.03
     min_range_m: float = 0.45
     max_range_m: float = 3.7
     far_ramp_m: float = 0.3
-    blob_fraction: float = 0.003
+    blob_fraction: float = 0.012
     border_right_px: int = 8
     round_mm: bool = True
 
@@ -152,7 +157,7 @@ def kinect_noise(
         hi = cv2.dilate(z, kernel)
         lo = cv2.erode(np.where(valid, z, np.float32(1e6)), kernel)
         edge = (hi - lo) > s.edge_rel_jump * np.where(valid, z, 1.0)
-        drop |= edge & (rng.uniform(size=(h, w)) < 0.5)
+        drop |= edge & (rng.uniform(size=(h, w)) < s.edge_drop_prob)
     # 3b. probabilistic dropouts, decided against a coherent field
     p = np.zeros((h, w), np.float32)
     if normals_cam is not None:
@@ -172,14 +177,15 @@ def kinect_noise(
     drop |= z > s.max_range_m
     drop |= z < s.min_range_m
     if s.blob_fraction > 0:
-        blobs = smooth_field(rng, (h, w), 4.0)
+        blobs = smooth_field(rng, (h, w), 5.0)
         drop |= blobs > np.quantile(blobs[::4, ::4], 1.0 - s.blob_fraction)
 
     # 4. disparity noise and 1/8-pixel quantisation
     disp = fb / zs
-    disp = disp + s.sigma_disp_px * rng.standard_normal((h, w)).astype(np.float32)
+    scale = 1.0 / np.sqrt(np.maximum(zs, 0.5))  # disparity noise std falls as 1/sqrt(z) (see above)
+    disp = disp + s.sigma_disp_px * scale * rng.standard_normal((h, w)).astype(np.float32)
     if s.sigma_disp_smooth_px > 0:
-        disp = disp + s.sigma_disp_smooth_px * smooth_field(rng, (h, w), 4.0)
+        disp = disp + s.sigma_disp_smooth_px * scale * smooth_field(rng, (h, w), 4.0)
     disp = np.round(disp / s.disparity_step_px) * s.disparity_step_px
     out = np.where(disp > 0, fb / np.maximum(disp, 1e-6), 0).astype(np.float32)
     if s.round_mm:

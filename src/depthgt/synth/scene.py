@@ -164,7 +164,7 @@ def _table(prims, rng, cx, cy, yaw, mats):
     for _ in range(int(rng.integers(1, 4))):
         bx, by = rng.uniform(-lx + 0.15, lx - 0.15), rng.uniform(-ly + 0.12, ly - 0.12)
         x, y = _local(cx, cy, yaw, bx, by)
-        hz = rng.uniform(0.01, 0.04)
+        hz = rng.uniform(0.005, 0.025)
         _add_box(prims, (x, y, h + hz), (rng.uniform(0.1, 0.17), rng.uniform(0.08, 0.13), hz),
                  mats[rng.choice(["poster", "books", "dark"])], yaw + rng.uniform(-0.5, 0.5), rng)
     x, y = _local(cx, cy, yaw, rng.uniform(-lx + 0.1, lx - 0.1), rng.uniform(-ly + 0.1, ly - 0.1))
@@ -180,7 +180,7 @@ def _chair(prims, rng, cx, cy, yaw, mats):
     a seat, two back posts and horizontal slats (gaps to see through)."""
     s = rng.uniform(0.2, 0.24)
     h = rng.uniform(0.43, 0.48)
-    mat = mats[rng.choice(["wood", "wood2", "metal"])]
+    mat = mats[rng.choice(["wood", "wood2", "metal", "dark"], p=[0.35, 0.25, 0.2, 0.2])]
     _add_box(prims, (cx, cy, h), (s, s, 0.02), mat, yaw, rng)
     leg = rng.uniform(0.015, 0.025)
     for sx in (-1, 1):
@@ -232,7 +232,7 @@ def generate_layout(rng: np.random.Generator, texture_size: int = 512) -> Layout
     cabinets with a dark counter top, a shelf unit with books, a floor lamp (thin
     pole), posters and a door on the walls.
     """
-    size = np.array([rng.uniform(4.2, 6.0), rng.uniform(3.8, 5.5), rng.uniform(2.5, 2.9)])
+    size = np.array([rng.uniform(4.0, 5.4), rng.uniform(3.6, 5.0), rng.uniform(2.5, 2.8)])
     kinds = ["wood", "wood", "tiles", "carpet", "plaster", "plaster", "poster", "poster", "books",
              "metal", "fabric", "fabric", "dark", "plaster"]
     textures = [(make_texture(k, rng, texture_size) * 255 + 0.5).astype(np.uint8) for k in kinds]
@@ -310,7 +310,10 @@ def generate_layout(rng: np.random.Generator, texture_size: int = 512) -> Layout
         length = max(ln[2] - ln[0], ln[3] - ln[1]) / 2
         hb = rng.uniform(0.6, 1.1)
         _add_box(prims, (x, y, hb / 2), (0.22, length, hb / 2), mats[rng.choice(["wood", "wood2"])], wyaw, rng)
-        _add_box(prims, (x + 0.0, y, hb + 0.1), (0.08, 0.1, 0.1), mats["poster2"], wyaw + rng.uniform(-0.6, 0.6), rng)
+        _add_box(prims, (x, y, hb + 0.1), (0.08, 0.1, 0.1), mats["poster2"], wyaw + rng.uniform(-0.6, 0.6), rng)
+        if rng.uniform() < 0.6:  # a television: dark, low infrared return
+            xt, yt = _local(x, y, wyaw, 0.0, rng.uniform(-0.3, 0.3) * length)
+            _add_box(prims, (xt, yt, hb + 0.32), (0.03, rng.uniform(0.3, 0.45), 0.22), mats["dark"], wyaw, rng)
     # posters and a door, flat on the walls
     for k in range(int(rng.integers(3, 6))):
         wall = int(rng.integers(0, 4))
