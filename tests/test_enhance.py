@@ -145,3 +145,111 @@ def test_lapden_loss_gradients_flow():
     total.backward()
     assert math.isfinite(terms["total"])
     assert all(torch.isfinite(p.grad).all() for p in model.parameters())
+
+
+# --------------------------------------------------------------------------- training
+
+import json  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from depthgt.enhance.train import (  # noqa: E402
+    PatchDataset,
+    TrainSettings,
+    collate,
+    flip_batch,
+    load_model,
+    predict,
+    predict_depth,
+    train,
+)
+from depthgt.errors import ConfigError  # noqa: E402
+
+
+def _write_frameset(folder, seed, n_patches=4, size=16):
+    """A frame set folder with patches.npz (noisy slanted planes) and frameset.json."""
+    rng = np.random.default_rng(seed)
+    folder.mkdir(parents=True)
+    yy, xx = np.mgrid[0:size, 0:size]
+    gt = np.stack([(1.5 + rng.random() + 0.01 * xx + 0.005 * yy) for _ in range(n_patches)]).astype(np.float32)
+    inp = (gt + rng.normal(0, 0.02, gt.shape)).astype(np.float32)
+    inp[rng.random(gt.shape) < 0.05] = 0.0
+    boxes = np.array([[4 * i, 2 * i, size, size] for i in range(n_patches)])
+    np.savez(folder / "patches.npz", input=inp, gt=gt, rgb=np.zeros((*gt.shape, 3), np.uint8), boxes=boxes,
+             missing_input=(inp <= 0).mean(axis=(1, 2)), missing_gt=np.zeros(n_patches, np.float32))
+    K = [[100.0, 0.0, 127.5], [0.0, 100.0, 127.5], [0.0, 0.0, 1.0]]
+    (folder / "frameset.json").write_text(json.dumps({"K": K}))
+    return folder / "patches.npz"
+
+
+@pytest.fixture()
+def manifests(tmp_path):
+    paths = [_write_frameset(tmp_path / "fs" / f"{i:06d}", i) for i in range(3)]
+    rows = [{"path": str(p), "patch": j, "split": "train" if i < 2 else "val"} for i, p in enumerate(paths) for j in range(4)]
+    table = pd.DataFrame(rows)
+    table[table.split == "train"].to_parquet(tmp_path / "train.parquet")
+    table[table.split == "val"].to_parquet(tmp_path / "val.parquet")
+    return tmp_path / "train.parquet", tmp_path / "val.parquet"
+
+
+def _settings(epochs):
+    return TrainSettings(model="lapden", model_params={"preset": "default", "channels": 4, "level_convs": [2, 2, 2],
+                                                       "encoder_convs": [0, 0]},
+                         epochs=epochs, batch_size=3, lr=1e-3, seed=3, progress=False)
+
+
+def test_patch_dataset_shifts_intrinsics_by_crop(manifests):
+    ds = PatchDataset(manifests[0])
+    assert len(ds) == 8
+    item = ds[1]  # box (y0, x0) = (4, 2)
+    assert item["input"].shape == (1, 16, 16) and item["rgb"].shape == (3, 16, 16)
+    assert item["K"][0, 2].item() == pytest.approx(127.5 - 2) and item["K"][1, 2].item() == pytest.approx(127.5 - 4)
+    with pytest.raises(ValueError, match="missing columns"):
+        PatchDataset(pd.DataFrame({"path": []}))
+
+
+def test_flip_batch_flips_images_and_intrinsics(manifests):
+    ds = PatchDataset(manifests[0])
+    b = collate([ds[0], ds[1]])
+    f = flip_batch(b, torch.tensor([True, False]), torch.tensor([False, True]))
+    assert torch.equal(f["gt"][0], b["gt"][0].flip(-1)) and torch.equal(f["gt"][1], b["gt"][1].flip(-2))
+    assert f["K"][0, 0, 2].item() == pytest.approx(15 - b["K"][0, 0, 2].item())
+    assert f["K"][1, 1, 2].item() == pytest.approx(15 - b["K"][1, 1, 2].item())
+    assert f["K"][1, 0, 2].item() == pytest.approx(b["K"][1, 0, 2].item())
+
+
+def test_train_resume_equals_uninterrupted(manifests, tmp_path):
+    full = train(*manifests, tmp_path / "full", _settings(3))
+    assert full["epochs_run"] == 3 and 0 <= full["best_epoch"] <= 2
+    log = pd.read_csv(full["log"])
+    assert list(log["split"]) == ["train", "val"] * 3
+    assert {"depth", "grad", "normal", "structure", "total"} <= set(log.columns)
+
+    # an interrupted run: 2 epochs, then resumed to 3
+    part = train(*manifests, tmp_path / "part", _settings(2))
+    assert part["epochs_run"] == 2
+    resumed = train(*manifests, tmp_path / "part", _settings(3))
+    assert resumed["epochs_run"] == 1
+    a = torch.load(full["last"], weights_only=False)["model_state"]
+    b = torch.load(resumed["last"], weights_only=False)["model_state"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    pd.testing.assert_frame_equal(pd.read_csv(resumed["log"]).drop(columns="seconds"), log.drop(columns="seconds"))
+    # a finished run does nothing more
+    assert train(*manifests, tmp_path / "part", _settings(3))["epochs_run"] == 0
+
+    with pytest.raises(ConfigError, match="other settings"):
+        train(*manifests, tmp_path / "part", TrainSettings(**{**_settings(3).__dict__, "lr": 5e-4}))
+
+    model = load_model(full["best"])
+    depth = 1.0 + torch.rand(2, 1, 30, 34)
+    out = predict(model, depth)
+    assert out.shape == depth.shape and (out >= 0).all()
+    assert predict_depth(model, depth[0, 0].numpy()).shape == (30, 34)
+
+
+def test_train_settings_are_checked():
+    with pytest.raises(ConfigError, match="train.model"):
+        TrainSettings(model="unet3000")
+    with pytest.raises(ConfigError, match="train.epochs"):
+        TrainSettings(epochs=0)

@@ -37,6 +37,9 @@ class DDRNetDenoise(nn.Module):
     Encoder: per level two 3x3 convs (ReLU), then a stride-2 3x3 conv; decoder:
     transposed 4x4 stride-2 convs, concatenation with the encoder features of the
     same level, two 3x3 convs; a 3x3 conv predicts the residual added to the input.
+    Depth is divided by its mean valid value on the way in and multiplied back on the
+    way out. A denoiser: the input's holes stay holes (0) in the output, as in the
+    paper's comparison where DDRNet "cannot cope with the missing depth values".
 
     Args:
         channels: width of the first level (doubles per level).
@@ -65,7 +68,10 @@ class DDRNetDenoise(nn.Module):
 
     def forward(self, depth_m: torch.Tensor) -> list[torch.Tensor]:
         _check_input(depth_m, self.size_multiple, "DDRNetDenoise")
-        x = self.inc(depth_m)
+        valid = depth_m > 0
+        scale = _mean_valid_depth(depth_m, valid)
+        d = depth_m / scale
+        x = self.inc(d)
         skips = [x]
         for down in self.downs:
             x = down(x)
@@ -73,7 +79,8 @@ class DDRNetDenoise(nn.Module):
         skips.pop()
         for up, dec in zip(self.ups, self.decs):
             x = dec(torch.cat([F.relu(up(x)), skips.pop()], dim=1))
-        return [depth_m + self.out(x)]
+        # a denoiser: holes of the input stay holes (0)
+        return [torch.where(valid, (d + self.out(x)) * scale, torch.zeros_like(depth_m))]
 
 
 class PartialConv2d(nn.Module):
@@ -105,7 +112,8 @@ class SDDUNet(nn.Module):
     Encoder: partial convs (kernel 5 then 3) with stride 2 per level; decoder: nearest
     up-sampling, concatenation with the encoder level (features and masks), partial
     3x3 conv; ELU activations as in SDD. The output is absolute depth (holes filled
-    where the propagated mask reaches).
+    where the propagated mask reaches); the network sees depth divided by its mean
+    valid value and its output is multiplied back.
 
     Args:
         channels: width of the first level (doubles per level, capped at 8x).
@@ -126,7 +134,8 @@ class SDDUNet(nn.Module):
     def forward(self, depth_m: torch.Tensor) -> list[torch.Tensor]:
         _check_input(depth_m, self.size_multiple, "SDDUNet")
         mask = (depth_m > 0).to(depth_m.dtype)
-        x, m = self.inc(depth_m, mask)
+        scale = _mean_valid_depth(depth_m, mask > 0)
+        x, m = self.inc(depth_m / scale, mask)
         x = F.elu(x)
         skips = [(x, m)]
         for down in self.downs:
@@ -141,7 +150,15 @@ class SDDUNet(nn.Module):
             # a concatenated channel group keeps its own mask: take their union
             x, m = dec(torch.cat([x, sx], dim=1), torch.maximum(m, sm))
             x = F.elu(x)
-        return [self.out(x)]
+        return [self.out(x) * scale]
+
+
+def _mean_valid_depth(depth_m: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """(B, 1, 1, 1) mean valid depth per image (1 m for an empty image): the networks
+    see depth divided by it, so that they work at any metric scale."""
+    w = valid.to(depth_m.dtype)
+    mean = (depth_m * w).sum(dim=(1, 2, 3), keepdim=True) / w.sum(dim=(1, 2, 3), keepdim=True).clamp_min(1.0)
+    return torch.where(mean > 0, mean, torch.ones_like(mean))
 
 
 def _check_input(depth_m: torch.Tensor, multiple: int, who: str) -> None:
