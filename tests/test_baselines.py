@@ -8,7 +8,7 @@ from depthgt.enhance.baselines import BASELINES, fill_holes, run_baseline
 from depthgt.enhance.learned import DDRNetDenoise, PartialConv2d, SDDUNet, ddrnet_loss, sdd_loss
 from depthgt.metrics import rmse
 
-torch.set_num_threads(2)
+torch.set_num_threads(1)  # the test machine is shared; one thread is faster here
 
 
 def _plane(n=64, seed=0, noise=0.02, slope=(0.01, 0.005), z0=2.0):
@@ -83,7 +83,7 @@ def _plane_batch(b, n, g):
     z0 = 1.5 + 1.5 * torch.rand(b, 1, 1, 1, generator=g)
     sx, sy = (0.02 * torch.rand(b, 2, 1, 1, generator=g) - 0.01).unbind(1)
     truth = z0 + sx[:, None] * u.view(1, 1, 1, n) + sy[:, None] * u.view(1, 1, n, 1)
-    noisy = truth + 0.02 * torch.randn(truth.shape, generator=g)
+    noisy = truth + 0.05 * torch.randn(truth.shape, generator=g)
     holes = torch.rand(truth.shape, generator=g) < 0.05
     noisy = torch.where(holes, torch.zeros_like(noisy), noisy)
     K = torch.tensor([[50.0, 0, (n - 1) / 2], [0, 50.0, (n - 1) / 2], [0, 0, 1]]).expand(b, 3, 3)
@@ -96,9 +96,9 @@ def test_learned_baselines_learn_to_denoise_planes(name):
     g = torch.Generator().manual_seed(1)
     model = DDRNetDenoise(channels=8, levels=2) if name == "ddrnet" else SDDUNet(channels=8, levels=2)
     loss_fn = ddrnet_loss if name == "ddrnet" else sdd_loss
-    opt = torch.optim.Adam(model.parameters(), lr=2e-3)
-    for _ in range(150):
-        truth, noisy, _, K = _plane_batch(8, 16, g)
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    for _ in range(400):
+        truth, noisy, _, K = _plane_batch(4, 16, g)
         total, terms = loss_fn(model(noisy), {"gt": truth, "K": K, "input": noisy})
         opt.zero_grad()
         total.backward()
@@ -109,6 +109,8 @@ def test_learned_baselines_learn_to_denoise_planes(name):
     assert pred.shape == noisy.shape and torch.isfinite(pred).all()
     err_in = (noisy - truth)[~holes].pow(2).mean().sqrt()
     err_out = (pred - truth)[~holes].pow(2).mean().sqrt()
-    assert err_out < err_in
-    # holes get plane-like values (within 10 cm) rather than 0
-    assert (pred - truth)[holes].abs().mean() < 0.1
+    assert err_out < 0.85 * err_in  # held-out noise: 5 cm in, ~3.5-4 cm out
+    if name == "ddrnet":
+        assert (pred[holes] == 0).all()  # a denoiser: holes stay holes
+    else:
+        assert (pred - truth)[holes].abs().mean() < 0.1  # partial convs fill them

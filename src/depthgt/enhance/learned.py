@@ -130,6 +130,8 @@ class SDDUNet(nn.Module):
         self.downs = nn.ModuleList([PartialConv2d(widths[i], widths[i + 1], 3, stride=2) for i in range(levels)])
         self.decs = nn.ModuleList([PartialConv2d(widths[i + 1] + widths[i], widths[i], 3) for i in reversed(range(levels))])
         self.out = nn.Conv2d(widths[0], 1, 3, padding=1)
+        with torch.no_grad():  # start at the mean depth (1 in the normalised units)
+            self.out.bias.fill_(1.0)
 
     def forward(self, depth_m: torch.Tensor) -> list[torch.Tensor]:
         _check_input(depth_m, self.size_multiple, "SDDUNet")
