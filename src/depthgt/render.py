@@ -21,13 +21,17 @@ output resolution, images (B, C, H, W), depth (B, 1, H, W) metres with 0 = nothi
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
+from kornia.geometry.depth import depth_to_normals
+from kornia.geometry.linalg import transform_points
 
-from depthgt.geometry import project
+from depthgt.geometry import backproject, project
 
-__all__ = ["SoftSplat", "splat_soft"]
+__all__ = ["SoftSplat", "splat_soft", "GTRenderSettings", "GTRender", "render_gt", "TargetCloud", "cloud_in_target"]
 
 
 # --------------------------------------------------------------------------- helpers
@@ -56,12 +60,14 @@ class _Candidates(NamedTuple):
     d2: (C,) squared distance in pixels between the projection and the pixel centre
         (differentiable w.r.t. the points).
     ray: (C, 3) K^-1 [u_c, v_c, 1] of the pixel centre (detached), for plane corrections.
+    offset: (C, 2) pixel centre minus projection (differentiable), d2 = |offset|^2.
     """
 
     point: torch.Tensor
     pixel: torch.Tensor
     d2: torch.Tensor
     ray: torch.Tensor | None
+    offset: torch.Tensor
 
 
 def _candidates(
@@ -122,7 +128,7 @@ def _candidates(
             Kinv = torch.linalg.inv(K.to(torch.float64)).to(points_cam.dtype)
             pix_h = torch.stack([x0[slot] + ox, y0[slot] + oy, torch.ones_like(d2)], dim=1).to(points_cam.dtype)
             ray = torch.einsum("cij,cj->ci", Kinv[batch[slot]], pix_h)
-    return _Candidates(point, pixel, d2, ray), z_f
+    return _Candidates(point, pixel, d2, ray, dc), z_f
 
 
 def _segment_rank_keep(pixel: torch.Tensor, key: torch.Tensor, active: torch.Tensor, limit: int, n_pixels: int) -> torch.Tensor:
@@ -255,3 +261,312 @@ def splat_soft(
         depth=depth.reshape(b, 1, h, w),
         weight=wsum.reshape(b, 1, h, w),
     )
+
+
+# --------------------------------------------------------------------------- GT renderer (eq. 5)
+
+
+@dataclass(frozen=True)
+class GTRenderSettings:
+    """Settings of :func:`render_gt` (paper eq. 5 plus the front-surface guard).
+
+    Attributes:
+        m: at most this many nearest projected points (by pixel distance) per pixel.
+            The paper does not state m; 7 frames at one resolution put about
+            7 * pi * R^2 ~ 34 points within R = 1.25 px of a pixel centre, and m = 16
+            keeps the nearest half of them (an effective radius of ~0.85 px), which
+            keeps the footprint small at edges while averaging over ~2 points per frame.
+        radius_px: R, radius in output pixels of the neighbourhood of a pixel centre
+            and the scale of the weights exp(-d / R^2) (d squared pixel distance).
+        rel_band, abs_band_m: depth band of one surface layer: a candidate belongs to
+            the layer starting at depth z0 when z0 <= z <= z0 * (1 + rel_band) +
+            abs_band_m (metres). It must exceed the depth noise of the input (Kinect:
+            ~1% at 3 m) and stay below the depth gaps between objects.
+        coverage_frac: the front layer F (starting at the nearest candidate depth)
+            takes the pixel when the mean offset of its candidates from the pixel
+            centre is at most ``coverage_frac * R``: its samples then surround the
+            centre. When F's edge passes near the centre without covering it, its
+            samples sit on one side (a uniformly sampled half disk has its centroid at
+            4R / (3 pi) = 0.42 R), and the pixel takes the next layer behind F.
+        min_points: pixels with fewer kept points get depth 0 (their weight sum and
+            count are still reported).
+        plane_correction: when normals are given, move every candidate's depth along
+            its local tangent plane to the pixel-centre ray (exact on planes; done in
+            inverse depth, which is affine in screen space) instead of using the depth
+            of the point at its own sub-pixel position.
+        min_cos_incidence: no plane correction for points whose normal makes |cos|
+            below this with the viewing ray (grazing planes are unreliable).
+        max_correction_rel: no plane correction for points whose correction could
+            exceed this fraction of the depth within R (a normal taken across an edge).
+        min_depth_m: points at or nearer than this (metres) are ignored.
+    """
+
+    m: int = 16
+    radius_px: float = 1.25
+    rel_band: float = 0.02
+    abs_band_m: float = 0.01
+    coverage_frac: float = 0.42
+    min_points: int = 1
+    plane_correction: bool = True
+    min_cos_incidence: float = 0.15
+    max_correction_rel: float = 0.05
+    min_depth_m: float = 1e-3
+
+    def __post_init__(self) -> None:
+        if self.m < 1:
+            raise ValueError(f"GTRenderSettings.m must be >= 1, got {self.m}")
+        if self.radius_px <= 0:
+            raise ValueError(f"GTRenderSettings.radius_px must be > 0, got {self.radius_px}")
+        if self.rel_band < 0 or self.abs_band_m < 0:
+            raise ValueError(f"GTRenderSettings bands must be >= 0, got rel_band={self.rel_band}, abs_band_m={self.abs_band_m}")
+        if not 0 < self.coverage_frac <= 1:
+            raise ValueError(f"GTRenderSettings.coverage_frac must be in (0, 1], got {self.coverage_frac}")
+        if self.min_points < 1:
+            raise ValueError(f"GTRenderSettings.min_points must be >= 1, got {self.min_points}")
+
+
+class GTRender(NamedTuple):
+    """Output of :func:`render_gt`.
+
+    depth: (B, 1, H, W) GT depth in metres, 0 = no GT.
+    weight_sum: (B, 1, H, W) sum of the eq. 5 weights of the kept points.
+    count: (B, 1, H, W) int64 number of kept points (after the guard and the m cap).
+    """
+
+    depth: torch.Tensor
+    weight_sum: torch.Tensor
+    count: torch.Tensor
+
+
+def _inverse_depth_planes(points_cam, normals_cam, K, st: GTRenderSettings) -> torch.Tensor:
+    """(B*N, 2) screen-space gradient (d(1/z)/du, d(1/z)/dv) of each point's tangent plane.
+
+    Plane n.X = n.p and X = z K^-1 [u, v, 1] give 1/z = (K^-T n) . [u, v, 1] / (n.p),
+    affine in (u, v). Rows are zero (no correction) where the normal is missing, the
+    plane is seen at a grazing angle, or the correction within R could exceed
+    ``max_correction_rel``.
+    """
+    nrm = torch.nan_to_num(normals_cam, nan=0.0, posinf=0.0, neginf=0.0)
+    d0 = (nrm * points_cam).sum(-1)  # (B, N) n.p
+    kn = torch.einsum("bji,bnj->bni", torch.linalg.inv(K.to(torch.float64)).to(points_cam.dtype), nrm)  # K^-T n
+    safe = torch.where(d0.abs() > 1e-12, d0, torch.ones_like(d0))
+    grad = kn[..., :2] / safe[..., None]
+    with torch.no_grad():
+        cos = d0.abs() / (nrm.norm(dim=-1) * points_cam.norm(dim=-1)).clamp_min(1e-12)
+        z = points_cam[..., 2]
+        # |delta(1/z)| <= |grad| R; relative depth change ~ z |grad| R
+        ok = (cos >= st.min_cos_incidence) & (z * grad.norm(dim=-1) * st.radius_px <= st.max_correction_rel)
+    return (grad * ok[..., None]).reshape(-1, 2)
+
+
+def _keep_m_nearest(pixel: torch.Tensor, d2: torch.Tensor, keep: torch.Tensor, m: int, r2: float, n_pix: int) -> torch.Tensor:
+    """Restrict ``keep`` to the m kept candidates of smallest d2 in every pixel.
+
+    Avoids sorting all candidates: a per-pixel histogram of d2 in ``nb`` bins finds the
+    bin where the count reaches m; bins before it are kept whole and only the
+    candidates of that boundary bin are ranked exactly (by :func:`_segment_rank_keep`).
+    """
+    nb = 32
+    dd = d2.detach()
+    bins = (dd * (nb / r2)).long().clamp_(0, nb - 1)
+    hist = torch.zeros(n_pix * nb, dtype=torch.int32, device=pixel.device)
+    hist.index_add_(0, pixel * nb + bins, keep.to(torch.int32))
+    cum = hist.view(n_pix, nb).cumsum(dim=1)
+    full = cum >= m
+    # first bin reaching m (nb = none: every kept candidate stays)
+    boundary = torch.where(full.any(dim=1), full.to(torch.int8).argmax(dim=1), torch.full((n_pix,), nb, device=pixel.device))
+    before = torch.where(boundary > 0, cum.gather(1, (boundary - 1).clamp_min(0)[:, None]).squeeze(1), torch.zeros_like(boundary))
+    bnd = boundary[pixel]
+    out = keep & (bins <= bnd)
+    at_bnd = (out & (bins == bnd)).nonzero().squeeze(1)
+    if at_bnd.numel():
+        sub = _segment_rank_keep_limits(pixel[at_bnd], dd[at_bnd], (m - before)[pixel[at_bnd]])
+        out[at_bnd[~sub]] = False
+    return out
+
+
+def _segment_rank_keep_limits(pixel: torch.Tensor, key: torch.Tensor, limit: torch.Tensor) -> torch.Tensor:
+    """(C,) mask keeping in every pixel the ``limit`` (per candidate, equal within a pixel)
+    candidates of smallest key (stable sort on pixel + normalised key, float64)."""
+    k = key.to(torch.float64)
+    lo, hi = k.min(), k.max()
+    kn = (k - lo) / (hi - lo).clamp_min(1e-30) * 0.5
+    order = torch.sort(pixel.to(torch.float64) + kn, stable=True).indices
+    pix_sorted = pixel[order]
+    pos = torch.arange(order.numel(), device=pixel.device)
+    starts = torch.ones_like(pix_sorted, dtype=torch.bool)
+    starts[1:] = pix_sorted[1:] != pix_sorted[:-1]
+    first = torch.cummax(torch.where(starts, pos, torch.zeros_like(pos)), dim=0).values
+    keep = torch.empty_like(starts)
+    keep[order] = (pos - first) < limit[order]
+    return keep
+
+
+def render_gt(
+    points_cam: torch.Tensor,
+    K: torch.Tensor,
+    size_hw: tuple[int, int],
+    valid: torch.Tensor | None = None,
+    settings: GTRenderSettings = GTRenderSettings(),
+    normals_cam: torch.Tensor | None = None,
+) -> GTRender:
+    """Weighted z-buffer average of a merged point cloud (paper eq. 5, with a guard).
+
+    For every pixel (centre at integer (u, v), pixel-centre convention):
+
+    1. candidates: the points whose projection lies strictly within R =
+       ``radius_px`` of the centre; d = squared pixel distance to the centre; z = the
+       point's depth or, with ``normals_cam`` and ``plane_correction``, the depth where
+       the point's tangent plane meets the pixel-centre ray;
+    2. front-surface guard: the front layer F holds the candidates with z <=
+       z_min * (1 + rel_band) + abs_band_m (z_min the nearest candidate depth). F
+       takes the pixel when its samples surround the centre (mean offset <=
+       ``coverage_frac`` * R); otherwise the next layer behind F does (when it
+       exists): a foreground edge passing near the centre does not fatten the
+       foreground, and points behind the front surface never bleed through. Only the
+       candidates of the chosen layer (z within its band) stay;
+    3. eq. 5: among them, the m smallest d are kept, w = exp(-d / R^2), depth =
+       sum(w z) / sum(w). Pixels with fewer than ``min_points`` kept points get 0.
+
+    Differentiable w.r.t. ``points_cam`` and ``normals_cam`` through d and z; the
+    selection is piecewise constant. Runs on the device of the inputs.
+
+    Args:
+        points_cam: (B, N, 3) points in metres in the target camera (the caller
+            concatenates the frames of the frame set, see :func:`cloud_in_target`).
+        K: (B, 3, 3) target intrinsics at ``size_hw``.
+        size_hw: output (H, W).
+        valid: (B, N) bool or None (all valid).
+        settings: :class:`GTRenderSettings`.
+        normals_cam: (B, N, 3) unit normals in the target camera, or None; zero or
+            non-finite rows mean "no normal" (no plane correction for that point).
+
+    Returns:
+        :class:`GTRender` (depth, weight_sum, count), each (B, 1, H, W).
+    """
+    valid = _check_points(points_cam, K, valid, size_hw)
+    if normals_cam is not None and normals_cam.shape != points_cam.shape:
+        raise ValueError(f"normals_cam must match points_cam {tuple(points_cam.shape)}, got {tuple(normals_cam.shape)}")
+    st = settings
+    b = points_cam.shape[0]
+    h, w = int(size_hw[0]), int(size_hw[1])
+    n_pix = b * h * w
+    r2 = st.radius_px**2
+    cand, z_all = _candidates(points_cam, K, valid, (h, w), st.radius_px, st.min_depth_m)
+    pixel, d2 = cand.pixel, cand.d2
+    if normals_cam is not None and st.plane_correction:
+        table = torch.cat([1.0 / z_all.clamp_min(st.min_depth_m)[:, None], _inverse_depth_planes(points_cam, normals_cam, K, st)], 1)
+        t = table[cand.point]  # (C, 3): 1/z, d(1/z)/du, d(1/z)/dv
+        # offset = centre - projection, so 1/z at the centre = 1/z + grad . offset
+        z = 1.0 / (t[:, 0] + (t[:, 1:] * cand.offset).sum(dim=1)).clamp_min(1e-6)
+    else:
+        z = z_all[cand.point]
+    with torch.no_grad():
+        zd = z.detach()
+        inf_c = torch.full_like(zd, float("inf"))
+        inf_p = torch.full((n_pix,), float("inf"), dtype=zd.dtype, device=zd.device)
+        z_min = inf_p.scatter_reduce(0, pixel, zd, reduce="amin")
+        in_front = zd <= z_min[pixel] * (1.0 + st.rel_band) + st.abs_band_m
+        fm = in_front.to(zd.dtype)
+        acc = torch.zeros(n_pix, 3, dtype=zd.dtype, device=zd.device)
+        acc.index_add_(0, pixel, torch.cat([fm[:, None], cand.offset.detach() * fm[:, None]], dim=1))
+        centroid = acc[:, 1:].norm(dim=1) / acc[:, 0].clamp_min(1.0)
+        z_next = inf_p.scatter_reduce(0, pixel, torch.where(in_front, inf_c, zd), reduce="amin")
+        use_next = (centroid > st.coverage_frac * st.radius_px) & torch.isfinite(z_next)
+        z_ref = torch.where(use_next, z_next, z_min)[pixel]
+        keep = (zd >= z_ref) & (zd <= z_ref * (1.0 + st.rel_band) + st.abs_band_m)
+        keep = _keep_m_nearest(pixel, d2, keep, st.m, r2, n_pix)
+    wgt = torch.exp(-d2 / r2) * keep
+    acc = torch.zeros(n_pix, 2, dtype=wgt.dtype, device=wgt.device).index_add(0, pixel, torch.stack([wgt, wgt * z], dim=1))
+    wsum, zsum = acc[:, 0], acc[:, 1]
+    count = torch.zeros(n_pix, dtype=torch.int64, device=pixel.device).index_add_(0, pixel, keep.to(torch.int64))
+    good = (count >= st.min_points) & (wsum > 0)
+    depth = torch.where(good, zsum / torch.where(good, wsum, torch.ones_like(wsum)), torch.zeros_like(zsum))
+    return GTRender(depth.reshape(b, 1, h, w), wsum.reshape(b, 1, h, w), count.reshape(b, 1, h, w))
+
+
+def _backproject_resampled(depth_m: torch.Tensor, K: torch.Tensor, src_hw: tuple[int, int]) -> torch.Tensor:
+    """Back-project (J, 1, H, W) depth made by nearest resizing from ``src_hw``, each pixel
+    at the position of its source pixel centre: (J, H*W, 3) metres.
+
+    Written by hand: kornia's depth_to_3d assumes the regular output pixel grid.
+    """
+    h, w = depth_m.shape[-2:]
+    dev, dt = depth_m.device, depth_m.dtype
+
+    def pos(n_src: int, n_dst: int) -> torch.Tensor:
+        # same index rule as geometry.resize_depth_nearest, then back to output pixel units
+        i = ((torch.arange(n_dst, device=dev, dtype=torch.float64) + 0.5) * (n_src / n_dst)).floor().clamp_(0, n_src - 1)
+        return ((i + 0.5) * (n_dst / n_src) - 0.5).to(dt)
+
+    v, u = torch.meshgrid(pos(src_hw[0], h), pos(src_hw[1], w), indexing="ij")
+    z = depth_m[:, 0]
+    fx, fy = K[:, 0, 0, None, None], K[:, 1, 1, None, None]
+    cx, cy, s = K[:, 0, 2, None, None], K[:, 1, 2, None, None], K[:, 0, 1, None, None]
+    y = (v - cy) / fy
+    x = (u - cx - s * y) / fx
+    return torch.stack([x * z, y * z, z], dim=-1).reshape(depth_m.shape[0], -1, 3)
+
+
+class TargetCloud(NamedTuple):
+    """The frames of a frame set merged in the target camera (one batch element).
+
+    points: (1, J*H*W, 3) metres; normals: (1, J*H*W, 3) unit normals (zeros where
+    unknown); valid: (1, J*H*W) bool (valid depth).
+    """
+
+    points: torch.Tensor
+    normals: torch.Tensor
+    valid: torch.Tensor
+
+
+def cloud_in_target(
+    depth_m: torch.Tensor,
+    K: torch.Tensor,
+    T_j_to_t: torch.Tensor,
+    normal_max_jump_rel: float = 0.05,
+    src_hw: tuple[int, int] | None = None,
+) -> TargetCloud:
+    """Back-project J depth images and move their points and normals into the target camera.
+
+    Normals come from :func:`kornia.geometry.depth.depth_to_normals`; they are set to
+    zero (unknown) wherever the 3x3 neighbourhood holds an invalid pixel or a depth
+    range above ``normal_max_jump_rel`` times the depth (a depth edge), so that
+    :func:`render_gt` does not plane-correct across edges.
+
+    Args:
+        depth_m: (J, 1, H, W) depth in metres, 0 = invalid.
+        K: (J, 3, 3) intrinsics of each frame at (H, W).
+        T_j_to_t: (J, 4, 4) poses mapping points of frame j into the target camera.
+        src_hw: when ``depth_m`` was made by :func:`depthgt.geometry.resize_depth_nearest`
+            from images of size ``src_hw``, every pixel holds the depth of the source
+            pixel nearest to its centre, up to 0.5 source pixels away; passing
+            ``src_hw`` back-projects each depth at that source pixel's exact position
+            (in output pixel units) instead of at the output pixel centre, which puts
+            the points on the surface (it matters on slanted surfaces and at edges).
+
+    Returns:
+        :class:`TargetCloud` with J*H*W points in row-major pixel order, frame by frame.
+    """
+    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
+        raise ValueError(f"depth_m must be (J, 1, H, W), got {tuple(depth_m.shape)}")
+    j = depth_m.shape[0]
+    if T_j_to_t.shape != (j, 4, 4):
+        raise ValueError(f"T_j_to_t must be ({j}, 4, 4) to match depth_m, got {tuple(T_j_to_t.shape)}")
+    dtype = depth_m.dtype
+    K = K.to(dtype)
+    T = T_j_to_t.to(dtype)
+    if src_hw is None:
+        pts_j = backproject(depth_m, K)
+    else:
+        pts_j = _backproject_resampled(depth_m, K, src_hw)
+    pts = transform_points(T, pts_j)  # (J, HW, 3)
+    nrm = depth_to_normals(depth_m, K)  # (J, 3, H, W)
+    hi = F.max_pool2d(depth_m, 3, stride=1, padding=1)
+    lo = -F.max_pool2d(torch.where(depth_m > 0, -depth_m, torch.full_like(depth_m, -float("inf"))), 3, stride=1, padding=1)
+    any_invalid = F.max_pool2d((depth_m <= 0).to(dtype), 3, stride=1, padding=1) > 0
+    flat = ~any_invalid & ((hi - lo) <= normal_max_jump_rel * depth_m)
+    nrm = torch.where(flat & torch.isfinite(nrm).all(dim=1, keepdim=True), nrm, torch.zeros_like(nrm))
+    nrm = nrm.flatten(2).transpose(1, 2) @ T[:, :3, :3].transpose(1, 2)  # rotate into the target camera
+    valid = (depth_m > 0).reshape(j, -1)
+    return TargetCloud(pts.reshape(1, -1, 3), nrm.reshape(1, -1, 3), valid.reshape(1, -1))
