@@ -57,3 +57,64 @@ def splat_soft_reference(points_cam, features, K, size_hw, valid=None, radius_px
             out_z[y, x] = sum(cw * cz for cz, cw, _ in cands) / ws
             out_f[:, y, x] = sum(cw * features[i] for _, cw, i in cands) / ws
     return out_f, out_z, out_w
+
+
+def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, normals_cam=None):
+    """Loop version of ``render_gt`` for one image: points (N, 3), K (3, 3), normals (N, 3).
+
+    ``settings`` is a ``GTRenderSettings``. Returns depth, weight_sum, count as (H, W)
+    float64 / float64 / int arrays.
+    """
+    st = settings
+    P = np.asarray(points_cam, dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    Kinv = np.linalg.inv(K)
+    h, w = size_hw
+    n = len(P)
+    valid = np.ones(n, bool) if valid is None else np.asarray(valid, bool)
+    u, v, z = _project(P, K)
+    R = st.radius_px
+    use_planes = normals_cam is not None and st.plane_correction
+    if use_planes:
+        N = np.nan_to_num(np.asarray(normals_cam, dtype=np.float64))
+    depth = np.zeros((h, w))
+    wsum = np.zeros((h, w))
+    count = np.zeros((h, w), int)
+    for y in range(h):
+        for x in range(w):
+            cands = []  # dicts with d2, offset, z
+            for i in range(n):
+                if not valid[i] or not z[i] > st.min_depth_m:
+                    continue
+                d2 = (x - u[i]) ** 2 + (y - v[i]) ** 2
+                if not d2 < R * R:
+                    continue
+                zc = z[i]
+                if use_planes:
+                    # the tangent plane n.X = n.p met by the ray through the pixel centre
+                    nrm, p = N[i], P[i]
+                    d0 = nrm @ p
+                    cos = abs(d0) / max(np.linalg.norm(nrm) * np.linalg.norm(p), 1e-12)
+                    grad = (Kinv.T @ nrm)[:2] / d0 if abs(d0) > 1e-12 else np.zeros(2)
+                    if cos >= st.min_cos_incidence and z[i] * np.linalg.norm(grad) * R <= st.max_correction_rel:
+                        ray = Kinv @ np.array([x, y, 1.0])
+                        zc = d0 / (nrm @ ray)
+                cands.append({"d2": d2, "off": np.array([x - u[i], y - v[i]]), "z": zc})
+            if not cands:
+                continue
+            z_min = min(c["z"] for c in cands)
+            band = lambda z0: z0 * (1 + st.rel_band) + st.abs_band_m  # noqa: E731
+            front = [c for c in cands if c["z"] <= band(z_min)]
+            behind = [c for c in cands if c["z"] > band(z_min)]
+            centroid = np.linalg.norm(sum(c["off"] for c in front)) / len(front)
+            z_ref = z_min
+            if centroid > st.coverage_frac * R and behind:
+                z_ref = min(c["z"] for c in behind)
+            layer = [c for c in cands if z_ref <= c["z"] <= band(z_ref)]
+            layer = sorted(layer, key=lambda c: c["d2"])[: st.m]
+            ws = [math.exp(-c["d2"] / (R * R)) for c in layer]
+            count[y, x] = len(layer)
+            wsum[y, x] = sum(ws)
+            if len(layer) >= st.min_points and wsum[y, x] > 0:
+                depth[y, x] = sum(wi * c["z"] for wi, c in zip(ws, layer)) / wsum[y, x]
+    return depth, wsum, count

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from depthgt.render import SoftSplat, splat_soft
-from render_reference import splat_soft_reference
+from depthgt.geometry import resize_depth_nearest, scale_intrinsics
+from depthgt.render import GTRender, GTRenderSettings, SoftSplat, cloud_in_target, render_gt, splat_soft
+from render_reference import render_gt_reference, splat_soft_reference
 
 torch.set_num_threads(2)
 
@@ -123,3 +124,89 @@ def test_splat_cuda_matches_cpu():
     c = splat_soft(p.cuda(), f.cuda(), K.cuda(), (32, 32))
     assert c.depth.device.type == "cuda"
     assert torch.allclose(a.depth, c.depth.cpu(), atol=1e-5) and torch.allclose(a.features, c.features.cpu(), atol=1e-5)
+
+
+# ------------------------------------------------------------------ render_gt
+
+
+def _two_layer_cloud(seed: int, n_bg: int = 900, n_fg: int = 250):
+    """Points of a tilted background plane and a nearer tilted patch, with normals,
+    at random sub-pixel positions of a 16x16 view (f = 14)."""
+    g = torch.Generator().manual_seed(seed)
+    K = _K(1, 14.0, 7.5, 7.5)
+    uv_bg = torch.rand(n_bg, 2, generator=g, dtype=torch.float64) * 18 - 1
+    uv_fg = torch.rand(n_fg, 2, generator=g, dtype=torch.float64) * torch.tensor([7.0, 9.0], dtype=torch.float64) + 4
+    pts, nrms = [], []
+    for uv, n_plane, d in [(uv_bg, [0.3, -0.2, -1.0], -2.0), (uv_fg, [-0.4, 0.1, -1.0], -1.2)]:
+        n_plane = torch.tensor(n_plane, dtype=torch.float64)
+        n_plane = n_plane / n_plane.norm()
+        ray = torch.stack([(uv[:, 0] - 7.5) / 14.0, (uv[:, 1] - 7.5) / 14.0, torch.ones(len(uv), dtype=torch.float64)], 1)
+        z = d / (ray @ n_plane)  # on the plane n.X = d
+        p = ray * z[:, None]
+        pts.append(p)
+        nrms.append(n_plane.expand(len(uv), 3).clone())
+    p = torch.cat(pts)[None]
+    nrm = torch.cat(nrms)[None]
+    nrm[0, torch.rand(len(nrm[0]), generator=g) < 0.2] = 0  # some points without a normal
+    p = p + 0.002 * torch.randn(p.shape, generator=g, dtype=torch.float64)  # off-plane noise
+    valid = torch.rand(1, p.shape[1], generator=g) > 0.05
+    return p, nrm, valid, K
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("use_normals", [True, False])
+def test_render_gt_matches_reference(seed, use_normals):
+    p, nrm, valid, K = _two_layer_cloud(seed)
+    st = GTRenderSettings(m=5, radius_px=1.3, min_points=2, rel_band=0.02, abs_band_m=0.02)
+    out = render_gt(p, K, (16, 16), valid, st, nrm if use_normals else None)
+    assert isinstance(out, GTRender)
+    rd, rw, rc = render_gt_reference(p[0].numpy(), K[0].numpy(), (16, 16), valid[0].numpy(), st,
+                                     nrm[0].numpy() if use_normals else None)
+    np.testing.assert_array_equal(out.count[0, 0].numpy(), rc)
+    np.testing.assert_allclose(out.weight_sum[0, 0].numpy(), rw, atol=1e-12)
+    np.testing.assert_allclose(out.depth[0, 0].numpy(), rd, atol=1e-10)
+    # the test exercises both layers, the cap and min_points
+    assert (rc == st.m).any() and ((rc > 0) & (rc < st.min_points)).any()
+    assert (rd > 1.5).any() and ((rd > 0) & (rd < 1.4)).any()
+
+
+def test_render_gt_guard_hides_occluded_points():
+    """A far point projecting right on a pixel centre must not bleed through a near surface."""
+    K = _K(1, 10.0, 4.0, 4.0)
+    uv = torch.tensor([[4.0, 4.0], [3.6, 4.0], [4.4, 4.0], [4.0, 3.6], [4.0, 4.4]], dtype=torch.float64)
+    z = torch.tensor([3.0, 1.0, 1.0, 1.0, 1.0], dtype=torch.float64)
+    p = _unproject(uv, z, K[0])[None]
+    out = render_gt(p, K, (9, 9), settings=GTRenderSettings(radius_px=1.0))
+    assert float(out.depth[0, 0, 4, 4]) == pytest.approx(1.0) and int(out.count[0, 0, 4, 4]) == 4
+    # a near point on one side only does not claim a pixel whose centre sees the far surface
+    uv = torch.tensor([[4.0, 4.0], [4.2, 3.9], [3.8, 4.1], [4.7, 4.0]], dtype=torch.float64)
+    z = torch.tensor([3.0, 3.0, 3.0, 1.0], dtype=torch.float64)
+    out = render_gt(_unproject(uv, z, K[0])[None], K, (9, 9), settings=GTRenderSettings(radius_px=1.0))
+    assert float(out.depth[0, 0, 4, 4]) == pytest.approx(3.0)
+
+
+def test_render_gt_min_points_and_empty():
+    K = _K(1, 10.0, 4.0, 4.0)
+    p = _unproject(torch.tensor([[4.0, 4.0]], dtype=torch.float64), torch.tensor([2.0], dtype=torch.float64), K[0])[None]
+    out = render_gt(p, K, (9, 9), settings=GTRenderSettings(min_points=2))
+    assert out.depth.abs().sum() == 0 and int(out.count[0, 0, 4, 4]) == 1 and float(out.weight_sum[0, 0, 4, 4]) == 1.0
+    out = render_gt(torch.zeros(1, 0, 3, dtype=torch.float64), K, (9, 9))
+    assert out.depth.shape == (1, 1, 9, 9) and out.depth.abs().sum() == 0
+
+
+def test_render_gt_gradients_reach_points():
+    p, nrm, valid, K = _two_layer_cloud(0, n_bg=200, n_fg=50)
+    p = p.clone().requires_grad_()
+    out = render_gt(p, K, (16, 16), valid, GTRenderSettings(), nrm)
+    out.depth.sum().backward()
+    assert torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0
+
+
+def test_render_gt_bad_input():
+    K = _K(1, 10.0, 4.0, 4.0)
+    with pytest.raises(ValueError, match="normals_cam"):
+        render_gt(torch.ones(1, 4, 3), K, (9, 9), normals_cam=torch.ones(1, 3, 3))
+    with pytest.raises(ValueError, match="coverage_frac"):
+        GTRenderSettings(coverage_frac=0)
+    with pytest.raises(ValueError, match=r"\(B, N, 3\)"):
+        render_gt(torch.ones(4, 3), K, (9, 9))
