@@ -21,9 +21,11 @@ The model, in the order applied by :func:`kinect_noise`:
    quantised to 1/8 pixel and converted back, so that the depth takes the discrete
    Kinect levels (step ~2.85e-3 z^2 m at fx = 585, b = 7.5 cm, as the 7-Scenes
    fixture shows) and its error grows as z^2; then rounded to millimetres as in the
-   uint16 PNGs. The disparity noise std falls as 1/sqrt(z) (fitted: on the fixture
-   the residual at 2.5-3.5 m is little more than the quantisation's own, at 1-1.5 m
-   it is ~1.3x larger; a constant std overshoots the far bins by ~1.4x).
+   uint16 PNGs. The disparity noise std falls slowly, as z^-1/4 (fitted on the
+   fixture, whose residual at 2.5-3.5 m is little more than the quantisation's own
+   while at 1-1.5 m it is ~1.3x larger: a constant std overshoots the far bins by
+   ~1.4x, a 1/sqrt(z) fall-off leaves far fronto-parallel walls undithered and
+   undershoots the 3-3.5 m bin by up to 1.5x).
 5. The sensor's invalid right border (``border_right_px`` columns).
 
 Defaults are calibrated against the 7-Scenes kitchen fixture with the estimator of
@@ -44,7 +46,10 @@ __all__ = ["KinectNoise", "kinect_noise", "smooth_field"]
 
 @dataclass(frozen=True)
 class KinectNoise:
-    """Settings of the Kinect v1 model (units in the names)."""
+    """Settings of the Kinect v1 model (units in the names). Pixel-sized settings
+    (``*_px``) are given at the Kinect's 640-pixel width and scaled with the image
+    width, so that noise, quantisation levels and hole patterns do not depend on
+    the rendering resolution; ``sigma_disp_*`` are the stds at 1 m."""
 
     baseline_m: float = 0.075
     disparity_step_px: float = 0.125
@@ -52,15 +57,15 @@ class KinectNoise:
     sigma_disp_smooth_px: float = 0.015
     jitter_px: float = 0.6
     shadow_tol_px: float = 0.5
-    edge_band_px: int = 2
+    edge_band_px: int = 1
     edge_rel_jump: float = 0.04
     edge_drop_prob: float = 0.7
     grazing_cos: float = 0.2
     dark_level: float = 0.03
     min_range_m: float = 0.45
-    max_range_m: float = 3.7
+    max_range_m: float = 3.8
     far_ramp_m: float = 0.3
-    blob_fraction: float = 0.012
+    blob_fraction: float = 0.006
     border_right_px: int = 8
     round_mm: bool = True
 
@@ -128,14 +133,15 @@ def kinect_noise(
     if ir_reflectance is not None and ir_reflectance.shape != (h, w):
         raise ValueError(f"ir_reflectance must be {(h, w)}, got {ir_reflectance.shape}")
     s = settings
+    px = w / 640.0  # pixel-sized settings are given at the Kinect's 640-pixel width
     fx = float(K[0, 0])
     fb = fx * s.baseline_m  # disparity (px) = fb / z
 
     # 1. lateral jitter of the whole image (visible at edges only)
     u = np.arange(w, dtype=np.float32)[None, :].repeat(h, 0)
     v = np.arange(h, dtype=np.float32)[:, None].repeat(w, 1)
-    map_x = u + s.jitter_px * smooth_field(rng, (h, w), 3.0)
-    map_y = v + s.jitter_px * smooth_field(rng, (h, w), 3.0)
+    map_x = u + s.jitter_px * px * smooth_field(rng, (h, w), 3.0 * px)
+    map_y = v + s.jitter_px * px * smooth_field(rng, (h, w), 3.0 * px)
     z = cv2.remap(depth_m, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
     if normals_cam is not None:
         normals_cam = cv2.remap(np.ascontiguousarray(normals_cam, np.float32), map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
@@ -148,11 +154,12 @@ def kinect_noise(
     u_p = u - fb / zs
     right_min = np.minimum.accumulate(u_p[:, ::-1], axis=1)[:, ::-1]
     right_min = np.concatenate([right_min[:, 1:], np.full((h, 1), np.inf, np.float32)], 1)
-    drop = right_min < u_p - s.shadow_tol_px
+    drop = right_min < u_p - s.shadow_tol_px * px
 
     # 3a. pattern not matched at depth discontinuities
-    if s.edge_band_px > 0:
-        k = 2 * s.edge_band_px + 1
+    band = int(round(s.edge_band_px * px))
+    if s.edge_band_px > 0 and band > 0:
+        k = 2 * band + 1
         kernel = np.ones((k, k), np.uint8)
         hi = cv2.dilate(z, kernel)
         lo = cv2.erode(np.where(valid, z, np.float32(1e6)), kernel)
@@ -173,25 +180,27 @@ def kinect_noise(
         p = np.maximum(p, np.clip(1.0 - signal / s.dark_level, 0, 1) ** 0.5)
     if s.far_ramp_m > 0:
         p = np.maximum(p, np.clip((z - (s.max_range_m - s.far_ramp_m)) / s.far_ramp_m, 0, 1))
-    drop |= _uniform_field(rng, (h, w), 2.0) < p
+    drop |= _uniform_field(rng, (h, w), 2.0 * px) < p
     drop |= z > s.max_range_m
     drop |= z < s.min_range_m
     if s.blob_fraction > 0:
-        blobs = smooth_field(rng, (h, w), 5.0)
+        blobs = smooth_field(rng, (h, w), 5.0 * px)
         drop |= blobs > np.quantile(blobs[::4, ::4], 1.0 - s.blob_fraction)
 
     # 4. disparity noise and 1/8-pixel quantisation
     disp = fb / zs
-    scale = 1.0 / np.sqrt(np.maximum(zs, 0.5))  # disparity noise std falls as 1/sqrt(z) (see above)
-    disp = disp + s.sigma_disp_px * scale * rng.standard_normal((h, w)).astype(np.float32)
+    scale = np.maximum(zs, 0.5) ** -0.25  # disparity noise std falls as z^-1/4 (see above)
+    disp = disp + s.sigma_disp_px * px * scale * rng.standard_normal((h, w)).astype(np.float32)
     if s.sigma_disp_smooth_px > 0:
-        disp = disp + s.sigma_disp_smooth_px * scale * smooth_field(rng, (h, w), 4.0)
-    disp = np.round(disp / s.disparity_step_px) * s.disparity_step_px
+        disp = disp + s.sigma_disp_smooth_px * px * scale * smooth_field(rng, (h, w), 4.0 * px)
+    step = s.disparity_step_px * px  # same depth levels at any image width
+    disp = np.round(disp / step) * step
     out = np.where(disp > 0, fb / np.maximum(disp, 1e-6), 0).astype(np.float32)
     if s.round_mm:
         out = np.round(out * 1000) / 1000
     out[drop | ~valid] = 0
     # 5. the sensor's invalid right border
-    if s.border_right_px > 0:
-        out[:, w - s.border_right_px :] = 0
+    border = int(round(s.border_right_px * px))
+    if border > 0:
+        out[:, w - border :] = 0
     return out.astype(np.float32)

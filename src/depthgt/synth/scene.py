@@ -180,7 +180,7 @@ def _chair(prims, rng, cx, cy, yaw, mats):
     a seat, two back posts and horizontal slats (gaps to see through)."""
     s = rng.uniform(0.2, 0.24)
     h = rng.uniform(0.43, 0.48)
-    mat = mats[rng.choice(["wood", "wood2", "metal", "dark"], p=[0.35, 0.25, 0.2, 0.2])]
+    mat = mats[rng.choice(["wood", "wood2", "metal", "dark"], p=[0.35, 0.3, 0.25, 0.1])]
     _add_box(prims, (cx, cy, h), (s, s, 0.02), mat, yaw, rng)
     leg = rng.uniform(0.015, 0.025)
     for sx in (-1, 1):
@@ -232,14 +232,14 @@ def generate_layout(rng: np.random.Generator, texture_size: int = 512) -> Layout
     cabinets with a dark counter top, a shelf unit with books, a floor lamp (thin
     pole), posters and a door on the walls.
     """
-    size = np.array([rng.uniform(4.0, 5.4), rng.uniform(3.6, 5.0), rng.uniform(2.5, 2.8)])
+    size = np.array([rng.uniform(3.8, 5.0), rng.uniform(3.5, 4.6), rng.uniform(2.5, 2.8)])
     kinds = ["wood", "wood", "tiles", "carpet", "plaster", "plaster", "poster", "poster", "books",
              "metal", "fabric", "fabric", "dark", "plaster"]
     textures = [(make_texture(k, rng, texture_size) * 255 + 0.5).astype(np.uint8) for k in kinds]
     materials = [
         Material(0, 1.2), Material(1, 1.0), Material(2, rng.uniform(1.2, 2.2)), Material(3, 2.0),
         Material(4, 2.0), Material(5, 2.0), Material(6, 0.8), Material(7, 0.6), Material(8, 0.7),
-        Material(9, 0.8, 0.9), Material(10, 0.5), Material(11, 0.4), Material(12, 0.8, ir_return=0.25),
+        Material(9, 0.8, 0.9), Material(10, 0.5), Material(11, 0.4), Material(12, 0.8, ir_return=0.4),
         Material(13, 2.5),
     ]
     mats = {"wood": 0, "wood2": 1, "tiles": 2, "carpet": 3, "wall": 4, "wall2": 5, "poster": 6, "poster2": 7,
