@@ -22,7 +22,7 @@ from depthgt.errors import FrameError
 from depthgt.framesets import FrameSetSettings, stable_seed
 from depthgt.patches import PatchSettings, make_patches
 from depthgt.quality import error_stats
-from depthgt.render import GTRenderSettings, render_gt
+from depthgt.render import GTRender, GTRenderSettings, cloud_in_target, render_gt
 from depthgt.sources.base import Scene, check_frame
 
 log = logging.getLogger(__name__)
@@ -64,6 +64,7 @@ class FrameSetData:
         T_world_cam: (F, 4, 4) float64 camera-to-world poses, or None.
         truth_m: (F, 1, H, W) clean depth when the source knows it, else None.
         frame_ids: the source's ids of the members.
+        src_hw: (H, W) of the source's depth images before resizing.
     """
 
     rgb: torch.Tensor
@@ -72,6 +73,7 @@ class FrameSetData:
     T_world_cam: torch.Tensor | None
     truth_m: torch.Tensor | None
     frame_ids: list[str]
+    src_hw: tuple[int, int] | None = None
 
 
 def load_frameset(scene: Scene, members: list[int], size_hw: tuple[int, int], need_poses: bool, device: torch.device) -> FrameSetData:
@@ -101,6 +103,7 @@ def load_frameset(scene: Scene, members: list[int], size_hw: tuple[int, int], ne
         T_world_cam=poses,
         truth_m=truth,
         frame_ids=[scene.frame_id(m) for m in members],
+        src_hw=tuple(scene.image_size),
     )
 
 
@@ -113,34 +116,22 @@ def poses_from_source(data: FrameSetData) -> torch.Tensor:
     return torch.linalg.inv(T[:1]) @ T[1:]
 
 
-def points_in_target(data: FrameSetData, T_j_to_t: torch.Tensor, depth_m: torch.Tensor | None = None,
-                     members: slice = slice(None)) -> tuple[torch.Tensor, torch.Tensor]:
-    """Back-project members and move them into the target camera.
+def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: GTRenderSettings, depth_m: torch.Tensor | None = None,
+         members: slice = slice(None)) -> GTRender:
+    """Render the aligned members into the target view (paper eq. 5).
 
     Args:
         T_j_to_t: (F-1, 4, 4) poses of the neighbours (the target's is the identity).
-        depth_m: (F, 1, H, W) depth to back-project (default: the raw depth).
-        members: which members to use (e.g. ``slice(1, None)`` leaves the target out).
-
-    Returns:
-        points (1, M, 3) in the target camera (metres) and valid (1, M) bool.
+        depth_m: (F, 1, H, W) depth to fuse (default: the raw depth of the members).
+        members: which members to use (``slice(1, None)`` leaves the target out).
     """
     depth = (data.depth_m if depth_m is None else depth_m)[members]
     eye = torch.eye(4, dtype=T_j_to_t.dtype, device=T_j_to_t.device)[None]
     T = torch.cat([eye, T_j_to_t], dim=0)[members]
-    K = data.K[None].expand(depth.shape[0], 3, 3).to(depth.dtype)
-    pts = geometry.backproject(depth, K)  # (F, HW, 3)
-    pts_t = geometry.transform_points(T.to(pts.dtype), pts)
-    valid = (depth.reshape(depth.shape[0], -1) > 0)
-    return pts_t.reshape(1, -1, 3), valid.reshape(1, -1)
-
-
-def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: GTRenderSettings, depth_m: torch.Tensor | None = None,
-         members: slice = slice(None)):
-    """Render the aligned members into the target view (paper eq. 5)."""
-    pts, valid = points_in_target(data, T_j_to_t, depth_m, members)
+    K = data.K[None].expand(depth.shape[0], 3, 3)
+    cloud = cloud_in_target(depth, K, T, src_hw=data.src_hw)
     h, w = data.depth_m.shape[-2:]
-    return render_gt(pts, data.K[None].to(pts.dtype), (h, w), valid, settings)
+    return render_gt(cloud.points, data.K[None].to(depth.dtype), (h, w), cloud.valid, settings, normals_cam=cloud.normals)
 
 
 def _atomic(path: Path, writer, *args) -> None:
