@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import math
-from collections import namedtuple
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from depthgt.geometry import project
 from depthgt.registration.correspondences import find_correspondences, sample_candidates
 from depthgt.registration.encoder import build_encoder, lift_points
 from depthgt.registration.metrics import pose_errors
@@ -26,36 +24,6 @@ SEVEN = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
 
 
 # ----------------------------------------------------------------------------- helpers
-
-_Splat = namedtuple("_Splat", "features depth weight")
-
-
-def _splat_bilinear(points_cam, features, K, size_hw, valid=None, radius_px=2.0, max_points=16):
-    """Temporary stand-in for depthgt.render.splat_soft: bilinear forward splatting with
-    a normalised weighted sum (no z-buffer); differentiable in the point positions."""
-    B, N, C = features.shape
-    H, W = size_hw
-    uv, z = project(points_cam, K)
-    ok = torch.isfinite(uv).all(-1) & (z > 1e-3)
-    if valid is not None:
-        ok = ok & valid
-    uv = torch.where(ok[..., None], uv, torch.zeros_like(uv))
-    x0 = uv[..., 0].detach().floor()
-    y0 = uv[..., 1].detach().floor()
-    acc = torch.zeros(B, C + 2, H * W, dtype=features.dtype)
-    vals = torch.cat([features, z[..., None], torch.ones_like(z[..., None])], -1)  # (B, N, C+2)
-    for dx in (0, 1):
-        for dy in (0, 1):
-            xi, yi = x0 + dx, y0 + dy
-            w = (1 - (uv[..., 0] - xi).abs()) * (1 - (uv[..., 1] - yi).abs())
-            inside = ok & (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
-            w = torch.where(inside, w, torch.zeros_like(w))
-            idx = (yi.clamp(0, H - 1) * W + xi.clamp(0, W - 1)).long()
-            acc = acc.scatter_add(2, idx[:, None].expand(-1, C + 2, -1), (vals * w[..., None]).transpose(1, 2))
-    wsum = acc[:, -1:]
-    norm = acc[:, :-1] / wsum.clamp(min=1e-8)
-    return _Splat(norm[:, :C].reshape(B, C, H, W), norm[:, C:C + 1].reshape(B, 1, H, W), wsum.reshape(B, 1, H, W))
-
 
 def _raycast_room(T_world_cam: np.ndarray, K: np.ndarray, hw, textured=True, flat=False):
     """Depth (H, W) and colour (H, W, 3) of a textured box room with a cube inside
@@ -237,16 +205,16 @@ FAST_TEST = dict(n_blocks=1, channels=16, feat_dim=16, n_candidates=600, top_k=6
 def test_overfit_training_reduces_the_pose_error():
     offsets = [0, -2, 2]
     rgb, depth, K, T_true = _frameset(offsets, hw=(48, 48), step_t=0.03, step_deg=2.0)
-    s = RegistrationSettings(**FAST_TEST, iterations=40, lr=3e-3, chaining=False, refine=False)
-    res = register_frameset(rgb, depth, K, offsets, s, seed=0, render_fn=_splat_bilinear)
+    s = RegistrationSettings(**FAST_TEST, iterations=25, lr=1e-3, chaining=False, refine=False)
+    res = register_frameset(rgb, depth, K, offsets, s, seed=0)
     T0 = torch.tensor(res.diagnostics["poses_paper"])
-    assert len(res.loss_curve) == 40 and len(res.pose_history) == 40
+    assert len(res.loss_curve) == 25 and len(res.pose_history) == 25
     s0 = RegistrationSettings(**FAST_TEST, iterations=0, chaining=False, refine=False)
-    res0 = register_frameset(rgb, depth, K, offsets, s0, seed=0, render_fn=_splat_bilinear)
+    res0 = register_frameset(rgb, depth, K, offsets, s0, seed=0)
     r_before, t_before = pose_errors(res0.T_j_to_t, T_true)
     r_after, t_after = pose_errors(T0, T_true)
     assert r_after.mean() + t_after.mean() < r_before.mean() + t_before.mean(), (r_before, t_before, r_after, t_after)
-    assert np.mean(res.loss_curve[-5:]) < np.mean(res.loss_curve[:5])
+    assert np.mean(res.loss_curve[-3:]) < np.mean(res.loss_curve[:3])
 
 
 def test_full_pipeline_reaches_millimetre_accuracy_and_writes_json():
@@ -256,7 +224,7 @@ def test_full_pipeline_reaches_millimetre_accuracy_and_writes_json():
     rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64))
     s = RegistrationSettings(**FAST_TEST, iterations=3, refine_settings=RefineSettings(
         scales=(2, 1), iters=(10, 8), point_stride=(1, 1), max_dist_m=(0.1, 0.05)))
-    res = register_frameset(rgb, depth, K, offsets, s, seed=0, render_fn=_splat_bilinear)
+    res = register_frameset(rgb, depth, K, offsets, s, seed=0)
     r, t = pose_errors(res.T_j_to_t, T_true)
     assert np.median(r) < 0.05 and np.median(t) < 0.05, (r, t, res.neighbour_reasons)
     assert res.status == "ok" and res.neighbour_status == ["ok"] * 4
@@ -270,7 +238,7 @@ def test_textureless_flat_wall_is_flagged():
     rgb, depth, K, _ = _frameset(offsets, hw=(48, 48), flat=True, textured=False)
     s = RegistrationSettings(**FAST_TEST, iterations=2, refine_settings=RefineSettings(
         scales=(2, 1), iters=(5, 5), point_stride=(1, 1), max_dist_m=(0.1, 0.05)))
-    res = register_frameset(rgb, depth, K, offsets, s, seed=0, render_fn=_splat_bilinear)
+    res = register_frameset(rgb, depth, K, offsets, s, seed=0)
     assert res.status == "failed"
     assert res.neighbour_status == ["failed", "failed"]
     assert all("degenerate" in r or "confident" in r for r in res.neighbour_reasons)

@@ -3,9 +3,10 @@
 For a pair (a, b) every candidate point of b looks up its two nearest neighbours among
 the candidates of a in feature space (and vice versa); the ratio test gives the weight
 ``w = 1 - d1 / d2`` and the ``top_k`` most confident matches of each direction are
-kept. The nearest-neighbour search runs without gradient in row chunks (no N x M
-matrix larger than ``chunk`` x M per pair); the kept distances are recomputed with
-gradient so that the weights are differentiable with respect to the features.
+kept. The nearest-neighbour search runs without gradient on one similarity matrix per
+pair that serves both directions, in groups of pairs of bounded size; the kept
+distances are recomputed with gradient so that the weights are differentiable with
+respect to the features.
 """
 
 from __future__ import annotations
@@ -13,8 +14,9 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
 
-__all__ = ["Correspondences", "sample_candidates", "knn2", "ratio_weights", "find_correspondences"]
+__all__ = ["Correspondences", "sample_candidates", "knn2_both", "ratio_weights", "find_correspondences"]
 
 
 class Correspondences(NamedTuple):
@@ -52,28 +54,36 @@ def sample_candidates(valid: torch.Tensor, n: int, generator: torch.Generator | 
     return index, torch.gather(flat, 1, index)
 
 
-def knn2(f_query: torch.Tensor, f_ref: torch.Tensor, ref_mask: torch.Tensor, chunk: int = 1024) -> torch.Tensor:
-    """Indices of the two nearest reference features of every query feature.
+def knn2_both(f_a: torch.Tensor, f_b: torch.Tensor, mask_a: torch.Tensor, mask_b: torch.Tensor,
+              max_block: int = 1 << 25) -> tuple[torch.Tensor, torch.Tensor]:
+    """Two nearest neighbours in both directions from one similarity matrix per pair.
+
+    Features must be L2-normalised, so that the Euclidean ranking equals the ranking
+    by dot product (``|x - y|^2 = 2 - 2 x.y``): one batched matmul per group of pairs
+    serves both directions. Pairs are processed in groups holding at most
+    ``max_block`` similarities (memory bound), without gradient.
 
     Args:
-        f_query: (P, N, C) features.
-        f_ref: (P, M, C) features.
-        ref_mask: (P, M) bool, False entries are never returned while valid ones exist.
-        chunk: query rows per step (memory ~ P * chunk * M floats).
+        f_a: (P, N, C) and f_b: (P, M, C) unit features.
+        mask_a: (P, N), mask_b: (P, M) bool validity (invalid entries are never
+            returned while valid ones exist).
 
     Returns:
-        (P, N, 2) long indices into M (first and second neighbour).
+        nn_b_of_a (P, N, 2) indices into M and nn_a_of_b (P, M, 2) indices into N.
     """
+    P, N, _ = f_a.shape
+    M = f_b.shape[1]
+    g = max(1, max_block // max(1, N * M))
+    out_ab, out_ba = [], []
     with torch.no_grad():
-        ref_sq = f_ref.pow(2).sum(-1)  # (P, M)
-        ref_sq = torch.where(ref_mask, ref_sq, torch.full_like(ref_sq, float("inf")))
-        out = []
-        for s in range(0, f_query.shape[1], chunk):
-            q = f_query[:, s : s + chunk]
-            # |q|^2 is constant per row and does not change the ranking.
-            d = ref_sq[:, None, :] - 2.0 * (q @ f_ref.transpose(1, 2))
-            out.append(d.topk(2, dim=-1, largest=False).indices)
-        return torch.cat(out, dim=1)
+        for s in range(0, P, g):
+            sim = f_a[s : s + g] @ f_b[s : s + g].transpose(1, 2)  # (g, N, M)
+            if not bool(mask_a[s : s + g].all() and mask_b[s : s + g].all()):
+                bad = ~(mask_a[s : s + g, :, None] & mask_b[s : s + g, None, :])
+                sim.masked_fill_(bad, -4.0)
+            out_ab.append(sim.topk(2, dim=2).indices)
+            out_ba.append(sim.topk(2, dim=1).indices.transpose(1, 2))
+    return torch.cat(out_ab), torch.cat(out_ba)
 
 
 def ratio_weights(f_query: torch.Tensor, f_ref: torch.Tensor, nn_idx: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
@@ -84,8 +94,7 @@ def ratio_weights(f_query: torch.Tensor, f_ref: torch.Tensor, nn_idx: torch.Tens
     return (1.0 - d[..., 0] / d[..., 1].clamp(min=eps)).clamp(min=0.0)
 
 
-def _one_direction(pts_q, f_q, m_q, pts_r, f_r, m_r, top_k, chunk):
-    nn_idx = knn2(f_q, f_r, m_r, chunk)
+def _one_direction(pts_q, f_q, m_q, pts_r, f_r, nn_idx, top_k):
     w = ratio_weights(f_q, f_r, nn_idx) * m_q.to(f_q.dtype)
     k = min(top_k, w.shape[1])
     sel = w.detach().topk(k, dim=1).indices  # (P, k)
@@ -99,15 +108,17 @@ def _one_direction(pts_q, f_q, m_q, pts_r, f_r, m_r, top_k, chunk):
 def find_correspondences(
     points_a: torch.Tensor, feats_a: torch.Tensor, mask_a: torch.Tensor,
     points_b: torch.Tensor, feats_b: torch.Tensor, mask_b: torch.Tensor,
-    top_k: int = 200, chunk: int = 1024,
+    top_k: int = 200, max_block: int = 1 << 25,
 ) -> Correspondences:
     """Bidirectional ratio-test matches between frames b (source) and a (destination).
 
     Args:
         points_a, points_b: (P, N, 3) candidate points in their own cameras (metres).
-        feats_a, feats_b: (P, N, C) their features (compared by Euclidean distance).
+        feats_a, feats_b: (P, N, C) their features (L2-normalised here and compared by
+            Euclidean distance).
         mask_a, mask_b: (P, N) bool validity of the candidates.
         top_k: matches kept per direction (R&R: 200).
+        max_block: similarities per matmul block (memory bound).
 
     Returns:
         :class:`Correspondences` with ``points_src`` in b and ``points_dst`` in a, so
@@ -118,6 +129,9 @@ def find_correspondences(
             raise ValueError(f"{name} must be (P, N, D), got {tuple(x.shape)}")
     if feats_a.shape[-1] != feats_b.shape[-1]:
         raise ValueError(f"feature sizes differ: {feats_a.shape[-1]} vs {feats_b.shape[-1]}")
-    b_q, a_r, w_ba = _one_direction(points_b, feats_b, mask_b, points_a, feats_a, mask_a, top_k, chunk)
-    a_q, b_r, w_ab = _one_direction(points_a, feats_a, mask_a, points_b, feats_b, mask_b, top_k, chunk)
+    feats_a = F.normalize(feats_a, dim=-1)
+    feats_b = F.normalize(feats_b, dim=-1)
+    nn_b_of_a, nn_a_of_b = knn2_both(feats_a, feats_b, mask_a, mask_b, max_block)
+    b_q, a_r, w_ba = _one_direction(points_b, feats_b, mask_b, points_a, feats_a, nn_a_of_b, top_k)
+    a_q, b_r, w_ab = _one_direction(points_a, feats_a, mask_a, points_b, feats_b, nn_b_of_a, top_k)
     return Correspondences(torch.cat([b_q, b_r], 1), torch.cat([a_r, a_q], 1), torch.cat([w_ba, w_ab], 1))

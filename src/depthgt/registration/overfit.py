@@ -43,7 +43,7 @@ class RegistrationSettings:
 
     Encoder: ``n_blocks`` BasicBlocks of ``channels`` at full resolution, ``feat_dim``-d
     output. Matching: ``n_candidates`` random valid pixels per frame, ``top_k`` matches
-    per direction, chunks of ``knn_chunk`` query rows. Alignment: ``n_subsets`` random
+    per direction, similarity blocks of at most ``knn_block`` entries. Alignment: ``n_subsets`` random
     subsets of ``subset_fraction`` of the matches. Training: Adam, ``lr``,
     ``iterations`` (= the paper's epochs on a single batch), ``weight_decay``; loss
     weights ``w_depth`` (per metre), ``w_photo``, ``w_corr`` (per m^2); ``pairs`` "all"
@@ -65,7 +65,7 @@ class RegistrationSettings:
     feat_dim: int = 32
     n_candidates: int = 4096
     top_k: int = 200
-    knn_chunk: int = 1024
+    knn_block: int = 1 << 25
     n_subsets: int = 10
     subset_fraction: float = 0.2
     lr: float = 1e-4
@@ -250,7 +250,7 @@ def frameset_loss(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettin
     Kb = fs.K.expand(Fn, 3, 3).to(fs.depth.dtype)
     pts, f = lift_points(fs.depth, Kb, feats, fs.cand_idx)
     a, b = fs.pairs[:, 0], fs.pairs[:, 1]
-    corr = find_correspondences(pts[a], f[a], fs.cand_mask[a], pts[b], f[b], fs.cand_mask[b], s.top_k, s.knn_chunk)
+    corr = find_correspondences(pts[a], f[a], fs.cand_mask[a], pts[b], f[b], fs.cand_mask[b], s.top_k, s.knn_block)
     T_ba, _ = procrustes_random_subsets(corr.points_src, corr.points_dst, corr.weights, s.n_subsets,
                                         s.subset_fraction, gen)
     l_corr = correspondence_loss(T_ba, corr.points_src, corr.points_dst, corr.weights)
@@ -271,6 +271,10 @@ def frameset_loss(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettin
         terms["photo"] = float(l_p.detach().mean())
         del P
     return loss, T_ba, n_conf, terms
+
+
+def _finite_grads(module: torch.nn.Module) -> bool:
+    return all(bool(torch.isfinite(p.grad).all()) for p in module.parameters() if p.grad is not None)
 
 
 def _target_poses(T_ba: torch.Tensor, pairs: torch.Tensor, Fn: int) -> torch.Tensor:
@@ -404,7 +408,11 @@ def register_frameset(
             log.warning("non-finite training loss; stopping the overfit training early")
             break
         loss.backward()
-        opt.step()
+        if _finite_grads(encoder):
+            opt.step()
+        else:
+            # e.g. an SVD with repeated singular values (no texture: all weights ~0)
+            log.warning("non-finite gradient in the overfit training; step skipped")
         loss_curve.append(float(loss.detach()))
         T_now = _target_poses(T_ba, fs.pairs, Fn)
         if loss_curve[-1] < best[0]:
@@ -537,7 +545,8 @@ def pretrain_encoder(
             loss, _, _, _ = frameset_loss(encoder, fs, s, gen, render_fn)
             if torch.isfinite(loss):
                 loss.backward()
-                opt.step()
+                if _finite_grads(encoder):
+                    opt.step()
             steps += 1
     if encoder is None:
         raise ValueError("pretrain_encoder: no frame set given")

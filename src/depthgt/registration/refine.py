@@ -169,9 +169,8 @@ def _residuals(level: _Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: Refine
     u = fx * q[..., 0] / z + cx
     v = fy * q[..., 1] / z + cy
     h, w = level.hw
-    grid = torch.stack([(u + 0.5) / w * 2 - 1, (v + 0.5) / h * 2 - 1], -1)[:, :, None]  # (P, N, 1, 2)
-    smp = F.grid_sample(level.maps[a], grid, mode="bilinear", padding_mode="zeros", align_corners=False)[..., 0]
-    smp = smp.transpose(1, 2)  # (P, N, 10)
+    grid = torch.stack([(u + 0.5) / w * 2 - 1, (v + 0.5) / h * 2 - 1], -1)  # (P, N, 2)
+    smp = _sample_grouped(level.maps, grid, a)  # (P, N, 10)
     X, Nrm, gray, g, vmask = smp[..., 0:3], smp[..., 3:6], smp[..., 6], smp[..., 7:9], smp[..., 9]
     Nrm = F.normalize(Nrm, dim=-1)
     inb = (q[..., 2] > 1e-3) & (u > -0.5) & (u < w - 0.5) & (v > -0.5) & (v < h - 0.5)
@@ -191,6 +190,27 @@ def _residuals(level: _Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: Refine
     J = torch.stack([J_geo / s.geo_scale_m, J_ph * wp / s.photo_scale], -2)
     valid = torch.stack([ok, ok & (s.photo_weight > 0)], -1)
     return r, J, valid
+
+
+def _sample_grouped(maps: torch.Tensor, grid: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples of ``maps[a[p]]`` at ``grid[p]`` without copying a map per pair:
+    the pairs are grouped by destination frame and each frame's map is sampled once.
+
+    maps (F, C, h, w); grid (P, N, 2) normalised coordinates; a (P,) -> (P, N, C).
+    """
+    Fn, C = maps.shape[:2]
+    P, N, _ = grid.shape
+    order = torch.argsort(a, stable=True)
+    counts = torch.bincount(a, minlength=Fn)
+    start = torch.cumsum(counts, 0) - counts
+    slot = torch.empty_like(a)
+    slot[order] = torch.arange(P, device=a.device) - start[a[order]]
+    m = int(counts.max())
+    G = torch.full((Fn, m, N, 2), -3.0, dtype=grid.dtype, device=grid.device)
+    G[a, slot] = grid
+    out = F.grid_sample(maps, G.reshape(Fn, m * N, 1, 2), mode="bilinear", padding_mode="zeros", align_corners=False)
+    out = out.reshape(Fn, C, m, N)
+    return out[a, :, slot].transpose(1, 2)
 
 
 def _robust(r: torch.Tensor, kind: str) -> tuple[torch.Tensor, torch.Tensor]:
@@ -218,10 +238,11 @@ def _normal_system(level, T, pairs, s, gate):
     T_ab = Tinv[a] @ T[b]
     r, J, valid = _residuals(level, T_ab, pairs, s, gate)
     wgt, rho = _robust(r, s.robust)
-    wv = (wgt * valid).to(torch.float64)
-    Jd, rd = J.to(torch.float64), r.to(torch.float64)
-    H_rel = torch.einsum("pnk,pnki,pnkj->pij", wv, Jd, Jd)
-    g_rel = torch.einsum("pnk,pnki,pnk->pi", wv, Jd, rd)
+    sw = (wgt * valid).sqrt()
+    Jw = (J * sw[..., None]).reshape(J.shape[0], -1, 6).to(torch.float64)  # (P, 2N, 6)
+    rw = (r * sw).reshape(r.shape[0], -1, 1).to(torch.float64)
+    H_rel = Jw.transpose(1, 2) @ Jw
+    g_rel = (Jw.transpose(1, 2) @ rw)[..., 0]
     cost_pts = torch.where(valid, rho, torch.full_like(rho, _gate_cost(gate, s)))
     cost_pts = cost_pts * level.valid[b][..., None]
     pair_cost = cost_pts.sum((1, 2)).to(torch.float64)
