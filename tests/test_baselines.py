@@ -114,3 +114,33 @@ def test_learned_baselines_learn_to_denoise_planes(name):
         assert (pred[holes] == 0).all()  # a denoiser: holes stay holes
     else:
         assert (pred - truth)[holes].abs().mean() < 0.1  # partial convs fill them
+
+
+def test_evaluate_frames_on_a_synthetic_frame_set(tmp_path):
+    import pandas as pd
+
+    from depthgt import io
+    from depthgt.enhance.evaluate import evaluate_frames
+
+    truth, noisy, holes, rgb = _plane(32)
+    d = tmp_path / "fs" / "000010"
+    io.write_exr(d / "input.exr", {"Z": noisy, "T": truth})
+    io.write_exr(d / "gt.exr", {"Z": truth + 0.001, "W": np.ones_like(truth), "N": np.ones_like(truth)})
+    io.write_rgb_png(d / "rgb.png", rgb)
+    frames = pd.DataFrame([{"dataset": "synth", "scene": "s0", "target": 10, "frameset_dir": str(d), "split": "test",
+                            "status": "ok"},
+                           {"dataset": "synth", "scene": "s0", "target": 12, "frameset_dir": str(d), "split": "train",
+                            "status": "ok"}])
+    methods = {"input": {"baseline": "input"}, "rgf": {"baseline": "rgf"}, "gt": {"image": "gt"}}
+    table = evaluate_frames(frames, methods, reference="truth", save_dir=tmp_path / "pred")
+    wide = table.pivot_table(index="method", columns="metric", values="value")
+    assert set(table["target"]) == {10}  # the train row is not evaluated
+    assert wide.loc["gt", "mae_m"] == pytest.approx(0.001, rel=1e-3)
+    assert wide.loc["rgf", "rmse_m"] < wide.loc["input", "rmse_m"]
+    assert wide.loc["rgf", "completeness"] == 1.0 and wide.loc["input", "completeness"] < 1.0
+    assert (tmp_path / "pred" / "rgf" / "synth" / "s0" / "000010.npy").is_file()
+    # a frame without truth is skipped when the truth is the reference
+    io.write_exr(d / "input.exr", {"Z": noisy})
+    assert evaluate_frames(frames, methods, reference="truth").empty
+    with pytest.raises(ValueError, match="reference must be"):
+        evaluate_frames(frames, methods, reference="mesh")

@@ -43,6 +43,7 @@ from depthgt.errors import ConfigError
 
 __all__ = [
     "TrainSettings",
+    "settings_from_dict",
     "MODELS",
     "build_model",
     "build_loss",
@@ -172,6 +173,17 @@ class TrainSettings:
         for key in ("epochs", "progress", "device"):
             d.pop(key)
         return json.loads(json.dumps(d))
+
+
+def settings_from_dict(d: dict | None) -> TrainSettings:
+    """:class:`TrainSettings` from a (validated) config mapping; unknown keys raise
+    :class:`ConfigError` naming them."""
+    d = dict(d or {})
+    known = set(TrainSettings.__dataclass_fields__)
+    unknown = sorted(set(d) - known)
+    if unknown:
+        raise ConfigError(f"train: unknown keys {unknown}; known: {sorted(known)}")
+    return TrainSettings(**d)
 
 
 def _device(name: str) -> torch.device:

@@ -1,0 +1,124 @@
+"""Full-frame evaluation of enhancement methods on frame sets (paper Tables 1-3).
+
+A frame set folder (``results/framesets/{dataset}/{scene}/{target:06d}/``) gives the
+images of one test frame (:func:`load_frame`): ``input`` (input.exr Z, the resized
+raw depth), ``gt`` (gt.exr Z, depthgt's GT), ``truth`` (input.exr T, the clean depth
+of synthetic sources, when present) and ``rgb`` (rgb.png).
+
+A method is a mapping ``{"baseline": name, "params": {...}}`` (a baseline of
+:mod:`depthgt.enhance.baselines`, e.g. ``{"baseline": "learned", "params":
+{"checkpoint": ".../best.pt"}}``) or ``{"image": "gt"}`` (an image of the frame set
+taken as the prediction, e.g. the GT itself against the input for Table 1).
+:func:`evaluate_frames` runs every method on every frame and returns a tidy long
+table.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+import pandas as pd
+
+from depthgt.enhance.baselines import run_baseline
+from depthgt.metrics import METRIC_UNITS, depth_metrics
+
+__all__ = ["load_frame", "run_method", "evaluate_frames", "EVAL_COLUMNS"]
+
+log = logging.getLogger(__name__)
+
+EVAL_COLUMNS = ["dataset", "scene", "target", "method", "reference", "metric", "unit", "value"]
+
+
+def load_frame(frameset_dir: str | Path) -> dict[str, np.ndarray | None]:
+    """The images of one frame set: input, gt, truth (or None), rgb.
+
+    Returns:
+        dict: ``input``, ``gt``, ``truth`` (H, W) float32 metres (0 = invalid;
+        ``truth`` None when input.exr has no T channel), ``rgb`` (H, W, 3) uint8.
+    """
+    from depthgt import io
+
+    d = Path(frameset_dir)
+    inp = io.read_exr(d / "input.exr")
+    gt = io.read_exr(d / "gt.exr")
+    for path, chans in ((d / "input.exr", inp), (d / "gt.exr", gt)):
+        if "Z" not in chans:
+            raise ValueError(f"{path}: no channel 'Z' (has {sorted(chans)})")
+    rgb = io.read_rgb(d / "rgb.png")
+    frame = {
+        "input": inp["Z"].astype(np.float32),
+        "gt": gt["Z"].astype(np.float32),
+        "truth": inp["T"].astype(np.float32) if "T" in inp else None,
+        "rgb": rgb,
+    }
+    if rgb.shape[:2] != frame["input"].shape or frame["gt"].shape != frame["input"].shape:
+        raise ValueError(f"{d}: image sizes differ: input {frame['input'].shape}, gt {frame['gt'].shape}, rgb {rgb.shape}")
+    return frame
+
+
+def run_method(method: Mapping, frame: Mapping[str, np.ndarray | None]) -> np.ndarray:
+    """Prediction (H, W) float32 metres of ``method`` on ``frame`` (see module docstring)."""
+    if "image" in method:
+        img = frame.get(method["image"])
+        if img is None:
+            raise ValueError(f"method {dict(method)}: the frame has no image {method['image']!r}")
+        return np.asarray(img, dtype=np.float32)
+    if "baseline" not in method:
+        raise ValueError(f"method {dict(method)} needs a 'baseline' or an 'image' key")
+    return run_baseline(method["baseline"], frame["input"], frame["rgb"], **dict(method.get("params", {})))
+
+
+def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Mapping], reference: str = "gt",
+                    split: str | None = "test", save_dir: str | Path | None = None) -> pd.DataFrame:
+    """Run every method on every frame set and score it against ``reference``.
+
+    Args:
+        frames: the frame-level table (or its parquet path) with ``dataset``,
+            ``scene``, ``target``, ``frameset_dir`` and optionally ``split`` and
+            ``status`` (only "ok" rows are used when present).
+        methods: name -> method mapping (see module docstring).
+        reference: ``gt``, ``truth`` or ``input``; frames without it are skipped
+            (logged), e.g. real frames when the reference is ``truth``.
+        split: keep only this split (None: all rows).
+        save_dir: if given, each prediction is saved as
+            ``{save_dir}/{method}/{dataset}/{scene}/{target:06d}.npy`` (float32 m) for figures.
+
+    Returns:
+        Long table with columns :data:`EVAL_COLUMNS` (metrics of
+        :func:`depthgt.metrics.depth_metrics`, plus ``seconds`` per frame).
+    """
+    table = frames if isinstance(frames, pd.DataFrame) else pd.read_parquet(frames)
+    missing = {"dataset", "scene", "target", "frameset_dir"} - set(table.columns)
+    if missing:
+        raise ValueError(f"frame table {frames if not isinstance(frames, pd.DataFrame) else ''}: missing columns {sorted(missing)}")
+    if reference not in ("gt", "truth", "input"):
+        raise ValueError(f"reference must be gt, truth or input, got {reference!r}")
+    if split is not None and "split" in table.columns:
+        table = table[table["split"] == split]
+    if "status" in table.columns:
+        table = table[table["status"] == "ok"]
+    rows = []
+    for rec in table.itertuples():
+        frame = load_frame(rec.frameset_dir)
+        ref = frame[reference]
+        if ref is None:
+            log.info("%s: no %s image, skipped", rec.frameset_dir, reference)
+            continue
+        for name, method in methods.items():
+            t0 = time.perf_counter()
+            pred = run_method(method, frame)
+            seconds = time.perf_counter() - t0
+            if save_dir is not None:
+                out = Path(save_dir) / name / str(rec.dataset) / str(rec.scene) / f"{int(rec.target):06d}.npy"
+                out.parent.mkdir(parents=True, exist_ok=True)
+                np.save(out, pred.astype(np.float32))
+            values = {**depth_metrics(pred, ref), "seconds": seconds}
+            for metric, value in values.items():
+                rows.append({"dataset": rec.dataset, "scene": rec.scene, "target": int(rec.target), "method": name,
+                             "reference": reference, "metric": metric, "unit": METRIC_UNITS.get(metric, "s"),
+                             "value": float(value)})
+    return pd.DataFrame(rows, columns=EVAL_COLUMNS)
