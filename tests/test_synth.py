@@ -182,7 +182,7 @@ def test_camera_motion_like_handheld():
     trans_mm = np.linalg.norm(steps[:, :3, 3], axis=1) * 1000
     rot_deg = np.degrees(np.arccos(np.clip((np.trace(steps[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
     assert 3.0 < np.median(trans_mm) < 8.0 and trans_mm.max() < 15
-    assert 0.15 < np.median(rot_deg) < 1.2 and rot_deg.max() < 2.5
+    assert 0.1 < np.median(rot_deg) < 1.5 and rot_deg.max() < 3.0
     # the camera stays in the room, clear of the floor and ceiling
     assert (poses[:, 2, 3] > 0.8).all() and (poses[:, 2, 3] < s.layout.size[2] - 0.3).all()
 
@@ -201,12 +201,16 @@ def test_projector_shadow_left_of_foreground():
     K = np.array([[100.0, 0, 59.5], [0, 100.0, 29.5], [0, 0, 1]])
     depth = np.full((h, w), 2.0, np.float32)
     depth[20:40, 50:70] = 1.0
-    s = KinectNoise(jitter_px=0, edge_band_px=0, blob_fraction=0, sigma_disp_px=0, sigma_disp_smooth_px=0, border_right_px=0)
+    s = KinectNoise(jitter_px=0, edge_band_px=0, blob_fraction=0, sigma_disp_px=0, sigma_disp_smooth_px=0,
+                    border_right_px=0, shadow_grow_px=0)
     out = kinect_noise(depth, K, np.random.default_rng(0), s)
     band = 100.0 * 0.075 * (1 / 1.0 - 1 / 2.0)  # disparity jump in pixels: 3.75
     holes = out[30] == 0
     assert holes[50 - int(band) + 1 : 50].all()
     assert not holes[: 50 - int(band) - 1].any() and not holes[50:].any()
+    # the matcher's window widens the band on both sides (grow is given at 640 px width)
+    grown = kinect_noise(depth, K, np.random.default_rng(0), KinectNoise(**{**s.__dict__, "shadow_grow_px": 12})) == 0
+    assert grown[30, 50 - int(band) - 1 : 52].all() and not grown[30, :40].any()
 
 
 def test_noise_quantisation_and_determinism():
@@ -218,8 +222,10 @@ def test_noise_quantisation_and_determinism():
     c = kinect_noise(depth, K, np.random.default_rng(4), s)
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, c)
+    # 1/8-pixel disparity levels of the 640-wide sensor (the image is 64 wide: steps 10x finer)
+    step = 0.125 * 64 / 640
     disp = 585.0 * 0.075 / a[a > 0]
-    np.testing.assert_allclose(disp * 8, np.round(disp * 8), atol=1e-3)  # 1/8-pixel disparity levels
+    np.testing.assert_allclose(disp / step, np.round(disp / step), atol=1e-2)
     # depth error grows as z^2: the level spacing at 2 m is ~2.85e-3 * 4 m
     assert np.abs(a[a > 0] - depth[a > 0]).max() < 0.05
     with pytest.raises(ValueError, match="sigma_disp_px"):
@@ -240,10 +246,10 @@ def test_estimator_on_known_noise():
 # ---------------------------------------------------------- calibration to 7-Scenes
 
 
-def _synthetic_depths(n_rooms=3, frames=(0, 20)):
+def _synthetic_depths(n_rooms=4, frames=(0, 39)):
     out = []
     for k in range(n_rooms):
-        s = open_scene("synthetic", None, f"room_{k:03d}", n_frames=30)
+        s = open_scene("synthetic", None, f"room_{k:03d}", n_frames=40)
         out += [s.read(i).depth_m for i in frames]
     return out
 

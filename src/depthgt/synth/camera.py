@@ -57,6 +57,8 @@ class CameraPath:
         focus: (3,) world point the path circles (metres).
         radius_m, height_m: mean distance from the focus axis and camera height.
         phase0: start angle on the arc (rad); ``step_m``: arc length per frame.
+        speed_var, speed_period: relative amplitude and period (frames) of the
+            variation of the walking speed.
         beyond_m: the gaze aims this far past the focus, away from the camera.
         gaze_amp_m: (3,) amplitude of the gaze target's sweep around the focus.
         gaze_period: (3,) periods of that sweep in frames; ``gaze_phase``: (3,) phases.
@@ -69,6 +71,8 @@ class CameraPath:
     height_m: float
     phase0: float
     step_m: float
+    speed_var: float
+    speed_period: float
     beyond_m: float
     gaze_amp_m: np.ndarray
     gaze_period: np.ndarray
@@ -79,7 +83,9 @@ class CameraPath:
     def position_and_target(self, i: float) -> tuple[np.ndarray, np.ndarray, float]:
         """Camera centre, gaze target (world, metres) and roll (rad) at frame ``i``."""
         # arc around the focus; radius and height breathe slowly
-        ang = self.phase0 + self.step_m * i / self.radius_m
+        # speed varies by +-speed_var around step_m over speed_period frames
+        walked = i + self.speed_var * self.speed_period / (2 * np.pi) * np.sin(2 * np.pi * i / self.speed_period + self.phase0)
+        ang = self.phase0 + self.step_m * walked / self.radius_m
         rad = self.radius_m + 0.1 * np.sin(2 * np.pi * i / 170.0 + self.phase0)
         height = self.height_m + 0.06 * np.sin(2 * np.pi * i / 130.0 + 2 * self.phase0)
         pos = np.array([self.focus[0] + rad * np.cos(ang), self.focus[1] + rad * np.sin(ang), height])
@@ -119,9 +125,11 @@ def _random_path(layout: Layout, rng: np.random.Generator, step_m: float, sweep_
         height_m=float(rng.uniform(1.2, 1.7)),
         phase0=float(rng.uniform(0, 2 * np.pi)),
         step_m=float(step_m * rng.uniform(0.8, 1.2) * rng.choice([-1, 1])),
+        speed_var=float(rng.uniform(0.4, 0.7)),
+        speed_period=float(rng.uniform(50, 120)),
         beyond_m=float(rng.uniform(0.3, 1.0)),
         gaze_amp_m=np.array([sweep_m, sweep_m, 0.25 * sweep_m]) * rng.uniform(0.6, 1.0, 3),
-        gaze_period=rng.uniform(250, 450, 3),
+        gaze_period=rng.uniform(200, 400, 3),
         gaze_phase=rng.uniform(0, 2 * np.pi, 3),
         shake=shake,
         roll0_rad=float(np.radians(rng.uniform(-4, 4))),
@@ -148,7 +156,7 @@ def make_path(
     K: np.ndarray,
     hw: tuple[int, int],
     step_m: float = 0.005,
-    sweep_m: float = 0.5,
+    sweep_m: float = 0.7,
     min_depth_m: float = 0.4,
     max_depth_m: float = 3.5,
     max_tries: int = 60,

@@ -9,7 +9,9 @@ The model, in the order applied by :func:`kinect_noise`:
    projector. With projector column ``u_p = u - fx * b / z`` a pixel is shadowed when
    some pixel to its right on the same row has a smaller ``u_p``; a reverse running
    minimum along each row finds them all at once. This gives the bands on the left of
-   foreground objects seen in real Kinect frames.
+   foreground objects seen in real Kinect frames; they are widened by
+   ``shadow_grow_px`` on both sides, as the matcher's correlation window fails when
+   part of it is unlit.
 3. Unmatched pattern next to depth discontinuities (``edge_band_px``, dropped with
    ``edge_drop_prob``), on surfaces
    seen at grazing angles (``grazing_cos``), on dark / low-IR surfaces (``dark_level``),
@@ -57,15 +59,16 @@ class KinectNoise:
     sigma_disp_smooth_px: float = 0.015
     jitter_px: float = 0.6
     shadow_tol_px: float = 0.5
+    shadow_grow_px: int = 3
     edge_band_px: int = 1
     edge_rel_jump: float = 0.04
-    edge_drop_prob: float = 0.7
+    edge_drop_prob: float = 0.9
     grazing_cos: float = 0.2
-    dark_level: float = 0.03
+    dark_level: float = 0.015
     min_range_m: float = 0.45
     max_range_m: float = 3.8
     far_ramp_m: float = 0.3
-    blob_fraction: float = 0.006
+    blob_fraction: float = 0.012
     border_right_px: int = 8
     round_mm: bool = True
 
@@ -155,6 +158,10 @@ def kinect_noise(
     right_min = np.minimum.accumulate(u_p[:, ::-1], axis=1)[:, ::-1]
     right_min = np.concatenate([right_min[:, 1:], np.full((h, 1), np.inf, np.float32)], 1)
     drop = right_min < u_p - s.shadow_tol_px * px
+    grow = int(round(s.shadow_grow_px * px))
+    if grow > 0:
+        # the block matcher's window fails when part of it falls into the shadow
+        drop = cv2.dilate(drop.astype(np.uint8), np.ones((1, 2 * grow + 1), np.uint8)).astype(bool)
 
     # 3a. pattern not matched at depth discontinuities
     band = int(round(s.edge_band_px * px))
@@ -177,7 +184,7 @@ def kinect_noise(
     if ir_reflectance is not None and s.dark_level > 0:
         # the returned IR falls off with distance squared
         signal = ir_reflectance / np.maximum(z, 0.3) ** 2
-        p = np.maximum(p, np.clip(1.0 - signal / s.dark_level, 0, 1) ** 0.5)
+        p = np.maximum(p, np.clip(1.0 - signal / s.dark_level, 0, 1))
     if s.far_ramp_m > 0:
         p = np.maximum(p, np.clip((z - (s.max_range_m - s.far_ramp_m)) / s.far_ramp_m, 0, 1))
     drop |= _uniform_field(rng, (h, w), 2.0 * px) < p
