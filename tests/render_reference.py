@@ -108,8 +108,11 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
             behind = [c for c in cands if c["z"] > band(z_min)]
             centroid = np.linalg.norm(sum(c["off"] for c in front)) / len(front)
             z_ref = z_min
-            if centroid > st.coverage_frac * R and behind:
-                z_ref = min(c["z"] for c in behind)
+            if centroid > st.coverage_frac * R:  # F does not cover the centre
+                if behind:
+                    z_ref = min(c["z"] for c in behind)
+                elif not st.extend_uncovered:
+                    continue  # nothing seen there: the pixel stays empty
             layer = [c for c in cands if z_ref <= c["z"] <= band(z_ref)]
             layer = sorted(layer, key=lambda c: c["d2"])[: st.m]
             ws = [math.exp(-c["d2"] / (R * R)) for c in layer]

@@ -288,6 +288,10 @@ class GTRenderSettings:
             centre. When F's edge passes near the centre without covering it, its
             samples sit on one side (a uniformly sampled half disk has its centroid at
             4R / (3 pi) = 0.42 R), and the pixel takes the next layer behind F.
+        extend_uncovered: what an uncovered pixel with no layer behind F gets: False
+            leaves it empty (no frame saw what is there: typically background that only
+            the target sees, next to a foreground edge); True gives it F (extrapolates
+            surfaces by up to ~R at the borders of the data).
         min_points: pixels with fewer kept points get depth 0 (their weight sum and
             count are still reported).
         plane_correction: when normals are given, move every candidate's depth along
@@ -306,6 +310,7 @@ class GTRenderSettings:
     rel_band: float = 0.02
     abs_band_m: float = 0.01
     coverage_frac: float = 0.42
+    extend_uncovered: bool = False
     min_points: int = 1
     plane_correction: bool = True
     min_cos_incidence: float = 0.15
@@ -472,8 +477,13 @@ def render_gt(
         acc.index_add_(0, pixel, torch.cat([fm[:, None], cand.offset.detach() * fm[:, None]], dim=1))
         centroid = acc[:, 1:].norm(dim=1) / acc[:, 0].clamp_min(1.0)
         z_next = inf_p.scatter_reduce(0, pixel, torch.where(in_front, inf_c, zd), reduce="amin")
-        use_next = (centroid > st.coverage_frac * st.radius_px) & torch.isfinite(z_next)
-        z_ref = torch.where(use_next, z_next, z_min)[pixel]
+        uncovered = centroid > st.coverage_frac * st.radius_px
+        # uncovered and nothing behind: F's edge with no data beyond it (a region no
+        # frame saw, a hole, the border of the data); keep F only if asked to
+        z_ref = torch.where(uncovered, z_next, z_min)
+        if st.extend_uncovered:
+            z_ref = torch.where(uncovered & ~torch.isfinite(z_next), z_min, z_ref)
+        z_ref = z_ref[pixel]
         keep = (zd >= z_ref) & (zd <= z_ref * (1.0 + st.rel_band) + st.abs_band_m)
         keep = _keep_m_nearest(pixel, d2, keep, st.m, r2, n_pix)
     wgt = torch.exp(-d2 / r2) * keep
