@@ -25,6 +25,7 @@ Writes a tidy CSV (dataset, target, offset, method, metric, unit, value) to ``--
 from __future__ import annotations
 
 import argparse
+import os
 import logging
 import resource
 import time
@@ -159,6 +160,7 @@ def main(argv=None):
                 torch.cuda.synchronize()
                 torch.cuda.reset_peak_memory_stats()
             t0 = time.perf_counter()
+            c0 = time.process_time()
             status = "ok"
             if method.startswith("o3d"):
                 try:
@@ -172,15 +174,17 @@ def main(argv=None):
             if a.device.startswith("cuda"):
                 torch.cuda.synchronize()
             dt = time.perf_counter() - t0
+            cpu = time.process_time() - c0
             r, t = pose_errors(T_est, T_true)
             for o, ri, ti in zip(OFFSETS[1:], r, t):
                 rows += [(a.data, tgt, o, method, "rot_err", "deg", float(ri)),
                          (a.data, tgt, o, method, "trans_err", "cm", float(ti))]
             rows.append((a.data, tgt, 0, method, "time", "s", dt))
+            rows.append((a.data, tgt, 0, method, "cpu_time", "s", cpu))
             mem = (torch.cuda.max_memory_allocated() / 2**20 if a.device.startswith("cuda")
                    else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
             rows.append((a.data, tgt, 0, method, "peak_mem", "MiB", mem))
-            line = f"{a.data} t={tgt} {method:10s} {dt:6.1f}s rot med {np.median(r):.3f} deg trans med {np.median(t):.3f} cm  [{status}]"
+            line = f"{a.data} t={tgt} {method:10s} {dt:6.1f}s (cpu {cpu:6.1f}s, load {os.getloadavg()[0]:.1f}) rot med {np.median(r):.3f} deg trans med {np.median(t):.3f} cm  [{status}]"
             if a.gt and clean_t is not None and a.data == "synthetic":
                 v_est, m_est = gt_mae(rgb, depth, K, T_est, clean_t)
                 v_true, m_true = gt_mae(rgb, depth, K, T_true, clean_t)
@@ -197,7 +201,7 @@ def main(argv=None):
     print("\nmedian over all neighbours:")
     print(err.pivot_table(index="method", columns="metric", values="value", aggfunc="median").round(3))
     print("\nmedian time per frame set (s):")
-    print(df[df.metric == "time"].groupby("method").value.median().round(2))
+    print(df[df.metric.isin(["time", "cpu_time"])].pivot_table(index="method", columns="metric", values="value", aggfunc="median").round(2))
 
 
 if __name__ == "__main__":

@@ -105,10 +105,12 @@ PRESETS: dict[str, dict] = {
     "paper": {},
     # The paper without the beyond-the-paper steps (for the with/without comparison).
     "paper_only": {"chaining": False, "refine": False},
-    # CPU-friendly: smaller encoder, fewer candidates and iterations, sparser rendering.
+    # CPU-friendly: one pass of a small encoder (pretrained weights when given) for the
+    # correspondence initialisation, no overfit iterations, then chaining and a
+    # sparser refinement.
     "fast": {
-        "n_blocks": 1, "channels": 32, "n_candidates": 2048, "iterations": 8, "render_stride": 2,
-        "refine_settings": RefineSettings(scales=(4, 2, 1), iters=(8, 5, 3), point_stride=(1, 2, 3)),
+        "n_blocks": 1, "channels": 32, "n_candidates": 1024, "iterations": 0, "render_stride": 2,
+        "refine_settings": RefineSettings(scales=(4, 2, 1), iters=(8, 5, 3), point_stride=(1, 2, 4)),
     },
 }
 
@@ -307,7 +309,7 @@ def _chain(fs: _Frameset, T_init: torch.Tensor, table, offsets, s: RegistrationS
     level = _Level(fs.rgb, fs.depth, fs.K, 2, 1)
     cands, owners, labels = [], [], []
     for j in range(1, Fn):
-        options = [("direct", T_init[j])]
+        options = [("direct", T_init[j]), ("identity", torch.eye(4, dtype=T_init.dtype, device=T_init.device))]
         for k in range(1, Fn):
             if k != j and abs(offsets[k]) < abs(offsets[j]) and offsets[k] * offsets[j] > 0 and (k, j) in table:
                 options.append((f"via{offsets[k]:+d}", T_init[k] @ table[(k, j)]))

@@ -149,46 +149,57 @@ class _Level:
         ys = torch.arange(0, h, stride, device=d.device)
         xs = torch.arange(0, w, stride, device=d.device)
         idx = (ys[:, None] * w + xs[None, :]).reshape(-1)
-        self.points = X.flatten(2)[:, :, idx].transpose(1, 2).contiguous()  # (F, N, 3)
+        self.points = X.flatten(2)[:, :, idx].contiguous()  # (F, 3, N) planar
         self.gray = gray.flatten(2)[:, 0, idx]  # (F, N)
         self.valid = valid.flatten(2)[:, 0, idx] > 0  # (F, N)
         self.median_depth = d[d > 0].median() if (d > 0).any() else torch.tensor(1.0)
 
 
+def _cross(a, b):
+    """Cross product of planar 3-vectors a, b: tuples of three (P, N) planes."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
 def _residuals(level: _Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: RefineSettings, gate: float):
-    """Scaled residuals r (P, N, 2), Jacobians J (P, N, 2, 6) w.r.t. a left twist of
-    T_ab and validity (P, N, 2)."""
+    """Scaled residuals r (P, 2N) (N geometric, then N photometric), Jacobians
+    J (P, 6, 2N) w.r.t. a left twist (v, w) of T_ab, and validity (P, 2N).
+
+    Planar layout (one contiguous (P, N) plane per component) keeps the element-wise
+    work cache friendly."""
     a, b = pairs[:, 0], pairs[:, 1]
-    p = level.points[b]
+    p = level.points[b]  # (P, 3, N)
     R = T_ab[:, :3, :3].to(p.dtype)
     t = T_ab[:, :3, 3].to(p.dtype)
-    q = p @ R.transpose(1, 2) + t[:, None]
+    q = torch.baddbmm(t[..., None], R, p)  # (P, 3, N)
+    qx, qy, qz = q[:, 0], q[:, 1], q[:, 2]
     K = level.K.to(p.dtype)
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    z = q[..., 2].clamp(min=1e-6)
-    u = fx * q[..., 0] / z + cx
-    v = fy * q[..., 1] / z + cy
+    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    zi = 1.0 / qz.clamp(min=1e-6)
+    u = fx * qx * zi + cx
+    v = fy * qy * zi + cy
     h, w = level.hw
-    grid = torch.stack([(u + 0.5) / w * 2 - 1, (v + 0.5) / h * 2 - 1], -1)  # (P, N, 2)
-    smp = _sample_grouped(level.maps, grid, a)  # (P, N, 10)
-    X, Nrm, gray, g, vmask = smp[..., 0:3], smp[..., 3:6], smp[..., 6], smp[..., 7:9], smp[..., 9]
-    Nrm = F.normalize(Nrm, dim=-1)
-    inb = (q[..., 2] > 1e-3) & (u > -0.5) & (u < w - 0.5) & (v > -0.5) & (v < h - 0.5)
-    ok = level.valid[b] & inb & (vmask > 0.999) & ((q[..., 2] - X[..., 2]).abs() < gate)
-    r_geo = (Nrm * (q - X)).sum(-1)
+    grid = torch.stack([(u + 0.5) * (2.0 / w) - 1, (v + 0.5) * (2.0 / h) - 1], -1)  # (P, N, 2)
+    smp = _sample_grouped(level.maps, grid, a)  # (P, 10, N)
+    X = (smp[:, 0], smp[:, 1], smp[:, 2])
+    n_inv = torch.rsqrt((smp[:, 3:6] * smp[:, 3:6]).sum(1).clamp(min=1e-12))
+    Nrm = (smp[:, 3] * n_inv, smp[:, 4] * n_inv, smp[:, 5] * n_inv)
+    inb = (qz > 1e-3) & (u > -0.5) & (u < w - 0.5) & (v > -0.5) & (v < h - 0.5)
+    ok = level.valid[b] & inb & (smp[:, 9] > 0.999) & ((qz - X[2]).abs() < gate)
+    d = (qx - X[0], qy - X[1], qz - X[2])
+    r_geo = Nrm[0] * d[0] + Nrm[1] * d[1] + Nrm[2] * d[2]
     ok = ok & (r_geo.abs() < gate)
-    J_geo = torch.cat([Nrm, torch.cross(q, Nrm, dim=-1)], -1)
-    r_ph = gray - level.gray[b]
-    zi = 1.0 / z
-    # d(u, v)/dq for a pinhole camera, then chained with the image gradient.
-    jx = torch.stack([fx * zi, torch.zeros_like(zi), -fx * q[..., 0] * zi * zi], -1)
-    jy = torch.stack([torch.zeros_like(zi), fy * zi, -fy * q[..., 1] * zi * zi], -1)
-    ga = g[..., 0:1] * jx + g[..., 1:2] * jy
-    J_ph = torch.cat([ga, torch.cross(q, ga, dim=-1)], -1)
+    qv = (qx, qy, qz)
+    J_geo = torch.stack([*Nrm, *_cross(qv, Nrm)], 1)  # (P, 6, N)
+    r_ph = smp[:, 6] - level.gray[b]
+    # d(u, v)/dq of the pinhole projection chained with the image gradient (gx, gy).
+    gx, gy = smp[:, 7] * fx * zi, smp[:, 8] * fy * zi
+    ga = (gx, gy, -(gx * qx + gy * qy) * zi)
+    J_ph = torch.stack([*ga, *_cross(qv, ga)], 1)
     wp = math.sqrt(s.photo_weight)
-    r = torch.stack([r_geo / s.geo_scale_m, r_ph * wp / s.photo_scale], -1)
-    J = torch.stack([J_geo / s.geo_scale_m, J_ph * wp / s.photo_scale], -2)
-    valid = torch.stack([ok, ok & (s.photo_weight > 0)], -1)
+    # geometric then photometric residuals side by side: (P, 2N), (P, 6, 2N)
+    r = torch.cat([r_geo * (1.0 / s.geo_scale_m), r_ph * (wp / s.photo_scale)], 1)
+    J = torch.cat([J_geo * (1.0 / s.geo_scale_m), J_ph * (wp / s.photo_scale)], 2)
+    valid = torch.cat([ok, ok & (s.photo_weight > 0)], 1)
     return r, J, valid
 
 
@@ -196,7 +207,7 @@ def _sample_grouped(maps: torch.Tensor, grid: torch.Tensor, a: torch.Tensor) -> 
     """Bilinear samples of ``maps[a[p]]`` at ``grid[p]`` without copying a map per pair:
     the pairs are grouped by destination frame and each frame's map is sampled once.
 
-    maps (F, C, h, w); grid (P, N, 2) normalised coordinates; a (P,) -> (P, N, C).
+    maps (F, C, h, w); grid (P, N, 2) normalised coordinates; a (P,) -> (P, C, N).
     """
     Fn, C = maps.shape[:2]
     P, N, _ = grid.shape
@@ -210,7 +221,7 @@ def _sample_grouped(maps: torch.Tensor, grid: torch.Tensor, a: torch.Tensor) -> 
     G[a, slot] = grid
     out = F.grid_sample(maps, G.reshape(Fn, m * N, 1, 2), mode="bilinear", padding_mode="zeros", align_corners=False)
     out = out.reshape(Fn, C, m, N)
-    return out[a, :, slot].transpose(1, 2)
+    return out.permute(0, 2, 1, 3)[a, slot]
 
 
 def _robust(r: torch.Tensor, kind: str) -> tuple[torch.Tensor, torch.Tensor]:
@@ -238,15 +249,14 @@ def _normal_system(level, T, pairs, s, gate):
     T_ab = Tinv[a] @ T[b]
     r, J, valid = _residuals(level, T_ab, pairs, s, gate)
     wgt, rho = _robust(r, s.robust)
-    sw = (wgt * valid).sqrt()
-    Jw = (J * sw[..., None]).reshape(J.shape[0], -1, 6).to(torch.float64)  # (P, 2N, 6)
-    rw = (r * sw).reshape(r.shape[0], -1, 1).to(torch.float64)
-    H_rel = Jw.transpose(1, 2) @ Jw
-    g_rel = (Jw.transpose(1, 2) @ rw)[..., 0]
+    Jw = J * (wgt * valid)[:, None]  # (P, 6, 2N)
+    H_rel = (Jw @ J.transpose(1, 2)).to(torch.float64)
+    g_rel = (Jw @ r[..., None])[..., 0].to(torch.float64)
     cost_pts = torch.where(valid, rho, torch.full_like(rho, _gate_cost(gate, s)))
-    cost_pts = cost_pts * level.valid[b][..., None]
-    pair_cost = cost_pts.sum((1, 2)).to(torch.float64)
-    inl = (valid[..., 0] & level.valid[b]).sum(1)
+    N_ = level.valid.shape[1]
+    cost_pts = cost_pts * level.valid[b].repeat(1, 2)
+    pair_cost = cost_pts.sum(1).to(torch.float64)
+    inl = (valid[:, :N_] & level.valid[b]).sum(1)
     return H_rel, g_rel, pair_cost, inl, Tinv
 
 
