@@ -136,17 +136,15 @@ def _random_path(layout: Layout, rng: np.random.Generator, step_m: float, sweep_
     )
 
 
-def _clearance_ok(layout: Layout, pos: np.ndarray, margin_m: float) -> bool:
-    """Camera centre at least ``margin_m`` from the walls, floor, ceiling and from the
-    bounding box of every primitive."""
-    if ((pos < margin_m) | (pos > layout.size - margin_m)).any():
+def _clearance_ok(layout: Layout, positions: np.ndarray, margin_m: float) -> bool:
+    """All camera centres (N, 3) at least ``margin_m`` from the walls, floor, ceiling
+    and from the bounding box of every primitive."""
+    if ((positions < margin_m) | (positions > layout.size - margin_m)).any():
         return False
-    for prim in layout.primitives:
-        x0, y0, x1, y1, ztop = prim.footprint()
-        zbot = float(prim.corners()[:, 2].min())
-        if x0 - margin_m < pos[0] < x1 + margin_m and y0 - margin_m < pos[1] < y1 + margin_m and zbot - margin_m < pos[2] < ztop + margin_m:
-            return False
-    return True
+    lo = layout.aabbs[None, :, :3] - margin_m
+    hi = layout.aabbs[None, :, 3:] + margin_m
+    p = positions[:, None, :]
+    return not ((p > lo) & (p < hi)).all(-1).any()
 
 
 def make_path(
@@ -186,7 +184,7 @@ def make_path(
     best, best_score = None, -np.inf
     for _ in range(max_tries):
         path = _random_path(layout, rng, step_m, sweep_m)
-        if not all(_clearance_ok(layout, path.position_and_target(i)[0], 0.3) for i in frames_pos):
+        if not _clearance_ok(layout, np.stack([path.position_and_target(i)[0] for i in frames_pos]), 0.3):
             continue
         near_frac, far_frac, medians = [], [], []
         for i in frames_cast:

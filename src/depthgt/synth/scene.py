@@ -19,6 +19,7 @@ the analytic depth the tests compare against).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -28,6 +29,7 @@ from depthgt.synth.textures import make_texture
 __all__ = ["Material", "Primitive", "Layout", "RayHits", "generate_layout", "raycast", "albedo", "shade", "camera_rays"]
 
 _NEAR_M = 0.05
+_CORNER_SIGNS = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij"), np.float64).reshape(3, -1).T
 # inward normals of the room faces, in hit-id order: x=0, x=Lx, y=0, y=Ly, floor, ceiling
 _FACE_NORMALS = np.array(
     [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float32
@@ -63,19 +65,19 @@ class Primitive:
     yaw: float = 0.0
     uv_offset: tuple[float, float] = (0.0, 0.0)
 
+    @cached_property
     def corners(self) -> np.ndarray:
-        """(8, 3) corners of a world bounding box of the primitive."""
-        signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, -1).T
+        """(8, 3) corners of a world bounding box of the primitive (computed once)."""
         if self.kind == "box":
             c, s = np.cos(self.yaw), np.sin(self.yaw)
             R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-            return self.center + (signs * self.half) @ R.T
-        return self.center + signs * self.half
+            return self.center + (_CORNER_SIGNS * self.half) @ R.T
+        return self.center + _CORNER_SIGNS * self.half
 
-    def footprint(self) -> tuple[float, float, float, float, float]:
-        """(xmin, ymin, xmax, ymax, ztop) of the world bounding box."""
-        c = self.corners()
-        return float(c[:, 0].min()), float(c[:, 1].min()), float(c[:, 0].max()), float(c[:, 1].max()), float(c[:, 2].max())
+    @cached_property
+    def aabb(self) -> np.ndarray:
+        """(6,) world axis-aligned bounds (xmin, ymin, zmin, xmax, ymax, zmax)."""
+        return np.concatenate([self.corners.min(0), self.corners.max(0)])
 
 
 @dataclass
@@ -95,6 +97,16 @@ class Layout:
     focus: np.ndarray
     ambient: float = 0.35
     extra: dict = field(default_factory=dict)
+
+    @cached_property
+    def corners(self) -> np.ndarray:
+        """(P, 8, 3) bounding-box corners of all primitives (computed once)."""
+        return np.stack([p.corners for p in self.primitives]) if self.primitives else np.zeros((0, 8, 3))
+
+    @cached_property
+    def aabbs(self) -> np.ndarray:
+        """(P, 6) world bounds (xmin, ymin, zmin, xmax, ymax, zmax) of all primitives."""
+        return np.stack([p.aabb for p in self.primitives]) if self.primitives else np.zeros((0, 6))
 
 
 @dataclass
@@ -363,22 +375,30 @@ def camera_rays(K: np.ndarray, hw: tuple[int, int], R_world_cam: np.ndarray) -> 
     return np.stack([R[k, 0] * x_n + R[k, 1] * y_n + R[k, 2] for k in range(3)]).astype(np.float32)
 
 
-def _screen_box(prim: Primitive, T_cam_world: np.ndarray, K: np.ndarray, hw: tuple[int, int]):
-    """Pixel rectangle (v0, v1, u0, u1) holding the projection of ``prim``, or None
-    when it lies behind the camera."""
-    c = prim.corners() @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+def _screen_boxes(corners_world: np.ndarray, T_cam_world: np.ndarray, K: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    """Pixel rectangles holding the projections of bounding boxes.
+
+    Args:
+        corners_world: (P, 8, 3) corners of the primitives' bounding boxes.
+
+    Returns:
+        (P, 4) int rows (v0, v1, u0, u1); empty rectangles (v0 >= v1) for boxes
+        behind the camera or outside the image, the whole image for boxes that
+        straddle the camera plane.
+    """
     h, w = hw
-    if (c[:, 2] < _NEAR_M).all():
-        return None
-    if (c[:, 2] < _NEAR_M).any():
-        return 0, h, 0, w
-    u = K[0, 0] * c[:, 0] / c[:, 2] + K[0, 1] * c[:, 1] / c[:, 2] + K[0, 2]
-    v = K[1, 1] * c[:, 1] / c[:, 2] + K[1, 2]
-    u0, u1 = int(np.floor(u.min())) - 1, int(np.ceil(u.max())) + 2
-    v0, v1 = int(np.floor(v.min())) - 1, int(np.ceil(v.max())) + 2
-    if u1 <= 0 or v1 <= 0 or u0 >= w or v0 >= h:
-        return None
-    return max(v0, 0), min(v1, h), max(u0, 0), min(u1, w)
+    c = corners_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    z = c[..., 2]
+    zs = np.maximum(z, _NEAR_M)
+    u = K[0, 0] * c[..., 0] / zs + K[0, 1] * c[..., 1] / zs + K[0, 2]
+    v = K[1, 1] * c[..., 1] / zs + K[1, 2]
+    boxes = np.stack([np.floor(v.min(1)) - 1, np.ceil(v.max(1)) + 2, np.floor(u.min(1)) - 1, np.ceil(u.max(1)) + 2], 1)
+    straddle = (z < _NEAR_M).any(1)
+    boxes[straddle] = [0, h, 0, w]
+    boxes[:, :2] = boxes[:, :2].clip(0, h)
+    boxes[:, 2:] = boxes[:, 2:].clip(0, w)
+    boxes[(z < _NEAR_M).all(1)] = 0
+    return boxes.astype(np.int64)
 
 
 def _safe(d):
@@ -515,11 +535,11 @@ def raycast(layout: Layout, T_world_cam: np.ndarray, K: np.ndarray, hw: tuple[in
         depth[closer] = t_face[closer]
         prim_id[closer] = (2 * axis + pos[closer]).astype(np.int16)  # 0: x=0, 1: x=Lx, 2: y=0, ...
 
+    boxes = _screen_boxes(layout.corners, T_cam_world, K, hw) if layout.primitives else np.zeros((0, 4), np.int64)
     for k, prim in enumerate(layout.primitives):
-        box = _screen_box(prim, T_cam_world, K, hw)
-        if box is None:
+        v0, v1, u0, u1 = boxes[k]
+        if v0 >= v1 or u0 >= u1:
             continue
-        v0, v1, u0, u1 = box
         t = _T_FUNCS[prim.kind](o, d[:, v0:v1, u0:u1], prim)
         sub = depth[v0:v1, u0:u1]
         closer = t < sub
