@@ -57,17 +57,16 @@ class _Candidates(NamedTuple):
 
     point: (C,) long index into the flattened (B*N) points.
     pixel: (C,) long index into the flattened (B*H*W) output pixels.
-    d2: (C,) squared distance in pixels between the projection and the pixel centre
-        (differentiable w.r.t. the points).
-    ray: (C, 3) K^-1 [u_c, v_c, 1] of the pixel centre (detached), for plane corrections.
-    offset: (C, 2) pixel centre minus projection (differentiable), d2 = |offset|^2.
+    d2: (C,) squared distance in pixels between the projection and the pixel centre.
+    dx, dy: (C,) pixel centre minus projection, d2 = dx^2 + dy^2.
+    d2, dx and dy are differentiable w.r.t. the points.
     """
 
     point: torch.Tensor
     pixel: torch.Tensor
     d2: torch.Tensor
-    ray: torch.Tensor | None
-    offset: torch.Tensor
+    dx: torch.Tensor
+    dy: torch.Tensor
 
 
 def _candidates(
@@ -77,7 +76,6 @@ def _candidates(
     size_hw: tuple[int, int],
     radius_px: float,
     min_depth: float,
-    want_rays: bool = False,
 ) -> tuple[_Candidates, torch.Tensor]:
     """Pair every valid point with the pixel centres strictly inside ``radius_px``.
 
@@ -118,17 +116,11 @@ def _candidates(
         batch = torch.div(pid, n, rounding_mode="floor")
         base = (batch * h + y0.long()) * w + x0.long()  # pixel index of the window corner
         pixel = base[slot] + oy * w + ox
-    # differentiable offsets of the window corner from the projection, gathered per candidate
-    corner = torch.stack([x0, y0], dim=1).to(uv_f.dtype) - uv_f[pid]  # (P, 2)
-    dc = corner[slot] + torch.stack([ox, oy], dim=1).to(uv_f.dtype)  # (C, 2) pixel centre - projection
-    d2 = (dc * dc).sum(dim=1)
-    ray = None
-    if want_rays:
-        with torch.no_grad():
-            Kinv = torch.linalg.inv(K.to(torch.float64)).to(points_cam.dtype)
-            pix_h = torch.stack([x0[slot] + ox, y0[slot] + oy, torch.ones_like(d2)], dim=1).to(points_cam.dtype)
-            ray = torch.einsum("cij,cj->ci", Kinv[batch[slot]], pix_h)
-    return _Candidates(point, pixel, d2, ray, dc), z_f
+    # differentiable offsets (pixel centre - projection), gathered per candidate
+    dx = (x0 - uv_f[pid, 0])[slot] + ox.to(uv_f.dtype)
+    dy = (y0 - uv_f[pid, 1])[slot] + oy.to(uv_f.dtype)
+    d2 = dx * dx + dy * dy
+    return _Candidates(point, pixel, d2, dx, dy), z_f
 
 
 def _segment_rank_keep(pixel: torch.Tensor, key: torch.Tensor, active: torch.Tensor, limit: int, n_pixels: int) -> torch.Tensor:
@@ -460,10 +452,10 @@ def render_gt(
     cand, z_all = _candidates(points_cam, K, valid, (h, w), st.radius_px, st.min_depth_m)
     pixel, d2 = cand.pixel, cand.d2
     if normals_cam is not None and st.plane_correction:
-        table = torch.cat([1.0 / z_all.clamp_min(st.min_depth_m)[:, None], _inverse_depth_planes(points_cam, normals_cam, K, st)], 1)
-        t = table[cand.point]  # (C, 3): 1/z, d(1/z)/du, d(1/z)/dv
-        # offset = centre - projection, so 1/z at the centre = 1/z + grad . offset
-        z = 1.0 / (t[:, 0] + (t[:, 1:] * cand.offset).sum(dim=1)).clamp_min(1e-6)
+        grad = _inverse_depth_planes(points_cam, normals_cam, K, st)  # (B*N, 2)
+        iz = (1.0 / z_all.clamp_min(st.min_depth_m))[cand.point]
+        # 1/z at the pixel centre = 1/z + grad . (centre - projection)
+        z = 1.0 / (iz + grad[:, 0][cand.point] * cand.dx + grad[:, 1][cand.point] * cand.dy).clamp_min(1e-6)
     else:
         z = z_all[cand.point]
     with torch.no_grad():
@@ -473,9 +465,11 @@ def render_gt(
         z_min = inf_p.scatter_reduce(0, pixel, zd, reduce="amin")
         in_front = zd <= z_min[pixel] * (1.0 + st.rel_band) + st.abs_band_m
         fm = in_front.to(zd.dtype)
-        acc = torch.zeros(n_pix, 3, dtype=zd.dtype, device=zd.device)
-        acc.index_add_(0, pixel, torch.cat([fm[:, None], cand.offset.detach() * fm[:, None]], dim=1))
-        centroid = acc[:, 1:].norm(dim=1) / acc[:, 0].clamp_min(1.0)
+        zeros_p = torch.zeros(n_pix, dtype=zd.dtype, device=zd.device)
+        n_f = zeros_p.index_add(0, pixel, fm)
+        cx_f = zeros_p.index_add(0, pixel, cand.dx.detach() * fm)
+        cy_f = zeros_p.index_add(0, pixel, cand.dy.detach() * fm)
+        centroid = torch.sqrt(cx_f * cx_f + cy_f * cy_f) / n_f.clamp_min(1.0)
         z_next = inf_p.scatter_reduce(0, pixel, torch.where(in_front, inf_c, zd), reduce="amin")
         uncovered = centroid > st.coverage_frac * st.radius_px
         # uncovered and nothing behind: F's edge with no data beyond it (a region no
@@ -487,8 +481,8 @@ def render_gt(
         keep = (zd >= z_ref) & (zd <= z_ref * (1.0 + st.rel_band) + st.abs_band_m)
         keep = _keep_m_nearest(pixel, d2, keep, st.m, r2, n_pix)
     wgt = torch.exp(-d2 / r2) * keep
-    acc = torch.zeros(n_pix, 2, dtype=wgt.dtype, device=wgt.device).index_add(0, pixel, torch.stack([wgt, wgt * z], dim=1))
-    wsum, zsum = acc[:, 0], acc[:, 1]
+    wsum = torch.zeros(n_pix, dtype=wgt.dtype, device=wgt.device).index_add(0, pixel, wgt)
+    zsum = torch.zeros(n_pix, dtype=wgt.dtype, device=wgt.device).index_add(0, pixel, wgt * z)
     count = torch.zeros(n_pix, dtype=torch.int64, device=pixel.device).index_add_(0, pixel, keep.to(torch.int64))
     good = (count >= st.min_points) & (wsum > 0)
     depth = torch.where(good, zsum / torch.where(good, wsum, torch.ones_like(wsum)), torch.zeros_like(zsum))
