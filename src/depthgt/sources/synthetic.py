@@ -174,7 +174,7 @@ class SyntheticScene:
         rgb = cv2.GaussianBlur(rgb, (0, 0), 0.6)
         if self.options["rgb_noise"] > 0:
             rng = self._rng(_STREAM_RGB, int(i))
-            rgb = rgb + (self.options["rgb_noise"] / 255.0) * rng.standard_normal(rgb.shape).astype(np.float32)
+            rgb = rgb + (self.options["rgb_noise"] / 255.0) * rng.standard_normal(rgb.shape, dtype=np.float32)
         rgb_u8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
         clean = hits.depth_m
         if self.options["noise"]:

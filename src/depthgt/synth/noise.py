@@ -92,7 +92,7 @@ def smooth_field(rng: np.random.Generator, hw: tuple[int, int], sigma_px: float)
         (H, W) float32.
     """
     h, w = hw
-    f = rng.standard_normal((h, w)).astype(np.float32)
+    f = rng.standard_normal((h, w), dtype=np.float32)
     if sigma_px > 0:
         f = cv2.GaussianBlur(f, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
     return f / max(float(f.std()), 1e-6)
@@ -171,7 +171,7 @@ def kinect_noise(
         hi = cv2.dilate(z, kernel)
         lo = cv2.erode(np.where(valid, z, np.float32(1e6)), kernel)
         edge = (hi - lo) > s.edge_rel_jump * np.where(valid, z, 1.0)
-        drop |= edge & (rng.uniform(size=(h, w)) < s.edge_drop_prob)
+        drop |= edge & (rng.random((h, w), dtype=np.float32) < s.edge_drop_prob)
     # 3b. probabilistic dropouts, decided against a coherent field
     p = np.zeros((h, w), np.float32)
     if normals_cam is not None:
@@ -197,7 +197,7 @@ def kinect_noise(
     # 4. disparity noise and 1/8-pixel quantisation
     disp = fb / zs
     scale = np.maximum(zs, 0.5) ** -0.25  # disparity noise std falls as z^-1/4 (see above)
-    disp = disp + s.sigma_disp_px * px * scale * rng.standard_normal((h, w)).astype(np.float32)
+    disp = disp + s.sigma_disp_px * px * scale * rng.standard_normal((h, w), dtype=np.float32)
     if s.sigma_disp_smooth_px > 0:
         disp = disp + s.sigma_disp_smooth_px * px * scale * smooth_field(rng, (h, w), 4.0 * px)
     step = s.disparity_step_px * px  # same depth levels at any image width
