@@ -18,7 +18,7 @@ the analytic depth the tests compare against).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 
 import cv2
@@ -96,7 +96,6 @@ class Layout:
     light_pos: np.ndarray
     focus: np.ndarray
     ambient: float = 0.35
-    extra: dict = field(default_factory=dict)
 
     @cached_property
     def corners(self) -> np.ndarray:
