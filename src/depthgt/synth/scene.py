@@ -186,6 +186,20 @@ def _table(prims, rng, cx, cy, yaw, mats):
     return lx, ly, h
 
 
+def _clutter(prims, rng, cx, cy, yaw, z, half_depth, half_length, mats):
+    """2-4 small objects (jars, boxes) standing at height ``z`` on a surface centred
+    at (cx, cy) with half sizes ``half_depth`` x ``half_length`` rotated by yaw."""
+    for _ in range(int(rng.integers(2, 5))):
+        x, y = _local(cx, cy, yaw, rng.uniform(-half_depth, half_depth), rng.uniform(-half_length, half_length))
+        if rng.uniform() < 0.5:
+            r, hz = rng.uniform(0.03, 0.07), rng.uniform(0.05, 0.15)
+            _add_cyl(prims, x, y, z, z + 2 * hz, r, mats[rng.choice(["metal", "fabric", "fabric2"])], rng)
+        else:
+            half = rng.uniform([0.03, 0.03, 0.04], [0.1, 0.1, 0.15])
+            _add_box(prims, (x, y, z + half[2]), half, mats[rng.choice(["poster", "poster2", "books", "wood2"])],
+                     yaw + rng.uniform(-0.8, 0.8), rng)
+
+
 def _chair(prims, rng, cx, cy, yaw, mats):
     """A chair at (cx, cy) whose seat front faces direction ``yaw``: four thin legs,
     a seat, two back posts and horizontal slats (gaps to see through)."""
@@ -239,9 +253,10 @@ def generate_layout(rng: np.random.Generator, texture_size: int = 512) -> Layout
     """A random furnished room, deterministic for a given generator state.
 
     Contents: floor (tiles, parquet or carpet), plastered walls and ceiling, a table
-    with legs and objects on it, 2-3 chairs with slatted backs, a kitchen run of
-    cabinets with a dark counter top, a shelf unit with books, a floor lamp (thin
-    pole), posters and a door on the walls.
+    with legs and objects on it, sometimes a rug, 2-3 chairs with slatted backs, a
+    kitchen run of cabinets with a dark counter top and jars and boxes on it, a shelf
+    unit with books, a floor lamp (thin pole), a sideboard with objects and sometimes
+    a television, posters and a door on the walls.
     """
     size = np.array([rng.uniform(3.8, 5.0), rng.uniform(3.5, 4.6), rng.uniform(2.5, 2.8)])
     kinds = ["wood", "wood", "tiles", "carpet", "plaster", "plaster", "poster", "poster", "books",
@@ -263,6 +278,9 @@ def generate_layout(rng: np.random.Generator, texture_size: int = 512) -> Layout
     cx, cy = size[0] * rng.uniform(0.42, 0.58), size[1] * rng.uniform(0.42, 0.58)
     yaw = rng.uniform(0, np.pi)
     lx, ly, h_table = _table(prims, rng, cx, cy, yaw, mats)
+    if rng.uniform() < 0.5:  # a thin rug under the table
+        rug = mats["carpet"] if floor != mats["carpet"] else mats["fabric"]
+        _add_box(prims, (cx, cy, 0.004), (lx + rng.uniform(0.3, 0.6), ly + rng.uniform(0.4, 0.7), 0.004), rug, yaw, rng)
     # chairs on the long sides, facing the table
     sides = rng.permutation([(0, 1), (0, -1), (1, 0), (-1, 0)])[: int(rng.integers(2, 4))]
     for sx, sy in sides:
@@ -282,6 +300,7 @@ def generate_layout(rng: np.random.Generator, texture_size: int = 512) -> Layout
         hc = rng.uniform(0.85, 0.92)
         _add_box(prims, (x, y, hc / 2), (0.3, length, hc / 2 - 0.02), mats["wood2"], wyaw, rng)
         _add_box(prims, (x, y, hc), (0.31, length + 0.01, 0.02), mats["dark"], wyaw, rng)
+        _clutter(prims, rng, x, y, wyaw, hc + 0.02, 0.22, length - 0.1, mats)
         if rng.uniform() < 0.7:
             xw, yw = _local(x, y, wyaw, -0.12, 0.0)
             _add_box(prims, (xw, yw, 1.85), (0.17, length * 0.8, 0.3), mats["wood"], wyaw, rng)
@@ -321,7 +340,7 @@ def generate_layout(rng: np.random.Generator, texture_size: int = 512) -> Layout
         length = max(ln[2] - ln[0], ln[3] - ln[1]) / 2
         hb = rng.uniform(0.6, 1.1)
         _add_box(prims, (x, y, hb / 2), (0.22, length, hb / 2), mats[rng.choice(["wood", "wood2"])], wyaw, rng)
-        _add_box(prims, (x, y, hb + 0.1), (0.08, 0.1, 0.1), mats["poster2"], wyaw + rng.uniform(-0.6, 0.6), rng)
+        _clutter(prims, rng, x, y, wyaw, hb, 0.15, length - 0.1, mats)
         if rng.uniform() < 0.6:  # a television: dark, low infrared return
             xt, yt = _local(x, y, wyaw, 0.0, rng.uniform(-0.3, 0.3) * length)
             _add_box(prims, (xt, yt, hb + 0.32), (0.03, rng.uniform(0.3, 0.45), 0.22), mats["dark"], wyaw, rng)
