@@ -20,7 +20,7 @@ Options (all optional):
   ``noise_sigma_disp_px``, ``noise_max_range_m``, ``noise_jitter_px``;
 * ``rgb_noise`` (float, 2.0): std of the colour sensor noise in 8-bit levels;
 * ``step_mm`` (float, 5): mean camera translation per frame; ``sweep_m`` (float,
-  0.7): amplitude of the gaze sweep (sets the rotation per frame, ~0.2-1 deg).
+  0.5): amplitude of the gaze sweep (sets the rotation per frame, ~0.2-1 deg).
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ _DEFAULTS: dict[str, Any] = {
     "noise": True,
     "rgb_noise": 2.0,
     "step_mm": 5.0,
-    "sweep_m": 0.7,
+    "sweep_m": 0.5,
 }
 # Seed-sequence stream tags: layout, path, depth noise, colour noise.
 _STREAM_LAYOUT, _STREAM_PATH, _STREAM_DEPTH, _STREAM_RGB = 0, 1, 2, 3
