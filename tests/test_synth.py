@@ -73,6 +73,11 @@ def test_determinism_and_random_access():
         np.testing.assert_array_equal(x, y)
 
 
+def test_path_independent_of_resolution(small_scene):
+    tiny = open_scene("synthetic", None, "room_000", width=64, height=48, n_frames=12)
+    np.testing.assert_array_equal(tiny.pose(7), small_scene.pose(7))
+
+
 def test_seeds_and_rooms_differ():
     f0 = open_scene("synthetic", None, "room_000", seed=0, **SMALL).read(0)
     f1 = open_scene("synthetic", None, "room_000", seed=1, **SMALL).read(0)

@@ -5,7 +5,9 @@ SceneNet role): every frame comes with its exact depth (``clean_depth_m``) and p
 so the GT's own error against the truth can be measured.
 
 Scenes are named ``room_000``, ``room_001``, ...; the number together with the
-``seed`` option fixes the room layout, its textures and the camera path. Any frame is
+``seed`` option fixes the room layout and its textures, and with ``n_frames`` the
+camera path (chosen to stay clear of the furniture over the whole sequence; it does
+not depend on the resolution). Any frame is
 rendered on demand from closed-form poses (random access); nothing per frame is
 cached. ``root`` is ignored (may be None).
 
