@@ -29,7 +29,8 @@ __all__ = ["CameraPath", "look_at", "make_path"]
 
 def look_at(position: np.ndarray, target: np.ndarray, roll_rad: float = 0.0) -> np.ndarray:
     """Camera-to-world pose of a camera at ``position`` looking at ``target`` (world
-    z up), rolled by ``roll_rad`` about its optical axis.
+    z up), rolled by ``roll_rad`` about its optical axis (written here: kornia has
+    no look-at pose constructor).
 
     Returns:
         (4, 4) float64 pose, OpenCV camera axes.
