@@ -108,7 +108,12 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
             behind = [c for c in cands if c["z"] > band(z_min)]
             centroid = np.linalg.norm(sum(c["off"] for c in front)) / len(front)
             z_ref = z_min
-            if centroid > st.coverage_frac * R:  # F does not cover the centre
+            uncovered = centroid > st.coverage_frac * R  # F's samples sit on one side of the centre
+            if uncovered and behind and st.compare_next_layer:
+                z_b = min(c["z"] for c in behind)
+                nxt = [c for c in behind if c["z"] <= band(z_b)]
+                uncovered = centroid > np.linalg.norm(sum(c["off"] for c in nxt)) / len(nxt)
+            if uncovered:
                 if behind:
                     z_ref = min(c["z"] for c in behind)
                 elif not st.extend_uncovered:
