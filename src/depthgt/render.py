@@ -108,10 +108,13 @@ def _candidates(
         dy2 = torch.where((rows >= 0) & (rows < h), (rows - v[:, None]) ** 2, inf)
         inside = ((dy2[:, :, None] + dx2[:, None, :]) < r * r).reshape(-1)
         flat = inside.nonzero().squeeze(1)  # index into (P, span, span)
+        del inside, dx2, dy2, cols, rows  # free the (P, span, span) temporaries early
         slot = torch.div(flat, span * span, rounding_mode="floor")
         rem = flat - slot * (span * span)
+        del flat
         oy = torch.div(rem, span, rounding_mode="floor")
         ox = rem - oy * span
+        del rem
         point = pid[slot]
         batch = torch.div(pid, n, rounding_mode="floor")
         base = (batch * h + y0.long()) * w + x0.long()  # pixel index of the window corner
