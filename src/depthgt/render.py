@@ -5,14 +5,21 @@ Both renderers share one rasteriser written with tensor ops: every point is pair
 with the pixels whose *centres* lie strictly within ``radius_px`` of its sub-pixel
 projection (pixel-centre convention of :mod:`depthgt.geometry`: pixel (u, v) covers
 [u - 0.5, u + 0.5] x [v - 0.5, v + 0.5]). The (point, pixel) pairs are "candidates";
-per-pixel selection (z-buffer, m nearest) is done with ``scatter_reduce`` and a
-sort restricted to the pixels that hold more candidates than the cap, so the common
-case needs no global sort. No Python loop runs over points or pixels.
+per-pixel selection (z-buffer, layers, m nearest) is done with ``scatter_reduce`` /
+``index_add`` and sorts restricted to the few candidates whose rank matters (pixels
+over the cap; for eq. 5 only the histogram bin where the m-th nearest falls), so no
+global sort is needed. No Python loop runs over points or pixels.
 
 Written here rather than taken from PyTorch3D's point rasteriser because PyTorch3D is
-not a dependency (its CPU wheels are not available for our torch) and because eq. 5
-needs a selection rule (front-surface guard, then m nearest by *pixel distance*)
-that its rasteriser (K nearest by depth) does not implement.
+not among the project's dependencies and because eq. 5 needs a selection rule
+(surface layers, then m nearest by *pixel distance*, depth moved to the pixel
+centre) that its rasteriser (K nearest by depth) does not implement.
+
+Measured (bench/bench_render.py, synthetic rooms, exact poses, 256x256): from the
+clean depth of the 6 neighbours the GT is within ~2-3 mm MAE of the exact depth at
+the pixel centres; the error is concentrated on ~0.3% of pixels at depth edges,
+whose side cannot be decided better from samples that are themselves up to 0.2 px
+off the pixel grid (the nearest-resized clean target has the same ~2-3 mm error).
 
 Layouts: points (B, N, 3) metres in the camera frame, intrinsics (B, 3, 3) at the
 output resolution, images (B, C, H, W), depth (B, 1, H, W) metres with 0 = nothing.
