@@ -108,6 +108,10 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
             behind = [c for c in cands if c["z"] > band(z_min)]
             centroid = np.linalg.norm(sum(c["off"] for c in front)) / len(front)
             z_ref = z_min
+            if behind and st.ambiguous_band is not None:
+                lo, hi = st.ambiguous_band
+                if lo * R < centroid < hi * R:
+                    continue  # an edge too close to the centre: left empty
             uncovered = centroid > st.coverage_frac * R  # F's samples sit on one side of the centre
             if uncovered and behind and st.compare_next_layer:
                 z_b = min(c["z"] for c in behind)

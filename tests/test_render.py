@@ -163,7 +163,8 @@ def _two_layer_cloud(seed: int, n_bg: int = 900, n_fg: int = 250):
 @pytest.mark.parametrize("extend", [False, True])
 def test_render_gt_matches_reference(seed, use_normals, extend):
     p, nrm, valid, K = _two_layer_cloud(seed)
-    st = GTRenderSettings(m=5, radius_px=1.3, min_points=2, rel_band=0.02, abs_band_m=0.02, extend_uncovered=extend)
+    st = GTRenderSettings(m=5, radius_px=1.3, min_points=2, rel_band=0.02, abs_band_m=0.02, extend_uncovered=extend,
+                          ambiguous_band=None if extend else (0.3, 0.55))
     out = render_gt(p, K, (16, 16), valid, st, nrm if use_normals else None)
     assert isinstance(out, GTRender)
     rd, rw, rc = render_gt_reference(p[0].numpy(), K[0].numpy(), (16, 16), valid[0].numpy(), st,
