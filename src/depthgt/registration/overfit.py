@@ -63,7 +63,7 @@ class RegistrationSettings:
     n_blocks: int = 2
     channels: int = 64
     feat_dim: int = 32
-    n_candidates: int = 4096
+    n_candidates: int = 2048
     top_k: int = 200
     knn_block: int = 1 << 25
     n_subsets: int = 10

@@ -58,7 +58,7 @@ class RefineSettings:
     point_stride: tuple[int, ...] = (1, 1, 2)
     geo_scale_m: float = 0.005
     photo_scale: float = 0.03
-    photo_weight: float = 1.0
+    photo_weight: float = 0.3
     robust: str = "huber"
     max_dist_m: tuple[float, ...] = (0.10, 0.05, 0.03)
     damping: float = 1e-4
