@@ -334,16 +334,21 @@ def test_render_gt_on_synthetic_room():
     nb = [0, 1, 2, 4, 5, 6]
     cloud = cloud_in_target(clean[nb], K.float().expand(6, 3, 3), T[nb], src_hw=hw)
     gt = render_gt(cloud.points, K[None].float(), (256, 256), cloud.valid, GTRenderSettings(), cloud.normals).depth[0, 0]
-    assert float((gt > 0).float().mean()) > 0.99
+    assert float((gt > 0).float().mean()) > 0.97  # edge pixels of undecidable side are left empty
+    assert _mae_mm(gt, clean[3, 0]) <= 3.0  # the acceptance: against the resized clean target
     if not hasattr(scene, "layout"):
         pytest.skip("the synthetic scene does not expose its layout: no exact 256x256 depth to compare with")
     from depthgt.synth.scene import raycast
 
     # The nearest-resized clean target is itself off the exact depth at the 256x256 pixel
-    # centres by ~2-3 mm in these furnished rooms (edges sampled up to 0.2 px away), so
-    # the rooms are checked against the exact depth ray cast at the pixel centres.
+    # centres by ~2-3 mm in these furnished rooms (edges sampled up to 0.2 px away);
+    # against the exact depth ray cast at the pixel centres the GT is much closer.
     exact = torch.from_numpy(raycast(scene.layout, Ts[3], K.numpy(), (256, 256)).depth_m)
     mae_exact = _mae_mm(gt, exact)
-    assert mae_exact <= 3.5
-    assert mae_exact <= _mae_mm(clean[3, 0], exact) + 0.5  # about as close to the truth as the resized clean target
-    assert _mae_mm(gt, clean[3, 0]) <= 5.0
+    assert mae_exact <= 1.5
+    assert mae_exact < 0.5 * _mae_mm(clean[3, 0], exact)
+    # keeping the ambiguous edge pixels fills them in at a clear cost in accuracy
+    full = render_gt(cloud.points, K[None].float(), (256, 256), cloud.valid, GTRenderSettings(ambiguous_band=None),
+                     cloud.normals).depth[0, 0]
+    assert float((full > 0).float().mean()) > float((gt > 0).float().mean())
+    assert _mae_mm(full, exact) > 1.5 * mae_exact
