@@ -232,7 +232,8 @@ def main(argv=None) -> None:
         if (df.bench == "accuracy").any():
             acc = df[df.bench == "accuracy"]
             print(acc.pivot_table(index="case", columns="metric", values="value").round(3))
-        print(df[df.bench != "accuracy"].round(4).to_string(index=False))
+        if (df.bench != "accuracy").any():
+            print(df[df.bench != "accuracy"].round(4).to_string(index=False))
 
 
 if __name__ == "__main__":
