@@ -211,6 +211,23 @@ def test_render_gt_gradients_reach_points():
     assert torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0
 
 
+def test_render_gt_gradcheck():
+    """Analytic gradients of eq. 5 (with the plane correction) match finite differences."""
+    K = _K(1, 8.0, 3.5, 3.0)
+    uv = torch.tensor([[2.3, 2.7], [3.35, 3.2], [2.8, 3.6], [3.1, 2.45]], dtype=torch.float64)
+    z = torch.tensor([1.0, 1.01, 1.02, 1.005], dtype=torch.float64)
+    p = _unproject(uv, z, K[0])[None].requires_grad_()
+    n = torch.nn.functional.normalize(torch.tensor([[[0.1, -0.2, -1.0]]], dtype=torch.float64).expand(1, 4, 3), dim=-1)
+    n = n.clone().requires_grad_()
+    st = GTRenderSettings(radius_px=1.25, m=3, ambiguous_band=None)
+
+    def fn(p, n):
+        out = render_gt(p, K, (6, 7), settings=st, normals_cam=n)
+        return out.depth, out.weight_sum
+
+    assert torch.autograd.gradcheck(fn, (p, n), eps=1e-6, atol=1e-6)
+
+
 def test_render_gt_bad_input():
     K = _K(1, 10.0, 4.0, 4.0)
     with pytest.raises(ValueError, match="normals_cam"):
