@@ -64,20 +64,27 @@ def open_source_scene(source: dict[str, Any], scene: str, need_poses: bool = Tru
         raise ConfigError(f"config sources entry {source.get('name')!r} (kind {source['kind']}): bad options: {err}") from err
 
 
-def run_scene_index(source: dict[str, Any], scene: str, config: dict[str, Any], out_parquet: str, out_json: str) -> None:
-    """Check every frame of a scene and write its index (parquet + json)."""
+def run_scene_index(source: dict[str, Any], scene: str, config: dict[str, Any], out_parquet: str, out_json: str,
+                    cache_dir: str | None = None) -> None:
+    """Check every frame of a scene and write its index (parquet + json), and the
+    frame cache at the working resolution into ``cache_dir`` when given."""
+    from depthgt.cache import FrameCacheWriter
     from depthgt.config import build
     from depthgt.framesets import FrameSetSettings, SplitSettings
     from depthgt.scene_index import build_index
 
     method = (config.get("registration") or {}).get("method", "given")
     sc = open_source_scene(source, scene, need_poses=(method == "given"))
+    size = int(config.get("resize", 256))
+    cache = FrameCacheWriter(cache_dir, len(sc), (size, size), sc.has_clean_depth) if cache_dir else None
     index = build_index(
         sc, source["name"], source.get("split", "auto"), need_poses=(method == "given"),
         fs_settings=build(FrameSetSettings, config.get("frameset"), "frameset"),
         split_settings=build(SplitSettings, config.get("split"), "split"),
-        seed=int(config.get("seed", 0)), progress=True,
+        seed=int(config.get("seed", 0)), progress=True, cache=cache,
     )
+    if cache is not None:
+        cache.close()
     meta = dict(index.meta)
     meta["framesets_ok"] = [int(t) for t in index.framesets.loc[index.framesets["status"] == "ok", "target"]]
     meta["source"] = source
@@ -91,8 +98,8 @@ def run_scene_index(source: dict[str, Any], scene: str, config: dict[str, Any], 
 
 
 def run_frameset(source: dict[str, Any], scene: str, target: int, config: dict[str, Any], index_parquet: str, out_dir: str,
-                 encoder: str | None = None) -> None:
-    """Build one frame set's outputs in ``out_dir``."""
+                 encoder: str | None = None, cache_dir: str | None = None) -> None:
+    """Build one frame set's outputs in ``out_dir`` (frames from ``cache_dir`` when given)."""
     import pandas as pd
 
     from depthgt.config import job_settings
@@ -109,9 +116,14 @@ def run_frameset(source: dict[str, Any], scene: str, target: int, config: dict[s
 
         state = torch.load(encoder, map_location="cpu", weights_only=True)
     settings = job_settings(config)
-    scene_obj = open_source_scene(source, scene, need_poses=(settings.registration_method == "given"))
+    if cache_dir:
+        from depthgt.cache import CachedScene
+
+        scene_obj = CachedScene(Path(index_parquet).with_name("index.json"), table)
+    else:
+        scene_obj = open_source_scene(source, scene, need_poses=(settings.registration_method == "given"))
     doc = process_frameset(scene_obj, source["name"], target, [int(m) for m in row["members"]],
-                           row["frameset_split"], out_dir, settings, encoder_state=state)
+                           row["frameset_split"], out_dir, settings, encoder_state=state, cache_dir=cache_dir)
     log.info("frame set %s/%s/%06d: status %s, %d/%d patches kept, GT missing %.3f (input %.3f)", source["name"], scene,
              target, doc["status"], doc["statistics"]["patches_kept"], doc["statistics"]["patches_drawn"],
              doc["statistics"]["gt_missing"], doc["statistics"]["input_missing"])

@@ -107,6 +107,27 @@ def load_frameset(scene: Scene, members: list[int], size_hw: tuple[int, int], ne
     )
 
 
+def load_frameset_cached(cache_dir: str | Path, scene: Scene, members: list[int], size_hw: tuple[int, int],
+                         device: torch.device) -> FrameSetData:
+    """Same as :func:`load_frameset`, from the scene's frame cache (see depthgt.cache)."""
+    from depthgt.cache import read_cached
+
+    arr = read_cached(cache_dir, members)
+    if arr["depth"].shape[1:] != tuple(size_hw):
+        raise ValueError(f"frame cache {cache_dir} holds {arr['depth'].shape[1:]} frames, the job works at {tuple(size_hw)}")
+    poses = arr["poses"]
+    K = torch.as_tensor(geometry.scale_intrinsics(np.asarray(scene.intrinsics, dtype=np.float64), scene.image_size, size_hw), device=device)
+    return FrameSetData(
+        rgb=torch.from_numpy(arr["rgb"]).permute(0, 3, 1, 2).to(device).float() / 255.0,
+        depth_m=torch.from_numpy(arr["depth"])[:, None].to(device),
+        K=K,
+        T_world_cam=torch.from_numpy(poses).to(device) if np.isfinite(poses).all() else None,
+        truth_m=torch.from_numpy(arr["truth"])[:, None].to(device) if "truth" in arr else None,
+        frame_ids=[scene.frame_id(m) for m in members],
+        src_hw=tuple(scene.image_size),
+    )
+
+
 def poses_from_source(data: FrameSetData) -> torch.Tensor:
     """``T_j_to_t`` (F-1, 4, 4) float64 of each neighbour from the source's poses."""
     if data.T_world_cam is None:
@@ -146,8 +167,12 @@ def _save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
 
 
 def process_frameset(scene: Scene, dataset: str, target: int, members: list[int], split: str, out_dir: str | Path,
-                     settings: JobSettings, encoder_state: dict | None = None) -> dict[str, Any]:
-    """Build every output of one frame set in ``out_dir`` and return frameset.json's content."""
+                     settings: JobSettings, encoder_state: dict | None = None, cache_dir: str | Path | None = None) -> dict[str, Any]:
+    """Build every output of one frame set in ``out_dir`` and return frameset.json's content.
+
+    Frames come from the scene's frame cache when ``cache_dir`` is given (the
+    workflow's case), else they are read from ``scene`` and resized here.
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     device = resolve_device(settings.device)
@@ -161,7 +186,10 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
         clock = now
 
     method = settings.registration_method
-    data = load_frameset(scene, members, settings.size_hw, need_poses=(method == "given"), device=device)
+    if cache_dir is not None:
+        data = load_frameset_cached(cache_dir, scene, members, settings.size_hw, device)
+    else:
+        data = load_frameset(scene, members, settings.size_hw, need_poses=(method == "given"), device=device)
     lap("load_resize")
 
     registration_info: dict[str, Any] = {"method": method}
@@ -189,16 +217,18 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     truth = data.truth_m[0, 0].cpu().numpy().astype(np.float32) if data.truth_m is not None else None
     rgb8 = (data.rgb[0].permute(1, 2, 0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
 
-    # Leave-target-out consistency: fuse the neighbours alone and compare with the
-    # target's raw valid depth (the only check possible on real data without truth).
-    lto = fuse(data, T_j_to_t, settings.render, members=slice(1, None)).depth[0, 0].detach().cpu().numpy()
     stats: dict[str, Any] = {
         "input_missing": float((depth_in <= 0).mean()),
         "gt_missing": float((gt_depth <= 0).mean()),
         "gt_mean_points": float(gt.count[0, 0].float().mean()),
-        "leave_target_out": error_stats(lto.astype(np.float32), depth_in),
     }
-    if truth is not None:
+    if truth is None:
+        # Leave-target-out consistency: fuse the neighbours alone and compare with the
+        # target's raw valid depth -- the only accuracy check possible on real data
+        # (where a clean truth exists, the GT is compared with it instead).
+        lto = fuse(data, T_j_to_t, settings.render, members=slice(1, None)).depth[0, 0].detach().cpu().numpy()
+        stats["leave_target_out"] = error_stats(lto.astype(np.float32), depth_in)
+    else:
         stats["gt_vs_truth"] = error_stats(gt_depth, truth)
         stats["input_vs_truth"] = error_stats(depth_in, truth)
     lap("quality")

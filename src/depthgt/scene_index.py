@@ -46,11 +46,13 @@ class SceneIndex:
 
 
 def build_index(scene: Scene, dataset: str, source_split: str, need_poses: bool, fs_settings: FrameSetSettings,
-                split_settings: SplitSettings, seed: int, progress: bool = False) -> SceneIndex:
+                split_settings: SplitSettings, seed: int, progress: bool = False, cache=None) -> SceneIndex:
     """Check every frame of ``scene`` and enumerate its frame sets.
 
     Args:
         need_poses: frames without a finite pose are invalid (``registration.method: given``).
+        cache: optional :class:`depthgt.cache.FrameCacheWriter` that receives every
+            valid frame (resized to the working resolution).
     """
     n = len(scene)
     valid = np.zeros(n, dtype=bool)
@@ -66,6 +68,8 @@ def build_index(scene: Scene, dataset: str, source_split: str, need_poses: bool,
             frame = scene.read(i)
             check_frame(frame, scene.image_size, f"{dataset}/{scene.name} frame {scene.frame_id(i)}", need_pose=need_poses)
             valid[i] = True
+            if cache is not None:
+                cache.put(i, frame)
         except FrameError as err:
             reasons[i] = err.reason
             messages[i] = str(err)

@@ -2,4 +2,5 @@ from depthgt.jobs import logging_to, run_scene_index
 
 with logging_to(snakemake.log[0]):
     run_scene_index(snakemake.params.source, snakemake.wildcards.scene, snakemake.params.config,
-                    snakemake.output.table, snakemake.output.meta)
+                    snakemake.output.table, snakemake.output.meta,
+                    cache_dir=snakemake.output.cache)
