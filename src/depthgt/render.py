@@ -113,15 +113,11 @@ def _candidates(
         # (P, span, span) sum below needs a single comparison
         dx2 = torch.where((cols >= 0) & (cols < w), (cols - u[:, None]) ** 2, inf)
         dy2 = torch.where((rows >= 0) & (rows < h), (rows - v[:, None]) ** 2, inf)
-        inside = ((dy2[:, :, None] + dx2[:, None, :]) < r * r).reshape(-1)
-        flat = inside.nonzero().squeeze(1)  # index into (P, span, span)
-        del inside, dx2, dy2, cols, rows  # free the (P, span, span) temporaries early
-        slot = torch.div(flat, span * span, rounding_mode="floor")
-        rem = flat - slot * (span * span)
-        del flat
-        oy = torch.div(rem, span, rounding_mode="floor")
-        ox = rem - oy * span
-        del rem
+        inside = (dy2[:, :, None] + dx2[:, None, :]) < r * r  # (P, span, span)
+        del dx2, dy2, cols, rows  # free the temporaries early
+        sel = inside.nonzero()  # (C, 3): point slot, row offset, column offset
+        del inside
+        slot, oy, ox = sel.unbind(1)
         point = pid[slot]
         batch = torch.div(pid, n, rounding_mode="floor")
         base = (batch * h + y0.long()) * w + x0.long()  # pixel index of the window corner
