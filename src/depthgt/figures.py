@@ -1,0 +1,116 @@
+"""Figures: method comparison rows (paper Figs. 5-7) and training curves.
+
+matplotlib is imported lazily with the Agg backend (no display needed).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+import pandas as pd
+
+__all__ = ["shared_depth_range", "comparison_figure", "training_curve"]
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def shared_depth_range(images: list[np.ndarray], lo_pct: float = 1.0, hi_pct: float = 99.0) -> tuple[float, float]:
+    """(vmin, vmax) in metres from the valid (> 0) pixels of all images (percentiles,
+    so that a few outliers do not flatten the colours); (0, 1) when none is valid."""
+    vals = np.concatenate([np.asarray(im)[np.asarray(im) > 0].ravel() for im in images] + [np.empty(0, np.float32)])
+    if vals.size == 0:
+        return 0.0, 1.0
+    lo, hi = np.percentile(vals, [lo_pct, hi_pct])
+    return float(lo), float(max(hi, lo + 1e-3))
+
+
+def comparison_figure(frames: pd.DataFrame, pred_dirs: Mapping[str, str | Path], out_path: str | Path,
+                      frames_per_scene: int = 2) -> Path:
+    """One row per test frame: RGB | input | each method | GT (| truth when known).
+
+    Depth panels share one colour range per row (the row's valid depths, 1st-99th
+    percentile), invalid pixels (0) black. Predictions are read from
+    ``{pred_dirs[method]}/{dataset}/{scene}/{target:06d}.npy``.
+
+    Args:
+        frames: frame-set rows (dataset, scene, target, frameset_dir) to choose from;
+            up to ``frames_per_scene`` evenly spaced frames of each scene are shown.
+    """
+    from depthgt.enhance.evaluate import load_frame
+
+    plt = _plt()
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    picked = []
+    for _, group in frames.sort_values(["dataset", "scene", "target"]).groupby(["dataset", "scene"], sort=False):
+        idx = np.unique(np.linspace(0, len(group) - 1, min(frames_per_scene, len(group))).round().astype(int))
+        picked.extend(group.iloc[idx].itertuples())
+    methods = list(pred_dirs)
+    if not picked:
+        fig, ax = plt.subplots(figsize=(6, 1))
+        ax.axis("off")
+        ax.text(0.5, 0.5, "no test frame set", ha="center", va="center")
+        fig.savefig(out, dpi=80)
+        plt.close(fig)
+        return out
+    has_truth = any(load_frame(r.frameset_dir)["truth"] is not None for r in picked)
+    titles = ["RGB", "input"] + methods + ["depthgt GT"] + (["truth"] if has_truth else [])
+    n_cols = len(titles)
+    fig, axes = plt.subplots(len(picked), n_cols, figsize=(1.9 * n_cols, 2.0 * len(picked) + 0.4), squeeze=False)
+    cmap = plt.get_cmap("turbo").copy()
+    cmap.set_bad("black")
+    image = None
+    for row, rec in enumerate(picked):
+        fr = load_frame(rec.frameset_dir)
+        preds = []
+        for m in methods:
+            p = Path(pred_dirs[m]) / str(rec.dataset) / str(rec.scene) / f"{int(rec.target):06d}.npy"
+            preds.append(np.load(p) if p.is_file() else np.zeros_like(fr["input"]))
+        depths = [fr["input"], *preds, fr["gt"]] + ([fr["truth"] if fr["truth"] is not None else np.zeros_like(fr["gt"])]
+                                                    if has_truth else [])
+        vmin, vmax = shared_depth_range(depths)
+        axes[row, 0].imshow(fr["rgb"])
+        for col, d in enumerate(depths, start=1):
+            image = axes[row, col].imshow(np.ma.masked_less_equal(d, 0), cmap=cmap, vmin=vmin, vmax=vmax)
+        axes[row, 0].set_ylabel(f"{rec.dataset}/{rec.scene}\n{int(rec.target):06d}", fontsize=7)
+        for col in range(n_cols):
+            axes[row, col].set_xticks([])
+            axes[row, col].set_yticks([])
+            if row == 0:
+                axes[row, col].set_title(titles[col], fontsize=8)
+        fig.colorbar(image, ax=axes[row, -1], fraction=0.046, pad=0.04, label="m")
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
+
+
+def training_curve(loss_log: str | Path, out_path: str | Path, title: str = "") -> Path:
+    """Train and validation total loss per epoch from a ``loss_log.csv``."""
+    plt = _plt()
+    log = pd.read_csv(loss_log)
+    if not {"epoch", "split", "total"} <= set(log.columns):
+        raise ValueError(f"{loss_log}: needs columns epoch, split, total (has {list(log.columns)})")
+    fig, ax = plt.subplots(figsize=(4.5, 3.0))
+    for split, group in log.groupby("split"):
+        ax.plot(group["epoch"], group["total"], marker="o", label=split)
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("loss (total)")
+    ax.set_yscale("log")
+    ax.set_title(title)
+    ax.legend()
+    fig.tight_layout()
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
