@@ -26,6 +26,10 @@ def _scenes_of(src):
 
 
 SCENES = [(name, scene) for name, src in SOURCES.items() for scene in _scenes_of(src)]
+for _name, _scene in SCENES:
+    if _scene in (".", "..") or "/" in _scene:
+        raise ValueError(f"config sources {_name!r}: scene name {_scene!r} cannot be a path component; "
+                         "name the sequence folder (or use scenes: all)")
 
 
 wildcard_constraints:
