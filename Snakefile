@@ -11,9 +11,12 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/index.smk"
 include: "workflow/rules/framesets.smk"
 include: "workflow/rules/dataset.smk"
+include: "workflow/rules/enhance.smk"
+include: "workflow/rules/report.smk"
 
 
 rule all:
     default_target: True
     input:
         rules.dataset.output,
+        rules.report.input,

@@ -1,0 +1,66 @@
+# Tables 1-3, the GT-quality table, figures, and the report items.
+
+
+report: "../report/workflow.rst"
+
+
+rule tables:
+    input:
+        evals=expand("results/eval/{method}.parquet", method=METHODS),
+        framesets="results/dataset/framesets.parquet",
+        rde="results/rde/framesets.parquet",
+        quality="results/dataset/gt_quality.csv",
+    output:
+        table1=report("results/tables/table1.md", caption="../report/table1.rst", category="Tables"),
+        table1_csv="results/tables/table1.csv",
+        table2=report("results/tables/table2.md", caption="../report/table2.rst", category="Tables"),
+        table2_csv="results/tables/table2.csv",
+        table3=report("results/tables/table3.md", caption="../report/table3.rst", category="Tables"),
+        table3_csv="results/tables/table3.csv",
+        quality=report("results/tables/table_gt_quality.md", caption="../report/table_gt_quality.rst", category="Tables"),
+        quality_csv="results/tables/table_gt_quality.csv",
+    params:
+        kinds=KINDS,
+    log:
+        "logs/tables.log",
+    script:
+        "../scripts/tables.py"
+
+
+rule figures:
+    input:
+        framesets="results/dataset/framesets.parquet",
+        evals=expand("results/eval/{method}.parquet", method=METHODS),
+        logs=expand("results/models/{model}/loss_log.csv", model=MODELS),
+    output:
+        comparison=report("results/figures/comparison.png", caption="../report/comparison.rst", category="Figures"),
+        curves=report(expand("results/figures/training_{model}.png", model=MODELS), caption="../report/training.rst",
+                      category="Figures", subcategory="Training curves"),
+    params:
+        methods=[m for m in METHODS if m != "input"],
+        models=MODELS,
+        split=EVALUATION.get("split", "test"),
+        frames_per_scene=EVALUATION.get("figure_frames_per_scene", 2),
+    log:
+        "logs/figures.log",
+    script:
+        "../scripts/figures.py"
+
+
+rule run_config:
+    output:
+        report("results/report/config.yaml", caption="../report/config.rst", category="Configuration"),
+    params:
+        config=config,
+    run:
+        import yaml
+
+        Path(output[0]).parent.mkdir(parents=True, exist_ok=True)
+        Path(output[0]).write_text(yaml.safe_dump(params.config, sort_keys=False))
+
+
+rule report:
+    input:
+        rules.tables.output,
+        rules.figures.output,
+        rules.run_config.output,
