@@ -90,25 +90,26 @@ def run_train(settings: dict[str, Any], train_manifest: str, val_manifest: str |
 # --------------------------------------------------------------------------- RDE global-reconstruction GT
 
 
-def _stream(source: dict, scene: str, index_parquet: str, step: int, targets: list[int]):
+def _stream(source: dict, scene: str, cache_dir: str | None, K_work: np.ndarray, step: int, targets: list[int]):
     """Depth, colour and poses of the stream for the TSDF, plus the targets' poses.
 
-    Uses the scene's frame cache (``frames/`` beside ``index.parquet``, working
-    resolution) when the index wrote one; else reads the source at full resolution.
+    Uses the scene's frame cache (``frames/`` written by the scene index: every frame at
+    the working resolution, whose intrinsics are ``K_work``) when given and present;
+    else reads the source at full resolution.
 
     Returns:
         (depths list, rgbs list, K (3, 3), poses list, {target: T_world_cam or None}).
     """
-    cache = Path(index_parquet).with_name("frames")
-    if (cache / "depth.npy").is_file() and (cache / "poses.npy").is_file() and (cache / "K.npy").is_file():
+    cache = Path(cache_dir) if cache_dir else None
+    if cache is not None and (cache / "depth.npy").is_file() and (cache / "poses.npy").is_file():
         depth = np.load(cache / "depth.npy", mmap_mode="r")
         rgb = np.load(cache / "rgb.npy", mmap_mode="r") if (cache / "rgb.npy").is_file() else None
         poses = np.load(cache / "poses.npy")
-        K = np.load(cache / "K.npy")
         keep = [i for i in range(0, len(depth), step) if np.isfinite(poses[i]).all() and (depth[i] > 0).any()]
-        target_poses = {t: (poses[t] if np.isfinite(poses[t]).all() else None) for t in targets}
+        target_poses = {t: (poses[t] if t < len(poses) and np.isfinite(poses[t]).all() else None) for t in targets}
+        log.info("%s/%s: TSDF input from the frame cache %s", source["name"], scene, cache)
         return ([np.asarray(depth[i]) for i in keep], [np.asarray(rgb[i]) for i in keep] if rgb is not None else None,
-                K, [poses[i] for i in keep], target_poses)
+                np.asarray(K_work, dtype=np.float64), [poses[i] for i in keep], target_poses)
 
     from depthgt.errors import FrameError
     from depthgt.jobs import open_source_scene
@@ -135,8 +136,8 @@ def _stream(source: dict, scene: str, index_parquet: str, step: int, targets: li
     return depths, rgbs, np.asarray(sc.intrinsics, dtype=np.float64), poses, target_poses
 
 
-def run_rde_scene(source: dict[str, Any], scene: str, index_parquet: str, scene_framesets: str, rde_config: dict[str, Any],
-                  out_dir: str, out_framesets: str, out_patches: str) -> None:
+def run_rde_scene(source: dict[str, Any], scene: str, scene_framesets: str, rde_config: dict[str, Any], out_dir: str,
+                  out_framesets: str, out_patches: str, frame_cache: str | None = None) -> None:
     """Global-reconstruction GT of every frame set of one scene.
 
     Fuses the scene's stream (every ``rde.frame_step``-th frame, source poses) into a
@@ -163,8 +164,9 @@ def run_rde_scene(source: dict[str, Any], scene: str, index_parquet: str, scene_
         log.info("%s/%s: no runnable frame set, no RDE GT", source["name"], scene)
     else:
         targets = [int(t) for t in ok["target"]]
-        depths, rgbs, K, poses, target_poses = _stream(source, scene, index_parquet, settings.frame_step, targets)
         docs = {int(r.target): json.loads((Path(r.frameset_dir) / "frameset.json").read_text()) for r in ok.itertuples()}
+        K_work = np.asarray(next(iter(docs.values()))["K"], dtype=np.float64)
+        depths, rgbs, K, poses, target_poses = _stream(source, scene, frame_cache, K_work, settings.frame_step, targets)
         frames = {int(r.target): load_frame(r.frameset_dir) for r in ok.itertuples()}
         render_targets = [t for t in targets if target_poses.get(t) is not None]
         hw = next(iter(frames.values()))["input"].shape

@@ -37,8 +37,8 @@ def method_inputs(wildcards):
 
 rule rde_scene:
     input:
-        index="results/scenes/{dataset}/{scene}/index.parquet",
         framesets="results/scenes/{dataset}/{scene}/framesets.parquet",
+        cache="results/scenes/{dataset}/{scene}/frames",
     output:
         frames=directory("results/rde/{dataset}/{scene}/frames"),
         framesets="results/rde/{dataset}/{scene}/framesets.parquet",
