@@ -17,8 +17,6 @@ import numpy as np
 from depthgt import io
 
 __all__ = [
-    "method_specs",
-    "train_settings",
     "run_train",
     "run_rde_scene",
     "run_rde_dataset",
@@ -29,45 +27,9 @@ __all__ = [
 
 log = logging.getLogger("depthgt")
 
-LEARNED = ("ddrnet", "sdd", "rde", "lapden")
-FILTERS = ("input", "rgf", "jf")
 RDE_FRAMESET_COLUMNS = ["dataset", "scene", "target", "split", "status", "reason", "frameset_dir", "rde_dir", "has_truth",
                         "patches_kept", "rde_missing", "backend"]
 RDE_PATCH_COLUMNS = ["dataset", "scene", "target", "split", "patch", "path"]
-
-
-# --------------------------------------------------------------------------- config helpers
-
-
-def train_settings(enhance: Mapping[str, Any], model: str, seed: int = 0, device: str = "auto"):
-    """:class:`~depthgt.enhance.train.TrainSettings` of model ``model`` (lapden, ddrnet,
-    sdd or rde) from the ``enhance`` config section: ``enhance.train`` overridden by
-    ``enhance.models[model]`` (RDE uses LapDEN's entry: same network, other GT)."""
-    from depthgt.enhance.train import settings_from_dict
-
-    models = dict(enhance.get("models") or {})
-    key = "lapden" if model == "rde" else model
-    if key not in models:
-        from depthgt.errors import ConfigError
-
-        raise ConfigError(f"enhance.models: no entry for {key!r} (has {sorted(models)})")
-    d = {"seed": seed, "device": device, "progress": False, **dict(enhance.get("train") or {}), **dict(models[key])}
-    return settings_from_dict(d)
-
-
-def method_specs(methods: list[str], models_dir: str | Path = "results/models") -> dict[str, dict]:
-    """Method name -> evaluation method mapping (see :mod:`depthgt.enhance.evaluate`)."""
-    from depthgt.errors import ConfigError
-
-    specs = {}
-    for m in methods:
-        if m in FILTERS:
-            specs[m] = {"baseline": m}
-        elif m in LEARNED:
-            specs[m] = {"baseline": "learned", "params": {"checkpoint": str(Path(models_dir) / m / "best.pt")}}
-        else:
-            raise ConfigError(f"evaluation.methods: unknown method {m!r}; known: {list(FILTERS + LEARNED)}")
-    return specs
 
 
 # --------------------------------------------------------------------------- training

@@ -9,12 +9,11 @@ KINDS = {name: src["kind"] for name, src in SOURCES.items()}
 
 
 def train_params(wildcards):
-    from depthgt.jobs_enhance import train_settings
-
-    st = train_settings(ENHANCE, wildcards.model, seed=int(config.get("seed", 0)), device=config.get("device", "auto"))
-    from dataclasses import asdict
-
-    return asdict(st)
+    """TrainSettings mapping of a model (checked by the job; no torch import here):
+    enhance.train overridden by enhance.models[model]; RDE uses LapDEN's entry."""
+    key = "lapden" if wildcards.model == "rde" else wildcards.model
+    return {"seed": int(config.get("seed", 0)), "device": config.get("device", "auto"), "progress": False,
+            **ENHANCE.get("train", {}), **ENHANCE.get("models", {}).get(key, {"model": key})}
 
 
 def train_manifests(wildcards):
@@ -24,9 +23,10 @@ def train_manifests(wildcards):
 
 
 def method_spec(wildcards):
-    from depthgt.jobs_enhance import method_specs
-
-    return method_specs([wildcards.method])[wildcards.method]
+    """Evaluation method of depthgt.enhance.evaluate: a filter baseline or a checkpoint."""
+    if wildcards.method in MODELS:
+        return {"baseline": "learned", "params": {"checkpoint": f"results/models/{wildcards.method}/best.pt"}}
+    return {"baseline": wildcards.method}
 
 
 def method_inputs(wildcards):
