@@ -29,7 +29,7 @@ from depthgt.registration.encoder import build_encoder, lift_points
 from depthgt.registration.losses import correspondence_loss, default_render_fn, render_losses
 from depthgt.registration.metrics import pose_delta
 from depthgt.registration.procrustes import procrustes_random_subsets
-from depthgt.registration.refine import RefineSettings, _Level, _normal_system, refine_poses
+from depthgt.registration.refine import RefineSettings, _Level, _LevelSettings, _normal_system, refine_poses
 
 __all__ = ["RegistrationSettings", "RegistrationResult", "PRESETS", "make_settings", "register_frameset",
            "pretrain_encoder", "frameset_loss"]
@@ -330,7 +330,8 @@ def _chain(fs: _Frameset, T_init: torch.Tensor, table, offsets, s: RegistrationS
     level.gray = torch.cat([level.gray[:1], level.gray[pairs[:, 1]]])
     level.valid = torch.cat([level.valid[:1], level.valid[pairs[:, 1]]])
     level.maps = torch.cat([level.maps[:1], level.maps[pairs[:, 1]]])
-    _, _, cost, _, _ = _normal_system(level, Tv, vpairs.to(fs.depth.device), rs, rs.max_dist_m[1])
+    ls = _LevelSettings(rs.geo_scale_m[-1], rs.photo_scale, rs.photo_weight, rs.robust)
+    _, _, cost, _, _ = _normal_system(level, Tv, vpairs.to(fs.depth.device), ls, rs.max_dist_m[-1])
     T_out = T_init.clone()
     choice = {}
     owners_t = torch.tensor(owners)

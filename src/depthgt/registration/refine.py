@@ -42,7 +42,8 @@ class RefineSettings:
         pairs: "all" (every ordered pair, eq. 4), "target" (target-neighbour only) or
             "adjacent" (target pairs plus pairs of frames next to each other in the set).
         point_stride: source pixel stride per scale (1 = every valid pixel).
-        geo_scale_m: robust scale of point-to-plane residuals (metres).
+        geo_scale_m: robust scale of point-to-plane residuals (metres), per scale: wide
+            at coarse scales so that large initial errors still pull with full weight.
         photo_scale: robust scale of intensity residuals (intensity in [0, 1]).
         photo_weight: weight of the photometric term relative to the geometric one
             (0 disables it, e.g. for sensors whose colour is not registered to depth).
@@ -56,7 +57,7 @@ class RefineSettings:
     iters: tuple[int, ...] = (10, 8, 6)
     pairs: str = "all"
     point_stride: tuple[int, ...] = (1, 1, 2)
-    geo_scale_m: float = 0.005
+    geo_scale_m: tuple[float, ...] = (0.02, 0.01, 0.005)
     photo_scale: float = 0.03
     photo_weight: float = 0.3
     robust: str = "huber"
@@ -65,8 +66,8 @@ class RefineSettings:
 
     def __post_init__(self):
         n = len(self.scales)
-        if not (len(self.iters) == len(self.point_stride) == len(self.max_dist_m) == n):
-            raise ValueError("RefineSettings: scales, iters, point_stride and max_dist_m need the same length")
+        if not (len(self.iters) == len(self.point_stride) == len(self.max_dist_m) == len(self.geo_scale_m) == n):
+            raise ValueError("RefineSettings: scales, iters, point_stride, max_dist_m and geo_scale_m need the same length")
         if self.pairs not in ("all", "target", "adjacent"):
             raise ValueError(f"RefineSettings.pairs must be all|target|adjacent, got {self.pairs!r}")
         if self.robust not in ("huber", "cauchy"):
@@ -127,6 +128,16 @@ def _erode(mask: torch.Tensor) -> torch.Tensor:
     return -F.max_pool2d(-mask, 3, stride=1, padding=1)
 
 
+@dataclass(frozen=True)
+class _LevelSettings:
+    """The residual settings of one scale."""
+
+    geo_scale_m: float
+    photo_scale: float
+    photo_weight: float
+    robust: str
+
+
 class _Level:
     """Per-scale images of all frames: sample maps and source points."""
 
@@ -160,7 +171,7 @@ def _cross(a, b):
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-def _residuals(level: _Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: RefineSettings, gate: float):
+def _residuals(level: _Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "_LevelSettings", gate: float):
     """Scaled residuals r (P, 2N) (N geometric, then N photometric), Jacobians
     J (P, 6, 2N) w.r.t. a left twist (v, w) of T_ab, and validity (P, 2N).
 
@@ -236,7 +247,7 @@ def _robust(r: torch.Tensor, kind: str) -> tuple[torch.Tensor, torch.Tensor]:
     return w, rho
 
 
-def _gate_cost(gate: float, s: RefineSettings) -> float:
+def _gate_cost(gate: float, s: "_LevelSettings") -> float:
     # An unassociated point pays the cost of a residual at the gate, so that costs of
     # different association sets compare fairly in the LM acceptance test.
     _, rho = _robust(torch.tensor([gate / s.geo_scale_m]), s.robust)
@@ -325,8 +336,9 @@ def refine_poses(
     last = None
     for li, (scale, n_it, stride, gate) in enumerate(zip(settings.scales, settings.iters, settings.point_stride, settings.max_dist_m)):
         level = _Level(rgb, depth_m, K, scale, stride)
+        ls = _LevelSettings(settings.geo_scale_m[li], settings.photo_scale, settings.photo_weight, settings.robust)
         lam = settings.damping
-        H_rel, g_rel, pcost, inl, Tinv = _normal_system(level, T, pairs, settings, gate)
+        H_rel, g_rel, pcost, inl, Tinv = _normal_system(level, T, pairs, ls, gate)
         cost = float(pcost.sum())
         if li == len(settings.scales) - 1:
             out.initial_cost = _per_frame(pcost, tgt_pairs, other, Fn)
@@ -340,7 +352,7 @@ def refine_poses(
                 delta = torch.linalg.solve(Hr + lam * torch.diag(diag) + 1e-9 * eye6, -gr).reshape(Fn - 1, 6)
                 T_new = T.clone()
                 T_new[1:] = Se3.exp(delta).matrix().to(torch.float64) @ T[1:]
-                sys_new = _normal_system(level, T_new, pairs, settings, gate)
+                sys_new = _normal_system(level, T_new, pairs, ls, gate)
                 c_new = float(sys_new[2].sum())
                 if c_new <= cost:
                     T, cost = T_new, c_new
