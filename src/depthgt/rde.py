@@ -239,7 +239,8 @@ def fuse_tsdf(depths_m: Sequence[np.ndarray], K: np.ndarray, T_world_cam: Sequen
 
 
 def raycast(volume: TSDFVolume, K: torch.Tensor, T_world_cam: torch.Tensor, size_hw: tuple[int, int],
-            near_m: float = 0.1, far_m: float = 8.0, step_frac: float = 0.5, block: int = 16) -> torch.Tensor:
+            near_m: float = 0.1, far_m: float = 8.0, step_frac: float = 0.5, block: int = 16,
+            min_seen: float = 0.5) -> torch.Tensor:
     """Depth (H, W) float32 metres of the TSDF's zero surface seen from a camera (0 = none).
 
     Every pixel's ray is sampled at camera depths z = near_m, near_m + s, ... with
@@ -260,7 +261,8 @@ def raycast(volume: TSDFVolume, K: torch.Tensor, T_world_cam: torch.Tensor, size
     dirs_w = T[:3, :3] @ (Kinv @ pix)  # (3, N): world offset per metre of camera depth
     origin_w = T[:3, 3]
     dims = torch.tensor(volume.tsdf.shape, device=dev, dtype=torch.float32)
-    grid = torch.stack([volume.tsdf, volume.weight], 0)[None]  # (1, 2, X, Y, Z)
+    seen = (volume.weight > 0).float()
+    grid = torch.stack([volume.tsdf * seen, seen], 0)[None]  # (1, 2, X, Y, Z)
     step = step_frac * volume.trunc_m
     zs_all = torch.arange(near_m, far_m + step, step, device=dev, dtype=torch.float32)
     depth = torch.zeros(H * W, device=dev)
@@ -274,12 +276,13 @@ def raycast(volume: TSDFVolume, K: torch.Tensor, T_world_cam: torch.Tensor, size
         norm = 2.0 * idx / (dims[:, None, None] - 1).clamp_min(1.0) - 1.0
         g = torch.stack([norm[2], norm[1], norm[0]], -1)[None, None]  # (1, 1, N, S, 3)
         s = F.grid_sample(grid, g, mode="bilinear", padding_mode="zeros", align_corners=True)[0, :, 0]  # (2, N, S)
-        val, wsum = s[0], s[1]
-        # observed = every trilinear corner observed: the interpolated weight is then
-        # at least the smallest corner weight (>= 1); a sample mixing unobserved corners is not trusted
-        corner_ok = F.grid_sample((volume.weight > 0).float()[None, None], g, mode="bilinear", padding_mode="zeros",
-                                  align_corners=True)[0, 0, 0] > 0.999
-        obs = corner_ok & (wsum > 0)
+        # trilinear interpolation over the observed corners only (normalised by their
+        # share): sensor dropouts leave single unobserved voxels right behind surfaces,
+        # which must not hide the crossing; a sample is trusted when >= min_seen of
+        # its interpolation weight lies on observed voxels
+        share = s[1]
+        obs = share >= min_seen
+        val = s[0] / share.clamp_min(1e-6)
         if prev_val is not None:
             val = torch.cat([prev_val[:, None], val], 1)
             obs = torch.cat([prev_obs[:, None], obs], 1)
