@@ -65,12 +65,12 @@ def test_table1_and_gt_quality():
     long = pd.DataFrame([
         ("syn", "room", 0, "gt", "ssim", "1", 0.9), ("syn", "room", 1, "gt", "ssim", "1", 0.8),
         ("syn", "room", 0, "gt", "ls", "m^2/px^2", 1e-4), ("syn", "room", 0, "rde", "ssim", "1", 0.7),
-        ("syn", "room", 0, "rde", "ls", "m^2/px^2", 3e-4),
+        ("syn", "room", 0, "rde", "ls", "m^2/px^2", 3e-4), ("syn", "room2", 0, "gt", "ssim", "1", 0.85),
     ], columns=["dataset", "scene", "target", "gt", "metric", "unit", "value"])
     t1 = tables.table1(long).set_index("GT")
-    assert t1.loc[tables.GT_LABELS["gt"], "SSIM (unitless)"] == pytest.approx(0.85)
+    assert t1.loc[tables.GT_LABELS["gt"], "SSIM (unitless)"] == pytest.approx(0.85)  # (0.9 + 0.8 + 0.85) / 3
     assert t1.loc[tables.GT_LABELS["rde"], "L_S (m^2/px^2)"] == pytest.approx(3e-4)
-    assert t1.loc[tables.GT_LABELS["gt"], "frames"] == 2
+    assert t1.loc[tables.GT_LABELS["gt"], "frames"] == 3  # frames of two scenes with the same target number
     q = pd.DataFrame([
         ("syn", "a", "gt", "truth", "mae_valid", "m", 0.002), ("syn", "b", "gt", "truth", "mae_valid", "m", 0.004),
         ("syn", "a", "input", "truth", "mae_valid", "m", 0.02),

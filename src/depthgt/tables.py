@@ -164,7 +164,7 @@ def method_table(ev: pd.DataFrame, datasets: list[str], reference: str, note: st
     if (bad > 1).any():
         raise ValueError(f"evaluation table: metrics {list(bad[bad > 1].index)} come with several units")
     wide = sub.pivot_table(index=["dataset", "method"], columns="metric", values="value", aggfunc="mean")
-    frames = sub.groupby(["dataset", "method"])["target"].nunique().rename("frames")
+    frames = sub.drop_duplicates(["dataset", "method", "scene", "target"]).groupby(["dataset", "method"]).size().rename("frames")
     wide = wide.join(frames).reset_index()
     wide["_order"] = wide["method"].map({m: i for i, m in enumerate(_ordered(wide["method"]))})
     wide = wide.sort_values(["dataset", "_order"]).drop(columns="_order")
@@ -196,7 +196,7 @@ def table1(long: pd.DataFrame) -> pd.DataFrame:
     if long.empty:
         return pd.DataFrame([{"note": "no runnable frame set: Table 1 is empty"}])
     wide = long.pivot_table(index=["dataset", "gt"], columns="metric", values="value", aggfunc="mean")
-    frames = long.groupby(["dataset", "gt"])["target"].nunique().rename("frames")
+    frames = long.drop_duplicates(["dataset", "gt", "scene", "target"]).groupby(["dataset", "gt"]).size().rename("frames")
     wide = wide.join(frames).reset_index()
     wide["gt"] = wide["gt"].map(lambda g: GT_LABELS.get(g, g))
     wide = wide.rename(columns={"gt": "GT", **COLUMN_LABELS})
