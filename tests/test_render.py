@@ -219,7 +219,7 @@ def test_render_gt_gradcheck():
     p = _unproject(uv, z, K[0])[None].requires_grad_()
     n = torch.nn.functional.normalize(torch.tensor([[[0.1, -0.2, -1.0]]], dtype=torch.float64).expand(1, 4, 3), dim=-1)
     n = n.clone().requires_grad_()
-    st = GTRenderSettings(radius_px=1.25, m=3, ambiguous_band=None)
+    st = GTRenderSettings(radius_px=1.25, m=3, ambiguous_band=None, extend_uncovered=False)
 
     def fn(p, n):
         out = render_gt(p, K, (6, 7), settings=st, normals_cam=n)

@@ -20,6 +20,9 @@ from depthgt.framesets import SPLITS
 
 FRAMESET_COLUMNS = ["dataset", "scene", "target", "frame_id", "split", "status", "reason", "frameset_dir", "has_truth",
                     "patches_drawn", "patches_kept", "input_missing", "gt_missing"]
+# (estimate, frameset.json statistics key, reference) of the GT quality table
+QUALITY_KEYS = (("gt", "gt_vs_truth", "truth"), ("input", "input_vs_truth", "truth"),
+                ("gt", "gt_vs_truth_input_valid", "truth@input_valid"), ("leave_target_out", "leave_target_out", "target_raw"))
 PATCH_COLUMNS = ["dataset", "scene", "target", "split", "patch", "path", "y0", "x0", "size", "missing_input", "missing_gt", "kept"]
 
 
@@ -63,10 +66,9 @@ def summarize_scene(index_parquet: str | Path, frameset_dirs: list[str | Path]) 
                                    "patch": int(kept_index[i]) if kept[i] else -1, "path": str(d / "patches.npz"),
                                    "y0": int(boxes[i, 0]), "x0": int(boxes[i, 1]), "size": int(boxes[i, 2]),
                                    "missing_input": float(miss_in[i]), "missing_gt": float(miss_gt[i]), "kept": bool(kept[i])})
-            for estimate, key in (("gt", "gt_vs_truth"), ("input", "input_vs_truth"), ("leave_target_out", "leave_target_out")):
+            for estimate, key, reference in QUALITY_KEYS:
                 if key not in st:
                     continue
-                reference = "target_raw" if key == "leave_target_out" else "truth"
                 for metric, value in st[key].items():
                     unit = "m" if metric.startswith(("mae", "rmse")) else ("fraction" if metric == "completeness" else "pixels")
                     quality.append({"dataset": dataset, "scene": scene, "target": target, "split": doc["split"],

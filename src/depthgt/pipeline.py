@@ -231,6 +231,8 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     else:
         stats["gt_vs_truth"] = error_stats(gt_depth, truth)
         stats["input_vs_truth"] = error_stats(depth_in, truth)
+        # the fair accuracy comparison: only where the sensor has data
+        stats["gt_vs_truth_input_valid"] = error_stats(gt_depth, truth, mask=depth_in > 0)
     lap("quality")
 
     rng = np.random.default_rng(stable_seed(settings.seed, dataset, scene.name, target, "patches"))

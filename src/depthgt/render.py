@@ -300,8 +300,12 @@ class GTRenderSettings:
             6.8 -> 4.4 mm, below the input's own 3.8 and 5.3 mm).
         extend_uncovered: what an uncovered pixel with no layer behind F gets: False
             leaves it empty (no frame saw what is there: typically background that only
-            the target sees, next to a foreground edge); True gives it F (extrapolates
-            surfaces by up to ~R at the borders of the data).
+            the target sees, next to a foreground edge); True (default) gives it F
+            (extrapolates surfaces by up to ~R at the borders of the data). Measured on
+            6 synthetic frame sets with Kinect noise and exact poses: completeness 96.9
+            -> 98.5 %, MAE with missing counted 0.43 -> 0.23 of the input's, MAE where
+            the input is valid unchanged (0.42 of the input's); the MAE over all GT
+            pixels rises (3.1 -> 5.1 mm) from the extrapolated silhouette pixels.
         min_points: pixels with fewer kept points get depth 0 (their weight sum and
             count are still reported).
         plane_correction: when normals are given, move every candidate's depth along
@@ -322,7 +326,7 @@ class GTRenderSettings:
     coverage_frac: float = 0.42
     compare_next_layer: bool = True
     ambiguous_band: tuple[float, float] | None = (0.3, 0.55)
-    extend_uncovered: bool = False
+    extend_uncovered: bool = True
     min_points: int = 1
     plane_correction: bool = True
     min_cos_incidence: float = 0.15
