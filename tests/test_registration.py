@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -13,7 +14,7 @@ from depthgt.registration.correspondences import find_correspondences, sample_ca
 from depthgt.registration.encoder import build_encoder, lift_points
 from depthgt.registration.metrics import pose_errors
 from depthgt.registration.overfit import (
-    PRESETS, RegistrationSettings, _prepare, frameset_loss, make_settings, register_frameset,
+    PRESETS, RegistrationSettings, make_settings, register_frameset,
 )
 from depthgt.registration.procrustes import procrustes_random_subsets, weighted_procrustes
 from depthgt.registration.refine import RefineSettings, adjoint, refine_poses
@@ -233,6 +234,20 @@ def test_full_pipeline_reaches_millimetre_accuracy_and_writes_json():
     assert set(d["timings_s"]) >= {"overfit", "refine", "total"}
 
 
+def test_pretrained_encoder_state_changes_and_loads():
+    from depthgt.registration.overfit import pretrain_encoder
+
+    offsets = [0, -2, 2]
+    rgb, depth, K, _ = _frameset(offsets, hw=(32, 32))
+    s = RegistrationSettings(**{**FAST_TEST, "n_candidates": 300}, lr=1e-2, chaining=False, refine=False)
+    state = pretrain_encoder([(rgb, depth, K, offsets)], s, epochs=2, seed=0)
+    fresh = build_encoder(s.n_blocks, s.channels, s.feat_dim, seed=0).state_dict()
+    assert set(state) == set(fresh)
+    assert any(not torch.equal(state[k], fresh[k]) for k in state if state[k].is_floating_point())
+    res = register_frameset(rgb, depth, K, offsets, dataclasses.replace(s, iterations=1), encoder_state=state)
+    assert res.T_j_to_t.shape == (2, 4, 4)
+
+
 def test_textureless_flat_wall_is_flagged():
     offsets = [0, -2, 2]
     rgb, depth, K, _ = _frameset(offsets, hw=(48, 48), flat=True, textured=False)
@@ -255,3 +270,31 @@ def test_settings_presets_and_bad_inputs():
         register_frameset(torch.rand(2, 3, 8, 8), torch.ones(2, 1, 8, 8), torch.eye(3), [1, 0])
     with pytest.raises(ValueError, match="depth_m"):
         register_frameset(torch.rand(2, 3, 8, 8), torch.ones(2, 1, 8, 9), torch.eye(3), [0, 1])
+
+
+@pytest.mark.fixture7
+@pytest.mark.skipif(not SEVEN.is_dir(), reason="../shared/data/7scenes-kitchen is absent")
+def test_real_kinect_frameset_matches_reference_poses():
+    import cv2
+
+    from depthgt.geometry import resize_depth_nearest, resize_rgb, scale_intrinsics
+
+    offsets, target, hw = [0, -2, 2], 20, (128, 128)
+    rgbs, deps, poses = [], [], []
+    for o in offsets:
+        stem = SEVEN / f"frame-{target + o:06d}"
+        bgr = cv2.imread(str(stem) + ".color.jpg", cv2.IMREAD_COLOR)
+        rgbs.append(torch.from_numpy(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)).permute(2, 0, 1).float() / 255)
+        deps.append(torch.from_numpy(cv2.imread(str(stem) + ".depth.png", cv2.IMREAD_UNCHANGED).astype(np.float32))[None] / 1000)
+        poses.append(np.loadtxt(str(stem) + ".pose.txt"))
+    depth = resize_depth_nearest(torch.stack(deps), hw)
+    depth[depth > 60] = 0  # 65.535 m marks missing depth in 7-Scenes
+    rgb = resize_rgb(torch.stack(rgbs), hw)
+    K = torch.from_numpy(scale_intrinsics(np.loadtxt(SEVEN / "camera-intrinsics.txt"), (480, 640), hw)).float()
+    T_ref = np.stack([np.linalg.inv(poses[0]) @ p for p in poses[1:]])
+    s = make_settings("fast", refine_settings=RefineSettings(scales=(2, 1), iters=(8, 5), point_stride=(1, 2),
+                                                             max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)))
+    res = register_frameset(rgb, depth, K, offsets, s, seed=0)
+    r, t = pose_errors(res.T_j_to_t, T_ref)
+    # the reference (KinectFusion) itself is good to about 0.1-0.2 deg / 0.3-0.5 cm here
+    assert res.status == "ok" and r.max() < 0.5 and t.max() < 1.0, (r, t)

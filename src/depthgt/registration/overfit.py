@@ -261,7 +261,6 @@ def frameset_loss(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettin
     terms = {"corr": float(l_corr.detach().mean())}
     if with_render and (s.w_depth > 0 or s.w_photo > 0):
         T_ab = torch.linalg.inv(T_ba)
-        P = fs.pairs.shape[0]
         # both directions: b rendered into a with T_ba, a rendered into b with T_ab
         src = torch.cat([b, a])
         dst = torch.cat([a, b])
@@ -271,7 +270,6 @@ def frameset_loss(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettin
         loss = loss + s.w_depth * l_d.sum() + s.w_photo * l_p.sum()
         terms["depth"] = float(l_d.detach().mean())
         terms["photo"] = float(l_p.detach().mean())
-        del P
     return loss, T_ba, n_conf, terms
 
 
