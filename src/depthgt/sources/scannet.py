@@ -40,6 +40,7 @@ import numpy as np
 
 from depthgt.errors import FrameError, SourceError
 from depthgt.io import fit_rgb_to_depth, read_depth_png, read_pose_txt, read_rgb
+from depthgt.sources._files import probe_depth_size, require_root
 from depthgt.sources.base import Frame, check_frame
 
 __all__ = ["ScanNetExportedScene", "ScanNetSensScene", "open_scene", "list_scenes"]
@@ -120,16 +121,8 @@ class ScanNetExportedScene:
         self.image_size = self._probe_size()
 
     def _probe_size(self) -> tuple[int, int]:
-        # One depth image gives the resolution; later frames of another size fail alone.
-        for n in self._ids[:10]:
-            p = self._depth.get(int(n))
-            if p is None:
-                continue
-            try:
-                return tuple(read_depth_png(p, self.depth_scale).shape)  # type: ignore[return-value]
-            except FrameError as exc:
-                log.warning("%s", exc)
-        raise SourceError(f"{self.path}: none of the first depth images is readable, cannot tell the image size")
+        paths = [self._depth[int(n)] for n in self._ids[:10] if int(n) in self._depth]
+        return probe_depth_size(paths, self.depth_scale, self.path)
 
     def __len__(self) -> int:
         return int(self._ids.size)
@@ -196,12 +189,7 @@ class ScanNetSensScene:
 
 
 def _root(root: str | Path | None) -> Path:
-    if root is None:
-        raise SourceError("scannet source needs a root folder (got None)")
-    path = Path(root)
-    if not path.is_dir():
-        raise SourceError(f"{path}: scannet root folder not found")
-    return path
+    return require_root(root, "scannet")
 
 
 def _is_exported(folder: Path) -> bool:

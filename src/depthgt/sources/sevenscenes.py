@@ -29,6 +29,7 @@ import numpy as np
 
 from depthgt.errors import FrameError, SourceError
 from depthgt.io import fit_rgb_to_depth, read_depth_png, read_pose_txt, read_rgb
+from depthgt.sources._files import probe_depth_size, require_root
 from depthgt.sources.base import Frame, check_frame
 
 __all__ = ["DEFAULT_INTRINSICS", "SevenScenesScene", "open_scene", "list_scenes"]
@@ -107,15 +108,8 @@ class SevenScenesScene:
         return K.copy()
 
     def _probe_size(self) -> tuple[int, int]:
-        for n in self._ids[:10]:
-            p = self._depth.get(int(n))
-            if p is None:
-                continue
-            try:
-                return tuple(read_depth_png(p, self.depth_scale).shape)  # type: ignore[return-value]
-            except FrameError as exc:
-                log.warning("%s", exc)
-        raise SourceError(f"{self.path}: none of the first depth images is readable, cannot tell the image size")
+        paths = [self._depth[int(n)] for n in self._ids[:10] if int(n) in self._depth]
+        return probe_depth_size(paths, self.depth_scale, self.path)
 
     def __len__(self) -> int:
         return int(self._ids.size)
@@ -154,12 +148,7 @@ class SevenScenesScene:
 
 
 def _root(root: str | Path | None) -> Path:
-    if root is None:
-        raise SourceError("sevenscenes source needs a root folder (got None)")
-    path = Path(root)
-    if not path.is_dir():
-        raise SourceError(f"{path}: sevenscenes root folder not found")
-    return path
+    return require_root(root, "sevenscenes")
 
 
 def list_scenes(root: str | Path | None, **options) -> list[str]:

@@ -33,6 +33,7 @@ import numpy as np
 
 from depthgt.errors import FrameError, SourceError
 from depthgt.io import fit_rgb_to_depth, read_depth_png, read_rgb
+from depthgt.sources._files import probe_depth_size, require_root
 from depthgt.sources.base import Frame, check_frame
 
 __all__ = ["CAMERAS", "DEPTH_SCALE", "TumScene", "associate", "poses_from_tum", "open_scene", "list_scenes"]
@@ -198,12 +199,7 @@ class TumScene:
         return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
     def _probe_size(self) -> tuple[int, int]:
-        for rel in self._depth_files[:10]:
-            try:
-                return tuple(read_depth_png(self.path / rel, self.depth_scale).shape)  # type: ignore[return-value]
-            except FrameError as exc:
-                log.warning("%s", exc)
-        raise SourceError(f"{self.path}: none of the first depth images is readable, cannot tell the image size")
+        return probe_depth_size([self.path / rel for rel in self._depth_files[:10]], self.depth_scale, self.path)
 
     def __len__(self) -> int:
         return int(self._depth_ids.size)
@@ -250,12 +246,7 @@ def _is_sequence(folder: Path) -> bool:
 
 
 def _root(root: str | Path | None) -> Path:
-    if root is None:
-        raise SourceError("tum source needs a root folder (got None)")
-    path = Path(root)
-    if not path.is_dir():
-        raise SourceError(f"{path}: tum root folder not found")
-    return path
+    return require_root(root, "tum")
 
 
 def list_scenes(root: str | Path | None, **options) -> list[str]:

@@ -1,0 +1,35 @@
+"""Helpers shared by the file-based adapters (ScanNet, 7-Scenes, TUM)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Iterable
+
+from depthgt.errors import FrameError, SourceError
+from depthgt.io import read_depth_png
+
+log = logging.getLogger(__name__)
+
+
+def require_root(root: str | Path | None, kind: str) -> Path:
+    """The source's root folder; SourceError naming it when it is missing."""
+    if root is None:
+        raise SourceError(f"{kind} source needs a root folder (got None)")
+    path = Path(root)
+    if not path.is_dir():
+        raise SourceError(f"{path}: {kind} root folder not found")
+    return path
+
+
+def probe_depth_size(depth_paths: Iterable[Path], depth_scale: float, scene_path: Path, tries: int = 10) -> tuple[int, int]:
+    """(H, W) of the first readable of the first ``tries`` depth images; later frames of
+    another size fail on their own (FrameError size_mismatch)."""
+    for i, p in enumerate(depth_paths):
+        if i >= tries:
+            break
+        try:
+            return tuple(read_depth_png(p, depth_scale).shape)  # type: ignore[return-value]
+        except FrameError as exc:
+            log.warning("%s", exc)
+    raise SourceError(f"{scene_path}: none of the first depth images is readable, cannot tell the image size")
