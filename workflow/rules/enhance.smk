@@ -5,6 +5,7 @@ ENHANCE = config.get("enhance", {})
 EVALUATION = config.get("evaluation", {})
 MODELS = ["lapden", "ddrnet", "sdd", "rde"]
 METHODS = list(EVALUATION.get("methods", ["input", "rgf", "jf", "ddrnet", "sdd", "rde", "lapden"]))
+EVALUATED_MODELS = [m for m in MODELS if m in METHODS]  # trained by the default target
 KINDS = {name: src["kind"] for name, src in SOURCES.items()}
 
 
@@ -13,7 +14,7 @@ def train_params(wildcards):
     enhance.train overridden by enhance.models[model]; RDE uses LapDEN's entry."""
     key = "lapden" if wildcards.model == "rde" else wildcards.model
     return {"seed": int(config.get("seed", 0)), "device": config.get("device", "auto"), "progress": False,
-            **ENHANCE.get("train", {}), **ENHANCE.get("models", {}).get(key, {"model": key})}
+            "model_params": {}, **ENHANCE.get("train", {}), **ENHANCE.get("models", {}).get(key, {"model": key})}
 
 
 def train_manifests(wildcards):

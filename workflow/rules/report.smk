@@ -31,14 +31,14 @@ rule figures:
     input:
         framesets="results/dataset/framesets.parquet",
         evals=expand("results/eval/{method}.parquet", method=METHODS),
-        logs=expand("results/models/{model}/loss_log.csv", model=MODELS),
+        logs=expand("results/models/{model}/loss_log.csv", model=EVALUATED_MODELS),
     output:
         comparison=report("results/figures/comparison.png", caption="../report/comparison.rst", category="Figures"),
-        curves=report(expand("results/figures/training_{model}.png", model=MODELS), caption="../report/training.rst",
+        curves=report(expand("results/figures/training_{model}.png", model=EVALUATED_MODELS), caption="../report/training.rst",
                       category="Figures", subcategory="Training curves"),
     params:
         methods=[m for m in METHODS if m != "input"],
-        models=MODELS,
+        models=EVALUATED_MODELS,
         split=EVALUATION.get("split", "test"),
         frames_per_scene=EVALUATION.get("figure_frames_per_scene", 2),
     log:
