@@ -9,6 +9,7 @@ configfile: "config/config.yaml"
 
 include: "workflow/rules/common.smk"
 include: "workflow/rules/index.smk"
+include: "workflow/rules/registration.smk"
 include: "workflow/rules/framesets.smk"
 include: "workflow/rules/dataset.smk"
 include: "workflow/rules/enhance.smk"

@@ -166,3 +166,25 @@ def test_unknown_scene_is_clear(tmp_path):
     proc = snakemake(wd, check=False)
     assert proc.returncode != 0
     assert "kitchen" in (proc.stdout + proc.stderr) + "".join(p.read_text() for p in (wd / "logs").rglob("*.log"))
+
+
+def test_overfit_registration_in_workflow(tmp_path):
+    """registration.method overfit: pretraining rule, then every frame set registered
+    without the source's poses; estimated poses close to the reference ones."""
+    cfg = {
+        "seed": 0, "device": "cpu",
+        "sources": [{"name": "syn", "kind": "synthetic", "scenes": ["room_000"], "split": "train",
+                     "options": {"n_frames": 13, "width": 320, "height": 240}}],
+        "registration": {"method": "overfit", "preset": "fast", "pretrain": {"framesets": 1}},
+        "resize": 128, "patches": {"count": 2, "size": 64},
+    }
+    wd = make_workdir(tmp_path / "reg", cfg)
+    snakemake(wd, "dataset")
+    assert (wd / "results/models/registration/encoder.pt").exists()
+    poses = json.loads((wd / "results/framesets/syn/room_000/000006/poses.json").read_text())
+    assert poses["registration"]["method"] == "overfit" and poses["registration"]["status"] == "ok"
+    for off, T in poses["T_j_to_t"].items():
+        T, ref = np.array(T), np.array(poses["T_j_to_t_reference"][off])
+        assert np.linalg.norm(T[:3, 3] - ref[:3, 3]) < 0.01  # metres
+        cos = (np.trace(T[:3, :3] @ ref[:3, :3].T) - 1) / 2
+        assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 0.5

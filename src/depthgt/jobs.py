@@ -7,10 +7,13 @@ Snakemake.
 
 from __future__ import annotations
 
+import json
 import logging
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
+
+import numpy as np
 
 from depthgt import io
 
@@ -114,7 +117,7 @@ def run_frameset(source: dict[str, Any], scene: str, target: int, config: dict[s
     if encoder:
         import torch
 
-        state = torch.load(encoder, map_location="cpu", weights_only=True)
+        state = torch.load(encoder, map_location="cpu", weights_only=True) or None  # {}: no pretraining
     settings = job_settings(config)
     if cache_dir:
         from depthgt.cache import CachedScene
@@ -145,3 +148,46 @@ def run_dataset(scene_framesets: list[str], out_dir: str) -> None:
 
     summary = assemble([str(Path(p).parent) for p in scene_framesets], out_dir)
     log.info("dataset: %s pairs, %d frame sets skipped", summary["pairs"], len(summary["framesets_skipped"]))
+
+
+def run_pretrain_registration(sources: dict[str, dict[str, Any]], index_jsons: list[str], config: dict[str, Any],
+                              out_path: str) -> None:
+    """Stream-only pretraining of the registration encoder on frame sets of the training
+    split (no poses used), written as a torch ``state_dict``."""
+    import torch
+
+    from depthgt.config import job_settings
+    from depthgt.framesets import stable_seed
+    from depthgt.pipeline import load_frameset, resolve_device
+    from depthgt.registration import make_settings, pretrain_encoder
+    import pandas as pd
+
+    settings = job_settings(config)
+    reg = dict(settings.registration)
+    pre = dict(reg.pop("pretrain", None) or {})
+    n_sets, epochs = int(pre.get("framesets", 16)), int(pre.get("epochs", 1))
+    device = resolve_device(settings.device)
+    candidates = []
+    for path in index_jsons:
+        meta = json.loads(Path(path).read_text())
+        table = pd.read_parquet(Path(path).with_name("index.parquet"))
+        ok = table[table["is_target"] & (table["frameset_status"] == "ok") & (table["frameset_split"] == "train")]
+        candidates += [(meta["dataset"], meta["scene"], [int(m) for m in r.members]) for r in ok.itertuples()]
+    if not candidates:
+        raise ValueError("pretrain_registration: no frame set of the train split to pretrain on "
+                         "(set registration.pretrain.framesets: 0 to start from random weights)")
+    rng = np.random.default_rng(stable_seed(settings.seed, "pretrain"))
+    chosen = sorted(rng.choice(len(candidates), size=min(n_sets, len(candidates)), replace=False).tolist()) if n_sets else []
+    framesets, scenes = [], {}
+    for i in chosen:
+        dataset, scene, members = candidates[i]
+        if (dataset, scene) not in scenes:
+            scenes[dataset, scene] = open_source_scene(sources[dataset], scene, need_poses=False)
+        data = load_frameset(scenes[dataset, scene], members, settings.size_hw, need_poses=False, device=device)
+        framesets.append((data.rgb, data.depth_m, data.K, [m - members[0] for m in members]))
+    log.info("pretraining the registration encoder on %d frame sets, %d epoch(s)", len(framesets), epochs)
+    state = pretrain_encoder(framesets, make_settings(**reg), epochs=epochs, seed=settings.seed) if framesets else {}
+    Path(out_path).parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(out_path).with_suffix(".tmp")
+    torch.save(state, tmp)
+    tmp.replace(out_path)

@@ -197,13 +197,14 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     if method == "given":
         T_j_to_t = poses_from_source(data)
     elif method == "overfit":
-        from depthgt.registration import register_frameset, settings_from_config
+        from depthgt.registration import make_settings, register_frameset
 
         offsets = [m - target for m in members]
-        result = register_frameset(data.rgb, data.depth_m, data.K, offsets, settings_from_config(settings.registration),
+        reg = {k: v for k, v in settings.registration.items() if k != "pretrain"}
+        result = register_frameset(data.rgb, data.depth_m, data.K, offsets, make_settings(**reg),
                                    encoder_state=encoder_state, seed=stable_seed(settings.seed, dataset, scene.name, target))
         T_j_to_t = torch.as_tensor(result.T_j_to_t, dtype=torch.float64, device=device)
-        registration_info.update(result.to_json())
+        registration_info.update(result.to_dict())
         status, reason = result.status, result.reason
     else:
         raise ValueError(f"registration.method must be 'given' or 'overfit', got {method!r}")

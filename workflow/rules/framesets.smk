@@ -2,6 +2,7 @@ rule frameset:
     input:
         index="results/scenes/{dataset}/{scene}/index.parquet",
         cache="results/scenes/{dataset}/{scene}/frames",
+        encoder=registration_encoder,
     output:
         gt="results/framesets/{dataset}/{scene}/{target}/gt.exr",
         input="results/framesets/{dataset}/{scene}/{target}/input.exr",

@@ -5,4 +5,4 @@ from depthgt.jobs import logging_to, run_frameset
 with logging_to(snakemake.log[0]):
     run_frameset(snakemake.params.source, snakemake.wildcards.scene, int(snakemake.wildcards.target),
                  snakemake.params.config, snakemake.input.index, str(Path(snakemake.output.meta).parent),
-                 encoder=snakemake.input.get("encoder"), cache_dir=snakemake.input.cache)
+                 encoder=snakemake.input.encoder or None, cache_dir=snakemake.input.cache)
