@@ -59,5 +59,5 @@ def scene_summaries(what="framesets"):
 
 # The sections of the config that decide a stage's outputs; passed as params so that
 # changing one re-runs exactly the jobs it affects (Snakemake's params rerun trigger).
-INDEX_CONFIG = {k: config.get(k) for k in ("seed", "frameset", "split", "registration")}
+INDEX_CONFIG = {k: config.get(k) for k in ("seed", "frameset", "split", "registration", "resize")}
 FRAMESET_CONFIG = {k: config.get(k) for k in ("seed", "device", "frameset", "resize", "registration", "render", "patches")}
