@@ -231,7 +231,7 @@ def fuse_tsdf(depths_m: Sequence[np.ndarray], K: np.ndarray, T_world_cam: Sequen
     vol = _empty_volume(lo, hi, settings, dev)
     Kt = torch.as_tensor(np.asarray(K), dtype=torch.float32)
     for d, T in zip(depths_m, T_world_cam):  # one vectorised update per frame
-        integrate(vol, torch.as_tensor(np.asarray(d, dtype=np.float32)), Kt, torch.as_tensor(np.asarray(T, dtype=np.float64)),
+        integrate(vol, torch.from_numpy(np.array(d, dtype=np.float32)), Kt, torch.as_tensor(np.asarray(T, dtype=np.float64)),
                   settings.max_depth_m)
     log.info("TSDF %s voxels of %.3f m, %.1f%% observed", tuple(vol.tsdf.shape), vol.voxel_m,
              100.0 * float((vol.weight > 0).float().mean()))
