@@ -4,8 +4,8 @@
   training): Tables 1, 3 and the GT-quality table are built, Table 2 says that no real
   source is configured, the figures and the HTML report are made.
 * With the 7-Scenes fixture (skipped when ../shared/data/7scenes-kitchen is absent):
-  every method, the four models trained for one short epoch; Table 2 is built from
-  the real kitchen frames, Table 3 from the synthetic test scene.
+  the filters and LapDEN (trained for two steps); Table 2 is built from the real
+  kitchen frames, Table 3 from the synthetic test scene.
 """
 
 from __future__ import annotations
@@ -95,17 +95,17 @@ def test_table2_from_7scenes_fixture(tmp_path):
     cfg = copy.deepcopy(TINY)
     cfg["sources"].append({"name": "kitchen", "kind": "sevenscenes", "root": str(FIXTURE), "scenes": "all",
                            "split": "test"})
-    cfg["frameset"]["target_step"] = 3
-    cfg["evaluation"]["methods"] = ["input", "rgf", "jf", "ddrnet", "sdd", "rde", "lapden"]
+    cfg["frameset"]["target_step"] = 6
+    cfg["evaluation"]["methods"] = ["input", "rgf", "jf", "lapden"]  # one model trained (2 steps) to stay fast
     wd = make_workdir(tmp_path / "kitchen", cfg)
     snakemake(wd, "tables")
     t2 = _table(wd, "table2")
-    assert set(t2["dataset"]) == {"kitchen"} and len(t2) == 7
+    assert set(t2["dataset"]) == {"kitchen"} and len(t2) == 4
     assert t2["RMSE (m)"].notna().all() and t2["MAE (m)"].notna().all()
     filters = t2[t2["method"].isin(["Input (raw depth)", "RGF", "JF"])]
     assert len(filters) == 3 and (filters["RMSE (m)"] < 0.5).all()  # the models had two training steps only
     t3 = _table(wd, "table3")
-    assert set(t3["dataset"]) == {"syntest"} and len(t3) == 7
+    assert set(t3["dataset"]) == {"syntest"} and len(t3) == 4
     t1 = _table(wd, "table1")
     assert {"kitchen", "syntest"} <= set(t1["dataset"])
 
