@@ -3,11 +3,21 @@
 The network takes a raw depth image and its hole mask, encodes it down to 1/4
 resolution with strided 4x4 convolutions, then predicts the enhanced depth coarse
 to fine: at each level (1/4, 1/2, 1) a stack of residual blocks (3x3 conv,
-LeakyReLU 0.2, 3x3 conv, identity skip) refines the features, a 3x3 convolution
-predicts a residual depth map, and the level's output is that residual plus the
-bilinearly upsampled output of the coarser level (the Laplacian-pyramid scheme of
-LapSRN). The coarsest level's base is the valid-aware 4x4 average of the input.
+LeakyReLU 0.2, 3x3 conv, identity skip) refines the features and a 3x3 convolution
+(the level's head) predicts a residual depth map that is added to the level's base
+(the Laplacian-pyramid scheme of LapSRN: LapDEN's levels predict residuals).
 Features go up one level with a transposed 4x4 stride-2 convolution.
+
+The bases are anchored on the input (our choice, for fast convergence on small
+datasets; the paper does not pin them):
+
+* 1/4 level: the valid-aware 4x4 average of the input (:func:`masked_avg_pool`)
+  with its holes filled smoothly (:func:`fill_holes`);
+* 1/2 and full level: the valid-aware average of the input at that level where it
+  has valid pixels, else the bilinearly upsampled output of the coarser level.
+
+The heads are zero-initialised, so an untrained LapDEN returns the input on its
+valid pixels and a smooth fill in its holes; training only learns the correction.
 
 Size is configuration (:class:`LapDENConfig`), never a code fork:
 
@@ -28,7 +38,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-__all__ = ["LapDENConfig", "LapDEN", "PRESETS", "lapden_from_preset", "masked_avg_pool", "count_parameters"]
+__all__ = ["LapDENConfig", "LapDEN", "PRESETS", "lapden_from_preset", "masked_avg_pool", "fill_holes",
+           "count_parameters"]
 
 
 @dataclass(frozen=True)
@@ -112,6 +123,42 @@ def masked_avg_pool(depth_m: torch.Tensor, valid: torch.Tensor, factor: int) -> 
     return torch.where(out_valid, num / den.clamp_min(1e-12), torch.zeros_like(num)), out_valid
 
 
+def fill_holes(depth_m: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Smooth hole filling by a pyramid of valid-aware 2x2 averages (push-pull).
+
+    The image is averaged down (valid pixels only, :func:`masked_avg_pool`'s rule,
+    odd sizes rounded up) until the coarsest level is one pixel or has no holes; then,
+    coarse to fine, each level's holes take the bilinearly upsampled filled coarser
+    level. Valid pixels are returned unchanged. Written by hand: OpenCV's inpainting
+    is per-image numpy (no batch, no device), and this is ~log2(H) tensor ops.
+
+    Args:
+        depth_m: (B, 1, H, W) metres.
+        valid: (B, 1, H, W) bool or {0, 1} float.
+
+    Returns:
+        (B, 1, H, W) metres; holes filled, 0 only in images with no valid pixel.
+    """
+    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
+        raise ValueError(f"depth_m must be (B, 1, H, W), got {tuple(depth_m.shape)}")
+    if valid.shape != depth_m.shape:
+        raise ValueError(f"valid shape {tuple(valid.shape)} != depth shape {tuple(depth_m.shape)}")
+    w = valid.to(depth_m.dtype)
+    levels = [(depth_m * w, w)]
+    while min(levels[-1][0].shape[-2:]) > 1 and bool((levels[-1][1] <= 0).any()):
+        d, w = levels[-1]
+        # the ratio of two equal-divisor pools is the valid-pixel mean, also at ceil-mode borders
+        num = F.avg_pool2d(d * w, 2, ceil_mode=True)
+        den = F.avg_pool2d(w, 2, ceil_mode=True)
+        w_c = (den > 0).to(d.dtype)
+        levels.append((torch.where(den > 0, num / den.clamp_min(1e-12), torch.zeros_like(num)), w_c))
+    filled = levels[-1][0]
+    for d, w in reversed(levels[:-1]):
+        up = F.interpolate(filled, size=tuple(d.shape[-2:]), mode="bilinear", align_corners=False)
+        filled = torch.where(w > 0, d, up)
+    return filled
+
+
 class _ResBlock(nn.Module):
     def __init__(self, channels: int, slope: float):
         super().__init__()
@@ -133,7 +180,8 @@ class LapDEN(nn.Module):
 
     ``forward(depth_m)`` takes (B, 1, H, W) metres (0 = hole; H, W divisible by 4),
     builds the input (B, 2, H, W) = (depth, hole mask) and returns the multi-scale
-    outputs ``[(B,1,H/4,W/4), (B,1,H/2,W/2), (B,1,H,W)]`` in metres, finest last.
+    outputs ``[(B,1,H/4,W/4), (B,1,H/2,W/2), (B,1,H,W)]`` in metres, finest last:
+    each is its level's base (see the module docstring) plus the predicted residual.
     """
 
     def __init__(self, config: LapDENConfig = LapDENConfig()):
@@ -146,6 +194,9 @@ class LapDEN(nn.Module):
         self.levels = nn.ModuleList([_blocks(c, n, s) for n in config.level_convs])
         self.up = nn.ModuleList([nn.ConvTranspose2d(c, c, 4, stride=2, padding=1) for _ in range(2)])
         self.heads = nn.ModuleList([nn.Conv2d(c, 1, 3, padding=1) for _ in range(3)])
+        for head in self.heads:  # start at the base: identity on valid pixels, smooth fill in holes
+            nn.init.zeros_(head.weight)
+            nn.init.zeros_(head.bias)
 
     def forward(self, depth_m: torch.Tensor) -> list[torch.Tensor]:
         if depth_m.ndim != 4 or depth_m.shape[1] != 1:
@@ -158,12 +209,15 @@ class LapDEN(nn.Module):
         x = F.leaky_relu(self.conv_in(torch.cat([depth_m, hole], dim=1)), s)
         for enc, down in zip(self.enc, self.down):
             x = F.leaky_relu(down(enc(x)), s)
-        base, _ = masked_avg_pool(depth_m, valid, 4)
         outputs = []
         for level in range(3):
-            if level > 0:
+            d_l, v_l = masked_avg_pool(depth_m, valid, 4 >> level)
+            if level == 0:
+                base = fill_holes(d_l, v_l)
+            else:
                 x = F.leaky_relu(self.up[level - 1](x), s)
-                base = F.interpolate(outputs[-1], scale_factor=2.0, mode="bilinear", align_corners=False)
+                up = F.interpolate(outputs[-1], scale_factor=2.0, mode="bilinear", align_corners=False)
+                base = torch.where(v_l, d_l, up)
             x = self.levels[level](x)
             outputs.append(base + self.heads[level](x))
         return outputs
