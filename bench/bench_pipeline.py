@@ -1,6 +1,6 @@
 """Per-stage time and peak memory of the per-frame-set job (everything but registration).
 
-    python3 bench/bench_pipeline.py [--framesets 10] [--device cpu] [--threads 2]
+    python3 bench/bench_pipeline.py [--framesets 10] [--device cpu] [--threads 1]
 
 As the workflow does it: the scene index job reads and checks every frame of the first
 default synthetic scene (config/config.yaml) and writes the frame cache (timed per
@@ -39,7 +39,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--framesets", type=int, default=10)
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (the workflow runs one frame-set job per core, 1 thread each)")
     ap.add_argument("--config", default=str(ROOT / "config/config.yaml"))
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
