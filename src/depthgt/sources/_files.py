@@ -33,3 +33,11 @@ def probe_depth_size(depth_paths: Iterable[Path], depth_scale: float, scene_path
         except FrameError as exc:
             log.warning("%s", exc)
     raise SourceError(f"{scene_path}: none of the first depth images is readable, cannot tell the image size")
+
+
+def list_sequences(path: Path, is_sequence) -> list[str]:
+    """Sorted names of the sequence folders under ``path``, or ``[path's name]`` when
+    ``path`` is itself a sequence (``is_sequence(folder) -> bool`` tells)."""
+    if is_sequence(path):
+        return [path.resolve().name]
+    return sorted(p.name for p in path.iterdir() if p.is_dir() and is_sequence(p))

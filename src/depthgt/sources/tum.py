@@ -33,7 +33,7 @@ import numpy as np
 
 from depthgt.errors import FrameError, SourceError
 from depthgt.io import fit_rgb_to_depth, read_depth_png, read_rgb
-from depthgt.sources._files import probe_depth_size, require_root
+from depthgt.sources._files import list_sequences, probe_depth_size, require_root
 from depthgt.sources.base import Frame, check_frame
 
 __all__ = ["CAMERAS", "DEPTH_SCALE", "TumScene", "associate", "poses_from_tum", "open_scene", "list_scenes"]
@@ -251,10 +251,7 @@ def _root(root: str | Path | None) -> Path:
 
 def list_scenes(root: str | Path | None, **options) -> list[str]:
     """Sorted sequence names under ``root`` (``[root's name]`` when root is one)."""
-    path = _root(root)
-    if _is_sequence(path):
-        return [path.resolve().name]
-    return sorted(p.name for p in path.iterdir() if p.is_dir() and _is_sequence(p))
+    return list_sequences(_root(root), _is_sequence)
 
 
 def open_scene(
