@@ -6,7 +6,10 @@ to fine: at each level (1/4, 1/2, 1) a stack of residual blocks (3x3 conv,
 LeakyReLU 0.2, 3x3 conv, identity skip) refines the features and a 3x3 convolution
 (the level's head) predicts a residual depth map that is added to the level's base
 (the Laplacian-pyramid scheme of LapSRN: LapDEN's levels predict residuals).
-Features go up one level with a transposed 4x4 stride-2 convolution.
+Features go up one level with a transposed 4x4 stride-2 convolution and are summed
+with the encoder's features of that resolution (a parameter-free skip, our choice:
+without it the full-resolution level only sees 1/4-resolution features and cannot
+remove pixel-level noise from the input it starts from).
 
 The bases are anchored on the input (our choice, for fast convergence on small
 datasets; the paper does not pin them):
@@ -207,15 +210,18 @@ class LapDEN(nn.Module):
         valid = depth_m > 0
         hole = (~valid).to(depth_m.dtype)
         x = F.leaky_relu(self.conv_in(torch.cat([depth_m, hole], dim=1)), s)
+        skips = []  # encoder features at full and 1/2 resolution
         for enc, down in zip(self.enc, self.down):
-            x = F.leaky_relu(down(enc(x)), s)
+            x = enc(x)
+            skips.append(x)
+            x = F.leaky_relu(down(x), s)
         outputs = []
         for level in range(3):
             d_l, v_l = masked_avg_pool(depth_m, valid, 4 >> level)
             if level == 0:
                 base = fill_holes(d_l, v_l)
             else:
-                x = F.leaky_relu(self.up[level - 1](x), s)
+                x = F.leaky_relu(self.up[level - 1](x), s) + skips[2 - level]
                 up = F.interpolate(outputs[-1], scale_factor=2.0, mode="bilinear", align_corners=False)
                 base = torch.where(v_l, d_l, up)
             x = self.levels[level](x)
