@@ -41,3 +41,19 @@ def list_sequences(path: Path, is_sequence) -> list[str]:
     if is_sequence(path):
         return [path.resolve().name]
     return sorted(p.name for p in path.iterdir() if p.is_dir() and is_sequence(p))
+
+
+class NumberedFrames:
+    """Mixin for scenes whose frames are numbered files (ScanNet exported, 7-Scenes):
+    the subclass sets ``_ids`` (sorted int array of frame numbers), ``_depth`` (number ->
+    depth image path), ``depth_scale`` and ``path``."""
+
+    def _probe_size(self) -> tuple[int, int]:
+        paths = [self._depth[int(n)] for n in self._ids[:10] if int(n) in self._depth]
+        return probe_depth_size(paths, self.depth_scale, self.path)
+
+    def __len__(self) -> int:
+        return int(self._ids.size)
+
+    def frame_id(self, i: int) -> str:
+        return str(int(self._ids[i]))

@@ -40,7 +40,7 @@ import numpy as np
 
 from depthgt.errors import FrameError, SourceError
 from depthgt.io import fit_rgb_to_depth, read_depth_png, read_pose_txt, read_rgb
-from depthgt.sources._files import probe_depth_size, require_root
+from depthgt.sources._files import NumberedFrames, require_root
 from depthgt.sources.base import Frame, check_frame
 
 __all__ = ["ScanNetExportedScene", "ScanNetSensScene", "open_scene", "list_scenes"]
@@ -80,7 +80,7 @@ def _finish(frame: Frame, hw: tuple[int, int], where: str, require_pose: bool) -
     return check_frame(frame, hw, where, need_pose=require_pose)
 
 
-class ScanNetExportedScene:
+class ScanNetExportedScene(NumberedFrames):
     """One scene in ScanNet's exported folder layout (see the module docstring)."""
 
     has_clean_depth = False
@@ -119,16 +119,6 @@ class ScanNetExportedScene:
             raise SourceError(f"{self.path}: no frames (no color/N.jpg or depth/N.png)")
         self.has_poses = bool(self._pose)
         self.image_size = self._probe_size()
-
-    def _probe_size(self) -> tuple[int, int]:
-        paths = [self._depth[int(n)] for n in self._ids[:10] if int(n) in self._depth]
-        return probe_depth_size(paths, self.depth_scale, self.path)
-
-    def __len__(self) -> int:
-        return int(self._ids.size)
-
-    def frame_id(self, i: int) -> str:
-        return str(int(self._ids[i]))
 
     def read(self, i: int) -> Frame:
         """Frame at position ``i``; raises FrameError naming the file at fault."""

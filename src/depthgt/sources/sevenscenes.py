@@ -29,7 +29,7 @@ import numpy as np
 
 from depthgt.errors import FrameError, SourceError
 from depthgt.io import fit_rgb_to_depth, read_depth_png, read_pose_txt, read_rgb
-from depthgt.sources._files import list_sequences, probe_depth_size, require_root
+from depthgt.sources._files import NumberedFrames, list_sequences, require_root
 from depthgt.sources.base import Frame, check_frame
 
 __all__ = ["DEFAULT_INTRINSICS", "SevenScenesScene", "open_scene", "list_scenes"]
@@ -59,7 +59,7 @@ def _is_sequence(folder: Path) -> bool:
     return any(folder.glob("frame-*.depth.png"))
 
 
-class SevenScenesScene:
+class SevenScenesScene(NumberedFrames):
     """One 7-Scenes sequence folder (see the module docstring)."""
 
     has_clean_depth = False
@@ -106,16 +106,6 @@ class SevenScenesScene:
         if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise SourceError(f"{where}: intrinsics must be a finite 3x3 matrix with positive focal lengths, got {K.tolist()}")
         return K.copy()
-
-    def _probe_size(self) -> tuple[int, int]:
-        paths = [self._depth[int(n)] for n in self._ids[:10] if int(n) in self._depth]
-        return probe_depth_size(paths, self.depth_scale, self.path)
-
-    def __len__(self) -> int:
-        return int(self._ids.size)
-
-    def frame_id(self, i: int) -> str:
-        return str(int(self._ids[i]))
 
     def _file(self, table: dict[int, Path], n: int, suffix: str) -> Path:
         return table.get(n, self.path / f"frame-{n:06d}.{suffix}")
