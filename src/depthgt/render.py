@@ -143,20 +143,27 @@ def _segment_rank_keep(pixel: torch.Tensor, key: torch.Tensor, active: torch.Ten
     over = (active & (counts[pixel] > limit)).nonzero().squeeze(1)
     if over.numel() == 0:
         return active
-    k = key.detach()[over].to(torch.float64)
+    out = active.clone()
+    out[over[_rank_in_pixel(pixel[over], key.detach()[over]) >= limit]] = False
+    return out
+
+
+def _rank_in_pixel(pixel: torch.Tensor, key: torch.Tensor) -> torch.Tensor:
+    """(C,) rank of every candidate among the candidates of its pixel by ascending key
+    (0 = smallest). One stable sort on the composite key pixel + normalised key in
+    float64, so ties keep candidate order (deterministic)."""
+    k = key.to(torch.float64)
     lo, hi = k.min(), k.max()
     kn = (k - lo) / (hi - lo).clamp_min(1e-30) * 0.5  # in [0, 0.5]: stays inside its pixel's unit interval
-    pix_over = pixel[over]
-    order = torch.sort(pix_over.to(torch.float64) + kn, stable=True).indices
-    pix_sorted = pix_over[order]
+    order = torch.sort(pixel.to(torch.float64) + kn, stable=True).indices
+    pix_sorted = pixel[order]
     pos = torch.arange(order.numel(), device=pixel.device)
     starts = torch.ones_like(pix_sorted, dtype=torch.bool)
     starts[1:] = pix_sorted[1:] != pix_sorted[:-1]
     first = torch.cummax(torch.where(starts, pos, torch.zeros_like(pos)), dim=0).values
-    rank = pos - first
-    out = active.clone()
-    out[over[order[rank >= limit]]] = False
-    return out
+    rank = torch.empty_like(pos)
+    rank[order] = pos - first
+    return rank
 
 
 # --------------------------------------------------------------------------- soft splat
@@ -406,26 +413,9 @@ def _keep_m_nearest(pixel: torch.Tensor, d2: torch.Tensor, keep: torch.Tensor, m
     out = keep & (bins <= bnd)
     at_bnd = (out & (bins == bnd)).nonzero().squeeze(1)
     if at_bnd.numel():
-        sub = _segment_rank_keep_limits(pixel[at_bnd], dd[at_bnd], (m - before)[pixel[at_bnd]])
-        out[at_bnd[~sub]] = False
+        rank = _rank_in_pixel(pixel[at_bnd], dd[at_bnd])
+        out[at_bnd[rank >= (m - before)[pixel[at_bnd]]]] = False
     return out
-
-
-def _segment_rank_keep_limits(pixel: torch.Tensor, key: torch.Tensor, limit: torch.Tensor) -> torch.Tensor:
-    """(C,) mask keeping in every pixel the ``limit`` (per candidate, equal within a pixel)
-    candidates of smallest key (stable sort on pixel + normalised key, float64)."""
-    k = key.to(torch.float64)
-    lo, hi = k.min(), k.max()
-    kn = (k - lo) / (hi - lo).clamp_min(1e-30) * 0.5
-    order = torch.sort(pixel.to(torch.float64) + kn, stable=True).indices
-    pix_sorted = pixel[order]
-    pos = torch.arange(order.numel(), device=pixel.device)
-    starts = torch.ones_like(pix_sorted, dtype=torch.bool)
-    starts[1:] = pix_sorted[1:] != pix_sorted[:-1]
-    first = torch.cummax(torch.where(starts, pos, torch.zeros_like(pos)), dim=0).values
-    keep = torch.empty_like(starts)
-    keep[order] = (pos - first) < limit[order]
-    return keep
 
 
 def render_gt(
