@@ -43,7 +43,23 @@ def list_sequences(path: Path, is_sequence) -> list[str]:
     return sorted(p.name for p in path.iterdir() if p.is_dir() and is_sequence(p))
 
 
-class NumberedFrames:
+class FileScene:
+    """Common set-up of the file-based scenes: path, name, depth scale (checked),
+    whether poses are required, and the list of scene-level problems."""
+
+    has_clean_depth = False
+
+    def _init_files(self, folder: str | Path, name: str, depth_scale: float, require_pose: bool) -> None:
+        self.path = Path(folder)
+        self.name = name
+        if not depth_scale > 0:
+            raise SourceError(f"{self.path}: depth_scale must be > 0, got {depth_scale}")
+        self.depth_scale = float(depth_scale)
+        self.require_pose = bool(require_pose)
+        self.problems: list[str] = []
+
+
+class NumberedFrames(FileScene):
     """Mixin for scenes whose frames are numbered files (ScanNet exported, 7-Scenes):
     the subclass sets ``_ids`` (sorted int array of frame numbers), ``_depth`` (number ->
     depth image path), ``depth_scale`` and ``path``."""

@@ -93,13 +93,7 @@ class ScanNetExportedScene(NumberedFrames):
         require_pose: bool = True,
         intrinsics: np.ndarray | None = None,
     ):
-        self.path = Path(folder)
-        self.name = name
-        if not depth_scale > 0:
-            raise SourceError(f"{self.path}: depth_scale must be > 0, got {depth_scale}")
-        self.depth_scale = float(depth_scale)
-        self.require_pose = bool(require_pose)
-        self.problems: list[str] = []
+        self._init_files(folder, name, depth_scale, require_pose)
         k_file = self.path / "intrinsic" / "intrinsic_depth.txt"
         if intrinsics is not None:
             self.intrinsics = _check_intrinsics(intrinsics, f"{self.path} (option intrinsics)")

@@ -73,13 +73,7 @@ class SevenScenesScene(NumberedFrames):
         require_pose: bool = True,
         intrinsics_search: tuple[Path, ...] = (),
     ):
-        self.path = Path(folder)
-        self.name = name
-        if not depth_scale > 0:
-            raise SourceError(f"{self.path}: depth_scale must be > 0, got {depth_scale}")
-        self.depth_scale = float(depth_scale)
-        self.require_pose = bool(require_pose)
-        self.problems: list[str] = []
+        self._init_files(folder, name, depth_scale, require_pose)
         self.intrinsics = self._intrinsics(intrinsics, (self.path, *intrinsics_search))
         files = _scan(self.path)
         self._color, self._depth, self._pose = files["color"], files["depth"], files["pose"]

@@ -33,7 +33,7 @@ import numpy as np
 
 from depthgt.errors import FrameError, SourceError
 from depthgt.io import fit_rgb_to_depth, read_depth_png, read_rgb
-from depthgt.sources._files import list_sequences, probe_depth_size, require_root
+from depthgt.sources._files import FileScene, list_sequences, probe_depth_size, require_root
 from depthgt.sources.base import Frame, check_frame
 
 __all__ = ["CAMERAS", "DEPTH_SCALE", "TumScene", "associate", "poses_from_tum", "open_scene", "list_scenes"]
@@ -125,7 +125,7 @@ def poses_from_tum(rows: np.ndarray) -> np.ndarray:
     return T
 
 
-class TumScene:
+class TumScene(FileScene):
     """One TUM RGB-D sequence (see the module docstring)."""
 
     has_clean_depth = False
@@ -140,16 +140,10 @@ class TumScene:
         depth_scale: float = DEPTH_SCALE,
         require_pose: bool = True,
     ):
-        self.path = Path(folder)
-        self.name = name
+        self._init_files(folder, name, depth_scale, require_pose)
         if not max_dt >= 0:
             raise SourceError(f"{self.path}: max_dt must be >= 0 seconds, got {max_dt}")
-        if not depth_scale > 0:
-            raise SourceError(f"{self.path}: depth_scale must be > 0, got {depth_scale}")
         self.max_dt = float(max_dt)
-        self.depth_scale = float(depth_scale)
-        self.require_pose = bool(require_pose)
-        self.problems: list[str] = []
         self.intrinsics = self._intrinsics(camera, intrinsics)
 
         depth_rows = _read_list(self.path / "depth.txt", 2)
