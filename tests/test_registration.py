@@ -197,6 +197,54 @@ def test_refinement_recovers_poses_from_a_perturbed_start():
     assert res.final_cost.sum() < res.initial_cost.sum()
 
 
+def test_residual_size_separates_aligned_from_settled_off_poses():
+    # the statistic behind the high_residual check: median point-to-plane residual of
+    # each neighbour in the target, at the true poses and 3 cm (+0.3 deg) off them
+    offsets = [0, -2, 2, 4]
+    rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64), noise_m=0.0005)
+    no_iters = RefineSettings(scales=(1,), iters=(0,), point_stride=(1,), max_dist_m=(0.05,), geo_scale_m=(0.005,))
+    T = torch.eye(4, dtype=torch.float64).repeat(4, 1, 1)
+    T[1:] = torch.from_numpy(T_true)
+    aligned = refine_poses(rgb, depth, K, T, no_iters, offsets).residual_m
+    gen = torch.Generator().manual_seed(3)
+    T_off = T.clone()
+    for j in range(1, 4):
+        dT = _random_T(gen, 0.3, 0.0)
+        dT[:3, 3] = torch.tensor([0.03, -0.01, 0.02], dtype=torch.float64) * (1 if j % 2 else -1)
+        T_off[j] = dT @ T[j]
+    off = refine_poses(rgb, depth, K, T_off, no_iters, offsets).residual_m
+    assert aligned[0] == 0 and off[0] == 0
+    assert aligned[1:].max() < 0.004, aligned
+    assert off[1:].min() > 2 * aligned[1:].max(), (aligned, off)
+    assert off[1:].min() > RegistrationSettings().max_residual_m, off
+
+
+def test_high_residual_neighbours_are_flagged_not_kept():
+    offsets = [0, -2, 2]
+    rgb, depth, K, _ = _frameset(offsets, hw=(48, 48))
+    # a bound below any real residual: every neighbour must fail with the reason named
+    s = RegistrationSettings(**FAST_TEST, iterations=0, max_residual_m=1e-6, refine_settings=RefineSettings(
+        scales=(1,), iters=(3,), point_stride=(1,), max_dist_m=(0.05,), geo_scale_m=(0.005,)))
+    res = register_frameset(rgb, depth, K, offsets, s, seed=0)
+    assert res.status == "failed" and res.neighbour_status == ["failed", "failed"]
+    assert all("high_residual" in r for r in res.neighbour_reasons), res.neighbour_reasons
+    assert len(res.diagnostics["residual_m"]) == 2
+
+
+def test_bf16_encoder_matches_fp32_features():
+    from depthgt.registration.overfit import autocast_dtype, encode
+
+    assert autocast_dtype("cpu", "fp32") is None and autocast_dtype("cpu", "bf16") is torch.bfloat16
+    enc = build_encoder(1, 16, 16, seed=0).eval()
+    rgb = _frameset([0, 2], hw=(32, 32))[0][:1]
+    f32 = encode(enc, rgb, "fp32")
+    f16 = encode(enc, rgb, "bf16")
+    assert f16.dtype == torch.float32 and f16.shape == f32.shape
+    assert torch.allclose(f32.norm(dim=1), torch.ones(1, 32, 32), atol=1e-5)
+    cos = (f32 * f16).sum(1)  # unit features: bf16 keeps them pointing the same way
+    assert cos.min() > 0.99, cos.min()
+
+
 # ----------------------------------------------------------------------------- the frame set
 
 

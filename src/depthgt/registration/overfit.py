@@ -55,9 +55,14 @@ class RegistrationSettings:
     matches of weight >= ``confident_weight``; a final motion above
     ``max_translation_m`` / ``max_rotation_deg``; an inlier fraction below
     ``min_inlier_fraction``; an information matrix condition number above
-    ``max_condition`` (no texture/geometry); the set fails when fewer than
+    ``max_condition`` (no texture/geometry); a median point-to-plane residual in the
+    target above ``max_residual_m`` (settled off the surface); the set fails when fewer than
     ``min_ok_fraction`` of its neighbours are ok, or (without refinement) when the
     training loss does not decrease.
+    Speed: ``precision`` of the encoder's convolutions, "fp32", "bf16" (autocast; the
+    features are normalised, matched and aligned in float32/64) or "auto" (bf16 on
+    CUDA devices that support it and on CPUs with native bf16 instructions,
+    AVX512-BF16 or AMX; else fp32). On CPU the encoder runs channels-last.
     """
 
     n_blocks: int = 2
@@ -88,23 +93,28 @@ class RegistrationSettings:
     max_rotation_deg: float = 20.0
     min_inlier_fraction: float = 0.3
     max_condition: float = 1e5
+    max_residual_m: float = 0.008
     min_ok_fraction: float = 0.5
     num_threads: int | None = None
+    precision: str = "fp32"
 
     def __post_init__(self):
         if self.pairs not in ("all", "target"):
             raise ConfigError(f"registration.pairs must be 'all' or 'target', got {self.pairs!r}")
         if self.pose_from not in ("last", "best"):
             raise ConfigError(f"registration.pose_from must be 'last' or 'best', got {self.pose_from!r}")
+        if self.precision not in ("auto", "fp32", "bf16"):
+            raise ConfigError(f"registration.precision must be auto, fp32 or bf16, got {self.precision!r}")
         if self.iterations < 0 or self.top_k < 3 or self.n_candidates < 3:
             raise ConfigError("registration: need iterations >= 0, top_k >= 3 and n_candidates >= 3")
 
 
 PRESETS: dict[str, dict] = {
-    # The paper: R&R encoder and matching, Adam 1e-4 for 30 iterations, plus refinement.
-    "paper": {},
+    # The paper: R&R encoder and matching, Adam 1e-4 for 30 iterations, plus refinement;
+    # bf16 convolutions where the hardware has them (2.3x faster encoder on AVX512-BF16).
+    "paper": {"precision": "auto"},
     # The paper without the beyond-the-paper steps (for the with/without comparison).
-    "paper_only": {"chaining": False, "refine": False},
+    "paper_only": {"chaining": False, "refine": False, "precision": "auto"},
     # CPU-friendly: one pass of a small encoder (pretrained weights when given) for the
     # correspondence initialisation, no overfit iterations, then chaining and a
     # sparser refinement.
@@ -239,6 +249,47 @@ def _prepare(rgb, depth_m, K, s: RegistrationSettings, gen: torch.Generator) -> 
 # --------------------------------------------------------------------------- loss
 
 
+def _cpu_has_native_bf16() -> bool:
+    """True when the CPU has bf16 dot-product instructions (AVX512-BF16 or AMX-BF16),
+    where oneDNN's bf16 convolutions are ~2x faster than fp32; elsewhere bf16 is
+    emulated and slower. Linux only (/proc/cpuinfo); False when unknown."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    flags = set(line.split(":", 1)[1].split())
+                    return bool(flags & {"avx512_bf16", "amx_bf16"})
+    except OSError:
+        pass
+    return False
+
+
+def autocast_dtype(device: torch.device | str, precision: str) -> torch.dtype | None:
+    """The autocast dtype of the encoder for ``precision`` on ``device`` (None = fp32)."""
+    dev = torch.device(device)
+    if precision == "fp32":
+        return None
+    if precision == "bf16":
+        return torch.bfloat16
+    if dev.type == "cuda":
+        return torch.bfloat16 if torch.cuda.is_bf16_supported() else None
+    if dev.type == "cpu" and torch.backends.mkldnn.is_available() and _cpu_has_native_bf16():
+        return torch.bfloat16
+    return None
+
+
+def encode(encoder: torch.nn.Module, rgb: torch.Tensor, precision: str = "fp32") -> torch.Tensor:
+    """Unit-length float32 features (B, C, H, W) of ``rgb`` (B, 3, H, W), with the
+    encoder's convolutions in the dtype :func:`autocast_dtype` picks (channels-last
+    memory on CPU, the fast layout of oneDNN's convolutions)."""
+    dt = autocast_dtype(rgb.device, precision)
+    if rgb.device.type == "cpu":
+        rgb = rgb.contiguous(memory_format=torch.channels_last)
+    with torch.autocast(rgb.device.type, dtype=dt or torch.float32, enabled=dt is not None):
+        feats = encoder(rgb)
+    return F.normalize(feats.float().contiguous(), dim=1)
+
+
 def frameset_loss(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettings, gen: torch.Generator,
                   render_fn: Callable | None, with_render: bool = True):
     """Set-wide loss (eq. 4) and the pairwise Procrustes estimates.
@@ -248,7 +299,7 @@ def frameset_loss(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettin
         and a dict of the mean loss terms.
     """
     Fn = fs.rgb.shape[0]
-    feats = F.normalize(encoder(fs.rgb), dim=1)
+    feats = encode(encoder, fs.rgb, s.precision)
     Kb = fs.K.expand(Fn, 3, 3).to(fs.depth.dtype)
     pts, f = lift_points(fs.depth, Kb, feats, fs.cand_idx)
     a, b = fs.pairs[:, 0], fs.pairs[:, 1]
@@ -392,6 +443,8 @@ def register_frameset(
     encoder = build_encoder(s.n_blocks, s.channels, s.feat_dim, seed=seed).to(dev)
     if encoder_state is not None:
         encoder.load_state_dict(encoder_state)
+    if dev.type == "cpu":
+        encoder = encoder.to(memory_format=torch.channels_last)
     encoder.train()
     timings: dict[str, float] = {}
 
@@ -461,6 +514,7 @@ def register_frameset(
         diagnostics["refine_cost_curve"] = refined.cost_curve
         diagnostics["inlier_fraction"] = refined.inlier_fraction[1:].cpu().tolist()
         diagnostics["condition"] = refined.condition[1:].cpu().tolist()
+        diagnostics["residual_m"] = refined.residual_m[1:].cpu().tolist()
         timings["refine"] = time.perf_counter() - t0
 
     # -- failure handling
@@ -479,6 +533,9 @@ def register_frameset(
                 why.append(f"low_inlier_fraction({fr:.2f})")
             if not cond < s.max_condition:
                 why.append(f"degenerate_alignment(condition={cond:.3g})")
+            res = float(refined.residual_m[i + 1])
+            if not res <= s.max_residual_m:  # NaN: nothing associated
+                why.append(f"high_residual({res * 100:.2f}cm)")
         if not torch.isfinite(T[i + 1]).all():
             why.append("non_finite_pose")
         statuses.append("failed" if why else "ok")
@@ -537,6 +594,8 @@ def pretrain_encoder(
             _check_inputs(rgb, depth_m, K, offsets)
             if encoder is None:
                 encoder = build_encoder(s.n_blocks, s.channels, s.feat_dim, seed=seed).to(rgb.device)
+                if rgb.device.type == "cpu":
+                    encoder = encoder.to(memory_format=torch.channels_last)
                 encoder.train()
                 opt = torch.optim.Adam(encoder.parameters(), lr=s.lr, weight_decay=s.weight_decay)
                 if render_fn is None and (s.w_depth > 0 or s.w_photo > 0):
@@ -552,4 +611,4 @@ def pretrain_encoder(
     if encoder is None:
         raise ValueError("pretrain_encoder: no frame set given")
     log.info("pretrained the encoder for %d steps", steps)
-    return {k: v.detach().cpu() for k, v in encoder.state_dict().items()}
+    return {k: v.detach().cpu().contiguous() for k, v in encoder.state_dict().items()}

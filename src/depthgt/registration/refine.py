@@ -88,6 +88,10 @@ class RefineResult:
             geometrically and photometrically degenerate.
         initial_cost, final_cost: (F,) per-neighbour robust cost of its target pairs at
             the finest scale before and after.
+        residual_m: (F,) median absolute point-to-plane residual (metres) of each
+            neighbour's associated points in the target at the finest scale (0 for the
+            target, NaN when none is associated): near the sensor noise when aligned,
+            larger when the refinement settled off the surface.
     """
 
     T_f_to_t: torch.Tensor
@@ -96,6 +100,7 @@ class RefineResult:
     condition: torch.Tensor | None = None
     initial_cost: torch.Tensor | None = None
     final_cost: torch.Tensor | None = None
+    residual_m: torch.Tensor | None = None
 
 
 def frame_pairs(n_frames: int, mode: str, offsets: list[int] | None = None) -> torch.Tensor:
@@ -378,6 +383,20 @@ def refine_poses(
     H_tgt.index_add_(0, other[tgt_pairs], H_rel[tgt_pairs])
     cond[1:] = pair_information(H_tgt[1:], float(level.median_depth))
     out.condition = cond
+    out.residual_m = _target_residuals(level, T, pairs[sel], ls, settings.max_dist_m[-1], Fn)
+    return out
+
+
+def _target_residuals(level, T, pairs, s, gate, n_frames):
+    """(F,) median |point-to-plane residual| (metres) of the associated points of the
+    pairs (0, b), b's points in the target."""
+    T_ab = torch.linalg.inv(T[pairs[:, 0]]) @ T[pairs[:, 1]]
+    r, _, valid = _residuals(level, T_ab, pairs, s, gate)
+    n = level.valid.shape[1]
+    r_geo = (r[:, :n] * s.geo_scale_m).abs().to(torch.float64)
+    med = torch.where(valid[:, :n], r_geo, torch.full_like(r_geo, float("nan"))).nanmedian(dim=1).values
+    out = torch.zeros(n_frames, dtype=torch.float64, device=r.device)
+    out[pairs[:, 1]] = med
     return out
 
 
