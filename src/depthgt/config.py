@@ -42,6 +42,7 @@ def job_settings(config: dict[str, Any]):
 
     reg = dict(config.get("registration") or {})
     method = reg.pop("method", "given")
+    on_failure = reg.pop("on_failure", "drop_neighbours")
     size = int(config.get("resize", 256))
     return JobSettings(
         size_hw=(size, size),
@@ -50,6 +51,7 @@ def job_settings(config: dict[str, Any]):
         render=build(GTRenderSettings, config.get("render"), "render"),
         registration_method=method,
         registration=reg,
+        registration_on_failure=on_failure,
         seed=int(config.get("seed", 0)),
         device=str(config.get("device", "auto")),
     )

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from depthgt import geometry, io
-from depthgt.errors import FrameError
+from depthgt.errors import ConfigError, FrameError
 from depthgt.framesets import FrameSetSettings, stable_seed
 from depthgt.patches import PatchSettings, make_patches
 from depthgt.quality import error_stats
@@ -49,8 +49,20 @@ class JobSettings:
     render: GTRenderSettings = field(default_factory=GTRenderSettings)
     registration_method: str = "given"
     registration: dict = field(default_factory=dict)
+    registration_on_failure: str = "drop_neighbours"
     seed: int = 0
     device: str = "auto"
+
+    def __post_init__(self):
+        if self.registration_on_failure not in ON_FAILURE:
+            raise ConfigError(f"registration.on_failure must be one of {', '.join(ON_FAILURE)}, "
+                              f"got {self.registration_on_failure!r}")
+
+
+# What a frame set with failed neighbours becomes (registration.on_failure): rendered
+# from the neighbours that did register, or excluded from the dataset. A set where
+# fewer than min_ok_fraction of the neighbours registered is excluded either way.
+ON_FAILURE = ("drop_neighbours", "exclude")
 
 
 @dataclass
@@ -138,13 +150,14 @@ def poses_from_source(data: FrameSetData) -> torch.Tensor:
 
 
 def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: GTRenderSettings, depth_m: torch.Tensor | None = None,
-         members: slice = slice(None)) -> GTRender:
+         members: slice | list[int] = slice(None)) -> GTRender:
     """Render the aligned members into the target view (paper eq. 5).
 
     Args:
         T_j_to_t: (F-1, 4, 4) poses of the neighbours (the target's is the identity).
         depth_m: (F, 1, H, W) depth to fuse (default: the raw depth of the members).
-        members: which members to use (``slice(1, None)`` leaves the target out).
+        members: which members to use (``slice(1, None)`` leaves the target out; a
+            list of positions, 0 = the target, keeps those).
     """
     depth = (data.depth_m if depth_m is None else depth_m)[members]
     eye = torch.eye(4, dtype=T_j_to_t.dtype, device=T_j_to_t.device)[None]
@@ -194,6 +207,7 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
 
     registration_info: dict[str, Any] = {"method": method}
     status, reason = "ok", ""
+    fused = list(range(len(members)))  # positions of the members rendered into the GT
     if method == "given":
         T_j_to_t = poses_from_source(data)
     elif method == "overfit":
@@ -206,11 +220,17 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
         T_j_to_t = torch.as_tensor(result.T_j_to_t, dtype=torch.float64, device=device)
         registration_info.update(result.to_dict())
         status, reason = result.status, result.reason
+        failed = [o for o, st in zip(offsets[1:], result.neighbour_status) if st != "ok"]
+        if failed and status == "ok" and settings.registration_on_failure == "exclude":
+            status, reason = "failed", f"neighbours_not_registered(offsets {','.join(f'{o:+d}' for o in failed)})"
+        # a neighbour that did not register never enters the GT
+        fused = [0] + [i + 1 for i, st in enumerate(result.neighbour_status) if st == "ok"]
+        registration_info["fused_offsets"] = [offsets[i] for i in fused]
     else:
         raise ValueError(f"registration.method must be 'given' or 'overfit', got {method!r}")
     lap("align")
 
-    gt = fuse(data, T_j_to_t, settings.render)
+    gt = fuse(data, T_j_to_t, settings.render, members=fused if len(fused) < len(members) else slice(None))
     lap("render")
 
     depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
@@ -222,13 +242,15 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
         "input_missing": float((depth_in <= 0).mean()),
         "gt_missing": float((gt_depth <= 0).mean()),
         "gt_mean_points": float(gt.count[0, 0].float().mean()),
+        "neighbours_fused": len(fused) - 1,
     }
     if truth is None:
         # Leave-target-out consistency: fuse the neighbours alone and compare with the
         # target's raw valid depth -- the only accuracy check possible on real data
         # (where a clean truth exists, the GT is compared with it instead).
-        lto = fuse(data, T_j_to_t, settings.render, members=slice(1, None)).depth[0, 0].detach().cpu().numpy()
-        stats["leave_target_out"] = error_stats(lto.astype(np.float32), depth_in)
+        if len(fused) > 1:
+            lto = fuse(data, T_j_to_t, settings.render, members=fused[1:]).depth[0, 0].detach().cpu().numpy()
+            stats["leave_target_out"] = error_stats(lto.astype(np.float32), depth_in)
     else:
         stats["gt_vs_truth"] = error_stats(gt_depth, truth)
         stats["input_vs_truth"] = error_stats(depth_in, truth)

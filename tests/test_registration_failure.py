@@ -1,0 +1,78 @@
+"""Issue 3 item 9: neighbours that did not register never enter the GT; per config the
+frame set is rendered from the registered ones or excluded, and the reason is written."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import depthgt.registration as registration
+from depthgt.errors import ConfigError
+from depthgt.framesets import FrameSetSettings
+from depthgt.io import read_exr
+from depthgt.jobs import open_source_scene
+from depthgt.pipeline import JobSettings, fuse, load_frameset, poses_from_source, process_frameset
+from depthgt.registration.overfit import RegistrationResult
+
+TARGET = 12
+
+
+@pytest.fixture(scope="module")
+def scene_and_truth():
+    torch.set_num_threads(2)
+    scene = open_source_scene({"kind": "synthetic", "options": {"n_frames": 24, "seed": 0}}, "room_000")
+    members = [TARGET + o for o in FrameSetSettings().offsets]
+    data = load_frameset(scene, members, (256, 256), True, torch.device("cpu"))
+    return scene, members, data, poses_from_source(data)
+
+
+def _fake_registration(T_true: torch.Tensor, bad: set[int]):
+    """A register_frameset that returns the true poses, except for the offsets in
+    ``bad``: moved 0.4 m and flagged failed (what a real failure looks like)."""
+
+    def fake(rgb, depth_m, K, offsets, settings, **kwargs):
+        T = T_true.clone()
+        status, reasons = [], []
+        for i, o in enumerate(offsets[1:]):
+            if o in bad:
+                T[i, :3, 3] += 0.4
+                status.append("failed")
+                reasons.append("high_residual(5.00cm)")
+            else:
+                status.append("ok")
+                reasons.append("")
+        return RegistrationResult(T_j_to_t=T, offsets=list(offsets), neighbour_status=status, neighbour_reasons=reasons,
+                                  status="ok", reason="", n_correspondences=[100] * (len(offsets) - 1))
+
+    return fake
+
+
+@pytest.mark.parametrize("on_failure", ["drop_neighbours", "exclude"])
+def test_failed_neighbours_are_dropped_or_the_set_excluded(scene_and_truth, tmp_path, monkeypatch, on_failure):
+    scene, members, data, T_true = scene_and_truth
+    monkeypatch.setattr(registration, "register_frameset", _fake_registration(T_true, {-6, 6}))
+    settings = JobSettings(registration_method="overfit", registration={"preset": "fast"},
+                           registration_on_failure=on_failure, device="cpu")
+    doc = process_frameset(scene, "synthetic", TARGET, members, "train", tmp_path, settings)
+    poses = json.loads((tmp_path / "poses.json").read_text())
+    assert poses["registration"]["fused_offsets"] == [0, -4, -2, 2, 4]
+    assert doc["statistics"]["neighbours_fused"] == 4
+    gt = read_exr(tmp_path / "gt.exr")["Z"]
+    keep = [0, 2, 3, 4, 5]  # positions of offsets 0, -4, -2, 2, 4
+    expected = fuse(data, T_true, settings.render, members=keep).depth[0, 0].numpy()
+    np.testing.assert_allclose(gt, expected, atol=1e-6)
+    with_bad = fuse(data, _fake_registration(T_true, {-6, 6})(None, None, None, [0, -6, -4, -2, 2, 4, 6], None).T_j_to_t,
+                    settings.render).depth[0, 0].numpy()
+    assert np.abs(with_bad - gt).max() > 0.1  # the moved neighbours would have shown in the GT
+    if on_failure == "exclude":
+        assert doc["status"] == "failed" and "-6" in doc["reason"] and "+6" in doc["reason"]
+    else:
+        assert doc["status"] == "ok"
+
+
+def test_unknown_on_failure_is_a_config_error():
+    with pytest.raises(ConfigError, match="on_failure"):
+        JobSettings(registration_on_failure="keep")
