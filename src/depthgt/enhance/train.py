@@ -299,6 +299,17 @@ def _to(batch: dict, device: torch.device) -> dict:
     return {k: v.to(device) for k, v in batch.items()}
 
 
+def _layout(device: torch.device) -> torch.memory_format:
+    """Channels-last on CPU, where oneDNN's convolutions run 2-3x faster in it (LapDEN
+    default preset, batch of 8 128x128 pairs: 0.6-0.9 s vs 1.9-2.2 s per step on 2
+    cores); the default layout elsewhere."""
+    return torch.channels_last if device.type == "cpu" else torch.contiguous_format
+
+
+def _net_input(batch: dict, device: torch.device) -> torch.Tensor:
+    return batch["input"].contiguous(memory_format=_layout(device))
+
+
 # --------------------------------------------------------------------------- steps
 
 
@@ -323,7 +334,7 @@ def train_epoch(model: nn.Module, loss_fn: Callable, optimizer: torch.optim.Opti
             batch = flip_batch(batch, flips[:, 0], flips[:, 1])
         batch = _to(batch, device)
         optimizer.zero_grad(set_to_none=True)
-        total, terms = loss_fn(model(batch["input"]), batch)
+        total, terms = loss_fn(model(_net_input(batch, device)), batch)
         if not torch.isfinite(total):
             raise FloatingPointError(f"epoch {epoch}: non-finite training loss {terms}")
         total.backward()
@@ -344,7 +355,7 @@ def evaluate(model: nn.Module, loss_fn: Callable, dataset: Dataset, batch_size: 
     t0 = time.perf_counter()
     for idx in batches:
         batch = _to(collate([dataset[i] for i in idx]), device)
-        _, terms = loss_fn(model(batch["input"]), batch)
+        _, terms = loss_fn(model(_net_input(batch, device)), batch)
         for k, v in terms.items():
             sums[k] = sums.get(k, 0.0) + v * len(idx)
     n = max(len(dataset), 1)
@@ -413,7 +424,7 @@ def train(manifest_train: str | Path | pd.DataFrame, manifest_val: str | Path | 
     torch.manual_seed(settings.seed)
     if model is None:
         model = build_model(settings.model, settings.model_params)
-    model = model.to(device)
+    model = model.to(device).to(memory_format=_layout(device))
     if loss_fn is None:
         loss_fn = build_loss(settings.model, settings.loss_params)
     optimizer = torch.optim.Adam(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
@@ -512,9 +523,9 @@ def predict(model: nn.Module, depth_m: torch.Tensor, chunk: int = 8) -> torch.Te
         x = depth_m[i:i + chunk].to(dev).float()
         if ph or pw:
             x = torch.nn.functional.pad(x, (0, pw, 0, ph), mode="replicate")
-        y = model(x)
+        y = model(x.contiguous(memory_format=_layout(dev)))
         y = y[-1] if isinstance(y, (list, tuple)) else y
-        outs.append(y[..., :H, :W].clamp_min(0.0).to(depth_m.device))
+        outs.append(y[..., :H, :W].clamp_min(0.0).contiguous().to(depth_m.device))
     return torch.cat(outs)
 
 
