@@ -23,7 +23,7 @@ import torch
 from torch.utils.data import Dataset
 
 from depthgt.enhance.lapden import count_parameters, lapden_from_preset
-from depthgt.enhance.train import TrainSettings, build_loss, train_epoch
+from depthgt.enhance.train import TrainSettings, build_loss, memory_layout, train_epoch
 
 
 class RandomPatches(Dataset):
@@ -51,7 +51,7 @@ class RandomPatches(Dataset):
 def bench_one(preset: str, device: torch.device, data: RandomPatches, batch_size: int, max_batches: int | None,
               warmup: int) -> dict:
     torch.manual_seed(0)
-    model = lapden_from_preset(preset).to(device)
+    model = lapden_from_preset(preset).to(device).to(memory_format=memory_layout(device))  # as train() does
     loss_fn = build_loss("lapden", {})
     opt = torch.optim.Adam(model.parameters(), lr=1e-4)
     n_batches = math.ceil(len(data) / batch_size)
