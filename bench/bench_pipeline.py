@@ -4,7 +4,7 @@
 
 As the workflow does it: the scene index job reads and checks every frame of the first
 default synthetic scene (config/config.yaml) and writes the frame cache (timed per
-frame); then ``depthgt.pipeline.process_frameset`` with ``registration.method: given``
+frame); then ``depthgt.gt.frameset.process_frameset`` with ``registration.method: given``
 runs on frame sets from that cache. Prints the per-stage mean time, the total per frame
 set, and the peak resident memory of the process. Target (issue 2): <= 2 s per frame
 set on 2 CPU cores.
@@ -24,13 +24,13 @@ import numpy as np
 import torch
 import yaml
 
-from depthgt.cache import CachedScene, FrameCacheWriter
-from depthgt.config import job_settings
-from depthgt.framesets import FrameSetSettings, SplitSettings
+from depthgt.gt.cache import CachedScene, FrameCacheWriter
+from depthgt.settings import job_settings
+from depthgt.gt.framesets import FrameSetSettings, SplitSettings
 from depthgt.io import write_json
-from depthgt.jobs import open_source_scene
-from depthgt.scene_index import build_index
-from depthgt.pipeline import process_frameset
+from depthgt.jobs.gt import open_source_scene
+from depthgt.gt.index import build_index
+from depthgt.gt.frameset import process_frameset
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -112,7 +112,7 @@ def run_open3d(rgb, depth, K, kind: str) -> np.ndarray:
 
 def gt_mae(rgb, depth, K, T_j_to_t, clean_t):
     """MAE (m) of the frame-set GT against the clean target depth: valid-only and missing-counted."""
-    from depthgt.render import GTRenderSettings, render_gt
+    from depthgt.gt.render import GTRenderSettings, render_gt
     from depthgt.geometry import backproject
 
     Fn = depth.shape[0]

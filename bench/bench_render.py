@@ -1,4 +1,4 @@
-"""Benchmark of the renderers in :mod:`depthgt.render`: time, peak memory, GT accuracy.
+"""Benchmark of the renderers in :mod:`depthgt.gt.render`: time, peak memory, GT accuracy.
 
 * Speed: ``render_gt`` on the merged cloud of a 7-frame set (7 x 256x256 points) and
   ``splat_soft`` of 7 views x 65,536 points with RGB features (forward, and forward +
@@ -41,7 +41,7 @@ import pandas as pd
 import torch
 
 from depthgt.geometry import resize_depth_nearest, scale_intrinsics
-from depthgt.render import GTRenderSettings, cloud_in_target, render_gt, splat_soft
+from depthgt.gt.render import GTRenderSettings, cloud_in_target, render_gt, splat_soft
 
 SIZE = (256, 256)
 IDS = [2, 4, 6, 8, 10, 12, 14]  # target 8 and its neighbours -+ 2, 4, 6

@@ -1,4 +1,4 @@
-"""Plain, slow reference implementations of the renderers in :mod:`depthgt.render`.
+"""Plain, slow reference implementations of the renderers in :mod:`depthgt.gt.render`.
 
 Test oracles only: Python loops over pixels and points, float64 numpy, written
 directly from the rules stated in the docstrings of ``splat_soft`` and ``render_gt``

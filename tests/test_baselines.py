@@ -6,7 +6,7 @@ import torch
 
 from depthgt.enhance.baselines import BASELINES, fill_holes, run_baseline
 from depthgt.enhance.learned import DDRNetDenoise, PartialConv2d, SDDUNet, ddrnet_loss, sdd_loss
-from depthgt.metrics import rmse
+from depthgt.eval.metrics import rmse
 
 torch.set_num_threads(1)  # the test machine is shared; one thread is faster here
 
@@ -120,7 +120,7 @@ def test_evaluate_frames_on_a_synthetic_frame_set(tmp_path):
     import pandas as pd
 
     from depthgt import io
-    from depthgt.enhance.evaluate import evaluate_frames
+    from depthgt.eval.evaluate import evaluate_frames
 
     truth, noisy, holes, rgb = _plane(32)
     d = tmp_path / "fs" / "000010"

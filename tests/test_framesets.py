@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from depthgt.framesets import FrameSetSettings, SplitSettings, block_splits, enumerate_framesets, stable_seed
+from depthgt.gt.framesets import FrameSetSettings, SplitSettings, block_splits, enumerate_framesets, stable_seed
 
 
 def test_offsets_paper_defaults():

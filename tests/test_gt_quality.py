@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from depthgt.framesets import FrameSetSettings
-from depthgt.jobs import open_source_scene
-from depthgt.pipeline import fuse, load_frameset, poses_from_source
+from depthgt.gt.framesets import FrameSetSettings
+from depthgt.jobs.gt import open_source_scene
+from depthgt.gt.frameset import fuse, load_frameset, poses_from_source
 from depthgt.quality import error_stats
-from depthgt.render import GTRenderSettings
+from depthgt.gt.render import GTRenderSettings
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from depthgt.metrics import (
+from depthgt.eval.metrics import (
     completeness,
     depth_metrics,
     ls_distance,

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from depthgt.patches import PatchSettings, crop, crop_boxes, make_patches
+from depthgt.gt.patches import PatchSettings, crop, crop_boxes, make_patches
 
 
 def test_crop_matches_slicing():

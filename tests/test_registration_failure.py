@@ -11,10 +11,10 @@ import torch
 
 import depthgt.registration as registration
 from depthgt.errors import ConfigError
-from depthgt.framesets import FrameSetSettings
+from depthgt.gt.framesets import FrameSetSettings
 from depthgt.io import read_exr
-from depthgt.jobs import open_source_scene
-from depthgt.pipeline import JobSettings, fuse, load_frameset, poses_from_source, process_frameset
+from depthgt.jobs.gt import open_source_scene
+from depthgt.gt.frameset import JobSettings, fuse, load_frameset, poses_from_source, process_frameset
 from depthgt.registration.overfit import RegistrationResult
 
 TARGET = 12

@@ -1,4 +1,4 @@
-"""Tests of depthgt.render: soft splat (gradients, occlusion, reference) and the GT renderer."""
+"""Tests of depthgt.gt.render: soft splat (gradients, occlusion, reference) and the GT renderer."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from depthgt.geometry import resize_depth_nearest, scale_intrinsics
-from depthgt.render import GTRender, GTRenderSettings, SoftSplat, cloud_in_target, render_gt, splat_soft
+from depthgt.gt.render import GTRender, GTRenderSettings, SoftSplat, cloud_in_target, render_gt, splat_soft
 from render_reference import render_gt_reference, splat_soft_reference
 
 torch.set_num_threads(1)  # on an oversubscribed 2-core machine, 2 intra-op threads ran these tests ~3x slower

@@ -7,8 +7,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from depthgt import io, tables
-from depthgt.enhance.evaluate import EVAL_COLUMNS
+from depthgt import io
+from depthgt.eval import tables
+from depthgt.eval.evaluate import EVAL_COLUMNS
 
 
 def _ev(rows):

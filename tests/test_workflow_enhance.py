@@ -137,7 +137,7 @@ def _plane_stream(n=7, hw=48):
 def test_rde_tsdf_renders_a_plane(backend):
     import numpy as np
 
-    from depthgt.rde import TSDFSettings, open3d_available, reconstruct_and_render
+    from depthgt.gt.rde import TSDFSettings, open3d_available, reconstruct_and_render
 
     if backend == "open3d" and not open3d_available():
         pytest.skip("Open3D is not installed (optional extra)")
@@ -153,7 +153,7 @@ def test_rde_tsdf_renders_a_plane(backend):
 
 def test_rde_settings_errors():
     from depthgt.errors import ConfigError
-    from depthgt.rde import TSDFSettings, tsdf_settings_from_dict
+    from depthgt.gt.rde import TSDFSettings, tsdf_settings_from_dict
 
     with pytest.raises(ConfigError, match="backend"):
         TSDFSettings(backend="pcl")

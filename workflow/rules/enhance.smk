@@ -24,7 +24,7 @@ def train_manifests(wildcards):
 
 
 def method_spec(wildcards):
-    """Evaluation method of depthgt.enhance.evaluate: a filter baseline or a checkpoint."""
+    """Evaluation method of depthgt.eval.evaluate: a filter baseline or a checkpoint."""
     if wildcards.method in MODELS:
         return {"baseline": "learned", "params": {"checkpoint": f"results/models/{wildcards.method}/best.pt"}}
     return {"baseline": wildcards.method}
@@ -68,8 +68,8 @@ rule rde_dataset:
     log:
         "logs/rde/dataset.log",
     run:
-        from depthgt.jobs import logging_to
-        from depthgt.jobs_enhance import run_rde_dataset
+        from depthgt.jobs.gt import logging_to
+        from depthgt.jobs.enhance import run_rde_dataset
 
         with logging_to(log[0]):
             run_rde_dataset(list(input.framesets), list(input.patches), str(Path(output.train).parent))

@@ -1,7 +1,7 @@
 from pathlib import Path
 
-from depthgt.jobs import logging_to
-from depthgt.jobs_enhance import run_figures
+from depthgt.jobs.gt import logging_to
+from depthgt.jobs.enhance import run_figures
 
 with logging_to(snakemake.log[0]):
     curves = dict(zip(snakemake.params.models, snakemake.output.curves))

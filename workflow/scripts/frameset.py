@@ -2,7 +2,7 @@ from pathlib import Path
 
 import torch
 
-from depthgt.jobs import logging_to, run_frameset
+from depthgt.jobs.gt import logging_to, run_frameset
 
 # one job per core: torch would otherwise start a thread per core in every job
 torch.set_num_threads(snakemake.threads)

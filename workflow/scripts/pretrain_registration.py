@@ -1,6 +1,6 @@
 import torch
 
-from depthgt.jobs import logging_to, run_pretrain_registration
+from depthgt.jobs.gt import logging_to, run_pretrain_registration
 
 torch.set_num_threads(snakemake.threads)
 with logging_to(snakemake.log[0]):

@@ -1,5 +1,5 @@
-from depthgt.jobs import logging_to
-from depthgt.jobs_enhance import run_rde_scene
+from depthgt.jobs.gt import logging_to
+from depthgt.jobs.enhance import run_rde_scene
 
 with logging_to(snakemake.log[0]):
     run_rde_scene(snakemake.params.source, snakemake.wildcards.scene, snakemake.input.framesets, snakemake.params.rde,

@@ -1,6 +1,6 @@
 import torch
 
-from depthgt.jobs import logging_to, run_scene_index
+from depthgt.jobs.gt import logging_to, run_scene_index
 
 # one job per core: torch would otherwise start a thread per core in every job
 torch.set_num_threads(snakemake.threads)

@@ -1,7 +1,7 @@
 from pathlib import Path
 
-from depthgt.jobs import logging_to
-from depthgt.jobs_enhance import run_tables
+from depthgt.jobs.gt import logging_to
+from depthgt.jobs.enhance import run_tables
 
 with logging_to(snakemake.log[0]):
     run_tables(list(snakemake.input.evals), snakemake.input.framesets, snakemake.input.rde, snakemake.input.quality,

@@ -1,7 +1,7 @@
 from pathlib import Path
 
-from depthgt.jobs import logging_to
-from depthgt.jobs_enhance import run_train
+from depthgt.jobs.gt import logging_to
+from depthgt.jobs.enhance import run_train
 
 with logging_to(snakemake.log[0]):
     run_train(snakemake.params.settings, snakemake.input.train, snakemake.input.val,

@@ -8,7 +8,7 @@
 * correspondence loss: weighted mean squared 3D residual of the matches.
 
 The renderer is passed in (``render_fn``, signature of
-:func:`depthgt.render.splat_soft`) so that the losses do not depend on one splatting
+:func:`depthgt.gt.render.splat_soft`) so that the losses do not depend on one splatting
 implementation.
 """
 
@@ -26,9 +26,9 @@ RenderFn = Callable[..., object]
 
 
 def default_render_fn() -> RenderFn:
-    """The project's differentiable soft splatting, :func:`depthgt.render.splat_soft`
+    """The project's differentiable soft splatting, :func:`depthgt.gt.render.splat_soft`
     (imported lazily: it lives in another module)."""
-    from depthgt.render import splat_soft
+    from depthgt.gt.render import splat_soft
 
     return splat_soft
 

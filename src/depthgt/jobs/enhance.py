@@ -74,7 +74,7 @@ def _stream(source: dict, scene: str, cache_dir: str | None, K_work: np.ndarray,
                 np.asarray(K_work, dtype=np.float64), [poses[i] for i in keep], target_poses)
 
     from depthgt.errors import FrameError
-    from depthgt.jobs import open_source_scene
+    from depthgt.jobs.gt import open_source_scene
 
     sc = open_source_scene(source, scene, need_poses=True)
     fuse_ids = set(range(0, len(sc), step))
@@ -111,10 +111,10 @@ def run_rde_scene(source: dict[str, Any], scene: str, scene_framesets: str, rde_
     """
     import pandas as pd
 
-    from depthgt.enhance.evaluate import load_frame
-    from depthgt.patches import crop
+    from depthgt.eval.evaluate import load_frame
+    from depthgt.gt.patches import crop
     from depthgt.quality import error_stats
-    from depthgt.rde import reconstruct_and_render, tsdf_settings_from_dict
+    from depthgt.gt.rde import reconstruct_and_render, tsdf_settings_from_dict
 
     settings = tsdf_settings_from_dict(rde_config)
     fs = pd.read_parquet(scene_framesets)
@@ -201,12 +201,12 @@ def run_evaluate(name: str, method: dict, framesets: str, out_table: str, pred_d
                  split: str = "test", threads: int = 1) -> None:
     """Run one method on the ``split`` frame sets; score against depthgt's GT and, where
     present, the clean truth. Writes a tidy long table (parquet, see
-    :data:`depthgt.enhance.evaluate.EVAL_COLUMNS`)."""
+    :data:`depthgt.eval.evaluate.EVAL_COLUMNS`)."""
     import pandas as pd
     import torch
 
-    from depthgt.enhance.evaluate import EVAL_COLUMNS, load_frame, run_method
-    from depthgt.metrics import METRIC_UNITS, depth_metrics
+    from depthgt.eval.evaluate import EVAL_COLUMNS, load_frame, run_method
+    from depthgt.eval.metrics import METRIC_UNITS, depth_metrics
 
     torch.set_num_threads(max(1, int(threads)))
     table = pd.read_parquet(framesets)
@@ -242,7 +242,7 @@ def run_tables(eval_tables: list[str], framesets: str, rde_framesets: str, gt_qu
     """Tables 1-3 and the GT-quality table as CSV + Markdown in ``out_dir``."""
     import pandas as pd
 
-    from depthgt import tables
+    from depthgt.eval import tables
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -263,7 +263,7 @@ def run_figures(framesets: str, pred_dirs: dict[str, str], loss_logs: dict[str, 
     scene) and one training-curve plot per model (``out_curves``: model -> png)."""
     import pandas as pd
 
-    from depthgt import figures
+    from depthgt.eval import figures
 
     table = pd.read_parquet(framesets)
     table = table[(table["split"] == split) & (table["status"] == "ok") & (table["frameset_dir"] != "")]

@@ -45,7 +45,7 @@ def comparison_figure(frames: pd.DataFrame, pred_dirs: Mapping[str, str | Path],
         frames: frame-set rows (dataset, scene, target, frameset_dir) to choose from;
             up to ``frames_per_scene`` evenly spaced frames of each scene are shown.
     """
-    from depthgt.enhance.evaluate import load_frame
+    from depthgt.eval.evaluate import load_frame
 
     plt = _plt()
     out = Path(out_path)

@@ -1,7 +1,7 @@
 """The paper's metric tables from tidy long tables (CSV + Markdown, units in headers).
 
 Inputs are long tables (one row per dataset, scene, frame, method, reference, metric
-with its unit and value: :data:`depthgt.enhance.evaluate.EVAL_COLUMNS`). Every table
+with its unit and value: :data:`depthgt.eval.evaluate.EVAL_COLUMNS`). Every table
 averages per-frame values over the frames of a group (the mean of per-frame RMSE, not
 a pooled RMSE) and states its conventions in a caption written on top of the
 Markdown file:
@@ -107,7 +107,7 @@ def gt_vs_input_long(framesets: pd.DataFrame, rde_framesets: pd.DataFrame | None
         columns dataset, scene, target, gt (``gt`` | ``rde``), metric, unit, value.
     """
     from depthgt import io
-    from depthgt.metrics import METRIC_UNITS, ls_distance, ssim_depth
+    from depthgt.eval.metrics import METRIC_UNITS, ls_distance, ssim_depth
 
     jobs = []
     for rec in framesets[(framesets["status"] == "ok") & (framesets["frameset_dir"] != "")].itertuples():

@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from depthgt.enhance.baselines import run_baseline
-from depthgt.metrics import METRIC_UNITS, depth_metrics
+from depthgt.eval.metrics import METRIC_UNITS, depth_metrics
 
 __all__ = ["load_frame", "run_method", "evaluate_frames", "EVAL_COLUMNS"]
 
@@ -89,7 +89,7 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
 
     Returns:
         Long table with columns :data:`EVAL_COLUMNS` (metrics of
-        :func:`depthgt.metrics.depth_metrics`, plus ``seconds`` per frame).
+        :func:`depthgt.eval.metrics.depth_metrics`, plus ``seconds`` per frame).
     """
     table = frames if isinstance(frames, pd.DataFrame) else pd.read_parquet(frames)
     missing = {"dataset", "scene", "target", "frameset_dir"} - set(table.columns)

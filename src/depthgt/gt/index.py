@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from depthgt.errors import FrameError
-from depthgt.framesets import FrameSetSettings, SplitSettings, block_splits, enumerate_framesets
+from depthgt.gt.framesets import FrameSetSettings, SplitSettings, block_splits, enumerate_framesets
 from depthgt.sources.base import Scene, check_frame
 
 log = logging.getLogger(__name__)
@@ -51,7 +51,7 @@ def build_index(scene: Scene, dataset: str, source_split: str, need_poses: bool,
 
     Args:
         need_poses: frames without a finite pose are invalid (``registration.method: given``).
-        cache: optional :class:`depthgt.cache.FrameCacheWriter` that receives every
+        cache: optional :class:`depthgt.gt.cache.FrameCacheWriter` that receives every
             valid frame (resized to the working resolution).
     """
     n = len(scene)

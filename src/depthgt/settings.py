@@ -18,7 +18,7 @@ T = TypeVar("T")
 def build(cls: type[T], section: dict[str, Any] | None, where: str) -> T:
     """``cls(**section)`` with errors that name ``where.key``.
 
-    >>> from depthgt.patches import PatchSettings
+    >>> from depthgt.gt.patches import PatchSettings
     >>> build(PatchSettings, {"count": 3}, "patches").count
     3
     """
@@ -34,11 +34,11 @@ def build(cls: type[T], section: dict[str, Any] | None, where: str) -> T:
 
 
 def job_settings(config: dict[str, Any]):
-    """The :class:`~depthgt.pipeline.JobSettings` of the per-frame-set job."""
-    from depthgt.framesets import FrameSetSettings
-    from depthgt.patches import PatchSettings
-    from depthgt.pipeline import JobSettings
-    from depthgt.render import GTRenderSettings
+    """The :class:`~depthgt.gt.frameset.JobSettings` of the per-frame-set job."""
+    from depthgt.gt.framesets import FrameSetSettings
+    from depthgt.gt.patches import PatchSettings
+    from depthgt.gt.frameset import JobSettings
+    from depthgt.gt.render import GTRenderSettings
 
     reg = dict(config.get("registration") or {})
     method = reg.pop("method", "given")

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from depthgt.framesets import SPLITS
+from depthgt.gt.framesets import SPLITS
 
 FRAMESET_COLUMNS = ["dataset", "scene", "target", "frame_id", "split", "status", "reason", "frameset_dir", "has_truth",
                     "patches_drawn", "patches_kept", "input_missing", "gt_missing"]

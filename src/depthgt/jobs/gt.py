@@ -71,10 +71,10 @@ def run_scene_index(source: dict[str, Any], scene: str, config: dict[str, Any], 
                     cache_dir: str | None = None) -> None:
     """Check every frame of a scene and write its index (parquet + json), and the
     frame cache at the working resolution into ``cache_dir`` when given."""
-    from depthgt.cache import FrameCacheWriter
-    from depthgt.config import build
-    from depthgt.framesets import FrameSetSettings, SplitSettings
-    from depthgt.scene_index import build_index
+    from depthgt.gt.cache import FrameCacheWriter
+    from depthgt.settings import build
+    from depthgt.gt.framesets import FrameSetSettings, SplitSettings
+    from depthgt.gt.index import build_index
 
     method = (config.get("registration") or {}).get("method", "given")
     sc = open_source_scene(source, scene, need_poses=(method == "given"))
@@ -105,8 +105,8 @@ def run_frameset(source: dict[str, Any], scene: str, target: int, config: dict[s
     """Build one frame set's outputs in ``out_dir`` (frames from ``cache_dir`` when given)."""
     import pandas as pd
 
-    from depthgt.config import job_settings
-    from depthgt.pipeline import process_frameset
+    from depthgt.settings import job_settings
+    from depthgt.gt.frameset import process_frameset
 
     table = pd.read_parquet(index_parquet)
     row = table[(table["position"] == target) & table["is_target"]]
@@ -120,7 +120,7 @@ def run_frameset(source: dict[str, Any], scene: str, target: int, config: dict[s
         state = torch.load(encoder, map_location="cpu", weights_only=True) or None  # {}: no pretraining
     settings = job_settings(config)
     if cache_dir:
-        from depthgt.cache import CachedScene
+        from depthgt.gt.cache import CachedScene
 
         scene_obj = CachedScene(Path(index_parquet).with_name("index.json"), table)
     else:
@@ -134,7 +134,7 @@ def run_frameset(source: dict[str, Any], scene: str, target: int, config: dict[s
 
 def run_scene_summary(index_parquet: str, frameset_jsons: list[str], out_framesets: str, out_patches: str, out_quality: str) -> None:
     """Summarise a scene's frame sets, patches and GT quality into three parquet tables."""
-    from depthgt.dataset import summarize_scene
+    from depthgt.gt.assemble import summarize_scene
 
     fs, patches, quality = summarize_scene(index_parquet, [str(Path(p).parent) for p in frameset_jsons])
     fs.to_parquet(out_framesets, index=False)
@@ -144,7 +144,7 @@ def run_scene_summary(index_parquet: str, frameset_jsons: list[str], out_framese
 
 def run_dataset(scene_framesets: list[str], out_dir: str) -> None:
     """Assemble the dataset manifests from the per-scene summaries."""
-    from depthgt.dataset import assemble
+    from depthgt.gt.assemble import assemble
 
     summary = assemble([str(Path(p).parent) for p in scene_framesets], out_dir)
     log.info("dataset: %s pairs, %d frame sets skipped", summary["pairs"], len(summary["framesets_skipped"]))
@@ -156,9 +156,9 @@ def run_pretrain_registration(sources: dict[str, dict[str, Any]], index_jsons: l
     split (no poses used), written as a torch ``state_dict``."""
     import torch
 
-    from depthgt.config import job_settings
-    from depthgt.framesets import stable_seed
-    from depthgt.pipeline import load_frameset, resolve_device
+    from depthgt.settings import job_settings
+    from depthgt.gt.framesets import stable_seed
+    from depthgt.gt.frameset import load_frameset, resolve_device
     from depthgt.registration import make_settings, pretrain_encoder
     import pandas as pd
 

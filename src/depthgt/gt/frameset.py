@@ -19,10 +19,10 @@ import torch
 
 from depthgt import geometry, io
 from depthgt.errors import ConfigError, FrameError
-from depthgt.framesets import FrameSetSettings, stable_seed
-from depthgt.patches import PatchSettings, make_patches
+from depthgt.gt.framesets import FrameSetSettings, stable_seed
+from depthgt.gt.patches import PatchSettings, make_patches
 from depthgt.quality import error_stats
-from depthgt.render import GTRender, GTRenderSettings, cloud_in_target, render_gt
+from depthgt.gt.render import GTRender, GTRenderSettings, cloud_in_target, render_gt
 from depthgt.sources.base import Scene, check_frame
 
 log = logging.getLogger(__name__)
@@ -121,8 +121,8 @@ def load_frameset(scene: Scene, members: list[int], size_hw: tuple[int, int], ne
 
 def load_frameset_cached(cache_dir: str | Path, scene: Scene, members: list[int], size_hw: tuple[int, int],
                          device: torch.device) -> FrameSetData:
-    """Same as :func:`load_frameset`, from the scene's frame cache (see depthgt.cache)."""
-    from depthgt.cache import read_cached
+    """Same as :func:`load_frameset`, from the scene's frame cache (see depthgt.gt.cache)."""
+    from depthgt.gt.cache import read_cached
 
     arr = read_cached(cache_dir, members)
     if arr["depth"].shape[1:] != tuple(size_hw):

@@ -1,0 +1,1 @@
+"""Evaluation: depth and pose metrics (one vocabulary), method evaluation, tables, figures."""

@@ -1,0 +1,1 @@
+"""Ground truth: scene index, frame sets, frame cache, GT renderer, patches, dataset assembly, global-reconstruction GT."""
