@@ -5,16 +5,16 @@ from pathlib import Path
 
 from snakemake.utils import validate
 
-from depthgt.settings import check_config
+from depthgt.settings import check_config, check_scene_name, settings_from_config
 
 check_config(config, workflow.source_path("../schemas/config.schema.yaml"))
 validate(config, schema="../schemas/config.schema.yaml", set_default=True)
+# Every stage's settings, checked before any job runs (unknown keys, values, bounds,
+# patches.size <= resize, registration keys whatever the method); jobs rebuild theirs
+# from the config sections their rule passes (depthgt.settings.settings_from_config).
+SETTINGS = settings_from_config(config)
 
-SOURCES = {}
-for _src in config["sources"]:
-    if _src["name"] in SOURCES:
-        raise ValueError(f"config sources: the name {_src['name']!r} is used twice; names must be unique")
-    SOURCES[_src["name"]] = _src
+SOURCES = {src["name"]: src for src in config["sources"]}  # names checked unique by the settings
 
 
 def _scenes_of(src):
@@ -27,9 +27,7 @@ def _scenes_of(src):
 
 SCENES = [(name, scene) for name, src in SOURCES.items() for scene in _scenes_of(src)]
 for _name, _scene in SCENES:
-    if _scene in (".", "..") or "/" in _scene:
-        raise ValueError(f"config sources {_name!r}: scene name {_scene!r} cannot be a path component; "
-                         "name the sequence folder (or use scenes: all)")
+    check_scene_name(_scene, f"sources[{_name}].scenes")
 
 
 wildcard_constraints:
@@ -53,8 +51,8 @@ def frameset_jsons(wildcards):
     return [f"{d}/frameset.json" for d in frameset_dirs(wildcards)]
 
 
-def scene_summaries(what="framesets"):
-    return [f"results/scenes/{d}/{s}/{what}.parquet" for d, s in SCENES]
+def scene_summaries(what="framesets", ext="parquet"):
+    return [f"results/scenes/{d}/{s}/{what}.{ext}" for d, s in SCENES]
 
 
 # The sections of the config that decide a stage's outputs; passed as params so that

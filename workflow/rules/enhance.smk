@@ -1,39 +1,35 @@
 # Enhancement: the global-reconstruction GT (RDE), training of LapDEN and the learned
 # baselines, and the evaluation of every method on the held-out test frame sets.
 
+from depthgt import registry
+
 ENHANCE = config.get("enhance", {})
-EVALUATION = config.get("evaluation", {})
-MODELS = ["lapden", "ddrnet", "sdd", "rde"]
-METHODS = list(EVALUATION.get("methods", ["input", "rgf", "jf", "ddrnet", "sdd", "rde", "lapden"]))
-EVALUATED_MODELS = [m for m in MODELS if m in METHODS]  # trained by the default target
+MODELS = list(registry.learned())  # every trainable model of the registry (target `train`)
+METHODS = list(SETTINGS.evaluation.methods)
+EVALUATED_MODELS = SETTINGS.evaluation.models  # trained by the default target
 KINDS = {name: src["kind"] for name, src in SOURCES.items()}
+MANIFESTS = {"depthgt": "results/dataset", "rde": "results/rde"}  # the GT a learned method trains on
 
 
-def train_params(wildcards):
-    """TrainSettings mapping of a model (checked by the job; no torch import here):
-    enhance.train overridden by enhance.models[model]; RDE uses LapDEN's entry."""
-    key = "lapden" if wildcards.model == "rde" else wildcards.model
-    return {"seed": int(config.get("seed", 0)), "device": config.get("device", "auto"), "progress": False,
-            "model_params": {}, **ENHANCE.get("train", {}), **ENHANCE.get("models", {}).get(key, {"model": key})}
+def train_config(wildcards):
+    """The config sections that decide a model's training (its params: a change re-runs
+    exactly this model); the job builds its TrainSettings from them."""
+    key = registry.METHODS[wildcards.model].settings_key
+    models = ENHANCE.get("models", {})
+    return {"seed": config.get("seed", 0), "device": config.get("device", "auto"),
+            "enhance": {"train": ENHANCE.get("train", {}), "models": {key: models[key]} if key in models else {}}}
 
 
 def train_manifests(wildcards):
-    if wildcards.model == "rde":
-        return {"train": "results/rde/train.parquet", "val": "results/rde/val.parquet"}
-    return {"train": "results/dataset/train.parquet", "val": "results/dataset/val.parquet"}
-
-
-def method_spec(wildcards):
-    """Evaluation method of depthgt.eval.evaluate: a filter baseline or a checkpoint."""
-    if wildcards.method in MODELS:
-        return {"baseline": "learned", "params": {"checkpoint": f"results/models/{wildcards.method}/best.pt"}}
-    return {"baseline": wildcards.method}
+    d = MANIFESTS[registry.METHODS[wildcards.model].trains_on]
+    return {"train": f"{d}/train.parquet", "val": f"{d}/val.parquet"}
 
 
 def method_inputs(wildcards):
-    if wildcards.method in MODELS:
-        return [f"results/models/{wildcards.method}/best.pt"]
-    return []
+    """The trained model of a learned method (none for input and filters)."""
+    if registry.METHODS[wildcards.method].kind == "learned":
+        return {"checkpoint": f"results/models/{wildcards.method}/best.pt"}
+    return {}
 
 
 rule rde_scene:
@@ -46,7 +42,7 @@ rule rde_scene:
         patches="results/rde/{dataset}/{scene}/patches.parquet",
     params:
         source=source_of,
-        rde=ENHANCE.get("rde", {}),
+        config={"enhance": {"rde": ENHANCE.get("rde", {})}},
     log:
         "logs/rde/{dataset}/{scene}.log",
     benchmark:
@@ -68,11 +64,11 @@ rule rde_dataset:
     log:
         "logs/rde/dataset.log",
     run:
-        from depthgt.jobs.gt import logging_to
+        from depthgt.jobs.common import logging_to
         from depthgt.jobs.enhance import run_rde_dataset
 
         with logging_to(log[0]):
-            run_rde_dataset(list(input.framesets), list(input.patches), str(Path(output.train).parent))
+            run_rde_dataset(list(input.framesets), list(input.patches), dict(output.items()))
 
 
 rule train_model:
@@ -84,7 +80,7 @@ rule train_model:
         log="results/models/{model}/loss_log.csv",
         meta="results/models/{model}/train.json",
     params:
-        settings=train_params,
+        config=train_config,
     wildcard_constraints:
         model="|".join(MODELS),
     log:
@@ -103,14 +99,13 @@ rule train:
 
 rule evaluate_method:
     input:
+        unpack(method_inputs),
         framesets="results/dataset/framesets.parquet",
-        models=method_inputs,
     output:
         table="results/eval/{method}.parquet",
         predictions=directory("results/eval/predictions/{method}"),
     params:
-        method=method_spec,
-        split=EVALUATION.get("split", "test"),
+        config={"device": config.get("device", "auto"), "evaluation": {"split": SETTINGS.evaluation.split}},
     wildcard_constraints:
         method="|".join(METHODS),
     log:

@@ -25,6 +25,6 @@ rule pretrain_registration:
 
 def registration_encoder(wildcards):
     """The pretrained encoder when frame sets are registered by the overfit method."""
-    if config["registration"].get("method") == "overfit":
+    if SETTINGS.registration.method == "overfit":
         return "results/models/registration/encoder.pt"
     return []

@@ -31,6 +31,7 @@ rule figures:
     input:
         framesets="results/dataset/framesets.parquet",
         evals=expand("results/eval/{method}.parquet", method=METHODS),
+        predictions=expand("results/eval/predictions/{method}", method=[m for m in METHODS if m != "input"]),
         logs=expand("results/models/{model}/loss_log.csv", model=EVALUATED_MODELS),
     output:
         comparison=report("results/figures/comparison.png", caption="../report/comparison.rst", category="Figures"),
@@ -39,8 +40,8 @@ rule figures:
     params:
         methods=[m for m in METHODS if m != "input"],
         models=EVALUATED_MODELS,
-        split=EVALUATION.get("split", "test"),
-        frames_per_scene=EVALUATION.get("figure_frames_per_scene", 2),
+        split=SETTINGS.evaluation.split,
+        frames_per_scene=SETTINGS.evaluation.figure_frames_per_scene,
     log:
         "logs/figures.log",
     script:

@@ -1,6 +1,6 @@
-from pathlib import Path
-
-from depthgt.jobs.gt import logging_to, run_dataset
+from depthgt.jobs.common import logging_to
+from depthgt.jobs.gt import run_dataset
 
 with logging_to(snakemake.log[0]):
-    run_dataset(list(snakemake.input.scenes), str(Path(snakemake.output.train).parent))
+    run_dataset(list(snakemake.input.scenes), list(snakemake.input.patches), list(snakemake.input.quality),
+                list(snakemake.input.indices), dict(snakemake.output.items()))

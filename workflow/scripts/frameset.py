@@ -1,12 +1,11 @@
-from pathlib import Path
-
 import torch
 
-from depthgt.jobs.gt import logging_to, run_frameset
+from depthgt.jobs.common import logging_to
+from depthgt.jobs.gt import run_frameset
 
 # one job per core: torch would otherwise start a thread per core in every job
 torch.set_num_threads(snakemake.threads)
 with logging_to(snakemake.log[0]):
     run_frameset(snakemake.params.source, snakemake.wildcards.scene, int(snakemake.wildcards.target),
-                 snakemake.params.config, snakemake.input.index, str(Path(snakemake.output.meta).parent),
+                 snakemake.params.config, snakemake.input.index, dict(snakemake.output.items()),
                  encoder=snakemake.input.encoder or None, cache_dir=snakemake.input.cache)

@@ -1,6 +1,7 @@
 import torch
 
-from depthgt.jobs.gt import logging_to, run_pretrain_registration
+from depthgt.jobs.common import logging_to
+from depthgt.jobs.gt import run_pretrain_registration
 
 torch.set_num_threads(snakemake.threads)
 with logging_to(snakemake.log[0]):

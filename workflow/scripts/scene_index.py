@@ -1,6 +1,7 @@
 import torch
 
-from depthgt.jobs.gt import logging_to, run_scene_index
+from depthgt.jobs.common import logging_to
+from depthgt.jobs.gt import run_scene_index
 
 # one job per core: torch would otherwise start a thread per core in every job
 torch.set_num_threads(snakemake.threads)

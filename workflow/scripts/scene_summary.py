@@ -1,4 +1,5 @@
-from depthgt.jobs.gt import logging_to, run_scene_summary
+from depthgt.jobs.common import logging_to
+from depthgt.jobs.gt import run_scene_summary
 
 with logging_to(snakemake.log[0]):
     run_scene_summary(snakemake.input.index, list(snakemake.input.framesets), snakemake.output.framesets,

@@ -1,8 +1,8 @@
-from pathlib import Path
-
-from depthgt.jobs.gt import logging_to
+from depthgt.jobs.common import logging_to
 from depthgt.jobs.enhance import run_train
 
 with logging_to(snakemake.log[0]):
-    run_train(snakemake.params.settings, snakemake.input.train, snakemake.input.val,
-              str(Path(snakemake.output.best).parent), threads=snakemake.threads)
+    outputs = {"best": snakemake.output.best, "last": snakemake.output.last, "log": snakemake.output.log,
+               "meta": snakemake.output.meta}
+    run_train(snakemake.wildcards.model, snakemake.params.config, snakemake.input.train, snakemake.input.val, outputs,
+              threads=snakemake.threads)

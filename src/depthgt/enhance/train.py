@@ -1,22 +1,22 @@
 """Training and inference of the depth-enhancement networks (small step functions).
 
-A model is chosen by name from :data:`MODELS` (``lapden``, ``ddrnet``, ``sdd``); each
-entry pairs a builder (plain keyword parameters -> ``nn.Module``) with its loss
+A model is chosen by name from :data:`MODELS` (``lapden``, ``ddrnet``, ``sdd``: the
+``builder`` names of the learned methods of :mod:`depthgt.registry`); each entry pairs a builder (plain keyword parameters -> ``nn.Module``) with its loss
 (``loss(outputs, batch, **loss_params) -> (total, terms)``, see
 :mod:`depthgt.enhance.losses`). Every model maps depth (B, 1, H, W) metres to a list
 of depth maps, finest last.
 
 :func:`train` reads the patch manifests (``results/dataset/{train,val}.parquet``: one
 row per kept patch pair with ``path`` (the ``patches.npz``) and ``patch`` (its index
-there)), trains with Adam and random flips, validates each epoch and writes to
-``out_dir``::
+there)), trains with Adam and random flips, validates each epoch and writes the files
+of :class:`TrainOutputs` (in the workflow: ``results/models/{model}/``)::
 
-    last.pt        model + optimiser state after the last finished epoch (resume point)
-    best.pt        the checkpoint with the lowest validation loss
-    loss_log.csv   epoch, split, loss terms, batches, seconds
-    train.json     resolved settings, parameter count, best epoch, versions
+    last           model + optimiser state after the last finished epoch (resume point)
+    best           the checkpoint with the lowest validation loss
+    log            loss_log.csv: epoch, split, loss terms, batches, seconds
+    meta           train.json: resolved settings, parameter count, best epoch, versions
 
-An interrupted run resumes from ``last.pt``; with the same seed it ends with the same
+An interrupted run resumes from ``last``; with the same seed it ends with the same
 weights as an uninterrupted one (the shuffling and flips of epoch e depend only on
 ``(seed, e)``).
 """
@@ -26,12 +26,11 @@ from __future__ import annotations
 import csv
 import json
 import logging
-import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from functools import partial
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -39,12 +38,14 @@ import torch
 import torch.nn as nn
 from torch.utils.data import Dataset
 
+from depthgt.atomic import write_atomic
+from depthgt.device import resolve_device
 from depthgt.errors import ConfigError
+from depthgt.settings import TrainSettings
 
 __all__ = [
-    "TrainSettings",
-    "settings_from_dict",
     "MODELS",
+    "TrainOutputs",
     "build_model",
     "build_loss",
     "PatchDataset",
@@ -126,71 +127,19 @@ def build_loss(name: str, params: dict | None = None) -> Callable:
     return partial(MODELS[name][1], **(params or {}))
 
 
-@dataclass(frozen=True)
-class TrainSettings:
-    """Settings of one training run.
+class TrainOutputs(NamedTuple):
+    """The files a training run writes (every path given by the caller)."""
 
-    Attributes:
-        model: name in :data:`MODELS`.
-        model_params: keyword arguments of the builder (``lapden``: ``preset`` and
-            LapDENConfig overrides).
-        loss_params: keyword arguments of the model's loss (``lapden``: LossConfig fields).
-        epochs: number of epochs; batch_size: patches per step; lr: Adam learning rate.
-        weight_decay: Adam weight decay.
-        seed: seeds the initial weights, the shuffling and the flips.
-        flips: random horizontal and vertical flips (intrinsics flipped too).
-        max_batches_per_epoch: cap on training steps per epoch (None: all).
-        device: "auto" (CUDA when available), "cpu" or "cuda".
-        progress: show a tqdm bar per epoch.
-    """
+    best: Path
+    last: Path
+    log: Path
+    meta: Path
 
-    model: str = "lapden"
-    model_params: dict = field(default_factory=lambda: {"preset": "default"})
-    loss_params: dict = field(default_factory=dict)
-    epochs: int = 10
-    batch_size: int = 16
-    lr: float = 1e-4
-    weight_decay: float = 0.0
-    seed: int = 0
-    flips: bool = True
-    max_batches_per_epoch: int | None = None
-    device: str = "auto"
-    progress: bool = True
-
-    def __post_init__(self):
-        if self.model not in MODELS:
-            raise ConfigError(f"train.model: unknown model {self.model!r}; known: {sorted(MODELS)}")
-        for key in ("epochs", "batch_size"):
-            if int(getattr(self, key)) < 1:
-                raise ConfigError(f"train.{key} must be >= 1, got {getattr(self, key)}")
-        if self.lr <= 0:
-            raise ConfigError(f"train.lr must be > 0, got {self.lr}")
-        if self.device not in ("auto", "cpu", "cuda"):
-            raise ConfigError(f"train.device must be auto, cpu or cuda, got {self.device!r}")
-
-    def identity(self) -> dict:
-        """The settings that define the result (a resumed run must match them)."""
-        d = asdict(self)
-        for key in ("epochs", "progress", "device"):
-            d.pop(key)
-        return json.loads(json.dumps(d))
-
-
-def settings_from_dict(d: dict | None) -> TrainSettings:
-    """:class:`TrainSettings` from a (validated) config mapping; unknown keys raise
-    :class:`ConfigError` naming them."""
-    d = dict(d or {})
-    known = set(TrainSettings.__dataclass_fields__)
-    unknown = sorted(set(d) - known)
-    if unknown:
-        raise ConfigError(f"train: unknown keys {unknown}; known: {sorted(known)}")
-    return TrainSettings(**d)
-
-
-def _device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
+    @classmethod
+    def in_dir(cls, out_dir: str | Path) -> "TrainOutputs":
+        """``best.pt``, ``last.pt``, ``loss_log.csv`` and ``train.json`` in ``out_dir``."""
+        d = Path(out_dir)
+        return cls(d / "best.pt", d / "last.pt", d / "loss_log.csv", d / "train.json")
 
 
 # --------------------------------------------------------------------------- data
@@ -365,9 +314,7 @@ def evaluate(model: nn.Module, loss_fn: Callable, dataset: Dataset, batch_size: 
 
 
 def _save_atomic(obj: dict, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    write_atomic(path, lambda tmp: torch.save(obj, tmp))
 
 
 def _read_log(path: Path, upto_epoch: int) -> list[dict]:
@@ -378,13 +325,14 @@ def _read_log(path: Path, upto_epoch: int) -> list[dict]:
 
 
 def _write_log(path: Path, rows: list[dict]) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=LOG_COLUMNS, extrasaction="ignore")
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: r.get(k, "") for k in LOG_COLUMNS})
-    os.replace(tmp, path)
+    def write(tmp: Path) -> None:
+        with tmp.open("w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=LOG_COLUMNS, extrasaction="ignore")
+            w.writeheader()
+            for r in rows:
+                w.writerow({k: r.get(k, "") for k in LOG_COLUMNS})
+
+    write_atomic(path, write)
 
 
 def _log_row(epoch: int, split: str, terms: dict) -> dict:
@@ -396,14 +344,14 @@ def _log_row(epoch: int, split: str, terms: dict) -> dict:
 
 
 def train(manifest_train: str | Path | pd.DataFrame, manifest_val: str | Path | pd.DataFrame | None,
-          out_dir: str | Path, settings: TrainSettings = TrainSettings(),
+          out: TrainOutputs, settings: TrainSettings = TrainSettings(),
           model: nn.Module | None = None, loss_fn: Callable | None = None) -> dict:
     """Train a depth-enhancement model on the patch manifests, resuming if possible.
 
     Args:
         manifest_train, manifest_val: parquet paths (or DataFrames) of the splits;
             ``manifest_val`` may be None or empty (then the last epoch is the best).
-        out_dir: where ``last.pt``, ``best.pt``, ``loss_log.csv``, ``train.json`` go.
+        out: the output files (:class:`TrainOutputs`; ``TrainOutputs.in_dir(d)`` for one folder).
         settings: :class:`TrainSettings`.
         model, loss_fn: override the model and loss built from ``settings`` (then the
             checkpoint stores ``settings.model``/``model_params`` for :func:`load_model`,
@@ -413,9 +361,10 @@ def train(manifest_train: str | Path | pd.DataFrame, manifest_val: str | Path | 
         dict with ``best`` and ``last`` checkpoint paths, ``best_epoch``,
         ``best_val`` (validation total), ``log`` (CSV path), ``epochs_run``.
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    device = _device(settings.device)
+    out = TrainOutputs(*(Path(p) for p in out))
+    for p in out:
+        p.parent.mkdir(parents=True, exist_ok=True)
+    device = resolve_device(settings.device)
     train_set = PatchDataset(manifest_train)
     if len(train_set) == 0:
         raise ValueError(f"training manifest {manifest_train}: no patch pairs")
@@ -431,14 +380,14 @@ def train(manifest_train: str | Path | pd.DataFrame, manifest_val: str | Path | 
         loss_fn = build_loss(settings.model, settings.loss_params)
     optimizer = torch.optim.Adam(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
 
-    last_path, best_path, log_path = out / "last.pt", out / "best.pt", out / "loss_log.csv"
+    last_path, best_path, log_path = out.last, out.best, out.log
     start, best_val, best_epoch = 0, float("inf"), -1
     if last_path.is_file():
         ckpt = torch.load(last_path, map_location=device, weights_only=False)
         if ckpt["identity"] != settings.identity():
             diff = sorted(k for k in settings.identity() if ckpt["identity"].get(k) != settings.identity()[k])
             raise ConfigError(f"{last_path}: checkpoint was trained with other settings ({diff}); "
-                              f"remove {out} or restore the settings")
+                              f"remove {out.last} (and {out.best}) or restore the settings")
         model.load_state_dict(ckpt["model_state"])
         optimizer.load_state_dict(ckpt["optimizer_state"])
         start, best_val, best_epoch = ckpt["epoch"] + 1, ckpt["best_val"], ckpt["best_epoch"]
@@ -478,7 +427,7 @@ def train(manifest_train: str | Path | pd.DataFrame, manifest_val: str | Path | 
     meta = {"settings": {**asdict(settings)}, "parameters": n_params, "best_epoch": best_epoch, "best_val": best_val,
             "train_pairs": len(train_set), "val_pairs": len(val_set) if val_set is not None else 0,
             "versions": {"torch": torch.__version__, "numpy": np.__version__}, "device": str(device)}
-    (out / "train.json").write_text(json.dumps(meta, indent=2, sort_keys=True, default=str) + "\n")
+    out.meta.write_text(json.dumps(meta, indent=2, sort_keys=True, default=str) + "\n")
     return result
 
 

@@ -10,7 +10,7 @@ A method is a mapping ``{"baseline": name, "params": {...}}`` (a baseline of
 {"checkpoint": ".../best.pt"}}``) or ``{"image": "gt"}`` (an image of the frame set
 taken as the prediction, e.g. the GT itself against the input for Table 1).
 :func:`evaluate_frames` runs every method on every frame and returns a tidy long
-table.
+table; it is what the workflow runs (one method per job).
 """
 
 from __future__ import annotations
@@ -18,15 +18,15 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 import pandas as pd
 
 from depthgt.enhance.baselines import run_baseline
-from depthgt.eval.metrics import METRIC_UNITS, depth_metrics
+from depthgt.eval.metrics import depth_metrics, unit_of
 
-__all__ = ["load_frame", "run_method", "evaluate_frames", "EVAL_COLUMNS"]
+__all__ = ["load_frame", "run_method", "method_spec", "evaluate_frames", "EVAL_COLUMNS"]
 
 log = logging.getLogger(__name__)
 
@@ -72,53 +72,83 @@ def run_method(method: Mapping, frame: Mapping[str, np.ndarray | None]) -> np.nd
     return run_baseline(method["baseline"], frame["input"], frame["rgb"], **dict(method.get("params", {})))
 
 
-def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Mapping], reference: str = "gt",
-                    split: str | None = "test", save_dir: str | Path | None = None) -> pd.DataFrame:
-    """Run every method on every frame set and score it against ``reference``.
+def method_spec(name: str, checkpoint: str | Path | None = None, device: str | None = None) -> dict:
+    """The method mapping of a registry method (:mod:`depthgt.registry`): its baseline,
+    and for a learned one the trained ``checkpoint`` and the ``device`` to run it on."""
+    from depthgt import registry
+
+    if name not in registry.METHODS:
+        raise ValueError(f"unknown method {name!r}; known: {', '.join(registry.METHODS)}")
+    m = registry.METHODS[name]
+    if m.kind != "learned":
+        return {"baseline": m.baseline}
+    if checkpoint is None:
+        raise ValueError(f"method {name!r} is learned: it needs the checkpoint of its trained model")
+    params = {"checkpoint": str(checkpoint)}
+    if device is not None:
+        params["device"] = device
+    return {"baseline": m.baseline, "params": params}
+
+
+def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Mapping],
+                    references: Sequence[str] = ("gt", "truth"), split: str | None = "test",
+                    pred_dirs: Mapping[str, str | Path] | None = None) -> pd.DataFrame:
+    """Run every method on every frame set and score it against each reference.
+
+    The one evaluation of the project: the workflow's ``evaluate_method`` job calls it
+    with one method.
 
     Args:
         frames: the frame-level table (or its parquet path) with ``dataset``,
             ``scene``, ``target``, ``frameset_dir`` and optionally ``split`` and
-            ``status`` (only "ok" rows are used when present).
-        methods: name -> method mapping (see module docstring).
-        reference: ``gt``, ``truth`` or ``input``; frames without it are skipped
-            (logged), e.g. real frames when the reference is ``truth``.
+            ``status`` (only "ok" rows with a frame-set folder are used when present).
+        methods: name -> method mapping (see module docstring; :func:`method_spec`).
+        references: images scored against, among ``gt``, ``truth`` and ``input``; a
+            frame without one (e.g. a real frame and ``truth``) is not scored against it.
         split: keep only this split (None: all rows).
-        save_dir: if given, each prediction is saved as
-            ``{save_dir}/{method}/{dataset}/{scene}/{target:06d}.npy`` (float32 m) for figures.
+        pred_dirs: method name -> folder; each prediction is saved as
+            ``{pred_dirs[name]}/{dataset}/{scene}/{target:06d}.npy`` (float32 m) for the
+            figures. Methods not in it are not saved.
 
     Returns:
         Long table with columns :data:`EVAL_COLUMNS` (metrics of
-        :func:`depthgt.eval.metrics.depth_metrics`, plus ``seconds`` per frame).
+        :func:`depthgt.eval.metrics.depth_metrics`, units of
+        :data:`depthgt.eval.metrics.METRIC_UNITS`), rows by frame, method, reference.
     """
     table = frames if isinstance(frames, pd.DataFrame) else pd.read_parquet(frames)
     missing = {"dataset", "scene", "target", "frameset_dir"} - set(table.columns)
     if missing:
         raise ValueError(f"frame table {frames if not isinstance(frames, pd.DataFrame) else ''}: missing columns {sorted(missing)}")
-    if reference not in ("gt", "truth", "input"):
-        raise ValueError(f"reference must be gt, truth or input, got {reference!r}")
+    bad = [r for r in references if r not in ("gt", "truth", "input")]
+    if bad or not references:
+        raise ValueError(f"reference must be gt, truth or input, got {list(references)}")
     if split is not None and "split" in table.columns:
         table = table[table["split"] == split]
     if "status" in table.columns:
         table = table[table["status"] == "ok"]
+    table = table[table["frameset_dir"] != ""]
+    pred_dirs = dict(pred_dirs or {})
     rows = []
+    seconds = {name: 0.0 for name in methods}
     for rec in table.itertuples():
         frame = load_frame(rec.frameset_dir)
-        ref = frame[reference]
-        if ref is None:
-            log.info("%s: no %s image, skipped", rec.frameset_dir, reference)
+        refs = [r for r in references if frame[r] is not None]
+        if not refs:
+            log.info("%s: none of the references %s, skipped", rec.frameset_dir, list(references))
             continue
         for name, method in methods.items():
             t0 = time.perf_counter()
             pred = run_method(method, frame)
-            seconds = time.perf_counter() - t0
-            if save_dir is not None:
-                out = Path(save_dir) / name / str(rec.dataset) / str(rec.scene) / f"{int(rec.target):06d}.npy"
+            seconds[name] += time.perf_counter() - t0
+            if name in pred_dirs:
+                out = Path(pred_dirs[name]) / str(rec.dataset) / str(rec.scene) / f"{int(rec.target):06d}.npy"
                 out.parent.mkdir(parents=True, exist_ok=True)
                 np.save(out, pred.astype(np.float32))
-            values = {**depth_metrics(pred, ref), "seconds": seconds}
-            for metric, value in values.items():
-                rows.append({"dataset": rec.dataset, "scene": rec.scene, "target": int(rec.target), "method": name,
-                             "reference": reference, "metric": metric, "unit": METRIC_UNITS.get(metric, "s"),
-                             "value": float(value)})
+            for reference in refs:
+                for metric, value in depth_metrics(pred, frame[reference]).items():
+                    rows.append({"dataset": rec.dataset, "scene": rec.scene, "target": int(rec.target), "method": name,
+                                 "reference": reference, "metric": metric, "unit": unit_of(metric), "value": float(value)})
+    for name, s in seconds.items():
+        log.info("method %s: %.2f s on %d frame sets (wall clock, not in the table: results stay deterministic)",
+                 name, s, len(table))
     return pd.DataFrame(rows, columns=EVAL_COLUMNS)

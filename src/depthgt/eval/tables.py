@@ -23,8 +23,9 @@ from typing import Mapping
 import numpy as np
 import pandas as pd
 
+from depthgt import registry
+
 __all__ = [
-    "METHOD_LABELS",
     "COLUMN_LABELS",
     "gt_vs_input_long",
     "rde_quality_long",
@@ -40,32 +41,18 @@ __all__ = [
     "GT_QUALITY_CAPTION",
 ]
 
-METHOD_ORDER = ["input", "rgf", "jf", "ddrnet", "sdd", "rde", "lapden"]
-METHOD_LABELS = {
-    "input": "Input (raw depth)",
-    "rgf": "RGF",
-    "jf": "JF",
-    "ddrnet": "DDRNet (denoising net)",
-    "sdd": "SDD (single-view depth terms)",
-    "rde": "RDE (LapDEN on TSDF GT)",
-    "lapden": "LapDEN (depthgt GT)",
-}
 # metric -> column header with its unit
 COLUMN_LABELS = {
     "ssim": "SSIM (unitless)",
     "rmse_m": "RMSE (m)",
     "mae_m": "MAE (m)",
-    "rmse_fill_m": "RMSE, missing counted (m)",
-    "mae_fill_m": "MAE, missing counted (m)",
+    "rmse_missing_counted_m": "RMSE, missing counted (m)",
+    "mae_missing_counted_m": "MAE, missing counted (m)",
     "completeness": "completeness (fraction)",
     "ls": "L_S (m^2/px^2)",
-    "mae_valid": "MAE (m)",
-    "rmse_valid": "RMSE (m)",
-    "mae_missing_counted": "MAE, missing counted (m)",
-    "rmse_missing_counted": "RMSE, missing counted (m)",
 }
-METHOD_METRICS = ["ssim", "rmse_m", "mae_m", "rmse_fill_m", "mae_fill_m", "completeness"]
-QUALITY_METRICS = ["mae_valid", "rmse_valid", "mae_missing_counted", "rmse_missing_counted", "completeness"]
+METHOD_METRICS = ["ssim", "rmse_m", "mae_m", "rmse_missing_counted_m", "mae_missing_counted_m", "completeness"]
+QUALITY_METRICS = ["mae_m", "rmse_m", "mae_missing_counted_m", "rmse_missing_counted_m", "completeness"]
 GT_LABELS = {"gt": "depthgt GT (local frame set)", "rde": "global reconstruction GT (TSDF)",
              "input": "input (raw depth)"}
 
@@ -107,7 +94,7 @@ def gt_vs_input_long(framesets: pd.DataFrame, rde_framesets: pd.DataFrame | None
         columns dataset, scene, target, gt (``gt`` | ``rde``), metric, unit, value.
     """
     from depthgt import io
-    from depthgt.eval.metrics import METRIC_UNITS, ls_distance, ssim_depth
+    from depthgt.eval.metrics import ls_distance, ssim_depth, unit_of
 
     jobs = []
     for rec in framesets[(framesets["status"] == "ok") & (framesets["frameset_dir"] != "")].itertuples():
@@ -121,7 +108,7 @@ def gt_vs_input_long(framesets: pd.DataFrame, rde_framesets: pd.DataFrame | None
         inp = io.read_exr(Path(fs_dir) / "input.exr")["Z"]
         for metric, value in (("ssim", ssim_depth(gt, inp)), ("ls", ls_distance(gt, inp))):
             rows.append({"dataset": dataset, "scene": scene, "target": target, "gt": which, "metric": metric,
-                         "unit": METRIC_UNITS[metric], "value": float(value)})
+                         "unit": unit_of(metric), "value": float(value)})
     return pd.DataFrame(rows, columns=["dataset", "scene", "target", "gt", "metric", "unit", "value"])
 
 
@@ -135,9 +122,8 @@ def rde_quality_long(rde_framesets: pd.DataFrame) -> pd.DataFrame:
     for rec in ok.itertuples():
         st = json.loads((Path(rec.rde_dir) / "frameset.json").read_text())["statistics"]
         for metric, value in st.get("rde_vs_truth", {}).items():
-            unit = "m" if metric.startswith(("mae", "rmse")) else ("fraction" if metric == "completeness" else "pixels")
             rows.append({"dataset": rec.dataset, "scene": rec.scene, "estimate": "rde", "reference": "truth",
-                         "metric": metric, "unit": unit, "value": float(value)})
+                         "metric": metric, "unit": unit_of(metric), "value": float(value)})
     cols = ["dataset", "scene", "estimate", "reference", "metric", "unit", "value"]
     long = pd.DataFrame(rows, columns=cols)
     if long.empty:
@@ -146,7 +132,8 @@ def rde_quality_long(rde_framesets: pd.DataFrame) -> pd.DataFrame:
 
 
 def _ordered(methods) -> list[str]:
-    known = [m for m in METHOD_ORDER if m in set(methods)]
+    """Registry order (:data:`depthgt.registry.METHODS`), unregistered names last."""
+    known = [m for m in registry.METHODS if m in set(methods)]
     return known + sorted(set(methods) - set(known))
 
 
@@ -168,7 +155,7 @@ def method_table(ev: pd.DataFrame, datasets: list[str], reference: str, note: st
     wide = wide.join(frames).reset_index()
     wide["_order"] = wide["method"].map({m: i for i, m in enumerate(_ordered(wide["method"]))})
     wide = wide.sort_values(["dataset", "_order"]).drop(columns="_order")
-    wide["method"] = wide["method"].map(lambda m: METHOD_LABELS.get(m, m))
+    wide["method"] = wide["method"].map(registry.label)
     wide = wide.rename(columns=COLUMN_LABELS)
     for c in cols:
         if c not in wide.columns:
@@ -228,12 +215,13 @@ def table_gt_quality(quality: pd.DataFrame, rde_quality: pd.DataFrame | None = N
     return wide[cols].reset_index(drop=True)
 
 
-def write_table(table: pd.DataFrame, stem: str | Path, caption: str, digits: int = 4) -> tuple[Path, Path]:
-    """Write ``{stem}.csv`` (full precision) and ``{stem}.md`` (caption, then the table
-    with ``digits`` significant digits). Returns both paths."""
-    stem = Path(stem)
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    csv_path, md_path = stem.with_suffix(".csv"), stem.with_suffix(".md")
+def write_table(table: pd.DataFrame, csv_path: str | Path, md_path: str | Path, caption: str,
+                digits: int = 4) -> tuple[Path, Path]:
+    """Write ``csv_path`` (full precision) and ``md_path`` (caption, then the table with
+    ``digits`` significant digits). Returns both paths."""
+    csv_path, md_path = Path(csv_path), Path(md_path)
+    for p in (csv_path, md_path):
+        p.parent.mkdir(parents=True, exist_ok=True)
     table.to_csv(csv_path, index=False)
     md = table.to_markdown(index=False, floatfmt=f".{digits}g")
     md_path.write_text(f"{caption}\n\n{md}\n")

@@ -5,18 +5,21 @@
   row per drawn patch (kept or rejected, with missing ratios).
 * :func:`assemble` concatenates the scenes into ``{train,val,test}.parquet`` (one row
   per kept patch pair), ``framesets.parquet`` (one row per frame set, for full-frame
-  evaluation), a summary and the GT quality table.
+  evaluation), a summary and the GT quality table (units from
+  :data:`depthgt.eval.metrics.METRIC_UNITS`).
 """
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
 
-from depthgt.gt.framesets import SPLITS
+from depthgt.eval.metrics import unit_of
+from depthgt.settings import SPLITS
 
 FRAMESET_COLUMNS = ["dataset", "scene", "target", "frame_id", "split", "status", "reason", "frameset_dir", "has_truth",
                     "patches_drawn", "patches_kept", "input_missing", "gt_missing"]
@@ -70,39 +73,64 @@ def summarize_scene(index_parquet: str | Path, frameset_dirs: list[str | Path]) 
                 if key not in st:
                     continue
                 for metric, value in st[key].items():
-                    unit = "m" if metric.startswith(("mae", "rmse")) else ("fraction" if metric == "completeness" else "pixels")
                     quality.append({"dataset": dataset, "scene": scene, "target": target, "split": doc["split"],
-                                    "estimate": estimate, "reference": reference, "metric": metric, "unit": unit,
-                                    "value": float(value)})
+                                    "estimate": estimate, "reference": reference, "metric": metric,
+                                    "unit": unit_of(metric), "value": float(value)})
         rows.append(row)
     return (pd.DataFrame(rows, columns=FRAMESET_COLUMNS), pd.DataFrame(patch_rows, columns=PATCH_COLUMNS),
             pd.DataFrame(quality, columns=["dataset", "scene", "target", "split", "estimate", "reference", "metric", "unit", "value"]))
 
 
-def assemble(scene_dirs: list[str | Path], out_dir: str | Path) -> dict:
-    """Write the dataset manifests from the per-scene summaries in ``scene_dirs``.
+class DatasetOutputs(NamedTuple):
+    """The files of the dataset assembly (``results/dataset/`` in the workflow)."""
 
-    Each scene dir holds ``framesets.parquet``, ``patches.parquet``, ``quality.parquet``
-    and ``index.json``. Returns the summary dict (also written as summary.json/.md).
+    train: Path
+    val: Path
+    test: Path
+    framesets: Path
+    summary: Path
+    summary_md: Path
+    quality: Path
+
+    @classmethod
+    def in_dir(cls, out_dir: str | Path) -> "DatasetOutputs":
+        d = Path(out_dir)
+        return cls(d / "train.parquet", d / "val.parquet", d / "test.parquet", d / "framesets.parquet", d / "summary.json",
+                   d / "summary.md", d / "gt_quality.csv")
+
+
+def assemble(scene_framesets: list[str | Path], scene_patches: list[str | Path], scene_quality: list[str | Path],
+             index_jsons: list[str | Path], out: DatasetOutputs) -> dict:
+    """Write the dataset manifests from the per-scene summaries.
+
+    Args:
+        scene_framesets, scene_patches, scene_quality: the per-scene tables of
+            :func:`summarize_scene` (parquet paths).
+        index_jsons: the scenes' ``index.json`` (frame counts and scene problems).
+        out: the output paths (:class:`DatasetOutputs`).
+
+    Returns:
+        The summary dict (also written as summary.json/.md).
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    fs = _concat([Path(d) / "framesets.parquet" for d in scene_dirs], FRAMESET_COLUMNS)
-    patches = _concat([Path(d) / "patches.parquet" for d in scene_dirs], PATCH_COLUMNS)
-    quality = _concat([Path(d) / "quality.parquet" for d in scene_dirs], None)
-    metas = [json.loads((Path(d) / "index.json").read_text()) for d in scene_dirs]
+    out = DatasetOutputs(*(Path(p) for p in out))
+    for p in out:
+        p.parent.mkdir(parents=True, exist_ok=True)
+    fs = _concat([Path(p) for p in scene_framesets], FRAMESET_COLUMNS)
+    patches = _concat([Path(p) for p in scene_patches], PATCH_COLUMNS)
+    quality = _concat([Path(p) for p in scene_quality], None)
+    metas = [json.loads(Path(p).read_text()) for p in index_jsons]
 
     kept = patches[patches["kept"]].reset_index(drop=True)
     for split in SPLITS:
-        kept[kept["split"] == split].reset_index(drop=True).to_parquet(out / f"{split}.parquet", index=False)
-    fs.to_parquet(out / "framesets.parquet", index=False)
+        kept[kept["split"] == split].reset_index(drop=True).to_parquet(getattr(out, split), index=False)
+    fs.to_parquet(out.framesets, index=False)
 
     if len(quality):
         per_scene = (quality.groupby(["dataset", "scene", "estimate", "reference", "metric", "unit"], as_index=False)["value"]
                      .mean())
     else:
         per_scene = pd.DataFrame(columns=["dataset", "scene", "estimate", "reference", "metric", "unit", "value"])
-    per_scene.to_csv(out / "gt_quality.csv", index=False)
+    per_scene.to_csv(out.quality, index=False)
 
     summary = {
         "pairs": {s: int((kept["split"] == s).sum()) for s in SPLITS},
@@ -117,8 +145,8 @@ def assemble(scene_dirs: list[str | Path], out_dir: str | Path) -> dict:
         "scene_problems": [{"dataset": m["dataset"], "scene": m["scene"], "problem": p} for m in metas for p in m["problems"]],
         "frames_skipped": int(sum(m["n_frames"] - m["n_valid_frames"] for m in metas)),
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
-    (out / "summary.md").write_text(_summary_md(summary, per_scene))
+    out.summary.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    out.summary_md.write_text(_summary_md(summary, per_scene))
     return summary
 
 
@@ -144,7 +172,7 @@ def _summary_md(summary: dict, quality: pd.DataFrame) -> str:
     if summary["scene_problems"]:
         lines += ["Scene problems:", ""] + [f"- {p['dataset']}/{p['scene']}: {p['problem']}" for p in summary["scene_problems"]] + [""]
     if len(quality):
-        table = quality[quality["metric"].isin(["mae_valid", "mae_missing_counted", "rmse_valid", "completeness"])]
+        table = quality[quality["metric"].isin(["mae_m", "mae_missing_counted_m", "rmse_m", "completeness"])]
         wide = table.pivot_table(index=["dataset", "estimate", "reference"], columns="metric", values="value", aggfunc="mean")
         lines += ["## GT quality (mean over scenes; metres, completeness as a fraction)", "", wide.round(4).to_markdown(), ""]
     return "\n".join(lines)

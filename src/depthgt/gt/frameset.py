@@ -1,68 +1,57 @@
-"""The per-frame-set job: load -> resize -> align -> render GT -> patches -> write.
+"""One frame set: load -> align -> render GT -> quality -> patches -> write.
 
-``process_frameset`` reads like the algorithm; each step is a small function on
-tensors that the tests call on their own. Outputs (DESIGN.md layout) are written
-atomically (temporary name, then rename) so that a killed job leaves no half file.
+:func:`process_frameset` reads like the algorithm; each step is a small function that
+the tests call on their own. Outputs (DESIGN.md layout, every path given by the caller
+in :class:`FrameSetOutputs`) are written atomically (:func:`depthgt.atomic.write_atomic`)
+so that a killed job leaves no half file.
 """
 
 from __future__ import annotations
 
 import logging
-import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
 from depthgt import geometry, io
-from depthgt.errors import ConfigError, FrameError
-from depthgt.gt.framesets import FrameSetSettings, stable_seed
-from depthgt.gt.patches import PatchSettings, make_patches
-from depthgt.quality import error_stats
-from depthgt.gt.render import GTRender, GTRenderSettings, cloud_in_target, render_gt
+from depthgt.atomic import save_npz, write_atomic
+from depthgt.device import resolve_device
+from depthgt.errors import FrameError
+from depthgt.eval.metrics import METRIC_UNITS, depth_errors
+from depthgt.gt.framesets import stable_seed
+from depthgt.gt.patches import make_patches
+from depthgt.gt.render import GTRender, cloud_in_target, render_gt
+from depthgt.settings import RegistrationSettings, RenderSettings, Settings
 from depthgt.sources.base import Scene, check_frame
+
+__all__ = ["FrameSetData", "FrameSetOutputs", "Alignment", "load_frameset", "poses_from_source", "align", "fuse",
+           "quality_statistics", "process_frameset"]
 
 log = logging.getLogger(__name__)
 
-OUTPUT_FILES = ("gt.exr", "input.exr", "rgb.png", "poses.json", "patches.npz", "frameset.json")
+
+class FrameSetOutputs(NamedTuple):
+    """The files of one frame set (DESIGN.md output layout)."""
+
+    gt: Path
+    input: Path
+    rgb: Path
+    poses: Path
+    patches: Path
+    meta: Path
+
+    @classmethod
+    def in_dir(cls, out_dir: str | Path) -> "FrameSetOutputs":
+        """The standard names (``gt.exr`` ... ``frameset.json``) in ``out_dir``."""
+        d = Path(out_dir)
+        return cls(d / "gt.exr", d / "input.exr", d / "rgb.png", d / "poses.json", d / "patches.npz", d / "frameset.json")
 
 
-def resolve_device(name: str = "auto") -> torch.device:
-    """``auto`` -> CUDA when available, else CPU; ``cuda`` without a GPU is an error."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError("config device: cuda was asked for but no CUDA device is available")
-    return torch.device(name)
-
-
-@dataclass(frozen=True)
-class JobSettings:
-    """Everything a frame-set job needs besides the scene (built from the config)."""
-
-    size_hw: tuple[int, int] = (256, 256)
-    frameset: FrameSetSettings = field(default_factory=FrameSetSettings)
-    patches: PatchSettings = field(default_factory=PatchSettings)
-    render: GTRenderSettings = field(default_factory=GTRenderSettings)
-    registration_method: str = "given"
-    registration: dict = field(default_factory=dict)
-    registration_on_failure: str = "drop_neighbours"
-    seed: int = 0
-    device: str = "auto"
-
-    def __post_init__(self):
-        if self.registration_on_failure not in ON_FAILURE:
-            raise ConfigError(f"registration.on_failure must be one of {', '.join(ON_FAILURE)}, "
-                              f"got {self.registration_on_failure!r}")
-
-
-# What a frame set with failed neighbours becomes (registration.on_failure): rendered
-# from the neighbours that did register, or excluded from the dataset. A set where
-# fewer than min_ok_fraction of the neighbours registered is excluded either way.
-ON_FAILURE = ("drop_neighbours", "exclude")
+OUTPUT_FILES = tuple(p.name for p in FrameSetOutputs.in_dir("."))
 
 
 @dataclass
@@ -88,8 +77,14 @@ class FrameSetData:
     src_hw: tuple[int, int] | None = None
 
 
-def load_frameset(scene: Scene, members: list[int], size_hw: tuple[int, int], need_poses: bool, device: torch.device) -> FrameSetData:
-    """Read the member frames and bring them to ``size_hw``.
+def load_frameset(scene: Scene, members: list[int], size_hw: tuple[int, int], need_poses: bool,
+                  device: torch.device) -> FrameSetData:
+    """Read the member frames of any :class:`~depthgt.sources.base.Scene` and bring them
+    to ``size_hw`` (depth nearest/valid-aware, colour area-averaged, intrinsics scaled).
+
+    A scene whose frames already have the working size (the frame cache,
+    :class:`depthgt.gt.cache.CachedScene`) is not resized again; it tells the size of
+    the images it was resized from by ``source_size``.
 
     Raises:
         FrameError: a member frame is unusable (it was valid when the index was built
@@ -99,44 +94,31 @@ def load_frameset(scene: Scene, members: list[int], size_hw: tuple[int, int], ne
     for m in members:
         where = f"{scene.name} frame {scene.frame_id(m)}"
         frames.append(check_frame(scene.read(m), scene.image_size, where, need_pose=need_poses))
-    depth = torch.from_numpy(np.stack([f.depth_m for f in frames]))[:, None].to(device)
+    size_hw = (int(size_hw[0]), int(size_hw[1]))
+    same = tuple(scene.image_size) == size_hw
+
+    def depth_at_size(arrays: list[np.ndarray]) -> torch.Tensor:
+        d = torch.from_numpy(np.stack(arrays))[:, None].to(device)
+        return d if same else geometry.resize_depth_nearest(d, size_hw)
+
     rgb = torch.from_numpy(np.stack([f.rgb for f in frames])).permute(0, 3, 1, 2).to(device).float() / 255.0
     truth = None
     if all(f.clean_depth_m is not None for f in frames):
-        truth = geometry.resize_depth_nearest(torch.from_numpy(np.stack([f.clean_depth_m for f in frames]))[:, None].to(device), size_hw)
+        truth = depth_at_size([f.clean_depth_m for f in frames])
     poses = None
     if all(f.T_world_cam is not None for f in frames) and all(np.isfinite(f.T_world_cam).all() for f in frames):
         poses = torch.from_numpy(np.stack([f.T_world_cam for f in frames])).to(device)
-    K = torch.as_tensor(geometry.scale_intrinsics(np.asarray(scene.intrinsics, dtype=np.float64), scene.image_size, size_hw), device=device)
+    K = np.asarray(scene.intrinsics, dtype=np.float64)
+    if not same:
+        K = geometry.scale_intrinsics(K, scene.image_size, size_hw)
     return FrameSetData(
-        rgb=geometry.resize_rgb(rgb, size_hw),
-        depth_m=geometry.resize_depth_nearest(depth, size_hw),
-        K=K,
+        rgb=rgb if same else geometry.resize_rgb(rgb, size_hw),
+        depth_m=depth_at_size([f.depth_m for f in frames]),
+        K=torch.as_tensor(K, device=device),
         T_world_cam=poses,
         truth_m=truth,
         frame_ids=[scene.frame_id(m) for m in members],
-        src_hw=tuple(scene.image_size),
-    )
-
-
-def load_frameset_cached(cache_dir: str | Path, scene: Scene, members: list[int], size_hw: tuple[int, int],
-                         device: torch.device) -> FrameSetData:
-    """Same as :func:`load_frameset`, from the scene's frame cache (see depthgt.gt.cache)."""
-    from depthgt.gt.cache import read_cached
-
-    arr = read_cached(cache_dir, members)
-    if arr["depth"].shape[1:] != tuple(size_hw):
-        raise ValueError(f"frame cache {cache_dir} holds {arr['depth'].shape[1:]} frames, the job works at {tuple(size_hw)}")
-    poses = arr["poses"]
-    K = torch.as_tensor(geometry.scale_intrinsics(np.asarray(scene.intrinsics, dtype=np.float64), scene.image_size, size_hw), device=device)
-    return FrameSetData(
-        rgb=torch.from_numpy(arr["rgb"]).permute(0, 3, 1, 2).to(device).float() / 255.0,
-        depth_m=torch.from_numpy(arr["depth"])[:, None].to(device),
-        K=K,
-        T_world_cam=torch.from_numpy(poses).to(device) if np.isfinite(poses).all() else None,
-        truth_m=torch.from_numpy(arr["truth"])[:, None].to(device) if "truth" in arr else None,
-        frame_ids=[scene.frame_id(m) for m in members],
-        src_hw=tuple(scene.image_size),
+        src_hw=tuple(getattr(scene, "source_size", scene.image_size)),
     )
 
 
@@ -149,7 +131,53 @@ def poses_from_source(data: FrameSetData) -> torch.Tensor:
     return torch.linalg.inv(T[:1]) @ T[1:]
 
 
-def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: GTRenderSettings, depth_m: torch.Tensor | None = None,
+@dataclass
+class Alignment:
+    """The neighbours' poses in the target camera and what enters the GT.
+
+    Attributes:
+        T_j_to_t: (F-1, 4, 4) float64.
+        fused: positions of the members rendered into the GT (0 = the target).
+        status, reason: "ok" | "failed" and why.
+        info: the registration record written to poses.json.
+    """
+
+    T_j_to_t: torch.Tensor
+    fused: list[int]
+    status: str = "ok"
+    reason: str = ""
+    info: dict | None = None
+
+
+def align(data: FrameSetData, offsets: list[int], settings: RegistrationSettings, seed: int,
+          encoder_state: dict | None = None) -> Alignment:
+    """Poses of the neighbours in the target camera by ``settings.method``: the source's
+    (``given``) or the overfit registration (``overfit``). A neighbour that did not
+    register never enters the GT; with ``on_failure: exclude`` the set fails.
+
+    Args:
+        offsets: frame offsets of the members, ``offsets[0] == 0``.
+        seed: seed of the registration (initialisation, candidates, subsets).
+    """
+    info: dict[str, Any] = {"method": settings.method}
+    if settings.method == "given":
+        return Alignment(poses_from_source(data), list(range(len(offsets))), info=info)
+    from depthgt import registration  # torch-heavy; looked up at call time so tests can replace it
+
+    result = registration.register_frameset(data.rgb, data.depth_m, data.K, offsets, settings,
+                                            encoder_state=encoder_state, seed=seed)
+    T_j_to_t = torch.as_tensor(result.T_j_to_t, dtype=torch.float64, device=data.depth_m.device)
+    info.update(result.to_dict())
+    status, reason = result.status, result.reason
+    failed = [o for o, st in zip(offsets[1:], result.neighbour_status) if st != "ok"]
+    if failed and status == "ok" and settings.on_failure == "exclude":
+        status, reason = "failed", f"neighbours_not_registered(offsets {','.join(f'{o:+d}' for o in failed)})"
+    fused = [0] + [i + 1 for i, st in enumerate(result.neighbour_status) if st == "ok"]
+    info["fused_offsets"] = [offsets[i] for i in fused]
+    return Alignment(T_j_to_t, fused, status, reason, info)
+
+
+def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, depth_m: torch.Tensor | None = None,
          members: slice | list[int] = slice(None)) -> GTRender:
     """Render the aligned members into the target view (paper eq. 5).
 
@@ -168,26 +196,43 @@ def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: GTRenderSettings,
     return render_gt(cloud.points, data.K[None].to(depth.dtype), (h, w), cloud.valid, settings, normals_cam=cloud.normals)
 
 
-def _atomic(path: Path, writer, *args) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
-    writer(tmp, *args)
-    os.replace(tmp, path)
+def quality_statistics(data: FrameSetData, alignment: Alignment, gt_m: np.ndarray, settings: RenderSettings) -> dict:
+    """Depth errors of the GT (:func:`depthgt.eval.metrics.depth_errors`).
 
-
-def _save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    with open(path, "wb") as fh:
-        np.savez_compressed(fh, **arrays)
-
-
-def process_frameset(scene: Scene, dataset: str, target: int, members: list[int], split: str, out_dir: str | Path,
-                     settings: JobSettings, encoder_state: dict | None = None, cache_dir: str | Path | None = None) -> dict[str, Any]:
-    """Build every output of one frame set in ``out_dir`` and return frameset.json's content.
-
-    Frames come from the scene's frame cache when ``cache_dir`` is given (the
-    workflow's case), else they are read from ``scene`` and resized here.
+    With a clean truth: ``gt_vs_truth``, ``input_vs_truth`` and
+    ``gt_vs_truth_input_valid`` (the fair accuracy comparison: only where the sensor has
+    data). Without: ``leave_target_out``, the neighbours fused alone against the target's
+    raw valid depth -- the only accuracy check possible on real data.
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
+    stats: dict[str, Any] = {}
+    if data.truth_m is None:
+        fused = alignment.fused
+        if len(fused) > 1:
+            lto = fuse(data, alignment.T_j_to_t, settings, members=fused[1:]).depth[0, 0].detach().cpu().numpy()
+            stats["leave_target_out"] = depth_errors(lto.astype(np.float32), depth_in)
+    else:
+        truth = data.truth_m[0, 0].cpu().numpy().astype(np.float32)
+        stats["gt_vs_truth"] = depth_errors(gt_m, truth)
+        stats["input_vs_truth"] = depth_errors(depth_in, truth)
+        stats["gt_vs_truth_input_valid"] = depth_errors(gt_m, truth, mask=depth_in > 0)
+    return stats
+
+
+def process_frameset(scene: Scene, dataset: str, target: int, members: list[int], split: str, out: FrameSetOutputs,
+                     settings: Settings, encoder_state: dict | None = None) -> dict[str, Any]:
+    """Build every output of one frame set and return frameset.json's content.
+
+    Args:
+        scene: the scene (the frame cache :class:`~depthgt.gt.cache.CachedScene` in the
+            workflow, or a source scene; frames are resized when needed).
+        members: frame positions, target first.
+        out: the output paths (:class:`FrameSetOutputs`).
+        settings: :class:`~depthgt.settings.Settings` (frame set, render, registration,
+            patches, seed, device, resize).
+        encoder_state: pretrained registration encoder weights, or None.
+    """
+    out = FrameSetOutputs(*(Path(p) for p in out))
     device = resolve_device(settings.device)
     timings: dict[str, float] = {}
     clock = time.perf_counter()
@@ -198,39 +243,16 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
         timings[name] = round(now - clock, 4)
         clock = now
 
-    method = settings.registration_method
-    if cache_dir is not None:
-        data = load_frameset_cached(cache_dir, scene, members, settings.size_hw, device)
-    else:
-        data = load_frameset(scene, members, settings.size_hw, need_poses=(method == "given"), device=device)
+    reg = settings.registration
+    data = load_frameset(scene, members, settings.size_hw, need_poses=(reg.method == "given"), device=device)
     lap("load_resize")
 
-    registration_info: dict[str, Any] = {"method": method}
-    status, reason = "ok", ""
-    fused = list(range(len(members)))  # positions of the members rendered into the GT
-    if method == "given":
-        T_j_to_t = poses_from_source(data)
-    elif method == "overfit":
-        from depthgt.registration import make_settings, register_frameset
-
-        offsets = [m - target for m in members]
-        reg = {k: v for k, v in settings.registration.items() if k != "pretrain"}
-        result = register_frameset(data.rgb, data.depth_m, data.K, offsets, make_settings(**reg),
-                                   encoder_state=encoder_state, seed=stable_seed(settings.seed, dataset, scene.name, target))
-        T_j_to_t = torch.as_tensor(result.T_j_to_t, dtype=torch.float64, device=device)
-        registration_info.update(result.to_dict())
-        status, reason = result.status, result.reason
-        failed = [o for o, st in zip(offsets[1:], result.neighbour_status) if st != "ok"]
-        if failed and status == "ok" and settings.registration_on_failure == "exclude":
-            status, reason = "failed", f"neighbours_not_registered(offsets {','.join(f'{o:+d}' for o in failed)})"
-        # a neighbour that did not register never enters the GT
-        fused = [0] + [i + 1 for i, st in enumerate(result.neighbour_status) if st == "ok"]
-        registration_info["fused_offsets"] = [offsets[i] for i in fused]
-    else:
-        raise ValueError(f"registration.method must be 'given' or 'overfit', got {method!r}")
+    offsets = [m - target for m in members]
+    alignment = align(data, offsets, reg, stable_seed(settings.seed, dataset, scene.name, target), encoder_state)
     lap("align")
 
-    gt = fuse(data, T_j_to_t, settings.render, members=fused if len(fused) < len(members) else slice(None))
+    fused = alignment.fused
+    gt = fuse(data, alignment.T_j_to_t, settings.render, members=fused if len(fused) < len(members) else slice(None))
     lap("render")
 
     depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
@@ -244,18 +266,7 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
         "gt_mean_points": float(gt.count[0, 0].float().mean()),
         "neighbours_fused": len(fused) - 1,
     }
-    if truth is None:
-        # Leave-target-out consistency: fuse the neighbours alone and compare with the
-        # target's raw valid depth -- the only accuracy check possible on real data
-        # (where a clean truth exists, the GT is compared with it instead).
-        if len(fused) > 1:
-            lto = fuse(data, T_j_to_t, settings.render, members=fused[1:]).depth[0, 0].detach().cpu().numpy()
-            stats["leave_target_out"] = error_stats(lto.astype(np.float32), depth_in)
-    else:
-        stats["gt_vs_truth"] = error_stats(gt_depth, truth)
-        stats["input_vs_truth"] = error_stats(depth_in, truth)
-        # the fair accuracy comparison: only where the sensor has data
-        stats["gt_vs_truth_input_valid"] = error_stats(gt_depth, truth, mask=depth_in > 0)
+    stats.update(quality_statistics(data, alignment, gt_depth, settings.render))
     lap("quality")
 
     rng = np.random.default_rng(stable_seed(settings.seed, dataset, scene.name, target, "patches"))
@@ -267,23 +278,22 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     input_channels = {"Z": depth_in}
     if truth is not None:
         input_channels["T"] = truth
-    _atomic(out / "gt.exr", io.write_exr, {"Z": gt_depth, "W": gt.weight_sum[0, 0].detach().cpu().numpy().astype(np.float32),
-                                          "N": gt.count[0, 0].cpu().numpy().astype(np.float32)})
-    _atomic(out / "input.exr", io.write_exr, input_channels)
-    _atomic(out / "rgb.png", io.write_rgb_png, rgb8)
-    _atomic(out / "patches.npz", _save_npz, patches)
-    T_np = T_j_to_t.detach().cpu().numpy().astype(np.float64)
-    offsets = [m - target for m in members]
+    write_atomic(out.gt, io.write_exr, {"Z": gt_depth, "W": gt.weight_sum[0, 0].detach().cpu().numpy().astype(np.float32),
+                                        "N": gt.count[0, 0].cpu().numpy().astype(np.float32)})
+    write_atomic(out.input, io.write_exr, input_channels)
+    write_atomic(out.rgb, io.write_rgb_png, rgb8)
+    write_atomic(out.patches, save_npz, patches)
+    T_np = alignment.T_j_to_t.detach().cpu().numpy().astype(np.float64)
     poses_doc = {
         "T_j_to_t": {str(o): T_np[i].tolist() for i, o in enumerate(offsets[1:])},
-        "registration": registration_info,
+        "registration": alignment.info,
     }
     if data.T_world_cam is not None:
         ref = poses_from_source(data).cpu().numpy()
         poses_doc["T_j_to_t_reference"] = {str(o): ref[i].tolist() for i, o in enumerate(offsets[1:])}
     lap("write")
     poses_doc["timings_s"] = timings
-    _atomic(out / "poses.json", io.write_json, poses_doc)
+    write_atomic(out.poses, io.write_json, poses_doc)
     doc = {
         "dataset": dataset,
         "scene": scene.name,
@@ -292,18 +302,21 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
         "offsets": offsets,
         "frame_ids": data.frame_ids,
         "split": split,
-        "status": status,
-        "reason": reason,
+        "status": alignment.status,
+        "reason": alignment.reason,
         "K": data.K.cpu().numpy().tolist(),
         "size_hw": list(settings.size_hw),
         "statistics": stats,
-        "settings": _settings_doc(settings),
+        "units": _units(stats),
+        "settings": settings.doc("seed", "device", "resize", "frameset", "patches", "render", "registration"),
     }
-    _atomic(out / "frameset.json", io.write_json, doc)
+    write_atomic(out.meta, io.write_json, doc)
     return doc
 
 
-def _settings_doc(settings: JobSettings) -> dict:
-    doc = asdict(settings)
-    doc["size_hw"] = list(settings.size_hw)
-    return doc
+def _units(stats: dict) -> dict[str, str]:
+    """Unit of every statistic (nested error dicts share their metrics' units)."""
+    names = set()
+    for key, value in stats.items():
+        names.update(value if isinstance(value, dict) else [key])
+    return {k: METRIC_UNITS[k] for k in sorted(names)}

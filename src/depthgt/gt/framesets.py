@@ -8,63 +8,12 @@ tags are assigned without leakage (no frame is used by frame sets of two splits)
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
 
 import numpy as np
 
-SPLITS = ("train", "val", "test")
+from depthgt.settings import SPLITS, FrameSetSettings, SplitSettings
 
-
-@dataclass(frozen=True)
-class FrameSetSettings:
-    """How frame sets are formed.
-
-    Attributes:
-        neighbours: neighbours on each side of the target (paper: 3).
-        stride: frames between consecutive neighbours (paper: 2).
-        target_step: a target every ``target_step`` frames.
-    """
-
-    neighbours: int = 3
-    stride: int = 2
-    target_step: int = 1
-
-    def __post_init__(self):
-        for key in ("neighbours", "stride", "target_step"):
-            if getattr(self, key) < 1:
-                raise ValueError(f"frameset.{key} must be >= 1, got {getattr(self, key)}")
-
-    @property
-    def offsets(self) -> list[int]:
-        """Offsets of the members, target first: [0, -n*s, ..., -s, s, ..., n*s]."""
-        k = np.arange(1, self.neighbours + 1) * self.stride
-        return [0, *(-k[::-1]).tolist(), *k.tolist()]
-
-    @property
-    def reach(self) -> int:
-        return self.neighbours * self.stride
-
-
-@dataclass(frozen=True)
-class SplitSettings:
-    """Split assignment.
-
-    ``mode = "source"``: every frame set takes the split fixed for its source
-    (``train``, ``val`` or ``test``). Sources marked ``auto`` are cut into blocks of
-    ``block_frames`` consecutive frames; every ``round(1 / val_fraction)``-th block (with
-    a phase drawn from the seed and the scene name) is validation, the rest training.
-    A frame set whose members fall into blocks of different splits is skipped with the
-    reason ``split_guard``, so no frame is shared between splits.
-    """
-
-    val_fraction: float = 0.1
-    block_frames: int = 50
-
-    def __post_init__(self):
-        if not 0.0 <= self.val_fraction < 1.0:
-            raise ValueError(f"split.val_fraction must be in [0, 1), got {self.val_fraction}")
-        if self.block_frames < 1:
-            raise ValueError(f"split.block_frames must be >= 1, got {self.block_frames}")
+__all__ = ["stable_seed", "block_splits", "enumerate_framesets"]
 
 
 def stable_seed(*parts: object) -> int:

@@ -7,32 +7,9 @@ default is the GT patch, configurable (``gt`` | ``input`` | ``both``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-
-@dataclass(frozen=True)
-class PatchSettings:
-    """Attributes:
-        count: crops drawn per frame (paper: 6).
-        size: square patch side in pixels (paper: 128).
-        max_missing: a pair is kept when its missing ratio is strictly below this.
-        filter_on: which image's missing ratio decides ("gt", "input" or "both").
-    """
-
-    count: int = 6
-    size: int = 128
-    max_missing: float = 0.05
-    filter_on: str = "gt"
-
-    def __post_init__(self):
-        if self.filter_on not in ("gt", "input", "both"):
-            raise ValueError(f"patches.filter_on must be gt, input or both, got {self.filter_on!r}")
-        if self.count < 1 or self.size < 1:
-            raise ValueError(f"patches.count and patches.size must be >= 1, got {self.count}, {self.size}")
-        if not 0.0 < self.max_missing <= 1.0:
-            raise ValueError(f"patches.max_missing must be in (0, 1], got {self.max_missing}")
+from depthgt.settings import PatchSettings
 
 
 def crop_boxes(hw: tuple[int, int], settings: PatchSettings, rng: np.random.Generator) -> np.ndarray:
@@ -58,34 +35,49 @@ def crop(image: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     return image[rows[:, :, None], cols[:, None, :]]
 
 
-def make_patches(input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray, settings: PatchSettings, rng: np.random.Generator,
-                 truth_m: np.ndarray | None = None) -> dict[str, np.ndarray]:
-    """Crop ``settings.count`` pairs and keep those that pass the missing filter.
+def missing_ratio(patches_m: np.ndarray) -> np.ndarray:
+    """(P,) float64 fraction of missing pixels (depth <= 0) of each (P, h, w) patch."""
+    return (patches_m <= 0).mean(axis=(1, 2))
+
+
+def passes_missing_filter(max_missing: float, *ratios: np.ndarray) -> np.ndarray:
+    """(P,) bool: the pairs whose every given missing ratio is strictly below
+    ``max_missing`` (the paper's "< 5 %" rule). The one implementation of the filter,
+    used by the frame-set patches and by the RDE GT's."""
+    if not ratios:
+        raise ValueError("passes_missing_filter needs at least one ratio array")
+    keep = np.ones(len(ratios[0]), dtype=bool)
+    for r in ratios:
+        keep &= r < max_missing
+    return keep
+
+
+def crop_pairs(input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray, boxes: np.ndarray, max_missing: float,
+               filter_on: str = "gt", truth_m: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Crop (input, GT, rgb[, truth]) at ``boxes`` and keep the pairs that pass the
+    missing filter on ``filter_on`` ("gt", "input" or "both").
 
     Args:
         input_m: (H, W) float32 raw depth (0 = missing).
         gt_m: (H, W) float32 GT depth (0 = missing).
         rgb: (H, W, 3) uint8 colour.
+        boxes: (P, 4) int boxes (y0, x0, h, w) of equal size.
         truth_m: optional (H, W) clean depth (synthetic sources).
 
     Returns:
         Arrays ``input``, ``gt``, ``rgb``, ``boxes``, ``missing_input``, ``missing_gt``
         (and ``truth``) of the kept pairs, plus ``all_boxes``, ``all_missing_input``,
-        ``all_missing_gt`` and ``kept`` (bool) for every drawn crop so that rejected
-        crops are recorded, not lost.
+        ``all_missing_gt`` and ``kept`` (bool) for every crop so that rejected crops are
+        recorded, not lost.
     """
     if input_m.shape != gt_m.shape or rgb.shape[:2] != gt_m.shape:
         raise ValueError(f"input {input_m.shape}, gt {gt_m.shape} and rgb {rgb.shape} sizes differ")
-    boxes = crop_boxes(gt_m.shape, settings, rng)
+    if filter_on not in ("gt", "input", "both"):
+        raise ValueError(f"filter_on must be gt, input or both, got {filter_on!r}")
     p_in, p_gt = crop(input_m, boxes), crop(gt_m, boxes)
-    miss_in = (p_in <= 0).mean(axis=(1, 2))
-    miss_gt = (p_gt <= 0).mean(axis=(1, 2))
-    if settings.filter_on == "gt":
-        keep = miss_gt < settings.max_missing
-    elif settings.filter_on == "input":
-        keep = miss_in < settings.max_missing
-    else:
-        keep = (miss_gt < settings.max_missing) & (miss_in < settings.max_missing)
+    miss_in, miss_gt = missing_ratio(p_in), missing_ratio(p_gt)
+    decisive = {"gt": (miss_gt,), "input": (miss_in,), "both": (miss_gt, miss_in)}[filter_on]
+    keep = passes_missing_filter(max_missing, *decisive)
     out = {
         "input": p_in[keep].astype(np.float32),
         "gt": p_gt[keep].astype(np.float32),
@@ -101,3 +93,13 @@ def make_patches(input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray, setting
     if truth_m is not None:
         out["truth"] = crop(truth_m, boxes)[keep].astype(np.float32)
     return out
+
+
+def make_patches(input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray, settings: PatchSettings, rng: np.random.Generator,
+                 truth_m: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Draw ``settings.count`` crop boxes and :func:`crop_pairs` them (see there for the
+    arrays returned)."""
+    if input_m.shape != gt_m.shape or rgb.shape[:2] != gt_m.shape:
+        raise ValueError(f"input {input_m.shape}, gt {gt_m.shape} and rgb {rgb.shape} sizes differ")
+    boxes = crop_boxes(gt_m.shape, settings, rng)
+    return crop_pairs(input_m, gt_m, rgb, boxes, settings.max_missing, settings.filter_on, truth_m)

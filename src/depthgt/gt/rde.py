@@ -5,7 +5,9 @@ reconstruction of the *whole* stream: every frame's depth is fused into one TSDF
 volume with the stream's global camera poses, and the volume is rendered (raycast)
 back into each frame. depthgt's GT instead fuses only a local frame set. This module
 builds the former so that both can be compared (Table 1) and LapDEN can be trained
-on it (RDE).
+on it (RDE): :func:`rde_scene` makes the RDE GT of every frame set of a scene (TSDF,
+rendering, the frame set's crop boxes, the missing filter, atomic writes),
+:func:`rde_dataset` the manifests.
 
 Two backends behind one function, :func:`reconstruct_and_render`:
 
@@ -29,7 +31,7 @@ Conventions: depth float32 metres (0 = invalid), poses float64 4x4 camera-to-wor
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -37,68 +39,25 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from depthgt.errors import ConfigError
+from depthgt.errors import ConfigError, FrameError
+from depthgt.settings import RDESettings
 
 __all__ = [
-    "TSDFSettings",
+    "RDE_FRAMESET_COLUMNS",
+    "RDE_PATCH_COLUMNS",
     "TSDFVolume",
-    "tsdf_settings_from_dict",
     "scene_bounds",
     "integrate",
     "fuse_tsdf",
     "raycast",
     "reconstruct_and_render",
     "open3d_available",
+    "stream_for_tsdf",
+    "rde_scene",
+    "rde_dataset",
 ]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class TSDFSettings:
-    """Settings of the global reconstruction.
-
-    Attributes:
-        voxel_m: voxel edge in metres.
-        trunc_voxels: truncation distance in voxels (trunc_m = voxel_m * trunc_voxels).
-        frame_step: fuse every N-th frame of the stream (1: all).
-        max_depth_m: depth beyond this is ignored (fusion and ray range).
-        max_voxels: refuse volumes larger than this (memory guard: two float32 grids).
-        backend: ``auto`` (Open3D when importable, else torch), ``open3d`` or ``torch``.
-        max_missing: RDE patch pairs are kept when the RDE GT crop misses less than this.
-    """
-
-    voxel_m: float = 0.02
-    trunc_voxels: float = 4.0
-    frame_step: int = 2
-    max_depth_m: float = 8.0
-    max_voxels: int = 48_000_000
-    backend: str = "auto"
-    max_missing: float = 0.05
-
-    def __post_init__(self):
-        if self.voxel_m <= 0 or self.trunc_voxels < 1 or self.max_depth_m <= 0:
-            raise ConfigError(f"rde: voxel_m and max_depth_m must be > 0 and trunc_voxels >= 1, got {self.voxel_m}, "
-                              f"{self.max_depth_m}, {self.trunc_voxels}")
-        if self.frame_step < 1 or self.max_voxels < 1:
-            raise ConfigError(f"rde: frame_step and max_voxels must be >= 1, got {self.frame_step}, {self.max_voxels}")
-        if self.backend not in ("auto", "open3d", "torch"):
-            raise ConfigError(f"rde.backend must be auto, open3d or torch, got {self.backend!r}")
-        if not 0 < self.max_missing <= 1:
-            raise ConfigError(f"rde.max_missing must be in (0, 1], got {self.max_missing}")
-
-    @property
-    def trunc_m(self) -> float:
-        return self.voxel_m * self.trunc_voxels
-
-
-def tsdf_settings_from_dict(d: dict | None) -> TSDFSettings:
-    """:class:`TSDFSettings` from a config mapping; unknown keys raise :class:`ConfigError`."""
-    d = dict(d or {})
-    unknown = sorted(set(d) - set(TSDFSettings.__dataclass_fields__))
-    if unknown:
-        raise ConfigError(f"rde: unknown keys {unknown}; known: {sorted(TSDFSettings.__dataclass_fields__)}")
-    return TSDFSettings(**d)
 
 
 def open3d_available() -> bool:
@@ -161,7 +120,7 @@ def scene_bounds(depths_m: Sequence[np.ndarray], K: np.ndarray, T_world_cam: Seq
     return lo - margin_m, hi + margin_m
 
 
-def _empty_volume(lo: np.ndarray, hi: np.ndarray, settings: TSDFSettings, device: torch.device) -> TSDFVolume:
+def _empty_volume(lo: np.ndarray, hi: np.ndarray, settings: RDESettings, device: torch.device) -> TSDFVolume:
     dims = np.ceil((hi - lo) / settings.voxel_m).astype(np.int64) + 1
     n = int(np.prod(dims))
     if n > settings.max_voxels:
@@ -216,7 +175,7 @@ def integrate(volume: TSDFVolume, depth_m: torch.Tensor, K: torch.Tensor, T_worl
         wt.copy_(w_new)
 
 
-def fuse_tsdf(depths_m: Sequence[np.ndarray], K: np.ndarray, T_world_cam: Sequence[np.ndarray], settings: TSDFSettings,
+def fuse_tsdf(depths_m: Sequence[np.ndarray], K: np.ndarray, T_world_cam: Sequence[np.ndarray], settings: RDESettings,
               device: torch.device | str = "cpu") -> TSDFVolume:
     """A dense TSDF of every frame (torch backend).
 
@@ -353,7 +312,7 @@ def _open3d_render(depths_m, rgbs, K, T_world_cam, render_K, render_poses, size_
 
 def reconstruct_and_render(depths_m: Sequence[np.ndarray], rgbs: Sequence[np.ndarray] | None, K: np.ndarray,
                            T_world_cam: Sequence[np.ndarray], render_K: Sequence[np.ndarray],
-                           render_poses: Sequence[np.ndarray], size_hw: tuple[int, int], settings: TSDFSettings,
+                           render_poses: Sequence[np.ndarray], size_hw: tuple[int, int], settings: RDESettings,
                            device: torch.device | str = "cpu") -> tuple[list[np.ndarray], str]:
     """Fuse the whole stream into a TSDF and render it at each requested camera.
 
@@ -382,5 +341,143 @@ def reconstruct_and_render(depths_m: Sequence[np.ndarray], rgbs: Sequence[np.nda
     return out, backend
 
 
-def settings_doc(settings: TSDFSettings) -> dict:
-    return asdict(settings)
+
+# --------------------------------------------------------------------------- RDE GT of a scene
+
+
+RDE_FRAMESET_COLUMNS = ["dataset", "scene", "target", "split", "status", "reason", "frameset_dir", "rde_dir", "has_truth",
+                        "patches_kept", "rde_missing", "backend"]
+RDE_PATCH_COLUMNS = ["dataset", "scene", "target", "split", "patch", "path"]
+
+
+def stream_for_tsdf(scene, step: int, targets: Sequence[int]):
+    """Depth, colour and poses of every ``step``-th frame of ``scene`` with a finite pose
+    and some valid depth (the TSDF's input), and the targets' poses.
+
+    ``scene`` is any :class:`~depthgt.sources.base.Scene`: the frame cache (frames at the
+    working resolution) or a source (full resolution).
+
+    Returns:
+        (depths list of (H, W) float32 m, rgbs list of (H, W, 3) uint8, K (3, 3) of those
+        images, poses list of (4, 4), {target: T_world_cam or None}).
+    """
+    fuse_ids = set(range(0, len(scene), step))
+    depths, rgbs, poses, target_poses = [], [], [], {}
+    for i in sorted(fuse_ids | set(targets)):
+        try:
+            fr = scene.read(i)
+        except FrameError as err:
+            log.info("%s frame %d not used for the TSDF: %s", scene.name, i, err)
+            if i in targets:
+                target_poses[i] = None
+            continue
+        T = fr.T_world_cam
+        ok = T is not None and np.isfinite(T).all()
+        if i in targets:
+            target_poses[i] = T if ok else None
+        if i in fuse_ids and ok and (fr.depth_m > 0).any():
+            depths.append(fr.depth_m)
+            rgbs.append(fr.rgb)
+            poses.append(T)
+    return depths, rgbs, np.asarray(scene.intrinsics, dtype=np.float64), poses, target_poses
+
+
+def rde_scene(scene, framesets, settings: RDESettings, out_dir: str | Path, settings_doc: dict | None = None):
+    """Global-reconstruction GT of every runnable frame set of one scene.
+
+    Fuses the scene's stream (every ``settings.frame_step``-th frame, the source's
+    poses) into a TSDF, renders it at each frame set's target (the working-resolution K
+    of its frameset.json) and writes ``{out_dir}/{target:06d}/``: ``gt.exr`` (Z),
+    ``patches.npz`` (the frame set's drawn crop boxes applied to (input, RDE GT, rgb) by
+    :func:`depthgt.gt.patches.crop_pairs`, kept when the RDE GT misses less than
+    ``settings.max_missing``) and ``frameset.json`` (K, split, statistics), each written
+    atomically.
+
+    Args:
+        scene: the scene's frames (the frame cache, or the source).
+        framesets: the scene's frame-set table (``framesets.parquet`` rows: dataset,
+            scene, target, split, status, frameset_dir, has_truth).
+        settings_doc: recorded in each frameset.json (default: ``settings`` as a dict).
+
+    Returns:
+        Two tables: frame sets (:data:`RDE_FRAMESET_COLUMNS`) and kept patches
+        (:data:`RDE_PATCH_COLUMNS`).
+    """
+    import json
+    from dataclasses import asdict
+
+    import pandas as pd
+
+    from depthgt import io
+    from depthgt.atomic import save_npz, write_atomic
+    from depthgt.eval.evaluate import load_frame
+    from depthgt.eval.metrics import METRIC_UNITS, depth_errors
+    from depthgt.gt.patches import crop_pairs
+
+    ok = framesets[(framesets["status"] == "ok") & (framesets["frameset_dir"] != "")]
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rows, patch_rows = [], []
+    if ok.empty:
+        log.info("%s: no runnable frame set, no RDE GT", scene.name)
+        return pd.DataFrame(rows, columns=RDE_FRAMESET_COLUMNS), pd.DataFrame(patch_rows, columns=RDE_PATCH_COLUMNS)
+    targets = [int(t) for t in ok["target"]]
+    docs = {int(r.target): json.loads((Path(r.frameset_dir) / "frameset.json").read_text()) for r in ok.itertuples()}
+    depths, rgbs, K, poses, target_poses = stream_for_tsdf(scene, settings.frame_step, targets)
+    frames = {int(r.target): load_frame(r.frameset_dir) for r in ok.itertuples()}
+    render_targets = [t for t in targets if target_poses.get(t) is not None]
+    hw = next(iter(frames.values()))["input"].shape
+    if not depths:
+        raise ValueError(f"{scene.name}: no frame with depth and a finite pose for the TSDF")
+    rendered, backend = reconstruct_and_render(
+        depths, rgbs, K, poses, [np.asarray(docs[t]["K"], dtype=np.float64) for t in render_targets],
+        [target_poses[t] for t in render_targets], hw, settings)
+    log.info("%s: TSDF of %d frames (%s backend), %d targets rendered", scene.name, len(depths), backend,
+             len(render_targets))
+    by_target = dict(zip(render_targets, rendered))
+    doc_settings = settings_doc if settings_doc is not None else asdict(settings)
+    for r in ok.itertuples():
+        t = int(r.target)
+        row = {"dataset": r.dataset, "scene": r.scene, "target": t, "split": r.split, "status": "ok", "reason": "",
+               "frameset_dir": r.frameset_dir, "rde_dir": "", "has_truth": bool(r.has_truth), "patches_kept": 0,
+               "rde_missing": np.nan, "backend": backend}
+        if t not in by_target:
+            row.update(status="skipped", reason="no finite global pose for the target")
+            rows.append(row)
+            continue
+        d = out / f"{t:06d}"
+        gt, fr = by_target[t], frames[t]
+        with np.load(Path(r.frameset_dir) / "patches.npz") as npz:
+            boxes = npz["all_boxes"]
+        arrays = crop_pairs(fr["input"], gt, fr["rgb"], boxes, settings.max_missing, filter_on="gt")
+        keep = arrays["kept"]
+        stats = {"rde_missing": float((gt <= 0).mean()), "patches_kept": int(keep.sum()), "patches_drawn": int(len(keep))}
+        if fr["truth"] is not None:
+            stats["rde_vs_truth"] = depth_errors(gt, fr["truth"])
+        units = {k: METRIC_UNITS[k] for k in sorted(set(stats) - {"rde_vs_truth"} | set(stats.get("rde_vs_truth", {})))}
+        write_atomic(d / "gt.exr", io.write_exr, {"Z": gt})
+        write_atomic(d / "patches.npz", save_npz, arrays)
+        write_atomic(d / "frameset.json", io.write_json, {"dataset": r.dataset, "scene": r.scene, "target": t, "split": r.split,
+                                                          "K": docs[t]["K"], "backend": backend, "settings": doc_settings,
+                                                          "statistics": stats, "units": units})
+        row.update(rde_dir=str(d), patches_kept=int(keep.sum()), rde_missing=stats["rde_missing"])
+        rows.append(row)
+        for j in range(int(keep.sum())):
+            patch_rows.append({"dataset": r.dataset, "scene": r.scene, "target": t, "split": r.split, "patch": j,
+                               "path": str(d / "patches.npz")})
+    return pd.DataFrame(rows, columns=RDE_FRAMESET_COLUMNS), pd.DataFrame(patch_rows, columns=RDE_PATCH_COLUMNS)
+
+
+def rde_dataset(scene_framesets: Sequence, scene_patches: Sequence):
+    """The scenes' RDE tables concatenated: (frame sets, {split: kept patches}).
+
+    Args:
+        scene_framesets, scene_patches: DataFrames of :func:`rde_scene`, one per scene.
+    """
+    import pandas as pd
+
+    from depthgt.settings import SPLITS
+
+    fs = pd.concat(scene_framesets, ignore_index=True) if len(scene_framesets) else pd.DataFrame(columns=RDE_FRAMESET_COLUMNS)
+    pt = pd.concat(scene_patches, ignore_index=True) if len(scene_patches) else pd.DataFrame(columns=RDE_PATCH_COLUMNS)
+    return fs, {split: pt[pt["split"] == split].reset_index(drop=True) for split in SPLITS}

@@ -37,8 +37,9 @@ from kornia.geometry.depth import depth_to_normals
 from kornia.geometry.linalg import transform_points
 
 from depthgt.geometry import backproject, project
+from depthgt.settings import RenderSettings
 
-__all__ = ["SoftSplat", "splat_soft", "GTRenderSettings", "GTRender", "render_gt", "TargetCloud", "cloud_in_target"]
+__all__ = ["SoftSplat", "splat_soft", "GTRender", "render_gt", "TargetCloud", "cloud_in_target"]
 
 
 # --------------------------------------------------------------------------- helpers
@@ -271,93 +272,6 @@ def splat_soft(
 # --------------------------------------------------------------------------- GT renderer (eq. 5)
 
 
-@dataclass(frozen=True)
-class GTRenderSettings:
-    """Settings of :func:`render_gt` (paper eq. 5 plus the front-surface guard).
-
-    Attributes:
-        m: at most this many nearest projected points (by pixel distance) per pixel.
-            The paper does not state m; 7 frames at one resolution put about
-            7 * pi * R^2 ~ 34 points within R = 1.25 px of a pixel centre, and m = 16
-            keeps the nearest half of them (an effective radius of ~0.85 px), which
-            keeps the footprint small at edges while averaging over ~2 points per frame.
-        radius_px: R, radius in output pixels of the neighbourhood of a pixel centre
-            and the scale of the weights exp(-d / R^2) (d squared pixel distance).
-        rel_band, abs_band_m: depth band of one surface layer: a candidate belongs to
-            the layer starting at depth z0 when z0 <= z <= z0 * (1 + rel_band) +
-            abs_band_m (metres). It must exceed the depth noise of the input (Kinect:
-            ~1% at 3 m) and stay below the depth gaps between objects.
-        coverage_frac: the front layer F (starting at the nearest candidate depth)
-            takes the pixel when the mean offset of its candidates from the pixel
-            centre is at most ``coverage_frac * R``: its samples then surround the
-            centre. When F's edge passes near the centre without covering it, its
-            samples sit on one side (a uniformly sampled half disk has its centroid at
-            4R / (3 pi) = 0.42 R), and the pixel takes the next layer behind F.
-        compare_next_layer: an uncovered F must also sit more to one side than the
-            next layer's candidates (larger mean offset). Sensors drop depth next to
-            discontinuities (Kinect), which leaves F's samples on one side of a centre
-            that F does cover; without this check such edges erode (Kinect-noised
-            synthetic rooms: GT MAE 8.1 -> 6.8 mm; clean depth: unchanged).
-        ambiguous_band: (lo, hi) fractions of R: a pixel where F and a layer behind it
-            both have candidates and F's mean offset lies between lo * R and hi * R is
-            left empty: an edge passes within ~0.1 px of its centre and its side cannot
-            be decided reliably. None keeps every pixel. On synthetic rooms (exact
-            poses) this empties ~1-2% of the pixels and cuts the GT MAE by 2-4x (clean
-            depth: ~0.9 -> 0.2 and 2.2 -> 0.7 mm; Kinect-noised: 4.0 -> 2.4 and
-            6.8 -> 4.4 mm, below the input's own 3.8 and 5.3 mm).
-        extend_uncovered: what an uncovered pixel with no layer behind F gets: False
-            leaves it empty (no frame saw what is there: typically background that only
-            the target sees, next to a foreground edge); True (default) gives it F
-            (extrapolates surfaces by up to ~R at the borders of the data). Measured on
-            6 synthetic frame sets with Kinect noise and exact poses: completeness 96.9
-            -> 98.5 %, MAE with missing counted 0.43 -> 0.23 of the input's, MAE where
-            the input is valid unchanged (0.42 of the input's); the MAE over all GT
-            pixels rises (3.1 -> 5.1 mm) from the extrapolated silhouette pixels.
-        min_points: pixels with fewer kept points get depth 0 (their weight sum and
-            count are still reported).
-        plane_correction: when normals are given, move every candidate's depth along
-            its local tangent plane to the pixel-centre ray (exact on planes; done in
-            inverse depth, which is affine in screen space) instead of using the depth
-            of the point at its own sub-pixel position.
-        min_cos_incidence: no plane correction for points whose normal makes |cos|
-            below this with the viewing ray (grazing planes are unreliable).
-        max_correction_rel: no plane correction for points whose correction could
-            exceed this fraction of the depth within R (a normal taken across an edge).
-        min_depth_m: points at or nearer than this (metres) are ignored.
-    """
-
-    m: int = 16
-    radius_px: float = 1.25
-    rel_band: float = 0.02
-    abs_band_m: float = 0.01
-    coverage_frac: float = 0.42
-    compare_next_layer: bool = True
-    ambiguous_band: tuple[float, float] | None = (0.3, 0.55)
-    extend_uncovered: bool = True
-    min_points: int = 1
-    plane_correction: bool = True
-    min_cos_incidence: float = 0.15
-    max_correction_rel: float = 0.05
-    min_depth_m: float = 1e-3
-
-    def __post_init__(self) -> None:
-        if self.m < 1:
-            raise ValueError(f"GTRenderSettings.m must be >= 1, got {self.m}")
-        if self.radius_px <= 0:
-            raise ValueError(f"GTRenderSettings.radius_px must be > 0, got {self.radius_px}")
-        if self.rel_band < 0 or self.abs_band_m < 0:
-            raise ValueError(f"GTRenderSettings bands must be >= 0, got rel_band={self.rel_band}, abs_band_m={self.abs_band_m}")
-        if not 0 < self.coverage_frac <= 1:
-            raise ValueError(f"GTRenderSettings.coverage_frac must be in (0, 1], got {self.coverage_frac}")
-        if self.min_points < 1:
-            raise ValueError(f"GTRenderSettings.min_points must be >= 1, got {self.min_points}")
-        if self.ambiguous_band is not None:
-            band = tuple(float(x) for x in self.ambiguous_band)
-            if len(band) != 2 or not 0 <= band[0] < band[1]:
-                raise ValueError(f"GTRenderSettings.ambiguous_band must be None or (lo, hi) with 0 <= lo < hi, got {self.ambiguous_band}")
-            object.__setattr__(self, "ambiguous_band", band)  # a list from YAML becomes a tuple
-
-
 class GTRender(NamedTuple):
     """Output of :func:`render_gt`.
 
@@ -371,7 +285,7 @@ class GTRender(NamedTuple):
     count: torch.Tensor
 
 
-def _inverse_depth_planes(points_cam, normals_cam, K, st: GTRenderSettings) -> torch.Tensor:
+def _inverse_depth_planes(points_cam, normals_cam, K, st: RenderSettings) -> torch.Tensor:
     """(B*N, 2) screen-space gradient (d(1/z)/du, d(1/z)/dv) of each point's tangent plane.
 
     Plane n.X = n.p and X = z K^-1 [u, v, 1] give 1/z = (K^-T n) . [u, v, 1] / (n.p),
@@ -423,7 +337,7 @@ def render_gt(
     K: torch.Tensor,
     size_hw: tuple[int, int],
     valid: torch.Tensor | None = None,
-    settings: GTRenderSettings = GTRenderSettings(),
+    settings: RenderSettings = RenderSettings(),
     normals_cam: torch.Tensor | None = None,
 ) -> GTRender:
     """Weighted z-buffer average of a merged point cloud (paper eq. 5, with a guard).
@@ -456,7 +370,7 @@ def render_gt(
         K: (B, 3, 3) target intrinsics at ``size_hw``.
         size_hw: output (H, W).
         valid: (B, N) bool or None (all valid).
-        settings: :class:`GTRenderSettings`.
+        settings: :class:`RenderSettings`.
         normals_cam: (B, N, 3) unit normals in the target camera, or None; zero or
             non-finite rows mean "no normal" (no plane correction for that point).
 

@@ -1,91 +1,44 @@
-"""Entry points of the workflow's jobs: plain arguments in, files out.
+"""Entry points of the GT jobs: scene index, frame set, scene summary, dataset, and the
+registration encoder's pretraining.
 
-Each Snakemake script is two lines that call one of these with the paths and the
-config sections of its rule, so every job can also be run and tested without
-Snakemake.
+Each Snakemake script calls one of these with its rule's paths (every output path
+explicitly) and config sections; the job gets its settings from
+:func:`depthgt.settings.settings_from_config`, calls one library function and writes
+the outputs. Every job also runs and is tested without Snakemake.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Mapping
 
 import numpy as np
 
 from depthgt import io
+from depthgt.jobs.common import open_source_scene
+
+__all__ = ["run_scene_index", "run_frameset", "run_scene_summary", "run_dataset", "run_pretrain_registration"]
 
 log = logging.getLogger("depthgt")
 
 
-@contextmanager
-def logging_to(path: str | Path | None, level: int = logging.INFO) -> Iterator[None]:
-    """Send depthgt's log records (and warnings) to ``path`` for the duration."""
-    if path is None:
-        yield
-        return
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    handler = logging.FileHandler(path, mode="w")
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-    root = logging.getLogger()
-    root.addHandler(handler)
-    old = root.level
-    root.setLevel(level)
-    logging.captureWarnings(True)
-    try:
-        yield
-    except Exception:
-        log.exception("job failed")
-        raise
-    finally:
-        root.removeHandler(handler)
-        root.setLevel(old)
-        handler.close()
-
-
-POSE_OPTIONAL_KINDS = ("scannet", "sevenscenes", "tum")
-
-
-def open_source_scene(source: dict[str, Any], scene: str, need_poses: bool = True):
-    """Open ``scene`` of a config source entry (name, kind, root, options).
-
-    When the registration does not need the source's poses, real sources are opened
-    with ``require_pose=False`` so that frames with non-finite poses (ScanNet has them)
-    stay usable.
-    """
-    from depthgt.errors import ConfigError
-    from depthgt.sources.base import open_scene
-
-    options = dict(source.get("options") or {})
-    if not need_poses and source["kind"] in POSE_OPTIONAL_KINDS:
-        options.setdefault("require_pose", False)
-    try:
-        return open_scene(source["kind"], source.get("root"), scene, **options)
-    except TypeError as err:
-        raise ConfigError(f"config sources entry {source.get('name')!r} (kind {source['kind']}): bad options: {err}") from err
-
-
-def run_scene_index(source: dict[str, Any], scene: str, config: dict[str, Any], out_parquet: str, out_json: str,
+def run_scene_index(source: dict[str, Any], scene: str, config: Mapping[str, Any], out_parquet: str, out_json: str,
                     cache_dir: str | None = None) -> None:
     """Check every frame of a scene and write its index (parquet + json), and the
     frame cache at the working resolution into ``cache_dir`` when given."""
     from depthgt.gt.cache import FrameCacheWriter
-    from depthgt.settings import build
-    from depthgt.gt.framesets import FrameSetSettings, SplitSettings
     from depthgt.gt.index import build_index
+    from depthgt.settings import settings_from_config
 
-    method = (config.get("registration") or {}).get("method", "given")
-    sc = open_source_scene(source, scene, need_poses=(method == "given"))
-    size = int(config.get("resize", 256))
-    cache = FrameCacheWriter(cache_dir, len(sc), (size, size), sc.has_clean_depth) if cache_dir else None
-    index = build_index(
-        sc, source["name"], source.get("split", "auto"), need_poses=(method == "given"),
-        fs_settings=build(FrameSetSettings, config.get("frameset"), "frameset"),
-        split_settings=build(SplitSettings, config.get("split"), "split"),
-        seed=int(config.get("seed", 0)), progress=True, cache=cache,
-    )
+    settings = settings_from_config(config)
+    need_poses = settings.registration.method == "given"
+    sc = open_source_scene(source, scene, need_poses=need_poses)
+    cache = FrameCacheWriter(cache_dir, sc, settings.size_hw) if cache_dir else None
+    index = build_index(sc, source["name"], source.get("split", "auto"), need_poses=need_poses,
+                        fs_settings=settings.frameset, split_settings=settings.split, seed=settings.seed, progress=True,
+                        cache=cache)
     if cache is not None:
         cache.close()
     meta = dict(index.meta)
@@ -100,13 +53,19 @@ def run_scene_index(source: dict[str, Any], scene: str, config: dict[str, Any], 
         log.warning("%s/%s: %s", source["name"], scene, p)
 
 
-def run_frameset(source: dict[str, Any], scene: str, target: int, config: dict[str, Any], index_parquet: str, out_dir: str,
-                 encoder: str | None = None, cache_dir: str | None = None) -> None:
-    """Build one frame set's outputs in ``out_dir`` (frames from ``cache_dir`` when given)."""
+def run_frameset(source: dict[str, Any], scene: str, target: int, config: Mapping[str, Any], index_parquet: str,
+                 outputs: Mapping[str, str], encoder: str | None = None, cache_dir: str | None = None) -> None:
+    """Build one frame set's outputs (frames from the frame cache ``cache_dir`` when
+    given, else from the source).
+
+    Args:
+        outputs: the paths ``gt``, ``input``, ``rgb``, ``poses``, ``patches``, ``meta``
+            (:class:`depthgt.gt.frameset.FrameSetOutputs`).
+    """
     import pandas as pd
 
-    from depthgt.settings import job_settings
-    from depthgt.gt.frameset import process_frameset
+    from depthgt.gt.frameset import FrameSetOutputs, process_frameset
+    from depthgt.settings import settings_from_config
 
     table = pd.read_parquet(index_parquet)
     row = table[(table["position"] == target) & table["is_target"]]
@@ -118,21 +77,23 @@ def run_frameset(source: dict[str, Any], scene: str, target: int, config: dict[s
         import torch
 
         state = torch.load(encoder, map_location="cpu", weights_only=True) or None  # {}: no pretraining
-    settings = job_settings(config)
+    settings = settings_from_config(config)
     if cache_dir:
         from depthgt.gt.cache import CachedScene
 
-        scene_obj = CachedScene(Path(index_parquet).with_name("index.json"), table)
+        scene_obj = CachedScene(cache_dir)
     else:
-        scene_obj = open_source_scene(source, scene, need_poses=(settings.registration_method == "given"))
-    doc = process_frameset(scene_obj, source["name"], target, [int(m) for m in row["members"]],
-                           row["frameset_split"], out_dir, settings, encoder_state=state, cache_dir=cache_dir)
+        scene_obj = open_source_scene(source, scene, need_poses=(settings.registration.method == "given"))
+    out = FrameSetOutputs(**{k: outputs[k] for k in FrameSetOutputs._fields})
+    doc = process_frameset(scene_obj, source["name"], target, [int(m) for m in row["members"]], row["frameset_split"],
+                           out, settings, encoder_state=state)
     log.info("frame set %s/%s/%06d: status %s, %d/%d patches kept, GT missing %.3f (input %.3f)", source["name"], scene,
              target, doc["status"], doc["statistics"]["patches_kept"], doc["statistics"]["patches_drawn"],
              doc["statistics"]["gt_missing"], doc["statistics"]["input_missing"])
 
 
-def run_scene_summary(index_parquet: str, frameset_jsons: list[str], out_framesets: str, out_patches: str, out_quality: str) -> None:
+def run_scene_summary(index_parquet: str, frameset_jsons: list[str], out_framesets: str, out_patches: str,
+                      out_quality: str) -> None:
     """Summarise a scene's frame sets, patches and GT quality into three parquet tables."""
     from depthgt.gt.assemble import summarize_scene
 
@@ -142,30 +103,37 @@ def run_scene_summary(index_parquet: str, frameset_jsons: list[str], out_framese
     quality.to_parquet(out_quality, index=False)
 
 
-def run_dataset(scene_framesets: list[str], out_dir: str) -> None:
-    """Assemble the dataset manifests from the per-scene summaries."""
-    from depthgt.gt.assemble import assemble
+def run_dataset(scene_framesets: list[str], scene_patches: list[str], scene_quality: list[str], index_jsons: list[str],
+                outputs: Mapping[str, str]) -> None:
+    """Assemble the dataset manifests from the per-scene summaries.
 
-    summary = assemble([str(Path(p).parent) for p in scene_framesets], out_dir)
+    Args:
+        outputs: the paths ``train``, ``val``, ``test``, ``framesets``, ``summary``,
+            ``summary_md``, ``quality`` (:class:`depthgt.gt.assemble.DatasetOutputs`).
+    """
+    from depthgt.gt.assemble import DatasetOutputs, assemble
+
+    out = DatasetOutputs(**{k: outputs[k] for k in DatasetOutputs._fields})
+    summary = assemble(scene_framesets, scene_patches, scene_quality, index_jsons, out)
     log.info("dataset: %s pairs, %d frame sets skipped", summary["pairs"], len(summary["framesets_skipped"]))
 
 
-def run_pretrain_registration(sources: dict[str, dict[str, Any]], index_jsons: list[str], config: dict[str, Any],
+def run_pretrain_registration(sources: Mapping[str, dict[str, Any]], index_jsons: list[str], config: Mapping[str, Any],
                               out_path: str) -> None:
     """Stream-only pretraining of the registration encoder on frame sets of the training
     split (no poses used), written as a torch ``state_dict``."""
+    import pandas as pd
     import torch
 
-    from depthgt.settings import job_settings
+    from depthgt.atomic import write_atomic
+    from depthgt.device import resolve_device
+    from depthgt.gt.frameset import load_frameset
     from depthgt.gt.framesets import stable_seed
-    from depthgt.gt.frameset import load_frameset, resolve_device
-    from depthgt.registration import make_settings, pretrain_encoder
-    import pandas as pd
+    from depthgt.registration import pretrain_encoder
+    from depthgt.settings import settings_from_config
 
-    settings = job_settings(config)
-    reg = dict(settings.registration)
-    pre = dict(reg.pop("pretrain", None) or {})
-    n_sets, epochs = int(pre.get("framesets", 16)), int(pre.get("epochs", 1))
+    settings = settings_from_config(config)
+    pre = settings.registration.pretrain
     device = resolve_device(settings.device)
     candidates = []
     for path in index_jsons:
@@ -177,6 +145,7 @@ def run_pretrain_registration(sources: dict[str, dict[str, Any]], index_jsons: l
         raise ValueError("pretrain_registration: no frame set of the train split to pretrain on "
                          "(set registration.pretrain.framesets: 0 to start from random weights)")
     rng = np.random.default_rng(stable_seed(settings.seed, "pretrain"))
+    n_sets = pre.framesets
     chosen = sorted(rng.choice(len(candidates), size=min(n_sets, len(candidates)), replace=False).tolist()) if n_sets else []
     framesets, scenes = [], {}
     for i in chosen:
@@ -185,9 +154,6 @@ def run_pretrain_registration(sources: dict[str, dict[str, Any]], index_jsons: l
             scenes[dataset, scene] = open_source_scene(sources[dataset], scene, need_poses=False)
         data = load_frameset(scenes[dataset, scene], members, settings.size_hw, need_poses=False, device=device)
         framesets.append((data.rgb, data.depth_m, data.K, [m - members[0] for m in members]))
-    log.info("pretraining the registration encoder on %d frame sets, %d epoch(s)", len(framesets), epochs)
-    state = pretrain_encoder(framesets, make_settings(**reg), epochs=epochs, seed=settings.seed) if framesets else {}
-    Path(out_path).parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(out_path).with_suffix(".tmp")
-    torch.save(state, tmp)
-    tmp.replace(out_path)
+    log.info("pretraining the registration encoder on %d frame sets, %d epoch(s)", len(framesets), pre.epochs)
+    state = pretrain_encoder(framesets, settings.registration, epochs=pre.epochs, seed=settings.seed) if framesets else {}
+    write_atomic(out_path, lambda tmp: torch.save(state, tmp))

@@ -11,7 +11,6 @@ never silently kept.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import math
@@ -23,121 +22,17 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from depthgt.errors import ConfigError
+from depthgt.eval.metrics import pose_delta
 from depthgt.registration.correspondences import find_correspondences, sample_candidates
 from depthgt.registration.encoder import build_encoder, lift_points
 from depthgt.registration.losses import correspondence_loss, default_render_fn, render_losses
-from depthgt.registration.metrics import pose_delta
 from depthgt.registration.procrustes import procrustes_random_subsets
-from depthgt.registration.refine import RefineSettings, _Level, _LevelSettings, _normal_system, refine_poses
+from depthgt.registration.refine import Level, LevelSettings, normal_system, refine_poses
+from depthgt.settings import RegistrationSettings
 
-__all__ = ["RegistrationSettings", "RegistrationResult", "PRESETS", "make_settings", "register_frameset",
-           "pretrain_encoder", "frameset_loss"]
+__all__ = ["RegistrationResult", "register_frameset", "pretrain_encoder", "frameset_loss"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class RegistrationSettings:
-    """Settings of the overfit registration (defaults: the paper / R&R values).
-
-    Encoder: ``n_blocks`` BasicBlocks of ``channels`` at full resolution, ``feat_dim``-d
-    output. Matching: ``n_candidates`` random valid pixels per frame, ``top_k`` matches
-    per direction, similarity blocks of at most ``knn_block`` entries. Alignment: ``n_subsets`` random
-    subsets of ``subset_fraction`` of the matches. Training: Adam, ``lr``,
-    ``iterations`` (= the paper's epochs on a single batch), ``weight_decay``; loss
-    weights ``w_depth`` (per metre), ``w_photo``, ``w_corr`` (per m^2); ``pairs`` "all"
-    (every pair, eq. 4) or "target"; rendering radius (px), points per pixel and source
-    pixel stride. ``pose_from``: "last" or "best" (lowest loss) iteration.
-    Beyond the paper: ``chaining`` (compose far neighbours through nearer ones when
-    that aligns better), ``refine`` with ``refine_settings``.
-    Failure checks: a neighbour fails with fewer than ``min_confident`` target-pair
-    matches of weight >= ``confident_weight``; a final motion above
-    ``max_translation_m`` / ``max_rotation_deg``; an inlier fraction below
-    ``min_inlier_fraction``; an information matrix condition number above
-    ``max_condition`` (no texture/geometry); a median point-to-plane residual in the
-    target above ``max_residual_m`` (settled off the surface); the set fails when fewer than
-    ``min_ok_fraction`` of its neighbours are ok, or (without refinement) when the
-    training loss does not decrease.
-    Speed: ``precision`` of the encoder's convolutions, "fp32", "bf16" (autocast; the
-    features are normalised, matched and aligned in float32/64) or "auto" (bf16 on
-    CUDA devices that support it and on CPUs with native bf16 instructions,
-    AVX512-BF16 or AMX; else fp32). On CPU the encoder runs channels-last.
-    """
-
-    n_blocks: int = 2
-    channels: int = 64
-    feat_dim: int = 32
-    n_candidates: int = 2048
-    top_k: int = 200
-    knn_block: int = 1 << 25
-    n_subsets: int = 10
-    subset_fraction: float = 0.2
-    lr: float = 1e-4
-    iterations: int = 30
-    weight_decay: float = 0.0
-    w_depth: float = 1.0
-    w_photo: float = 1.0
-    w_corr: float = 0.1
-    pairs: str = "all"
-    render_radius_px: float = 2.0
-    render_max_points: int = 16
-    render_stride: int = 1
-    pose_from: str = "last"
-    chaining: bool = True
-    refine: bool = True
-    refine_settings: RefineSettings = RefineSettings()
-    confident_weight: float = 0.1
-    min_confident: int = 20
-    max_translation_m: float = 0.3
-    max_rotation_deg: float = 20.0
-    min_inlier_fraction: float = 0.3
-    max_condition: float = 1e5
-    max_residual_m: float = 0.008
-    min_ok_fraction: float = 0.5
-    num_threads: int | None = None
-    precision: str = "fp32"
-
-    def __post_init__(self):
-        if self.pairs not in ("all", "target"):
-            raise ConfigError(f"registration.pairs must be 'all' or 'target', got {self.pairs!r}")
-        if self.pose_from not in ("last", "best"):
-            raise ConfigError(f"registration.pose_from must be 'last' or 'best', got {self.pose_from!r}")
-        if self.precision not in ("auto", "fp32", "bf16"):
-            raise ConfigError(f"registration.precision must be auto, fp32 or bf16, got {self.precision!r}")
-        if self.iterations < 0 or self.top_k < 3 or self.n_candidates < 3:
-            raise ConfigError("registration: need iterations >= 0, top_k >= 3 and n_candidates >= 3")
-
-
-PRESETS: dict[str, dict] = {
-    # The paper: R&R encoder and matching, Adam 1e-4 for 30 iterations, plus refinement;
-    # bf16 convolutions where the hardware has them (2.3x faster encoder on AVX512-BF16).
-    "paper": {"precision": "auto"},
-    # The paper without the beyond-the-paper steps (for the with/without comparison).
-    "paper_only": {"chaining": False, "refine": False, "precision": "auto"},
-    # CPU-friendly: one pass of a small encoder (pretrained weights when given) for the
-    # correspondence initialisation, no overfit iterations, then chaining and a
-    # sparser refinement.
-    "fast": {
-        "n_blocks": 1, "channels": 32, "n_candidates": 1024, "iterations": 0, "render_stride": 2,
-        "refine_settings": RefineSettings(scales=(4, 2, 1), iters=(8, 5, 3), point_stride=(1, 2, 4)),
-    },
-}
-
-
-def make_settings(preset: str = "paper", **overrides) -> RegistrationSettings:
-    """Settings of a preset with overrides (keys are field names; raises ConfigError)."""
-    if preset not in PRESETS:
-        raise ConfigError(f"registration.preset {preset!r} unknown; known: {', '.join(PRESETS)}")
-    values = {**PRESETS[preset], **overrides}
-    names = {f.name for f in dataclasses.fields(RegistrationSettings)}
-    bad = sorted(set(values) - names)
-    if bad:
-        raise ConfigError(f"registration: unknown setting(s) {', '.join(bad)}")
-    if isinstance(values.get("refine_settings"), dict):
-        values["refine_settings"] = RefineSettings(**{k: tuple(v) if isinstance(v, list) else v
-                                                      for k, v in values["refine_settings"].items()})
-    return RegistrationSettings(**values)
 
 
 @dataclass
@@ -355,7 +250,7 @@ def _chain(fs: _Frameset, T_init: torch.Tensor, table, offsets, s: RegistrationS
     (robust point-to-plane + photometric cost at half resolution)."""
     Fn = len(offsets)
     rs = s.refine_settings
-    level = _Level(fs.rgb, fs.depth, fs.K, 2, 1)
+    level = Level(fs.rgb, fs.depth, fs.K, 2, 1)
     cands, owners, labels = [], [], []
     for j in range(1, Fn):
         options = [("direct", T_init[j]), ("identity", torch.eye(4, dtype=T_init.dtype, device=T_init.device))]
@@ -370,7 +265,7 @@ def _chain(fs: _Frameset, T_init: torch.Tensor, table, offsets, s: RegistrationS
             labels.append(lab)
     T_c = torch.stack(cands)  # candidate T_j_to_t
     pairs = torch.stack([torch.zeros(len(owners), dtype=torch.long), torch.tensor(owners)], 1).to(fs.depth.device)
-    # _normal_system works on absolute poses T (F', 4, 4); build a virtual frame list:
+    # normal_system works on absolute poses T (F', 4, 4); build a virtual frame list:
     # reuse the real frames by pairing (0, j) with the candidate pose in place of T_j.
     Tv = torch.eye(4, dtype=torch.float64, device=fs.depth.device).repeat(len(owners) + 1, 1, 1)
     Tv[1:] = T_c
@@ -379,8 +274,8 @@ def _chain(fs: _Frameset, T_init: torch.Tensor, table, offsets, s: RegistrationS
     level.gray = torch.cat([level.gray[:1], level.gray[pairs[:, 1]]])
     level.valid = torch.cat([level.valid[:1], level.valid[pairs[:, 1]]])
     level.maps = torch.cat([level.maps[:1], level.maps[pairs[:, 1]]])
-    ls = _LevelSettings(rs.geo_scale_m[-1], rs.photo_scale, rs.photo_weight, rs.robust)
-    _, _, cost, _, _ = _normal_system(level, Tv, vpairs.to(fs.depth.device), ls, rs.max_dist_m[-1])
+    ls = LevelSettings(rs.geo_scale_m[-1], rs.photo_scale, rs.photo_weight, rs.robust)
+    _, _, cost, _, _ = normal_system(level, Tv, vpairs.to(fs.depth.device), ls, rs.max_dist_m[-1])
     T_out = T_init.clone()
     choice = {}
     owners_t = torch.tensor(owners)
@@ -413,7 +308,7 @@ def register_frameset(
         depth_m: (F, 1, H, W) depth in metres, 0 = invalid.
         K: (3, 3) intrinsics at (H, W).
         offsets: frame offsets, ``offsets[0] == 0`` (the target), e.g. [0, -6, -4, -2, 2, 4, 6].
-        settings: :class:`RegistrationSettings` (see :data:`PRESETS`).
+        settings: :class:`RegistrationSettings` (presets: :func:`depthgt.settings.registration_settings`).
         encoder_state: pretrained encoder weights (:func:`pretrain_encoder`), else a
             random initialisation from ``seed``.
         init_T_j_to_t: (F-1, 4, 4) optional initial guess, used as one more candidate

@@ -28,50 +28,10 @@ from kornia.geometry.depth import depth_to_normals
 from kornia.geometry.liegroup import Se3
 
 from depthgt.geometry import backproject, resize_depth_nearest, resize_rgb, scale_intrinsics
+from depthgt.settings import RefineSettings
 
-__all__ = ["RefineSettings", "RefineResult", "frame_pairs", "refine_poses", "adjoint", "pair_information"]
-
-
-@dataclass(frozen=True)
-class RefineSettings:
-    """Settings of the joint SE(3) refinement.
-
-    Attributes:
-        scales: image downscale factors, coarse to fine (4 -> 64x64 for 256x256 input).
-        iters: LM iterations per scale.
-        pairs: "all" (every ordered pair, eq. 4), "target" (target-neighbour only) or
-            "adjacent" (target pairs plus pairs of frames next to each other in the set).
-        point_stride: source pixel stride per scale (1 = every valid pixel).
-        geo_scale_m: robust scale of point-to-plane residuals (metres), per scale: wide
-            at coarse scales so that large initial errors still pull with full weight.
-        photo_scale: robust scale of intensity residuals (intensity in [0, 1]).
-        photo_weight: weight of the photometric term relative to the geometric one
-            (0 disables it, e.g. for sensors whose colour is not registered to depth).
-        robust: "huber" or "cauchy".
-        max_dist_m: association gate for point-to-plane and depth differences (metres),
-            per scale.
-        damping: initial Levenberg-Marquardt damping (relative to the diagonal).
-    """
-
-    scales: tuple[int, ...] = (4, 2, 1)
-    iters: tuple[int, ...] = (10, 8, 6)
-    pairs: str = "all"
-    point_stride: tuple[int, ...] = (1, 1, 2)
-    geo_scale_m: tuple[float, ...] = (0.02, 0.01, 0.005)
-    photo_scale: float = 0.03
-    photo_weight: float = 0.3
-    robust: str = "huber"
-    max_dist_m: tuple[float, ...] = (0.10, 0.05, 0.03)
-    damping: float = 1e-4
-
-    def __post_init__(self):
-        n = len(self.scales)
-        if not (len(self.iters) == len(self.point_stride) == len(self.max_dist_m) == len(self.geo_scale_m) == n):
-            raise ValueError("RefineSettings: scales, iters, point_stride, max_dist_m and geo_scale_m need the same length")
-        if self.pairs not in ("all", "target", "adjacent"):
-            raise ValueError(f"RefineSettings.pairs must be all|target|adjacent, got {self.pairs!r}")
-        if self.robust not in ("huber", "cauchy"):
-            raise ValueError(f"RefineSettings.robust must be huber|cauchy, got {self.robust!r}")
+__all__ = ["RefineResult", "Level", "LevelSettings", "frame_pairs", "refine_poses", "adjoint", "normal_system",
+           "pair_information", "target_residuals"]
 
 
 @dataclass
@@ -134,8 +94,10 @@ def _erode(mask: torch.Tensor) -> torch.Tensor:
 
 
 @dataclass(frozen=True)
-class _LevelSettings:
-    """The residual settings of one scale."""
+class LevelSettings:
+    """The residual settings of one scale (see :class:`~depthgt.settings.RefineSettings`):
+    robust scales of the point-to-plane (metres) and intensity residuals, the weight of
+    the photometric term and the robust kernel ("huber" | "cauchy")."""
 
     geo_scale_m: float
     photo_scale: float
@@ -143,8 +105,20 @@ class _LevelSettings:
     robust: str
 
 
-class _Level:
-    """Per-scale images of all frames: sample maps and source points."""
+class Level:
+    """Per-scale images of all frames of a set: sample maps and source points.
+
+    Args:
+        rgb: (F, 3, H, W) colour in [0, 1]; depth_m: (F, 1, H, W) metres, 0 = invalid;
+        K: (3, 3) intrinsics at (H, W); scale: downscale factor; stride: source pixel
+        stride.
+
+    Attributes:
+        maps: (F, 10, h, w) points X (3, metres), normals (3), gray, gradients gx, gy and
+            normal validity, sampled at the warped positions.
+        points: (F, 3, N) source points (planar layout); gray (F, N); valid (F, N) bool.
+        K: (3, 3) intrinsics at (h, w); hw: (h, w); median_depth: metres.
+    """
 
     def __init__(self, rgb, depth_m, K, scale: int, stride: int):
         Fn, _, H, W = depth_m.shape
@@ -176,7 +150,7 @@ def _cross(a, b):
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-def _residuals(level: _Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "_LevelSettings", gate: float):
+def _residuals(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "LevelSettings", gate: float):
     """Scaled residuals r (P, 2N) (N geometric, then N photometric), Jacobians
     J (P, 6, 2N) w.r.t. a left twist (v, w) of T_ab, and validity (P, 2N).
 
@@ -252,14 +226,24 @@ def _robust(r: torch.Tensor, kind: str) -> tuple[torch.Tensor, torch.Tensor]:
     return w, rho
 
 
-def _gate_cost(gate: float, s: "_LevelSettings") -> float:
+def _gate_cost(gate: float, s: "LevelSettings") -> float:
     # An unassociated point pays the cost of a residual at the gate, so that costs of
     # different association sets compare fairly in the LM acceptance test.
     _, rho = _robust(torch.tensor([gate / s.geo_scale_m]), s.robust)
     return float(rho[0])
 
 
-def _normal_system(level, T, pairs, s, gate):
+def normal_system(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings, gate: float):
+    """Robust Gauss-Newton normal equations of every pair at the poses ``T``.
+
+    Args:
+        T: (F', 4, 4) poses of the frames in the target camera; pairs: (P, 2) long
+            (a, b): b's points warped into a's maps; gate: association gate (metres).
+
+    Returns:
+        ``(H_rel (P, 6, 6), g_rel (P, 6), pair_cost (P,), inliers (P,), T^-1 (F', 4, 4))``
+        in float64, Jacobians w.r.t. a left twist (v, w) of ``T_ab = T_a^-1 T_b``.
+    """
     a, b = pairs[:, 0], pairs[:, 1]
     Tinv = torch.linalg.inv(T)
     T_ab = Tinv[a] @ T[b]
@@ -340,10 +324,10 @@ def refine_poses(
     eye6 = torch.eye(6 * (Fn - 1), dtype=torch.float64, device=dev)
     last = None
     for li, (scale, n_it, stride, gate) in enumerate(zip(settings.scales, settings.iters, settings.point_stride, settings.max_dist_m)):
-        level = _Level(rgb, depth_m, K, scale, stride)
-        ls = _LevelSettings(settings.geo_scale_m[li], settings.photo_scale, settings.photo_weight, settings.robust)
+        level = Level(rgb, depth_m, K, scale, stride)
+        ls = LevelSettings(settings.geo_scale_m[li], settings.photo_scale, settings.photo_weight, settings.robust)
         lam = settings.damping
-        H_rel, g_rel, pcost, inl, Tinv = _normal_system(level, T, pairs, ls, gate)
+        H_rel, g_rel, pcost, inl, Tinv = normal_system(level, T, pairs, ls, gate)
         cost = float(pcost.sum())
         if li == len(settings.scales) - 1:
             out.initial_cost = _per_frame(pcost, tgt_pairs, other, Fn)
@@ -357,7 +341,7 @@ def refine_poses(
                 delta = torch.linalg.solve(Hr + lam * torch.diag(diag) + 1e-9 * eye6, -gr).reshape(Fn - 1, 6)
                 T_new = T.clone()
                 T_new[1:] = Se3.exp(delta).matrix().to(torch.float64) @ T[1:]
-                sys_new = _normal_system(level, T_new, pairs, ls, gate)
+                sys_new = normal_system(level, T_new, pairs, ls, gate)
                 c_new = float(sys_new[2].sum())
                 if c_new <= cost:
                     T, cost = T_new, c_new
@@ -383,11 +367,12 @@ def refine_poses(
     H_tgt.index_add_(0, other[tgt_pairs], H_rel[tgt_pairs])
     cond[1:] = pair_information(H_tgt[1:], float(level.median_depth))
     out.condition = cond
-    out.residual_m = _target_residuals(level, T, pairs[sel], ls, settings.max_dist_m[-1], Fn)
+    out.residual_m = target_residuals(level, T, pairs[sel], ls, settings.max_dist_m[-1], Fn)
     return out
 
 
-def _target_residuals(level, T, pairs, s, gate, n_frames):
+def target_residuals(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings, gate: float,
+                     n_frames: int) -> torch.Tensor:
     """(F,) median |point-to-plane residual| (metres) of the associated points of the
     pairs (0, b), b's points in the target."""
     T_ab = torch.linalg.inv(T[pairs[:, 0]]) @ T[pairs[:, 1]]

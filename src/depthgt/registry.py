@@ -1,0 +1,94 @@
+"""The one registry of evaluation methods and trainable models (torch-free).
+
+Every name a user can put in ``evaluation.methods`` is an entry here, with the label
+the tables print and its kind:
+
+* ``input``: the raw depth as it is (the reference row of the tables);
+* ``filter``: a classical filter, run by the baseline function of the same name in
+  :data:`depthgt.enhance.baselines.BASELINES`;
+* ``learned``: a network trained by the workflow (rule ``train_model``) on the patch
+  pairs of ``trains_on`` (``depthgt``: depthgt's GT, ``results/dataset``; ``rde``: the
+  global-reconstruction GT, ``results/rde``), built by ``builder`` (a key of
+  :data:`depthgt.enhance.train.MODELS`) with ``model_params`` unless the config's
+  ``enhance.models[settings_key]`` says otherwise, and run by the ``learned`` baseline.
+
+The settings (:mod:`depthgt.settings`), the workflow rules (``workflow/rules/enhance.smk``),
+the tables (:mod:`depthgt.eval.tables`), the training (:mod:`depthgt.enhance.train`) and
+the baselines all read this table; ``tests/test_registry.py`` checks that they agree.
+Adding a filter baseline = one entry here + its function in ``enhance/baselines.py``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+__all__ = ["Method", "METHODS", "KINDS", "TRAINS_ON", "learned", "builders", "label"]
+
+KINDS = ("input", "filter", "learned")
+TRAINS_ON = ("depthgt", "rde")
+
+
+@dataclass(frozen=True)
+class Method:
+    """One evaluation method.
+
+    Attributes:
+        name: the name in the config, file names and tables' long form.
+        label: the row label of the tables.
+        kind: ``input``, ``filter`` or ``learned``.
+        baseline: the :data:`~depthgt.enhance.baselines.BASELINES` entry that runs it.
+        trains_on: learned only: ``depthgt`` or ``rde``.
+        builder: learned only: the model builder (:data:`depthgt.enhance.train.MODELS`).
+        settings_key: learned only: the ``enhance.models`` entry with its training
+            settings (RDE trains LapDEN with LapDEN's entry).
+        model_params: learned only: builder parameters when the config gives none.
+    """
+
+    name: str
+    label: str
+    kind: str
+    baseline: str
+    trains_on: str | None = None
+    builder: str | None = None
+    settings_key: str | None = None
+    model_params: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ValueError(f"registry method {self.name!r}: kind must be one of {KINDS}, got {self.kind!r}")
+        learned = self.kind == "learned"
+        if learned != (self.trains_on is not None) or learned != (self.builder is not None):
+            raise ValueError(f"registry method {self.name!r}: trains_on and builder are set exactly for learned methods")
+        if learned and self.trains_on not in TRAINS_ON:
+            raise ValueError(f"registry method {self.name!r}: trains_on must be one of {TRAINS_ON}, got {self.trains_on!r}")
+        if learned and self.settings_key is None:
+            object.__setattr__(self, "settings_key", self.name)
+
+
+# The order here is the order of the tables' rows and of the default evaluation.methods.
+METHODS: dict[str, Method] = {m.name: m for m in (
+    Method("input", "Input (raw depth)", "input", baseline="input"),
+    Method("rgf", "RGF", "filter", baseline="rgf"),
+    Method("jf", "JF", "filter", baseline="jf"),
+    Method("ddrnet", "DDRNet (denoising net)", "learned", baseline="learned", trains_on="depthgt", builder="ddrnet"),
+    Method("sdd", "SDD (single-view depth terms)", "learned", baseline="learned", trains_on="depthgt", builder="sdd"),
+    Method("rde", "RDE (LapDEN on TSDF GT)", "learned", baseline="learned", trains_on="rde", builder="lapden",
+           settings_key="lapden", model_params={"preset": "default"}),
+    Method("lapden", "LapDEN (depthgt GT)", "learned", baseline="learned", trains_on="depthgt", builder="lapden",
+           model_params={"preset": "default"}),
+)}
+
+
+def learned() -> dict[str, Method]:
+    """The trainable methods (kind ``learned``), in registry order."""
+    return {name: m for name, m in METHODS.items() if m.kind == "learned"}
+
+
+def builders() -> set[str]:
+    """Names of the model builders the learned methods use."""
+    return {m.builder for m in learned().values()}
+
+
+def label(name: str) -> str:
+    """Table label of a method (the name itself when it is not registered)."""
+    return METHODS[name].label if name in METHODS else name
