@@ -25,12 +25,10 @@ import torch
 import yaml
 
 from depthgt.gt.cache import CachedScene, FrameCacheWriter
-from depthgt.settings import job_settings
-from depthgt.gt.framesets import FrameSetSettings, SplitSettings
-from depthgt.io import write_json
-from depthgt.jobs.gt import open_source_scene
+from depthgt.gt.frameset import FrameSetOutputs, process_frameset
 from depthgt.gt.index import build_index
-from depthgt.gt.frameset import process_frameset
+from depthgt.jobs.common import open_source_scene
+from depthgt.settings import settings_from_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,8 +43,8 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     config = yaml.safe_load(Path(args.config).read_text())
     config["device"] = args.device
-    settings = job_settings(config)
-    fs = FrameSetSettings(**config.get("frameset", {}))
+    settings = settings_from_config(config)
+    fs = settings.frameset
     src = config["sources"][0]
     scene = open_source_scene(src, src["scenes"][0])
     targets = list(range(fs.reach, len(scene) - fs.reach, max(1, (len(scene) - 2 * fs.reach) // args.framesets)))[: args.framesets]
@@ -54,17 +52,15 @@ def main() -> None:
     totals = []
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
-        cache = FrameCacheWriter(Path(tmp) / "frames", len(scene), settings.size_hw, scene.has_clean_depth)
-        index = build_index(scene, src["name"], "train", True, fs, SplitSettings(), 0, cache=cache)
+        cache = FrameCacheWriter(Path(tmp) / "frames", scene, settings.size_hw)
+        build_index(scene, src["name"], "train", True, fs, settings.split, 0, cache=cache)
         cache.close()
         index_s = time.perf_counter() - start
-        index.to_table().to_parquet(Path(tmp) / "index.parquet")
-        write_json(Path(tmp) / "index.json", index.meta)
-        cached = CachedScene(Path(tmp) / "index.json", index.frames)
+        cached = CachedScene(Path(tmp) / "frames")
         for t in targets:
             members = [t + o for o in fs.offsets]
             start = time.perf_counter()
-            process_frameset(cached, src["name"], t, members, "train", Path(tmp) / f"{t:06d}", settings, cache_dir=Path(tmp) / "frames")
+            process_frameset(cached, src["name"], t, members, "train", FrameSetOutputs.in_dir(Path(tmp) / f"{t:06d}"), settings)
             totals.append(time.perf_counter() - start)
             timings = json.loads((Path(tmp) / f"{t:06d}" / "poses.json").read_text())["timings_s"]
             for k, v in timings.items():

@@ -37,8 +37,9 @@ import pandas as pd
 import torch
 
 from depthgt.geometry import resize_depth_nearest, resize_rgb, scale_intrinsics
-from depthgt.registration.metrics import pose_errors
-from depthgt.registration.overfit import make_settings, register_frameset
+from depthgt.eval.metrics import pose_errors
+from depthgt.registration.overfit import register_frameset
+from depthgt.settings import registration_settings
 
 SEVEN = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
 OFFSETS = [0, -6, -4, -2, 2, 4, 6]
@@ -112,7 +113,8 @@ def run_open3d(rgb, depth, K, kind: str) -> np.ndarray:
 
 def gt_mae(rgb, depth, K, T_j_to_t, clean_t):
     """MAE (m) of the frame-set GT against the clean target depth: valid-only and missing-counted."""
-    from depthgt.gt.render import GTRenderSettings, render_gt
+    from depthgt.gt.render import render_gt
+    from depthgt.settings import RenderSettings
     from depthgt.geometry import backproject
 
     Fn = depth.shape[0]
@@ -120,7 +122,7 @@ def gt_mae(rgb, depth, K, T_j_to_t, clean_t):
     pts = backproject(depth, K.expand(Fn, 3, 3))
     pts_t = (pts.double() @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]).float()
     valid = (depth > 0).flatten(1)
-    out = render_gt(pts_t.reshape(1, -1, 3), K[None], SIZE, valid.reshape(1, -1), GTRenderSettings())
+    out = render_gt(pts_t.reshape(1, -1, 3), K[None], SIZE, valid.reshape(1, -1), RenderSettings())
     gt = out.depth[0, 0].cpu()
     ref = clean_t[0, 0].cpu()
     m = ref > 0
@@ -172,7 +174,7 @@ def main(argv=None):
                 except ImportError:
                     continue
             else:
-                st = make_settings(method, **overrides)
+                st = registration_settings({"preset": method, **overrides})
                 if refine_over:
                     st = dataclasses.replace(st, refine_settings=dataclasses.replace(st.refine_settings, **refine_over))
                 res = register_frameset(rgb, depth, K, OFFSETS, st, seed=a.seed)

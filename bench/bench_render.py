@@ -41,7 +41,8 @@ import pandas as pd
 import torch
 
 from depthgt.geometry import resize_depth_nearest, scale_intrinsics
-from depthgt.gt.render import GTRenderSettings, cloud_in_target, render_gt, splat_soft
+from depthgt.gt.render import cloud_in_target, render_gt, splat_soft
+from depthgt.settings import RenderSettings
 
 SIZE = (256, 256)
 IDS = [2, 4, 6, 8, 10, 12, 14]  # target 8 and its neighbours -+ 2, 4, 6
@@ -71,7 +72,7 @@ def load_room(room: str) -> dict:
     }
 
 
-def render_case(data: dict, frames: list[int], depth_kind: str, exact_pos: bool, settings: GTRenderSettings,
+def render_case(data: dict, frames: list[int], depth_kind: str, exact_pos: bool, settings: RenderSettings,
                 device: str = "cpu") -> torch.Tensor:
     d = data[depth_kind][frames].to(device)
     cloud = cloud_in_target(d, data["K"].to(device).expand(len(frames), 3, 3), data["T"][frames].to(device),
@@ -84,9 +85,9 @@ def mae_mm(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).abs()[m].mean()) * 1000
 
 
-def accuracy(rooms: list[str], settings: GTRenderSettings) -> list[dict]:
+def accuracy(rooms: list[str], settings: RenderSettings) -> list[dict]:
     rows = []
-    naive = GTRenderSettings(m=10_000, radius_px=settings.radius_px, rel_band=1e6, plane_correction=False,
+    naive = RenderSettings(m=10_000, radius_px=settings.radius_px, rel_band=1e6, plane_correction=False,
                              coverage_frac=1.0, extend_uncovered=True)
     for room in rooms:
         data = load_room(room)
@@ -131,7 +132,7 @@ def speed_inputs(device: str):
 
 def run_one(fn: str, x: dict):
     if fn == "render_gt":
-        return render_gt(x["points"], x["K"][None], SIZE, x["valid"], GTRenderSettings(), x["normals"])
+        return render_gt(x["points"], x["K"][None], SIZE, x["valid"], RenderSettings(), x["normals"])
     if fn == "splat_soft":
         return splat_soft(x["per_view"], x["feats"], x["K"].expand(7, 3, 3), SIZE)
     if fn == "splat_soft_fwd_bwd":
@@ -205,14 +206,14 @@ def main(argv=None) -> None:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--skip-accuracy", action="store_true")
     ap.add_argument("--skip-speed", action="store_true")
-    ap.add_argument("--set", nargs="*", default=[], help="GTRenderSettings overrides key=value (python literals)")
+    ap.add_argument("--set", nargs="*", default=[], help="RenderSettings overrides key=value (python literals)")
     ap.add_argument("--out", default="/tmp/bench_render.csv")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.child:
         print(json.dumps(peak_rss_child(a.child)))
         return
-    settings = GTRenderSettings(**{k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in a.set)})
+    settings = RenderSettings(**{k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in a.set)})
     rows: list[dict] = []
     if not a.skip_speed:
         for t in a.threads:

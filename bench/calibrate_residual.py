@@ -25,16 +25,17 @@ from kornia.geometry.liegroup import Se3
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_registration import OFFSETS, SEVEN, load_frameset  # noqa: E402
 
-from depthgt.registration.refine import RefineSettings, _Level, _LevelSettings, _target_residuals  # noqa: E402
+from depthgt.registration.refine import Level, LevelSettings, target_residuals  # noqa: E402
+from depthgt.settings import RefineSettings  # noqa: E402
 from depthgt.sources.base import open_scene  # noqa: E402
 
 
 def residuals(rgb, depth, K, T_j_to_t, rs: RefineSettings):
-    level = _Level(rgb, depth, K, rs.scales[-1], rs.point_stride[-1])
-    ls = _LevelSettings(rs.geo_scale_m[-1], rs.photo_scale, rs.photo_weight, rs.robust)
+    level = Level(rgb, depth, K, rs.scales[-1], rs.point_stride[-1])
+    ls = LevelSettings(rs.geo_scale_m[-1], rs.photo_scale, rs.photo_weight, rs.robust)
     T = torch.cat([torch.eye(4, dtype=torch.float64)[None], torch.as_tensor(T_j_to_t, dtype=torch.float64)])
     pairs = torch.stack([torch.zeros(len(T) - 1, dtype=torch.long), torch.arange(1, len(T))], 1)
-    return _target_residuals(level, T, pairs, ls, rs.max_dist_m[-1], len(T))[1:].numpy()
+    return target_residuals(level, T, pairs, ls, rs.max_dist_m[-1], len(T))[1:].numpy()
 
 
 def main(argv=None):

@@ -62,7 +62,7 @@ def splat_soft_reference(points_cam, features, K, size_hw, valid=None, radius_px
 def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, normals_cam=None):
     """Loop version of ``render_gt`` for one image: points (N, 3), K (3, 3), normals (N, 3).
 
-    ``settings`` is a ``GTRenderSettings``. Returns depth, weight_sum, count as (H, W)
+    ``settings`` is a ``depthgt.settings.RenderSettings``. Returns depth, weight_sum, count as (H, W)
     float64 / float64 / int arrays.
     """
     st = settings

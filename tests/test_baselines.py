@@ -6,7 +6,7 @@ import torch
 
 from depthgt.enhance.baselines import BASELINES, fill_holes, run_baseline
 from depthgt.enhance.learned import DDRNetDenoise, PartialConv2d, SDDUNet, ddrnet_loss, sdd_loss
-from depthgt.eval.metrics import rmse
+from depthgt.eval.metrics import depth_errors
 
 torch.set_num_threads(1)  # the test machine is shared; one thread is faster here
 
@@ -42,11 +42,11 @@ def test_filters_denoise_and_fill_holes(name):
     out = run_baseline(name, noisy, rgb)
     assert out.dtype == np.float32 and out.shape == truth.shape and np.isfinite(out).all()
     # closer to the truth than the input on the valid input pixels
-    assert rmse(out, truth) < 0.7 * rmse(noisy, truth)
+    assert depth_errors(out, truth)["rmse_m"] < 0.7 * depth_errors(noisy, truth)["rmse_m"]
     # holes are filled, with plane-like values (no zeros bled in)
     assert (out[holes] > 0).all()
     assert np.abs(out[holes] - truth[holes]).max() < 0.1
-    assert rmse(out, truth, fill=True) < 0.05
+    assert depth_errors(out, truth)["rmse_missing_counted_m"] < 0.05
 
 
 def test_rgf_keeps_a_depth_edge():
@@ -132,15 +132,18 @@ def test_evaluate_frames_on_a_synthetic_frame_set(tmp_path):
                            {"dataset": "synth", "scene": "s0", "target": 12, "frameset_dir": str(d), "split": "train",
                             "status": "ok"}])
     methods = {"input": {"baseline": "input"}, "rgf": {"baseline": "rgf"}, "gt": {"image": "gt"}}
-    table = evaluate_frames(frames, methods, reference="truth", save_dir=tmp_path / "pred")
+    table = evaluate_frames(frames, methods, references=["truth"], pred_dirs={"rgf": tmp_path / "pred" / "rgf"})
     wide = table.pivot_table(index="method", columns="metric", values="value")
     assert set(table["target"]) == {10}  # the train row is not evaluated
     assert wide.loc["gt", "mae_m"] == pytest.approx(0.001, rel=1e-3)
     assert wide.loc["rgf", "rmse_m"] < wide.loc["input", "rmse_m"]
     assert wide.loc["rgf", "completeness"] == 1.0 and wide.loc["input", "completeness"] < 1.0
     assert (tmp_path / "pred" / "rgf" / "synth" / "s0" / "000010.npy").is_file()
+    assert not (tmp_path / "pred" / "input").exists()  # only the methods given a folder are saved
+    both = evaluate_frames(frames, {"input": {"baseline": "input"}})  # default references: gt and truth
+    assert set(both["reference"]) == {"gt", "truth"} and set(both["unit"]) <= {"m", "fraction", "px", "1", "m^2/px^2"}
     # a frame without truth is skipped when the truth is the reference
     io.write_exr(d / "input.exr", {"Z": noisy})
-    assert evaluate_frames(frames, methods, reference="truth").empty
+    assert evaluate_frames(frames, methods, references=["truth"]).empty
     with pytest.raises(ValueError, match="reference must be"):
-        evaluate_frames(frames, methods, reference="mesh")
+        evaluate_frames(frames, methods, references=["mesh"])

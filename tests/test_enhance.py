@@ -187,7 +187,7 @@ import pandas as pd  # noqa: E402
 
 from depthgt.enhance.train import (  # noqa: E402
     PatchDataset,
-    TrainSettings,
+    TrainOutputs,
     collate,
     flip_batch,
     load_model,
@@ -196,6 +196,7 @@ from depthgt.enhance.train import (  # noqa: E402
     train,
 )
 from depthgt.errors import ConfigError  # noqa: E402
+from depthgt.settings import TrainSettings  # noqa: E402
 
 
 def _write_frameset(folder, seed, n_patches=4, size=16):
@@ -251,26 +252,26 @@ def test_flip_batch_flips_images_and_intrinsics(manifests):
 
 
 def test_train_resume_equals_uninterrupted(manifests, tmp_path):
-    full = train(*manifests, tmp_path / "full", _settings(3))
+    full = train(*manifests, TrainOutputs.in_dir(tmp_path / "full"), _settings(3))
     assert full["epochs_run"] == 3 and 0 <= full["best_epoch"] <= 2
     log = pd.read_csv(full["log"])
     assert list(log["split"]) == ["train", "val"] * 3
     assert {"depth", "grad", "normal", "structure", "total"} <= set(log.columns)
 
     # an interrupted run: 2 epochs, then resumed to 3
-    part = train(*manifests, tmp_path / "part", _settings(2))
+    part = train(*manifests, TrainOutputs.in_dir(tmp_path / "part"), _settings(2))
     assert part["epochs_run"] == 2
-    resumed = train(*manifests, tmp_path / "part", _settings(3))
+    resumed = train(*manifests, TrainOutputs.in_dir(tmp_path / "part"), _settings(3))
     assert resumed["epochs_run"] == 1
     a = torch.load(full["last"], weights_only=False)["model_state"]
     b = torch.load(resumed["last"], weights_only=False)["model_state"]
     assert all(torch.equal(a[k], b[k]) for k in a)
     pd.testing.assert_frame_equal(pd.read_csv(resumed["log"]).drop(columns="seconds"), log.drop(columns="seconds"))
     # a finished run does nothing more
-    assert train(*manifests, tmp_path / "part", _settings(3))["epochs_run"] == 0
+    assert train(*manifests, TrainOutputs.in_dir(tmp_path / "part"), _settings(3))["epochs_run"] == 0
 
     with pytest.raises(ConfigError, match="other settings"):
-        train(*manifests, tmp_path / "part", TrainSettings(**{**_settings(3).__dict__, "lr": 5e-4}))
+        train(*manifests, TrainOutputs.in_dir(tmp_path / "part"), TrainSettings(**{**_settings(3).__dict__, "lr": 5e-4}))
 
     model = load_model(full["best"])
     depth = 1.0 + torch.rand(2, 1, 30, 34)

@@ -1,7 +1,9 @@
 import numpy as np
 import pytest
 
-from depthgt.gt.framesets import FrameSetSettings, SplitSettings, block_splits, enumerate_framesets, stable_seed
+from depthgt.errors import ConfigError
+from depthgt.gt.framesets import block_splits, enumerate_framesets, stable_seed
+from depthgt.settings import FrameSetSettings, SplitSettings
 
 
 def test_offsets_paper_defaults():
@@ -12,9 +14,9 @@ def test_offsets_paper_defaults():
 
 
 def test_invalid_settings_name_key():
-    with pytest.raises(ValueError, match="frameset.stride"):
+    with pytest.raises(ConfigError, match="frameset.stride"):
         FrameSetSettings(stride=0)
-    with pytest.raises(ValueError, match="split.val_fraction"):
+    with pytest.raises(ConfigError, match="split.val_fraction"):
         SplitSettings(val_fraction=1.5)
 
 

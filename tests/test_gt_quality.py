@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from depthgt.gt.framesets import FrameSetSettings
-from depthgt.jobs.gt import open_source_scene
+from depthgt.eval.metrics import depth_errors
 from depthgt.gt.frameset import fuse, load_frameset, poses_from_source
-from depthgt.quality import error_stats
-from depthgt.gt.render import GTRenderSettings
+from depthgt.jobs.common import open_source_scene
+from depthgt.settings import FrameSetSettings, RenderSettings
 
 
 @pytest.fixture(scope="module")
@@ -31,13 +30,13 @@ def framesets():
 def test_gt_beats_input_against_truth(framesets):
     ratios_counted, ratios_valid, completeness = [], [], []
     for data, T in framesets:
-        gt = fuse(data, T, GTRenderSettings()).depth[0, 0].numpy()
+        gt = fuse(data, T, RenderSettings()).depth[0, 0].numpy()
         inp = data.depth_m[0, 0].numpy()
         truth = data.truth_m[0, 0].numpy()
-        g, i = error_stats(gt, truth), error_stats(inp, truth)
-        g_at_input = error_stats(gt, truth, mask=inp > 0)
-        ratios_counted.append(g["mae_missing_counted"] / i["mae_missing_counted"])
-        ratios_valid.append(g_at_input["mae_valid"] / i["mae_valid"])
+        g, i = depth_errors(gt, truth), depth_errors(inp, truth)
+        g_at_input = depth_errors(gt, truth, mask=inp > 0)
+        ratios_counted.append(g["mae_missing_counted_m"] / i["mae_missing_counted_m"])
+        ratios_valid.append(g_at_input["mae_m"] / i["mae_m"])
         completeness.append(g["completeness"])
     assert np.mean(completeness) >= 0.97
     assert np.mean(ratios_counted) <= 0.40
@@ -46,10 +45,10 @@ def test_gt_beats_input_against_truth(framesets):
 
 def test_leave_target_out_uses_neighbours_only(framesets):
     data, T = framesets[0]
-    lto = fuse(data, T, GTRenderSettings(), members=slice(1, None)).depth[0, 0].numpy()
+    lto = fuse(data, T, RenderSettings(), members=slice(1, None)).depth[0, 0].numpy()
     truth = data.truth_m[0, 0].numpy()
-    s = error_stats(lto, truth)
-    assert s["completeness"] > 0.9 and s["mae_valid"] < 0.01
+    s = depth_errors(lto, truth)
+    assert s["completeness"] > 0.9 and s["mae_m"] < 0.01
     # removing the target changes the result (the target contributes to the full GT)
-    full = fuse(data, T, GTRenderSettings()).depth[0, 0].numpy()
+    full = fuse(data, T, RenderSettings()).depth[0, 0].numpy()
     assert not np.array_equal(full, lto)

@@ -1,4 +1,4 @@
-"""Metrics on hand-computed cases."""
+"""Metrics on hand-computed cases: one depth-error vocabulary, one pose error."""
 
 import math
 
@@ -7,16 +7,16 @@ import pytest
 import torch
 
 from depthgt.eval.metrics import (
-    completeness,
+    DEPTH_ERRORS,
+    METRIC_UNITS,
+    PoseErrors,
+    depth_errors,
     depth_metrics,
     ls_distance,
-    mae,
+    pose_delta,
     pose_errors,
-    rmse,
-    rotation_error_deg,
     ssim_depth,
     to_long,
-    translation_error_cm,
 )
 
 torch.set_num_threads(1)
@@ -25,24 +25,41 @@ PRED = np.array([[1.0, 2.0], [0.0, 4.0]], dtype=np.float32)
 REF = np.array([[1.0, 3.0], [2.0, 0.0]], dtype=np.float32)
 
 
-def test_rmse_mae_completeness_hand_computed():
+def test_depth_errors_hand_computed():
+    e = depth_errors(PRED, REF)
     # both valid: (0,0) err 0, (0,1) err 1
-    assert rmse(PRED, REF) == pytest.approx(math.sqrt(0.5))
-    assert mae(PRED, REF) == pytest.approx(0.5)
+    assert e["rmse_m"] == pytest.approx(math.sqrt(0.5))
+    assert e["mae_m"] == pytest.approx(0.5)
     # reference valid: errors 0, 1, 2 (missing prediction counts as 0 m)
-    assert rmse(PRED, REF, fill=True) == pytest.approx(math.sqrt(5.0 / 3.0))
-    assert mae(PRED, REF, fill=True) == pytest.approx(1.0)
-    assert completeness(PRED, REF) == pytest.approx(2.0 / 3.0)
+    assert e["rmse_missing_counted_m"] == pytest.approx(math.sqrt(5.0 / 3.0))
+    assert e["mae_missing_counted_m"] == pytest.approx(1.0)
+    assert e["completeness"] == pytest.approx(2.0 / 3.0)
+    assert e["n_reference_px"] == 3 and e["n_both_px"] == 2
+    assert list(e) == list(DEPTH_ERRORS)
 
 
-def test_metrics_accept_torch_and_reject_bad_shapes():
+def test_depth_errors_second_case_and_mask():
+    ref = np.array([[1.0, 2.0], [3.0, 0.0]], np.float32)
+    est = np.array([[1.1, 0.0], [2.8, 5.0]], np.float32)
+    s = depth_errors(est, ref)
+    assert s["mae_m"] == pytest.approx((0.1 + 0.2) / 2, abs=1e-6)
+    assert s["rmse_m"] == pytest.approx(np.sqrt((0.01 + 0.04) / 2), abs=1e-6)
+    assert s["mae_missing_counted_m"] == pytest.approx((0.1 + 2.0 + 0.2) / 3, abs=1e-6)
+    masked = depth_errors(est, ref, mask=np.array([[True, False], [False, False]]))
+    assert masked["n_reference_px"] == 1 and masked["mae_m"] == pytest.approx(0.1, abs=1e-6)
+
+
+def test_depth_errors_accept_torch_and_reject_bad_shapes():
     t = torch.from_numpy(PRED)[None, None]
-    assert rmse(t, torch.from_numpy(REF)[None, None]) == pytest.approx(math.sqrt(0.5))
+    assert depth_errors(t, torch.from_numpy(REF)[None, None])["rmse_m"] == pytest.approx(math.sqrt(0.5))
     with pytest.raises(ValueError, match="differ in shape"):
-        rmse(PRED, np.zeros((3, 3), np.float32))
+        depth_errors(PRED, np.zeros((3, 3), np.float32))
     with pytest.raises(ValueError, match=r"\(H, W\)"):
-        rmse(np.zeros((2, 2, 2), np.float32), np.zeros((2, 2, 2), np.float32))
-    assert math.isnan(rmse(np.zeros((2, 2), np.float32), REF))
+        depth_errors(np.zeros((2, 2, 2), np.float32), np.zeros((2, 2, 2), np.float32))
+    assert math.isnan(depth_errors(np.zeros((2, 2), np.float32), REF)["rmse_m"])
+    nan_est = PRED.copy()
+    nan_est[0, 1] = np.nan  # non-finite = missing
+    assert depth_errors(nan_est, REF)["n_both_px"] == 1
 
 
 def test_ssim_identical_and_constant_images():
@@ -70,15 +87,19 @@ def test_ls_distance_step_edge():
     assert ls_distance(ref, ref) == pytest.approx(0.0, abs=1e-10)
 
 
-def test_depth_metrics_keys_and_long_table():
+def test_depth_metrics_keys_units_and_long_table():
     m = depth_metrics(PRED, REF)
     assert m["rmse_m"] == pytest.approx(math.sqrt(0.5))
-    assert m["n_valid"] == 2
+    assert m["n_both_px"] == 2
     assert math.isnan(m["ssim"])  # 2x2 is smaller than the 11x11 window
+    assert set(m) <= set(METRIC_UNITS)  # every metric has its unit
+    assert all(METRIC_UNITS[k] == "m" for k in m if k.endswith("_m"))  # units in the names agree with the table
     df = to_long(m, dataset="d", scene="s", method="input")
     assert list(df.columns) == ["dataset", "scene", "method", "metric", "unit", "value"]
     assert df.set_index("metric").loc["rmse_m", "unit"] == "m"
     assert len(df) == len(m)
+    with pytest.raises(KeyError, match="no unit"):
+        to_long({"mae_valid": 1.0})
 
 
 def _pose(angle_deg, t):
@@ -92,11 +113,15 @@ def _pose(angle_deg, t):
 def test_pose_errors_hand_computed():
     T_ref = _pose(10.0, [1.0, 2.0, 3.0])
     T_est = _pose(40.0, [1.01, 2.02, 3.02])
-    assert rotation_error_deg(T_est, T_ref) == pytest.approx(30.0)
-    assert translation_error_cm(T_est, T_ref) == pytest.approx(3.0)
+    e = pose_errors(T_est, T_ref)
+    assert isinstance(e, PoseErrors)
+    assert float(e.rot_err_deg) == pytest.approx(30.0)
+    assert float(e.trans_err_cm) == pytest.approx(3.0)
     batch = np.stack([T_est, T_ref])
-    e = pose_errors(batch, np.stack([T_ref, T_ref]))
-    assert e["rot_err_deg"] == pytest.approx(15.0)
-    assert e["trans_err_cm"] == pytest.approx(1.5)
+    r, t = pose_errors(torch.from_numpy(batch), np.stack([T_ref, T_ref]))  # torch in, unpacks as a pair
+    assert r.shape == (2,) and r[1] == pytest.approx(0.0, abs=1e-6)
+    assert pose_errors(batch, np.stack([T_ref, T_ref])).mean() == pytest.approx({"rot_err_deg": 15.0, "trans_err_cm": 1.5})
+    dt, dr = pose_delta(_pose(90.0, [0.0, 3.0, 4.0]))
+    assert float(dt) == pytest.approx(5.0) and float(dr) == pytest.approx(90.0)
     with pytest.raises(ValueError, match="4, 4"):
-        rotation_error_deg(np.eye(3), np.eye(4))
+        pose_errors(np.eye(3), np.eye(4))

@@ -1,7 +1,9 @@
 import numpy as np
 import pytest
 
-from depthgt.gt.patches import PatchSettings, crop, crop_boxes, make_patches
+from depthgt.errors import ConfigError
+from depthgt.gt.patches import crop, crop_boxes, crop_pairs, make_patches, missing_ratio, passes_missing_filter
+from depthgt.settings import PatchSettings
 
 
 def test_crop_matches_slicing():
@@ -33,21 +35,40 @@ def test_missing_filter(filter_on):
     s = PatchSettings(count=200, size=16, max_missing=0.05, filter_on=filter_on)
     out = make_patches(inp, gt, rgb, s, np.random.default_rng(0), truth_m=gt)
     assert len(out["kept"]) == 200 and out["kept"].sum() == len(out["gt"]) == len(out["truth"])
-    assert (out["missing_gt"] < 0.05).all() if filter_on in ("gt", "both") else True
-    assert (out["missing_input"] < 0.05).all() if filter_on in ("input", "both") else True
-    # every rejected crop violates the rule
-    rej = ~out["kept"]
-    if filter_on == "gt":
-        assert (out["all_missing_gt"][rej] >= 0.05).all()
-    elif filter_on == "input":
-        assert (out["all_missing_input"][rej] >= 0.05).all()
-    else:
-        assert ((out["all_missing_gt"][rej] >= 0.05) | (out["all_missing_input"][rej] >= 0.05)).all()
+    # the recorded ratios are those of the images at the drawn boxes ...
+    for key, img in (("all_missing_gt", gt), ("all_missing_input", inp)):
+        direct = [(img[y:y + 16, x:x + 16] <= 0).mean() for y, x, _, _ in out["all_boxes"]]
+        np.testing.assert_allclose(out[key], direct)
+    # ... and the kept crops are exactly those whose decisive ratios are all below the bound
+    decisive = {"gt": ["all_missing_gt"], "input": ["all_missing_input"], "both": ["all_missing_gt", "all_missing_input"]}
+    expected = np.logical_and.reduce([out[k] < 0.05 for k in decisive[filter_on]])
+    np.testing.assert_array_equal(out["kept"], expected)
+    assert 0 < out["kept"].sum() < 200  # the half-missing images reject some crops and keep others
     # crops are the right pixels
     for p, b in zip(out["gt"], out["boxes"]):
         np.testing.assert_array_equal(p, gt[b[0]:b[0] + 16, b[1]:b[1] + 16])
 
 
 def test_settings_validation():
-    with pytest.raises(ValueError, match="filter_on"):
+    with pytest.raises(ConfigError, match="patches.filter_on"):
         PatchSettings(filter_on="rgb")
+    with pytest.raises(ConfigError, match="patches.count"):
+        PatchSettings(count=10**6)  # would exhaust memory
+
+
+def test_missing_filter_functions_hand_computed():
+    p = np.ones((2, 4, 4), np.float32)
+    p[0, 0, :] = 0  # 4 of 16 missing
+    np.testing.assert_allclose(missing_ratio(p), [0.25, 0.0])
+    np.testing.assert_array_equal(passes_missing_filter(0.25, missing_ratio(p)), [False, True])
+    np.testing.assert_array_equal(passes_missing_filter(0.3, missing_ratio(p), np.array([0.5, 0.1])), [False, True])
+
+
+def test_crop_pairs_at_given_boxes():
+    gt = np.ones((8, 8), np.float32)
+    gt[:4, :4] = 0
+    boxes = np.array([[0, 0, 4, 4], [4, 4, 4, 4]])
+    out = crop_pairs(np.ones_like(gt), gt, np.zeros((8, 8, 3), np.uint8), boxes, 0.05)
+    np.testing.assert_array_equal(out["kept"], [False, True])
+    np.testing.assert_array_equal(out["boxes"], boxes[1:])
+    assert out["gt"].shape == (1, 4, 4) and out["all_missing_gt"].tolist() == [1.0, 0.0]

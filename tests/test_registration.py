@@ -12,12 +12,11 @@ import torch
 
 from depthgt.registration.correspondences import find_correspondences, sample_candidates
 from depthgt.registration.encoder import build_encoder, lift_points
-from depthgt.registration.metrics import pose_errors
-from depthgt.registration.overfit import (
-    PRESETS, RegistrationSettings, make_settings, register_frameset,
-)
+from depthgt.eval.metrics import pose_errors
+from depthgt.registration.overfit import register_frameset
 from depthgt.registration.procrustes import procrustes_random_subsets, weighted_procrustes
-from depthgt.registration.refine import RefineSettings, adjoint, refine_poses
+from depthgt.registration.refine import adjoint, refine_poses
+from depthgt.settings import REGISTRATION_PRESETS, RefineSettings, RegistrationSettings, registration_settings
 
 torch.set_num_threads(2)
 
@@ -308,12 +307,16 @@ def test_textureless_flat_wall_is_flagged():
 
 
 def test_settings_presets_and_bad_inputs():
-    assert make_settings("fast").n_blocks <= make_settings("paper").n_blocks
-    assert set(PRESETS) >= {"paper", "fast"}
+    fast = registration_settings({"preset": "fast"})
+    assert fast.n_blocks <= registration_settings({"preset": "paper"}).n_blocks
+    assert set(REGISTRATION_PRESETS) >= {"paper", "fast"}
+    # a nested override merges with the preset's refinement values
+    tuned = registration_settings({"preset": "fast", "refine_settings": {"iters": [4, 4, 2]}})
+    assert tuned.refine_settings.iters == (4, 4, 2) and tuned.refine_settings.point_stride == fast.refine_settings.point_stride
     from depthgt.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="unknown"):
-        make_settings("paper", nonsense=1)
+    with pytest.raises(ConfigError, match="registration.nonsense"):
+        registration_settings({"preset": "paper", "nonsense": 1})
     with pytest.raises(ValueError, match="offsets"):
         register_frameset(torch.rand(2, 3, 8, 8), torch.ones(2, 1, 8, 8), torch.eye(3), [1, 0])
     with pytest.raises(ValueError, match="depth_m"):
@@ -340,8 +343,8 @@ def test_real_kinect_frameset_matches_reference_poses():
     rgb = resize_rgb(torch.stack(rgbs), hw)
     K = torch.from_numpy(scale_intrinsics(np.loadtxt(SEVEN / "camera-intrinsics.txt"), (480, 640), hw)).float()
     T_ref = np.stack([np.linalg.inv(poses[0]) @ p for p in poses[1:]])
-    s = make_settings("fast", refine_settings=RefineSettings(scales=(2, 1), iters=(8, 5), point_stride=(1, 2),
-                                                             max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)))
+    s = registration_settings({"preset": "fast", "refine_settings": RefineSettings(scales=(2, 1), iters=(8, 5), point_stride=(1, 2),
+                                                             max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005))})
     res = register_frameset(rgb, depth, K, offsets, s, seed=0)
     r, t = pose_errors(res.T_j_to_t, T_ref)
     # the reference (KinectFusion) itself is good to about 0.1-0.2 deg / 0.3-0.5 cm here

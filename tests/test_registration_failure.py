@@ -11,10 +11,10 @@ import torch
 
 import depthgt.registration as registration
 from depthgt.errors import ConfigError
-from depthgt.gt.framesets import FrameSetSettings
+from depthgt.gt.frameset import FrameSetOutputs, fuse, load_frameset, poses_from_source, process_frameset
 from depthgt.io import read_exr
-from depthgt.jobs.gt import open_source_scene
-from depthgt.gt.frameset import JobSettings, fuse, load_frameset, poses_from_source, process_frameset
+from depthgt.jobs.common import open_source_scene
+from depthgt.settings import FrameSetSettings, settings_from_config
 from depthgt.registration.overfit import RegistrationResult
 
 TARGET = 12
@@ -54,9 +54,9 @@ def _fake_registration(T_true: torch.Tensor, bad: set[int]):
 def test_failed_neighbours_are_dropped_or_the_set_excluded(scene_and_truth, tmp_path, monkeypatch, on_failure):
     scene, members, data, T_true = scene_and_truth
     monkeypatch.setattr(registration, "register_frameset", _fake_registration(T_true, {-6, 6}))
-    settings = JobSettings(registration_method="overfit", registration={"preset": "fast"},
-                           registration_on_failure=on_failure, device="cpu")
-    doc = process_frameset(scene, "synthetic", TARGET, members, "train", tmp_path, settings)
+    settings = settings_from_config({"device": "cpu",
+                                     "registration": {"method": "overfit", "preset": "fast", "on_failure": on_failure}})
+    doc = process_frameset(scene, "synthetic", TARGET, members, "train", FrameSetOutputs.in_dir(tmp_path), settings)
     poses = json.loads((tmp_path / "poses.json").read_text())
     assert poses["registration"]["fused_offsets"] == [0, -4, -2, 2, 4]
     assert doc["statistics"]["neighbours_fused"] == 4
@@ -75,4 +75,4 @@ def test_failed_neighbours_are_dropped_or_the_set_excluded(scene_and_truth, tmp_
 
 def test_unknown_on_failure_is_a_config_error():
     with pytest.raises(ConfigError, match="on_failure"):
-        JobSettings(registration_on_failure="keep")
+        settings_from_config({"registration": {"on_failure": "keep"}})

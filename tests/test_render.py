@@ -9,7 +9,9 @@ import pytest
 import torch
 
 from depthgt.geometry import resize_depth_nearest, scale_intrinsics
-from depthgt.gt.render import GTRender, GTRenderSettings, SoftSplat, cloud_in_target, render_gt, splat_soft
+from depthgt.errors import ConfigError
+from depthgt.gt.render import GTRender, SoftSplat, cloud_in_target, render_gt, splat_soft
+from depthgt.settings import RenderSettings
 from render_reference import render_gt_reference, splat_soft_reference
 
 torch.set_num_threads(1)  # on an oversubscribed 2-core machine, 2 intra-op threads ran these tests ~3x slower
@@ -163,7 +165,7 @@ def _two_layer_cloud(seed: int, n_bg: int = 900, n_fg: int = 250):
 @pytest.mark.parametrize("extend", [False, True])
 def test_render_gt_matches_reference(seed, use_normals, extend):
     p, nrm, valid, K = _two_layer_cloud(seed)
-    st = GTRenderSettings(m=5, radius_px=1.3, min_points=2, rel_band=0.02, abs_band_m=0.02, extend_uncovered=extend,
+    st = RenderSettings(m=5, radius_px=1.3, min_points=2, rel_band=0.02, abs_band_m=0.02, extend_uncovered=extend,
                           ambiguous_band=None if extend else (0.3, 0.55))
     out = render_gt(p, K, (16, 16), valid, st, nrm if use_normals else None)
     assert isinstance(out, GTRender)
@@ -185,19 +187,19 @@ def test_render_gt_guard_hides_occluded_points():
     uv = torch.tensor([[4.0, 4.0], [3.6, 4.0], [4.4, 4.0], [4.0, 3.6], [4.0, 4.4]], dtype=torch.float64)
     z = torch.tensor([3.0, 1.0, 1.0, 1.0, 1.0], dtype=torch.float64)
     p = _unproject(uv, z, K[0])[None]
-    out = render_gt(p, K, (9, 9), settings=GTRenderSettings(radius_px=1.0))
+    out = render_gt(p, K, (9, 9), settings=RenderSettings(radius_px=1.0))
     assert float(out.depth[0, 0, 4, 4]) == pytest.approx(1.0) and int(out.count[0, 0, 4, 4]) == 4
     # a near point on one side only does not claim a pixel whose centre sees the far surface
     uv = torch.tensor([[4.0, 4.0], [4.2, 3.9], [3.8, 4.1], [4.7, 4.0]], dtype=torch.float64)
     z = torch.tensor([3.0, 3.0, 3.0, 1.0], dtype=torch.float64)
-    out = render_gt(_unproject(uv, z, K[0])[None], K, (9, 9), settings=GTRenderSettings(radius_px=1.0))
+    out = render_gt(_unproject(uv, z, K[0])[None], K, (9, 9), settings=RenderSettings(radius_px=1.0))
     assert float(out.depth[0, 0, 4, 4]) == pytest.approx(3.0)
 
 
 def test_render_gt_min_points_and_empty():
     K = _K(1, 10.0, 4.0, 4.0)
     p = _unproject(torch.tensor([[4.0, 4.0]], dtype=torch.float64), torch.tensor([2.0], dtype=torch.float64), K[0])[None]
-    out = render_gt(p, K, (9, 9), settings=GTRenderSettings(min_points=2))
+    out = render_gt(p, K, (9, 9), settings=RenderSettings(min_points=2))
     assert out.depth.abs().sum() == 0 and int(out.count[0, 0, 4, 4]) == 1 and float(out.weight_sum[0, 0, 4, 4]) == 1.0
     out = render_gt(torch.zeros(1, 0, 3, dtype=torch.float64), K, (9, 9))
     assert out.depth.shape == (1, 1, 9, 9) and out.depth.abs().sum() == 0
@@ -206,7 +208,7 @@ def test_render_gt_min_points_and_empty():
 def test_render_gt_gradients_reach_points():
     p, nrm, valid, K = _two_layer_cloud(0, n_bg=200, n_fg=50)
     p = p.clone().requires_grad_()
-    out = render_gt(p, K, (16, 16), valid, GTRenderSettings(), nrm)
+    out = render_gt(p, K, (16, 16), valid, RenderSettings(), nrm)
     out.depth.sum().backward()
     assert torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0
 
@@ -219,7 +221,7 @@ def test_render_gt_gradcheck():
     p = _unproject(uv, z, K[0])[None].requires_grad_()
     n = torch.nn.functional.normalize(torch.tensor([[[0.1, -0.2, -1.0]]], dtype=torch.float64).expand(1, 4, 3), dim=-1)
     n = n.clone().requires_grad_()
-    st = GTRenderSettings(radius_px=1.25, m=3, ambiguous_band=None, extend_uncovered=False)
+    st = RenderSettings(radius_px=1.25, m=3, ambiguous_band=None, extend_uncovered=False)
 
     def fn(p, n):
         out = render_gt(p, K, (6, 7), settings=st, normals_cam=n)
@@ -232,8 +234,8 @@ def test_render_gt_bad_input():
     K = _K(1, 10.0, 4.0, 4.0)
     with pytest.raises(ValueError, match="normals_cam"):
         render_gt(torch.ones(1, 4, 3), K, (9, 9), normals_cam=torch.ones(1, 3, 3))
-    with pytest.raises(ValueError, match="coverage_frac"):
-        GTRenderSettings(coverage_frac=0)
+    with pytest.raises(ConfigError, match="coverage_frac"):
+        RenderSettings(coverage_frac=0)
     with pytest.raises(ValueError, match=r"\(B, N, 3\)"):
         render_gt(torch.ones(4, 3), K, (9, 9))
 
@@ -288,7 +290,7 @@ def analytic_frameset():
     return resize_depth_nearest(depth, (256, 256)), K256.float(), T_j_to_t.float(), exact
 
 
-def _render_frames(clean256, K256, T_j_to_t, frames, src_hw=(480, 640), noise=0.0, settings=GTRenderSettings()):
+def _render_frames(clean256, K256, T_j_to_t, frames, src_hw=(480, 640), noise=0.0, settings=RenderSettings()):
     d = clean256[frames]
     if noise:
         g = torch.Generator().manual_seed(0)
@@ -318,7 +320,7 @@ def test_render_gt_reproduces_clean_target(analytic_frameset):
     # the plain pipeline (points at the 256 pixel centres, geometry.backproject) is still within 3 mm
     assert _mae_mm(_render_frames(clean, K, T, neighbours, src_hw=None), clean[3, 0]) <= 3.0
     # naive splat: average of all points within the radius, no guard, no plane correction
-    naive = GTRenderSettings(m=1000, rel_band=1e3, plane_correction=False, radius_px=1.5)
+    naive = RenderSettings(m=1000, rel_band=1e3, plane_correction=False, radius_px=1.5)
     assert _mae_mm(_render_frames(clean, K, T, neighbours, settings=naive), clean[3, 0]) > 2 * mae
 
 
@@ -350,7 +352,7 @@ def test_render_gt_on_synthetic_room():
     T = torch.from_numpy(np.linalg.inv(Ts[3])[None] @ Ts).float()
     nb = [0, 1, 2, 4, 5, 6]
     cloud = cloud_in_target(clean[nb], K.float().expand(6, 3, 3), T[nb], src_hw=hw)
-    gt = render_gt(cloud.points, K[None].float(), (256, 256), cloud.valid, GTRenderSettings(), cloud.normals).depth[0, 0]
+    gt = render_gt(cloud.points, K[None].float(), (256, 256), cloud.valid, RenderSettings(), cloud.normals).depth[0, 0]
     assert float((gt > 0).float().mean()) > 0.97  # edge pixels of undecidable side are left empty
     assert _mae_mm(gt, clean[3, 0]) <= 3.0  # the acceptance: against the resized clean target
     if not hasattr(scene, "layout"):
@@ -365,7 +367,7 @@ def test_render_gt_on_synthetic_room():
     assert mae_exact <= 1.5
     assert mae_exact < 0.5 * _mae_mm(clean[3, 0], exact)
     # keeping the ambiguous edge pixels fills them in at a clear cost in accuracy
-    full = render_gt(cloud.points, K[None].float(), (256, 256), cloud.valid, GTRenderSettings(ambiguous_band=None),
+    full = render_gt(cloud.points, K[None].float(), (256, 256), cloud.valid, RenderSettings(ambiguous_band=None),
                      cloud.normals).depth[0, 0]
     assert float((full > 0).float().mean()) > float((gt > 0).float().mean())
     assert _mae_mm(full, exact) > 1.5 * mae_exact

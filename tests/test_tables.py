@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from depthgt import io
+from depthgt import io, registry
 from depthgt.eval import tables
 from depthgt.eval.evaluate import EVAL_COLUMNS
 
@@ -36,9 +36,9 @@ KINDS = {"syn": "synthetic", "kitchen": "sevenscenes"}
 
 def test_table3_means_over_frames_and_method_order():
     t3 = tables.table3(_eval_table(), KINDS)
-    assert list(t3["method"]) == [tables.METHOD_LABELS["input"], tables.METHOD_LABELS["lapden"]]
+    assert list(t3["method"]) == [registry.label("input"), registry.label("lapden")]
     assert "RMSE (m)" in t3.columns and "MAE (m)" in t3.columns and "SSIM (unitless)" in t3.columns
-    row = t3.set_index("method").loc[tables.METHOD_LABELS["lapden"]]
+    row = t3.set_index("method").loc[registry.label("lapden")]
     assert row["RMSE (m)"] == pytest.approx(0.02)  # mean of 0.01 and 0.03
     assert row["MAE (m)"] == pytest.approx(0.01)
     assert row["SSIM (unitless)"] == pytest.approx(0.98)
@@ -73,11 +73,11 @@ def test_table1_and_gt_quality():
     assert t1.loc[tables.GT_LABELS["rde"], "L_S (m^2/px^2)"] == pytest.approx(3e-4)
     assert t1.loc[tables.GT_LABELS["gt"], "frames"] == 3  # frames of two scenes with the same target number
     q = pd.DataFrame([
-        ("syn", "a", "gt", "truth", "mae_valid", "m", 0.002), ("syn", "b", "gt", "truth", "mae_valid", "m", 0.004),
-        ("syn", "a", "input", "truth", "mae_valid", "m", 0.02),
-        ("kitchen", ".", "leave_target_out", "target_raw", "mae_valid", "m", 0.01),
+        ("syn", "a", "gt", "truth", "mae_m", "m", 0.002), ("syn", "b", "gt", "truth", "mae_m", "m", 0.004),
+        ("syn", "a", "input", "truth", "mae_m", "m", 0.02),
+        ("kitchen", ".", "leave_target_out", "target_raw", "mae_m", "m", 0.01),
     ], columns=["dataset", "scene", "estimate", "reference", "metric", "unit", "value"])
-    rq = pd.DataFrame([("syn", "a", "rde", "truth", "mae_valid", "m", 0.008)], columns=q.columns)
+    rq = pd.DataFrame([("syn", "a", "rde", "truth", "mae_m", "m", 0.008)], columns=q.columns)
     tq = tables.table_gt_quality(q, rq)
     assert list(tq["estimate"]) == [tables.GT_LABELS["gt"], tables.GT_LABELS["rde"], tables.GT_LABELS["input"]]
     assert tq["MAE (m)"].tolist() == pytest.approx([0.003, 0.008, 0.02])
@@ -104,7 +104,7 @@ def test_gt_vs_input_long_reads_frame_sets(tmp_path):
 
 def test_write_table(tmp_path):
     t = pd.DataFrame({"method": ["a"], "RMSE (m)": [0.0123456]})
-    csv, md = tables.write_table(t, tmp_path / "sub" / "t", "Caption: conventions.")
+    csv, md = tables.write_table(t, tmp_path / "sub" / "t.csv", tmp_path / "other" / "t.md", "Caption: conventions.")
     assert pd.read_csv(csv)["RMSE (m)"][0] == pytest.approx(0.0123456)
     text = md.read_text()
     assert text.startswith("Caption: conventions.") and "RMSE (m)" in text and "0.01235" in text

@@ -17,7 +17,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from test_workflow import make_workdir, snakemake
+from conftest import make_workdir, snakemake
 
 FIXTURE = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
 
@@ -79,7 +79,7 @@ def test_rde_gt_and_figures(synthetic_only):
     doc = json.loads((Path(rde.iloc[0]["rde_dir"]) if Path(rde.iloc[0]["rde_dir"]).is_absolute()
                       else wd / rde.iloc[0]["rde_dir"]).joinpath("frameset.json").read_text())
     # a TSDF of the whole (noisy) stream lies within a few cm of the clean truth
-    assert doc["statistics"]["rde_vs_truth"]["mae_valid"] < 0.05
+    assert doc["statistics"]["rde_vs_truth"]["mae_m"] < 0.05 and doc["units"]["mae_m"] == "m"
     for png in ("comparison.png",):
         assert (wd / "results/figures" / png).stat().st_size > 1000
 
@@ -137,13 +137,14 @@ def _plane_stream(n=7, hw=48):
 def test_rde_tsdf_renders_a_plane(backend):
     import numpy as np
 
-    from depthgt.gt.rde import TSDFSettings, open3d_available, reconstruct_and_render
+    from depthgt.gt.rde import open3d_available, reconstruct_and_render
+    from depthgt.settings import RDESettings
 
     if backend == "open3d" and not open3d_available():
         pytest.skip("Open3D is not installed (optional extra)")
     K, poses, depths, T_new, truth = _plane_stream()
     out, used = reconstruct_and_render(depths, None, K, poses, [K], [T_new], truth.shape,
-                                       TSDFSettings(voxel_m=0.01, max_depth_m=4.0, backend=backend))
+                                       RDESettings(voxel_m=0.01, max_depth_m=4.0, backend=backend))
     assert used == backend
     valid = out[0] > 0
     assert valid.mean() > 0.95
@@ -153,9 +154,9 @@ def test_rde_tsdf_renders_a_plane(backend):
 
 def test_rde_settings_errors():
     from depthgt.errors import ConfigError
-    from depthgt.gt.rde import TSDFSettings, tsdf_settings_from_dict
+    from depthgt.settings import RDESettings, settings_from_config
 
-    with pytest.raises(ConfigError, match="backend"):
-        TSDFSettings(backend="pcl")
-    with pytest.raises(ConfigError, match="unknown keys"):
-        tsdf_settings_from_dict({"voxel": 0.02})
+    with pytest.raises(ConfigError, match="enhance.rde.backend"):
+        RDESettings(backend="pcl")
+    with pytest.raises(ConfigError, match="unknown config key.*enhance.rde.voxel"):
+        settings_from_config({"enhance": {"rde": {"voxel": 0.02}}})

@@ -290,47 +290,30 @@ def _chain(fs: _Frameset, T_init: torch.Tensor, table, offsets, s: RegistrationS
 # --------------------------------------------------------------------------- entry point
 
 
-def register_frameset(
-    rgb: torch.Tensor,
-    depth_m: torch.Tensor,
-    K: torch.Tensor,
-    offsets: list[int],
-    settings: RegistrationSettings = RegistrationSettings(),
-    encoder_state: dict | None = None,
-    init_T_j_to_t: torch.Tensor | None = None,
-    seed: int = 0,
-    render_fn: Callable | None = None,
-) -> RegistrationResult:
-    """Register the neighbours of a local frame set to its target (frame 0).
+@dataclass
+class _Overfit:
+    """What the overfit training leaves: the loss per iteration, the per-iteration
+    pose changes, the last iteration's target poses and the best-loss estimate."""
 
-    Args:
-        rgb: (F, 3, H, W) float colour in [0, 1] at the working resolution (256x256).
-        depth_m: (F, 1, H, W) depth in metres, 0 = invalid.
-        K: (3, 3) intrinsics at (H, W).
-        offsets: frame offsets, ``offsets[0] == 0`` (the target), e.g. [0, -6, -4, -2, 2, 4, 6].
-        settings: :class:`RegistrationSettings` (presets: :func:`depthgt.settings.registration_settings`).
-        encoder_state: pretrained encoder weights (:func:`pretrain_encoder`), else a
-            random initialisation from ``seed``.
-        init_T_j_to_t: (F-1, 4, 4) optional initial guess, used as one more candidate
-            of the chaining step.
-        seed: seed of the initialisation, candidate draw and random subsets.
-        render_fn: differentiable splatting (default :func:`depthgt.gt.render.splat_soft`).
+    loss_curve: list[float] = field(default_factory=list)
+    pose_history: list[list[dict]] = field(default_factory=list)
+    prev: torch.Tensor | None = None  # (F, 4, 4) T_f_to_t of the last iteration
+    best: tuple = (math.inf, None, None)  # (loss, T_ba, n_conf)
 
-    Returns:
-        :class:`RegistrationResult`; the device of the computation is that of ``rgb``.
-    """
-    t_start = time.perf_counter()
-    _check_inputs(rgb, depth_m, K, offsets)
-    s = settings
+
+def _pose_changes(T_before: torch.Tensor, T_after: torch.Tensor) -> list[dict]:
+    """Per neighbour ``{"dt_m", "dr_deg"}``: the change of T_j_to_t between two estimates."""
+    dt, dr = pose_delta(torch.linalg.inv(T_before[1:]) @ T_after[1:])
+    return [{"dt_m": float(a), "dr_deg": float(b)} for a, b in zip(dt, dr)]
+
+
+def _setup(rgb, depth_m, K, s: RegistrationSettings, encoder_state: dict | None, seed: int, render_fn: Callable | None):
+    """Inputs on their dtypes, the frame set's fixed samples, the encoder (pretrained
+    weights or a seeded initialisation) and the random generator."""
     if s.num_threads:
         torch.set_num_threads(s.num_threads)
     dev = rgb.device
-    Fn = rgb.shape[0]
-    if init_T_j_to_t is not None and init_T_j_to_t.shape != (Fn - 1, 4, 4):
-        raise ValueError(f"init_T_j_to_t must be ({Fn - 1}, 4, 4), got {tuple(init_T_j_to_t.shape)}")
-    rgb = rgb.float()
-    depth_m = depth_m.float()
-    K = K.to(dev, torch.float32)
+    rgb, depth_m, K = rgb.float(), depth_m.float(), K.to(dev, torch.float32)
     if render_fn is None and (s.w_depth > 0 or s.w_photo > 0) and s.iterations > 0:
         render_fn = default_render_fn()
     gen = torch.Generator().manual_seed(seed)
@@ -341,15 +324,16 @@ def register_frameset(
     if dev.type == "cpu":
         encoder = encoder.to(memory_format=torch.channels_last)
     encoder.train()
-    timings: dict[str, float] = {}
+    return fs, encoder, gen, render_fn
 
-    # -- overfit training on the single frame set (paper: Adam 1e-4, 30 epochs)
-    t0 = time.perf_counter()
+
+def _overfit(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettings, gen: torch.Generator,
+             render_fn: Callable | None) -> _Overfit:
+    """The paper's overfit training of the encoder on the single frame set (Adam,
+    ``s.iterations`` steps of the set-wide loss, eq. 4)."""
+    Fn = fs.rgb.shape[0]
     opt = torch.optim.Adam(encoder.parameters(), lr=s.lr, weight_decay=s.weight_decay)
-    loss_curve: list[float] = []
-    pose_history: list[list[dict]] = []
-    prev = None
-    best = (math.inf, None, None)
+    trace = _Overfit()
     for _ in range(s.iterations):
         opt.zero_grad(set_to_none=True)
         loss, T_ba, n_conf, _terms = frameset_loss(encoder, fs, s, gen, render_fn)
@@ -362,60 +346,44 @@ def register_frameset(
         else:
             # e.g. an SVD with repeated singular values (no texture: all weights ~0)
             log.warning("non-finite gradient in the overfit training; step skipped")
-        loss_curve.append(float(loss.detach()))
+        trace.loss_curve.append(float(loss.detach()))
         T_now = _target_poses(T_ba, fs.pairs, Fn)
-        if loss_curve[-1] < best[0]:
-            best = (loss_curve[-1], T_ba.detach(), n_conf)
-        if prev is not None:
-            dt, dr = pose_delta(torch.linalg.inv(prev[1:]) @ T_now[1:])
-            pose_history.append([{"dt_m": float(a), "dr_deg": float(b)} for a, b in zip(dt, dr)])
-        prev = T_now
-    timings["overfit"] = time.perf_counter() - t0
+        if trace.loss_curve[-1] < trace.best[0]:
+            trace.best = (trace.loss_curve[-1], T_ba.detach(), n_conf)
+        if trace.prev is not None:
+            trace.pose_history.append(_pose_changes(trace.prev, T_now))
+        trace.prev = T_now
+    return trace
 
-    # -- final estimate from the trained encoder (the paper's output poses)
-    t0 = time.perf_counter()
+
+def _final_estimate(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettings, gen: torch.Generator,
+                    render_fn: Callable | None, trace: _Overfit):
+    """The paper's output poses from the trained encoder (or the best-loss iteration).
+
+    Returns:
+        (T_ba (P, 4, 4) of the pairs, T_paper (F, 4, 4) T_f_to_t, confident target-pair
+        matches per frame (F,) long).
+    """
+    Fn = fs.rgb.shape[0]
     with torch.no_grad():
         _, T_ba, n_conf, _ = frameset_loss(encoder, fs, s, gen, render_fn, with_render=False)
-    if s.pose_from == "best" and best[1] is not None:
-        T_ba, n_conf = best[1], best[2]
+    if s.pose_from == "best" and trace.best[1] is not None:
+        T_ba, n_conf = trace.best[1], trace.best[2]
     T_paper = _target_poses(T_ba, fs.pairs, Fn)
-    if prev is not None:
-        dt, dr = pose_delta(torch.linalg.inv(prev[1:]) @ T_paper[1:])
-        pose_history.append([{"dt_m": float(a), "dr_deg": float(b)} for a, b in zip(dt, dr)])
+    if trace.prev is not None:
+        trace.pose_history.append(_pose_changes(trace.prev, T_paper))
     tsel = fs.pairs[:, 0] == 0
     n_corr = torch.zeros(Fn, dtype=torch.long)
     n_corr[fs.pairs[tsel, 1].cpu()] = n_conf[tsel].cpu()
-    timings["estimate"] = time.perf_counter() - t0
+    return T_ba, T_paper, n_corr
 
-    diagnostics: dict = {"poses_paper": T_paper[1:].cpu().numpy().tolist()}
-    T = T_paper
-    extra = None
-    if init_T_j_to_t is not None:
-        extra = torch.cat([torch.eye(4, dtype=torch.float64)[None], init_T_j_to_t.to(torch.float64).cpu()]).to(dev)
-    if s.chaining or extra is not None:
-        t0 = time.perf_counter()
-        with torch.no_grad():
-            table = _pair_table(T_ba, fs.pairs, Fn) if s.chaining else {}
-            T, choice = _chain(fs, T, table, offsets, s, extra)
-        diagnostics["chaining"] = choice
-        timings["chaining"] = time.perf_counter() - t0
 
-    refined = None
-    if s.refine:
-        t0 = time.perf_counter()
-        with torch.no_grad():
-            refined = refine_poses(rgb, depth_m, K, T, s.refine_settings, offsets)
-        T = refined.T_f_to_t
-        diagnostics["refine_cost_curve"] = refined.cost_curve
-        diagnostics["inlier_fraction"] = refined.inlier_fraction[1:].cpu().tolist()
-        diagnostics["condition"] = refined.condition[1:].cpu().tolist()
-        diagnostics["residual_m"] = refined.residual_m[1:].cpu().tolist()
-        timings["refine"] = time.perf_counter() - t0
-
-    # -- failure handling
+def _check_neighbours(T: torch.Tensor, n_corr: torch.Tensor, refined, s: RegistrationSettings) -> tuple[list[str], list[str]]:
+    """Status ("ok" | "failed") and reasons of every neighbour (see the failure checks of
+    :class:`~depthgt.settings.RegistrationSettings`)."""
     statuses, reasons = [], []
     dt, dr = pose_delta(T[1:])
-    for i in range(Fn - 1):
+    for i in range(T.shape[0] - 1):
         why = []
         if int(n_corr[i + 1]) < s.min_confident:
             why.append(f"too_few_confident_correspondences({int(n_corr[i + 1])}<{s.min_confident})")
@@ -435,15 +403,103 @@ def register_frameset(
             why.append("non_finite_pose")
         statuses.append("failed" if why else "ok")
         reasons.append(";".join(why))
-    n_ok = statuses.count("ok")
+    return statuses, reasons
+
+
+def _set_status(statuses: list[str], loss_curve: list[float], s: RegistrationSettings) -> tuple[str, str]:
+    """Status of the whole set: failed when too few neighbours registered or (without
+    refinement) when the training loss did not decrease."""
+    n_ok, n = statuses.count("ok"), len(statuses)
     status, reason = "ok", ""
     if not s.refine and len(loss_curve) >= 4:
         k = max(1, len(loss_curve) // 4)
         if np.mean(loss_curve[-k:]) > np.mean(loss_curve[:k]):
             status, reason = "failed", "loss_not_decreasing"
-    if n_ok < s.min_ok_fraction * (Fn - 1):
+    if n_ok < s.min_ok_fraction * n:
         status = "failed"
-        reason = ";".join(x for x in [reason, f"only {n_ok} of {Fn - 1} neighbours registered"] if x)
+        reason = ";".join(x for x in [reason, f"only {n_ok} of {n} neighbours registered"] if x)
+    return status, reason
+
+
+def register_frameset(
+    rgb: torch.Tensor,
+    depth_m: torch.Tensor,
+    K: torch.Tensor,
+    offsets: list[int],
+    settings: RegistrationSettings = RegistrationSettings(),
+    encoder_state: dict | None = None,
+    init_T_j_to_t: torch.Tensor | None = None,
+    seed: int = 0,
+    render_fn: Callable | None = None,
+) -> RegistrationResult:
+    """Register the neighbours of a local frame set to its target (frame 0).
+
+    Steps: prepare the inputs and the encoder, overfit it on the set (paper), estimate
+    the poses from it, chain far neighbours through nearer ones, refine jointly over
+    SE(3) (beyond the paper), check every neighbour.
+
+    Args:
+        rgb: (F, 3, H, W) float colour in [0, 1] at the working resolution (256x256).
+        depth_m: (F, 1, H, W) depth in metres, 0 = invalid.
+        K: (3, 3) intrinsics at (H, W).
+        offsets: frame offsets, ``offsets[0] == 0`` (the target), e.g. [0, -6, -4, -2, 2, 4, 6].
+        settings: :class:`~depthgt.settings.RegistrationSettings` (presets:
+            :func:`depthgt.settings.registration_settings`).
+        encoder_state: pretrained encoder weights (:func:`pretrain_encoder`), else a
+            random initialisation from ``seed``.
+        init_T_j_to_t: (F-1, 4, 4) optional initial guess, used as one more candidate
+            of the chaining step.
+        seed: seed of the initialisation, candidate draw and random subsets.
+        render_fn: differentiable splatting (default :func:`depthgt.gt.render.splat_soft`).
+
+    Returns:
+        :class:`RegistrationResult`; the device of the computation is that of ``rgb``.
+    """
+    t_start = time.perf_counter()
+    _check_inputs(rgb, depth_m, K, offsets)
+    s = settings
+    Fn = rgb.shape[0]
+    if init_T_j_to_t is not None and init_T_j_to_t.shape != (Fn - 1, 4, 4):
+        raise ValueError(f"init_T_j_to_t must be ({Fn - 1}, 4, 4), got {tuple(init_T_j_to_t.shape)}")
+    dev = rgb.device
+    fs, encoder, gen, render_fn = _setup(rgb, depth_m, K, s, encoder_state, seed, render_fn)
+    timings: dict[str, float] = {}
+
+    t0 = time.perf_counter()
+    trace = _overfit(encoder, fs, s, gen, render_fn)
+    timings["overfit"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    T_ba, T_paper, n_corr = _final_estimate(encoder, fs, s, gen, render_fn, trace)
+    timings["estimate"] = time.perf_counter() - t0
+
+    diagnostics: dict = {"poses_paper": T_paper[1:].cpu().numpy().tolist()}
+    T = T_paper
+    extra = None
+    if init_T_j_to_t is not None:
+        extra = torch.cat([torch.eye(4, dtype=torch.float64)[None], init_T_j_to_t.to(torch.float64).cpu()]).to(dev)
+    if s.chaining or extra is not None:
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            table = _pair_table(T_ba, fs.pairs, Fn) if s.chaining else {}
+            T, choice = _chain(fs, T, table, offsets, s, extra)
+        diagnostics["chaining"] = choice
+        timings["chaining"] = time.perf_counter() - t0
+
+    refined = None
+    if s.refine:
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            refined = refine_poses(fs.rgb, fs.depth, fs.K, T, s.refine_settings, offsets)
+        T = refined.T_f_to_t
+        diagnostics["refine_cost_curve"] = refined.cost_curve
+        diagnostics["inlier_fraction"] = refined.inlier_fraction[1:].cpu().tolist()
+        diagnostics["condition"] = refined.condition[1:].cpu().tolist()
+        diagnostics["residual_m"] = refined.residual_m[1:].cpu().tolist()
+        timings["refine"] = time.perf_counter() - t0
+
+    statuses, reasons = _check_neighbours(T, n_corr, refined, s)
+    status, reason = _set_status(statuses, trace.loss_curve, s)
     timings["total"] = time.perf_counter() - t_start
     return RegistrationResult(
         T_j_to_t=T[1:].detach().cpu().to(torch.float64),
@@ -452,8 +508,8 @@ def register_frameset(
         neighbour_reasons=reasons,
         status=status,
         reason=reason,
-        loss_curve=loss_curve,
-        pose_history=pose_history,
+        loss_curve=trace.loss_curve,
+        pose_history=trace.pose_history,
         n_correspondences=[int(x) for x in n_corr[1:]],
         timings=timings,
         diagnostics=diagnostics,

@@ -1,0 +1,46 @@
+"""Shared helpers of the tests: running the workflow on a config in a temporary workdir."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def snakemake(workdir: Path, *args: str, check: bool = True, **kw) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "-d", str(workdir), "--cores", "2",
+           "--rerun-incomplete", *args]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, **kw)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"snakemake failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-6000:]}")
+    return proc
+
+
+def make_workdir(path: Path, config: dict) -> Path:
+    (path / "config").mkdir(parents=True)
+    (path / "config" / "config.yaml").write_text(yaml.safe_dump(config))
+    return path
+
+
+def digest_outputs(workdir: Path) -> dict[str, str]:
+    """sha256 of every result file; poses.json without its timings (wall-clock); the
+    temporary frame caches are not results."""
+    out = {}
+    for p in sorted((workdir / "results").rglob("*")):
+        if not p.is_file() or p.parent.name == "frames":
+            continue
+        data = p.read_bytes()
+        if p.name == "poses.json":
+            doc = json.loads(data)
+            doc.pop("timings_s", None)
+            data = json.dumps(doc, sort_keys=True).encode()
+        out[str(p.relative_to(workdir))] = hashlib.sha256(data).hexdigest()
+    return out

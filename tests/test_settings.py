@@ -1,0 +1,120 @@
+"""The settings module: torch-free, one builder, every section checked with the key named."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from depthgt.errors import ConfigError
+from depthgt.settings import (
+    FrameSetSettings,
+    RegistrationSettings,
+    Settings,
+    TrainSettings,
+    check_config,
+    settings_from_config,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_importing_settings_does_not_import_torch():
+    code = "import depthgt.settings, depthgt.registry, sys; assert 'torch' not in sys.modules, sorted(sys.modules)"
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_default_config_builds_every_stage():
+    config = yaml.safe_load((REPO / "config/config.yaml").read_text())
+    s = settings_from_config(config)
+    assert isinstance(s, Settings) and s.size_hw == (256, 256)
+    assert s.frameset == FrameSetSettings(neighbours=3, stride=2, target_step=2)
+    assert s.registration.method == "given" and s.registration.preset == "paper" and s.registration.precision == "auto"
+    assert [src.name for src in s.sources] == ["synthetic", "synthetic_test"]
+    # every trainable model of the registry has its training settings; RDE trains LapDEN with LapDEN's entry
+    assert set(s.enhance.models) == {"lapden", "ddrnet", "sdd", "rde"}
+    assert s.train("rde").model == "lapden" and s.train("rde").epochs == s.train("lapden").epochs == 30
+    assert s.train("ddrnet").model_params == {"channels": 8} and s.train("ddrnet").batch_size == 8
+    assert s.train("sdd").progress is False and s.train("sdd").seed == 0
+    assert s.enhance.rde.backend == "torch" and s.evaluation.models == ["ddrnet", "sdd", "rde", "lapden"]
+
+
+def test_missing_sections_take_defaults():
+    s = settings_from_config({})
+    assert s.patches.count == 6 and s.render.m == 16 and s.registration.refine_settings.iters == (10, 8, 6)
+
+
+@pytest.mark.parametrize("config, key", [
+    ({"bogus": 1}, "bogus"),
+    ({"patches": {"cuont": 6}}, "patches.cuont"),
+    ({"render": {"radius": 1.0}}, "render.radius"),
+    ({"registration": {"method": "given", "n_blocs": 2}}, "registration.n_blocs"),  # checked whatever the method
+    ({"registration": {"refine_settings": {"iter": [1]}}}, "registration.refine_settings.iter"),
+    ({"registration": {"pretrain": {"epoch": 1}}}, "registration.pretrain.epoch"),
+    ({"enhance": {"train": {"epoch": 3}}}, "epoch"),
+    ({"enhance": {"models": {"unet": {}}}}, "enhance.models.unet"),
+    ({"enhance": {"rde": {"voxel": 0.02}}}, "enhance.rde.voxel"),
+    ({"evaluation": {"method": ["input"]}}, "evaluation.method"),
+    ({"sources": [{"name": "a", "kind": "synthetic", "scene": ["x"]}]}, "sources[0].scene"),
+])
+def test_unknown_keys_are_named(config, key):
+    with pytest.raises(ConfigError, match="unknown config key") as err:
+        settings_from_config(config)
+    assert key in str(err.value)
+
+
+@pytest.mark.parametrize("config, key", [
+    ({"patches": {"size": 300}}, "patches.size"),                       # larger than resize (256)
+    ({"resize": 128, "patches": {"size": 129}}, "patches.size"),
+    ({"patches": {"count": 100_000}}, "patches.count"),                 # memory bound
+    ({"resize": 100_000}, "resize"),
+    ({"frameset": {"neighbours": 500}}, "frameset.neighbours"),
+    ({"render": {"m": 10_000}}, "render.m"),
+    ({"registration": {"n_candidates": 10**7}}, "registration.n_candidates"),
+    ({"registration": {"method": "given", "pairs": "some"}}, "registration.pairs"),
+    ({"registration": {"preset": "slow"}}, "registration.preset"),
+    ({"registration": {"on_failure": "keep"}}, "registration.on_failure"),
+    ({"patches": {"count": "6"}}, "patches.count"),                     # wrong type
+    ({"device": "tpu"}, "device"),
+    ({"enhance": {"train": {"epochs": 0}}}, "train.epochs"),
+    ({"enhance": {"models": {"sdd": {"model": "lapden"}}}}, "enhance.models.sdd.model"),
+    ({"evaluation": {"methods": ["input", "bilateral"]}}, "evaluation.methods"),
+    ({"sources": [{"name": "a", "kind": "kinect"}]}, "kind"),
+    ({"sources": [{"name": "a", "kind": "synthetic", "scenes": ["../x"]}]}, "scenes"),
+    ({"sources": [{"name": "a", "kind": "synthetic"}, {"name": "a", "kind": "synthetic"}]}, "sources"),
+])
+def test_bad_values_name_the_key(config, key):
+    with pytest.raises(ConfigError, match="config key") as err:
+        settings_from_config(config)
+    assert key in str(err.value)
+
+
+def test_registration_presets_and_types():
+    fast = settings_from_config({"registration": {"method": "overfit", "preset": "fast", "iterations": 2}}).registration
+    assert isinstance(fast, RegistrationSettings)
+    assert (fast.channels, fast.iterations, fast.refine_settings.iters) == (32, 2, (8, 5, 3))
+    assert fast.pretrain.framesets == 16
+    # numbers given as ints where floats are expected are accepted and stored as floats
+    s = settings_from_config({"render": {"radius_px": 2}, "enhance": {"rde": {"trunc_voxels": 4}}})
+    assert isinstance(s.render.radius_px, float) and s.render.radius_px == 2.0 and isinstance(s.enhance.rde.trunc_voxels, float)
+
+
+def test_train_settings_identity_ignores_epochs():
+    a, b = TrainSettings(epochs=3), TrainSettings(epochs=5)
+    assert a.identity() == b.identity() and TrainSettings(lr=1e-3).identity() != a.identity()
+
+
+def test_schema_and_settings_agree_on_the_default_config():
+    config = yaml.safe_load((REPO / "config/config.yaml").read_text())
+    check_config(config, str(REPO / "workflow/schemas/config.schema.yaml"))
+    with pytest.raises(ConfigError, match="patches.filter_on"):
+        check_config({**config, "patches": {"filter_on": "rgb"}}, str(REPO / "workflow/schemas/config.schema.yaml"))
+
+
+def test_settings_doc_is_json_ready():
+    doc = settings_from_config({}).doc("frameset", "registration")
+    assert doc["frameset"] == {"neighbours": 3, "stride": 2, "target_step": 1}
+    assert doc["registration"]["refine_settings"]["scales"] == [4, 2, 1]
