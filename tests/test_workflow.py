@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -123,6 +124,17 @@ def test_bad_config_names_key(tmp_path):
     assert proc.returncode != 0
     text = proc.stdout + proc.stderr
     assert "patches.filter_on" in text and "bogus" in text
+
+
+def test_settings_are_checked_before_any_job(tmp_path):
+    """Checks the JSON schema cannot express stop the dry run: a patch larger than the
+    working resolution, an unknown registration key with method given."""
+    for name, extra, key in (("size", {"resize": 32}, "patches.size"),
+                             ("reg", {"registration": {"method": "given", "n_blockz": 1}}, "registration.n_blockz")):
+        wd = make_workdir(tmp_path / name, {**TINY, **extra})
+        proc = snakemake(wd, "-n", check=False)
+        assert proc.returncode != 0 and key in proc.stdout + proc.stderr
+        assert not (wd / "results").exists()
 
 
 def test_unknown_scene_is_clear(tmp_path):

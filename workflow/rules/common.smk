@@ -57,5 +57,7 @@ def scene_summaries(what="framesets", ext="parquet"):
 
 # The sections of the config that decide a stage's outputs; passed as params so that
 # changing one re-runs exactly the jobs it affects (Snakemake's params rerun trigger).
+# Jobs build their settings from the whole (validated) config, snakemake.config, with
+# depthgt.settings.settings_from_config, and use only these sections of it.
 INDEX_CONFIG = {k: config.get(k) for k in ("seed", "frameset", "split", "registration", "resize")}
 FRAMESET_CONFIG = {k: config.get(k) for k in ("seed", "device", "frameset", "resize", "registration", "render", "patches")}

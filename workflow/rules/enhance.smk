@@ -13,7 +13,7 @@ MANIFESTS = {"depthgt": "results/dataset", "rde": "results/rde"}  # the GT a lea
 
 def train_config(wildcards):
     """The config sections that decide a model's training (its params: a change re-runs
-    exactly this model); the job builds its TrainSettings from them."""
+    exactly this model); the job builds its TrainSettings from the whole config."""
     key = registry.METHODS[wildcards.model].settings_key
     models = ENHANCE.get("models", {})
     return {"seed": config.get("seed", 0), "device": config.get("device", "auto"),

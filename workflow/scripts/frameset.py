@@ -7,5 +7,5 @@ from depthgt.jobs.gt import run_frameset
 torch.set_num_threads(snakemake.threads)
 with logging_to(snakemake.log[0]):
     run_frameset(snakemake.params.source, snakemake.wildcards.scene, int(snakemake.wildcards.target),
-                 snakemake.params.config, snakemake.input.index, dict(snakemake.output.items()),
+                 snakemake.config, snakemake.input.index, dict(snakemake.output.items()),
                  encoder=snakemake.input.encoder or None, cache_dir=snakemake.input.cache)

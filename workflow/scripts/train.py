@@ -4,5 +4,5 @@ from depthgt.jobs.enhance import run_train
 with logging_to(snakemake.log[0]):
     outputs = {"best": snakemake.output.best, "last": snakemake.output.last, "log": snakemake.output.log,
                "meta": snakemake.output.meta}
-    run_train(snakemake.wildcards.model, snakemake.params.config, snakemake.input.train, snakemake.input.val, outputs,
+    run_train(snakemake.wildcards.model, snakemake.config, snakemake.input.train, snakemake.input.val, outputs,
               threads=snakemake.threads)

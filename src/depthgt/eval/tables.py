@@ -24,6 +24,7 @@ import numpy as np
 import pandas as pd
 
 from depthgt import registry
+from depthgt.eval.metrics import unit_of
 
 __all__ = [
     "COLUMN_LABELS",
@@ -94,7 +95,7 @@ def gt_vs_input_long(framesets: pd.DataFrame, rde_framesets: pd.DataFrame | None
         columns dataset, scene, target, gt (``gt`` | ``rde``), metric, unit, value.
     """
     from depthgt import io
-    from depthgt.eval.metrics import ls_distance, ssim_depth, unit_of
+    from depthgt.eval.metrics import ls_distance, ssim_depth
 
     jobs = []
     for rec in framesets[(framesets["status"] == "ok") & (framesets["frameset_dir"] != "")].itertuples():

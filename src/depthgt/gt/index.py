@@ -102,3 +102,35 @@ def build_index(scene: Scene, dataset: str, source_split: str, need_poses: bool,
         "problems": problems,
     }
     return SceneIndex(frames=frames, framesets=framesets, meta=meta)
+
+
+def select_pretraining_framesets(index_jsons: list[str], n: int, seed: int) -> list[tuple[str, str, list[int]]]:
+    """``n`` runnable frame sets of the train split, drawn without replacement over all
+    scenes (a fixed draw for a seed), for the registration encoder's pretraining.
+
+    Args:
+        index_jsons: the scenes' ``index.json`` (their ``index.parquet`` lies beside).
+
+    Returns:
+        (dataset, scene, member positions) of each chosen set, in index order.
+
+    Raises:
+        ValueError: no frame set of the train split exists.
+    """
+    import json
+    from pathlib import Path
+
+    from depthgt.gt.framesets import stable_seed
+
+    candidates = []
+    for path in index_jsons:
+        meta = json.loads(Path(path).read_text())
+        table = pd.read_parquet(Path(path).with_name("index.parquet"))
+        ok = table[table["is_target"] & (table["frameset_status"] == "ok") & (table["frameset_split"] == "train")]
+        candidates += [(meta["dataset"], meta["scene"], [int(m) for m in r.members]) for r in ok.itertuples()]
+    if not candidates:
+        raise ValueError("pretrain_registration: no frame set of the train split to pretrain on "
+                         "(set registration.pretrain.framesets: 0 to start from random weights)")
+    rng = np.random.default_rng(stable_seed(seed, "pretrain"))
+    chosen = sorted(rng.choice(len(candidates), size=min(n, len(candidates)), replace=False).tolist()) if n else []
+    return [candidates[i] for i in chosen]

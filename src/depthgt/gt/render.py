@@ -28,7 +28,6 @@ output resolution, images (B, C, H, W), depth (B, 1, H, W) metres with 0 = nothi
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch

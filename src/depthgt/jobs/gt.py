@@ -9,12 +9,9 @@ the outputs. Every job also runs and is tested without Snakemake.
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Any, Mapping
-
-import numpy as np
 
 from depthgt import io
 from depthgt.jobs.common import open_source_scene
@@ -122,34 +119,21 @@ def run_pretrain_registration(sources: Mapping[str, dict[str, Any]], index_jsons
                               out_path: str) -> None:
     """Stream-only pretraining of the registration encoder on frame sets of the training
     split (no poses used), written as a torch ``state_dict``."""
-    import pandas as pd
     import torch
 
     from depthgt.atomic import write_atomic
     from depthgt.device import resolve_device
     from depthgt.gt.frameset import load_frameset
-    from depthgt.gt.framesets import stable_seed
+    from depthgt.gt.index import select_pretraining_framesets
     from depthgt.registration import pretrain_encoder
     from depthgt.settings import settings_from_config
 
     settings = settings_from_config(config)
     pre = settings.registration.pretrain
     device = resolve_device(settings.device)
-    candidates = []
-    for path in index_jsons:
-        meta = json.loads(Path(path).read_text())
-        table = pd.read_parquet(Path(path).with_name("index.parquet"))
-        ok = table[table["is_target"] & (table["frameset_status"] == "ok") & (table["frameset_split"] == "train")]
-        candidates += [(meta["dataset"], meta["scene"], [int(m) for m in r.members]) for r in ok.itertuples()]
-    if not candidates:
-        raise ValueError("pretrain_registration: no frame set of the train split to pretrain on "
-                         "(set registration.pretrain.framesets: 0 to start from random weights)")
-    rng = np.random.default_rng(stable_seed(settings.seed, "pretrain"))
-    n_sets = pre.framesets
-    chosen = sorted(rng.choice(len(candidates), size=min(n_sets, len(candidates)), replace=False).tolist()) if n_sets else []
+    chosen = select_pretraining_framesets(index_jsons, pre.framesets, settings.seed)
     framesets, scenes = [], {}
-    for i in chosen:
-        dataset, scene, members = candidates[i]
+    for dataset, scene, members in chosen:
         if (dataset, scene) not in scenes:
             scenes[dataset, scene] = open_source_scene(sources[dataset], scene, need_poses=False)
         data = load_frameset(scenes[dataset, scene], members, settings.size_hw, need_poses=False, device=device)
