@@ -72,7 +72,7 @@ def test_unknown_keys_are_named(config, key):
     ({"patches": {"count": 100_000}}, "patches.count"),                 # memory bound
     ({"resize": 100_000}, "resize"),
     ({"frameset": {"neighbours": 500}}, "frameset.neighbours"),
-    ({"render": {"m": 10_000}}, "render.m"),
+    ({"render": {"m": 0}}, "render.m"),
     ({"registration": {"n_candidates": 10**7}}, "registration.n_candidates"),
     ({"registration": {"method": "given", "pairs": "some"}}, "registration.pairs"),
     ({"registration": {"preset": "slow"}}, "registration.preset"),

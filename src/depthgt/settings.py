@@ -54,7 +54,6 @@ REGISTRATION_METHODS = ("given", "overfit")
 MAX_RESIZE = 4096
 MAX_PATCH_COUNT = 1000
 MAX_NEIGHBOURS = 32
-MAX_RENDER_POINTS = 256
 MAX_CANDIDATES = 1 << 16
 MAX_BATCH_SIZE = 4096
 
@@ -223,7 +222,7 @@ class RenderSettings:
     min_depth_m: float = 1e-3
 
     def __post_init__(self) -> None:
-        _require(1 <= self.m <= MAX_RENDER_POINTS, "render.m", f"must be in [1, {MAX_RENDER_POINTS}], got {self.m}")
+        _require(self.m >= 1, "render.m", f"must be >= 1, got {self.m}")
         _require(self.radius_px > 0, "render.radius_px", f"must be > 0, got {self.radius_px}")
         _require(self.rel_band >= 0 and self.abs_band_m >= 0, "render.rel_band/abs_band_m",
                  f"bands must be >= 0, got rel_band={self.rel_band}, abs_band_m={self.abs_band_m}")
