@@ -204,8 +204,11 @@ def test_sens_open_is_lazy(tmp_path, monkeypatch):
     def boom(*a, **k):
         raise AssertionError("decoded at open time")
 
-    monkeypatch.setattr(sens_mod.cv2, "imdecode", boom)
-    monkeypatch.setattr(sens_mod.zlib, "decompress", boom)
+    import depthgt.io as io_mod
+
+    monkeypatch.setattr(io_mod.cv2, "imdecode", boom)
+    monkeypatch.setattr(sens_mod, "decode_color", boom)
+    monkeypatch.setattr(sens_mod.zlib, "decompressobj", boom)
     assert len(SensFile(path)) == 5
 
 
