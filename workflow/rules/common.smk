@@ -10,10 +10,13 @@ from depthgt.config import check_config
 check_config(config, workflow.source_path("../schemas/config.schema.yaml"))
 validate(config, schema="../schemas/config.schema.yaml", set_default=True)
 
+from depthgt.sources.base import check_options, check_scene_identity  # numpy only
+
 SOURCES = {}
-for _src in config["sources"]:
+for _i, _src in enumerate(config["sources"]):
     if _src["name"] in SOURCES:
         raise ValueError(f"config sources: the name {_src['name']!r} is used twice; names must be unique")
+    check_options(_src["kind"], _src.get("options"), f"config sources[{_i}] ({_src['name']}).options")
     SOURCES[_src["name"]] = _src
 
 
@@ -25,7 +28,9 @@ def _scenes_of(src):
     return list(src["scenes"])
 
 
-SCENES = [(name, scene) for name, src in SOURCES.items() for scene in _scenes_of(src)]
+_SCENES_OF = {name: _scenes_of(src) for name, src in SOURCES.items()}
+SCENES = [(name, scene) for name, scenes in _SCENES_OF.items() for scene in scenes]
+check_scene_identity(list(SOURCES.values()), _SCENES_OF)  # a scene twice, or the same data twice / in two splits
 for _name, _scene in SCENES:
     if _scene in (".", "..") or "/" in _scene:
         raise ValueError(f"config sources {_name!r}: scene name {_scene!r} cannot be a path component; "

@@ -11,9 +11,10 @@ A sequence folder (``rgbd_dataset_freiburg1_xyz``, ...) holds::
 
 ``root`` is a folder of sequence folders (or a sequence folder itself, scene ``"."``
 or its name). Frames are the depth images of ``depth.txt`` in time order; ``frame_id``
-is the depth timestamp as written there. A list out of time order is sorted and an entry
-repeating an earlier timestamp or file is dropped, both recorded in ``problems``; a
-timestamp that is not a finite number is a SourceError naming the file and line. Each depth image is associated with the colour image
+is the depth timestamp as written there. A ``depth.txt`` out of time order is sorted and
+an entry repeating an earlier timestamp or file is dropped, both recorded in
+``problems`` (a frame set could otherwise hold one image twice); a timestamp that is
+not a finite number, in any of the three lists, is a SourceError naming file and line. Each depth image is associated with the colour image
 and the ground-truth pose nearest in time; an association further than ``max_dt``
 seconds (default 0.02) makes the frame fail with ``FrameError("no_association")``
 (the pose one only when ``require_pose``; otherwise the pose is None).
@@ -86,7 +87,8 @@ def _numbers(col: np.ndarray, lines: np.ndarray, path: Path, what: str = "timest
         raise
     bad = np.flatnonzero(~np.isfinite(values)) if finite else ()
     if len(bad):
-        raise SourceError(f"{path}: line {lines[bad[0]]}: {what} {col[bad[0]]!r} is not finite ({bad.size} such value(s))")
+        raise SourceError(f"{path}: line {lines[bad[0]]}: {what} {str(col[bad[0]])!r} is not finite "
+                          f"({len(bad)} such value(s))")
     return values
 
 
@@ -198,8 +200,8 @@ class TumScene(FileScene):
         self.max_dt = float(max_dt)
         self.intrinsics = self._intrinsics(camera, intrinsics)
 
-        depth_rows, t_depth = self._list("depth.txt")
-        rgb_rows, t_rgb = self._list("rgb.txt")
+        depth_rows, t_depth = self._list("depth.txt", clean=True)
+        rgb_rows, t_rgb = self._list("rgb.txt", clean=False)  # any order: colour is associated by nearest time
         if depth_rows.shape[0] == 0:
             raise SourceError(f"{self.path / 'depth.txt'}: no depth frames listed")
         self._depth_ids = depth_rows[:, 0]
@@ -240,12 +242,15 @@ class TumScene(FileScene):
         fx, fy, cx, cy = CAMERAS[camera]
         return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
-    def _list(self, name: str) -> tuple[np.ndarray, np.ndarray]:
-        """Rows of ``rgb.txt`` / ``depth.txt`` in time order without repeats (recorded
-        in ``problems``), and their (N,) timestamps."""
+    def _list(self, name: str, clean: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of ``rgb.txt`` / ``depth.txt`` and their (N,) finite timestamps; with
+        ``clean``, in time order without repeats (see :func:`clean_list`, recorded in
+        ``problems``)."""
         path = self.path / name
         rows, lines = _read_list(path, 2)
         t = _numbers(rows[:, 0], lines, path)
+        if not clean:
+            return rows, t
         keep, problems = clean_list(t, rows[:, 1], lines, path)
         for msg in problems:
             log.warning("%s", msg)
