@@ -333,8 +333,9 @@ def crafted_image_cases() -> dict[str, tuple[str, bytes]]:
 
 @dataclass(frozen=True)
 class Case:
-    """``kind``: a mutant kind (:data:`MUTANT_KINDS`) with ``index``, or ``"crafted"``
-    with ``name``."""
+    """``kind``: a mutant kind (:data:`MUTANT_KINDS`) with ``index``; ``"crafted"`` with
+    ``name`` (and ``param``, the inflated size of a zlib bomb); ``"control"``: allocate
+    ``param`` bytes (checks that the memory cap works)."""
 
     kind: str
     index: int = 0
@@ -344,6 +345,8 @@ class Case:
 
     @property
     def label(self) -> str:
+        if self.kind == "control":
+            return self.name
         if self.kind != "crafted":
             return f"{self.kind}#{self.index}"
         return f"{self.name}_{self.param >> 20}MiB" if self.param else self.name
@@ -410,7 +413,10 @@ def run_case(case: Case, base: Path, work: Path, timeout_s: int = 30) -> dict:
 
     out = {"case": case.label, "kind": case.kind, "frames_ok": 0, "frame_errors": {}, "outcome": "ok",
            "message": "", "lost_unrecorded": 0, "problems": 0}
-    kind, root, name, n_true = _materialise(case, base, work)
+    if case.kind == "control":  # checks the harness itself: an allocation beyond the cap must fail
+        kind, root, name, n_true = "control", None, case.name, 0
+    else:
+        kind, root, name, n_true = _materialise(case, base, work)
     resettable = _reset_peak()
     rss0 = _status_kib("VmRSS")
     signal.signal(signal.SIGALRM, _alarm)
@@ -418,6 +424,8 @@ def run_case(case: Case, base: Path, work: Path, timeout_s: int = 30) -> dict:
     errors: Counter[str] = Counter()
     try:
         try:
+            if kind == "control":
+                np.ones(case.param, dtype=np.uint8)
             scene = open_scene(kind, root, name)
         except DepthGTError as exc:
             out.update(outcome="source_error", message=str(exc)[:300])

@@ -30,7 +30,7 @@ from typing import Any, Mapping
 
 import cv2
 import numpy as np
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 
 from depthgt.errors import FrameError
 
@@ -104,6 +104,8 @@ def _open_header(source, where: str) -> ImageHeader:
                 return ImageHeader(str(im.format), int(im.size[0]), int(im.size[1]), str(im.mode))
     except Image.DecompressionBombError as exc:
         raise FrameError(f"{where}: image header declares an absurd size ({exc})", "unreadable") from exc
+    except UnidentifiedImageError as exc:
+        raise FrameError(f"{where}: not a readable JPEG or PNG image (unknown format or corrupt header)", "unreadable") from exc
     except _PIL_ERRORS as exc:
         raise FrameError(f"{where}: not a readable JPEG or PNG image ({type(exc).__name__}: {exc})", "unreadable") from exc
 
