@@ -47,6 +47,8 @@ def write_sens(
     sensor_name: str = "test-sensor",
     num_frames: int | None = None,
     color_payloads: list[bytes] | None = None,
+    depth_payloads: list[bytes] | None = None,
+    imu_frames: int | None = 0,
 ) -> Path:
     """Write a ``.sens`` file.
 
@@ -57,8 +59,11 @@ def write_sens(
         K_color, K_depth: (3, 3) or (4, 4) intrinsics (stored as 4x4 float32).
         num_frames: the count written in the header (defaults to the true count; a
             larger value imitates a file cut short by a download).
-        color_payloads: raw colour payloads replacing the encoded ones (to inject
-            corrupt data), or None.
+        color_payloads, depth_payloads: raw payloads replacing the encoded ones (to
+            inject corrupt data), or None.
+        imu_frames: number of IMU records written after the frames (ScanNet's writer
+            always writes their count, 0 included; each record is 128 bytes: five
+            float64 3-vectors and a uint64 timestamp); None writes no IMU block at all.
 
     Returns:
         ``path``.
@@ -85,9 +90,13 @@ def write_sens(
     out += struct.pack("<Q", n)
     for k, (rgb, d, T) in enumerate(zip(rgbs, depths_raw, poses)):
         c = color_payloads[k] if color_payloads is not None else encode_color(rgb, color_compression)
-        z = encode_depth(d, depth_compression)
+        z = depth_payloads[k] if depth_payloads is not None else encode_depth(d, depth_compression)
         out += np.asarray(T, dtype="<f4").reshape(16).tobytes()
         out += struct.pack("<QQQQ", 1000 * k, 1000 * k + 1, len(c), len(z))
         out += c + z
+    if imu_frames is not None:
+        out += struct.pack("<Q", imu_frames)
+        for k in range(imu_frames):
+            out += np.linspace(0.0, 1.0, 15).astype("<f8").tobytes() + struct.pack("<Q", 500 * k)
     path.write_bytes(bytes(out))
     return path

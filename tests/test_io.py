@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -10,6 +12,8 @@ import pytest
 
 from depthgt.errors import FrameError
 from depthgt.io import read_depth_png, read_exr, read_pose_txt, read_rgb, write_exr, write_json, write_rgb_png
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def test_read_depth_png_scales_to_metres(tmp_path):
@@ -141,3 +145,74 @@ def test_fit_rgb_to_depth_area_downscale_and_aspect_check():
     with pytest.raises(FrameError, match=r"c\.jpg: colour 12x12 cannot be fitted to depth 12x8") as e:
         fit_rgb_to_depth(np.zeros((12, 12, 3), np.uint8), (8, 12), "c.jpg")
     assert e.value.reason == "size_mismatch"
+
+
+# ------------------------------------------------------------------ untrusted images
+
+
+def _enc(img, ext):
+    ok, buf = cv2.imencode(ext, img)
+    assert ok
+    return buf.tobytes()
+
+
+def _textured(h=48, w=64):
+    y, x = np.mgrid[0:h, 0:w]
+    return np.stack([(3 * x) % 256, (5 * y) % 256, (x * y) % 256], -1).astype(np.uint8)
+
+
+def test_declared_size_is_checked_before_decoding(tmp_path, monkeypatch):
+    """Headers claiming huge images are rejected from the header alone: the decoder is
+    never called (it would allocate w*h*3 bytes first)."""
+    import depthgt.io as io_mod
+    from fuzz_harness import jpeg_with_size, png_with_size
+
+    def no_decode(*a, **k):
+        raise AssertionError("decoded")
+
+    monkeypatch.setattr(io_mod.cv2, "imdecode", no_decode)
+    jpg, png = _enc(_textured(), ".jpg"), _enc(np.zeros((48, 64), np.uint16), ".png")
+    for w, h in ((60000, 60000), (40000, 26000), (16000, 16000), (8000, 6000)):
+        (tmp_path / "c.jpg").write_bytes(jpeg_with_size(jpg, w, h))
+        with pytest.raises(FrameError, match=r"c\.jpg: .*(absurd size|beyond the limit)") as e:
+            read_rgb(tmp_path / "c.jpg")
+        assert e.value.reason == "unreadable"
+        (tmp_path / "d.png").write_bytes(png_with_size(png, w, h))
+        with pytest.raises(FrameError, match=r"d\.png: .*(absurd size|beyond the limit)"):
+            read_depth_png(tmp_path / "d.png", 1000.0)
+    # a plausible size that is not the scene's: size_mismatch, still without decoding
+    (tmp_path / "d.png").write_bytes(png_with_size(png, 640, 480))
+    with pytest.raises(FrameError, match=r"d\.png: PNG is 640x480, the scene's size is 64x48") as e:
+        read_depth_png(tmp_path / "d.png", 1000.0, expected_hw=(48, 64), what="the scene's size")
+    assert e.value.reason == "size_mismatch"
+
+
+def test_truncated_empty_and_mistyped_images(tmp_path):
+    rgb = _textured()
+    bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+    jpg, png = _enc(bgr, ".jpg"), _enc(bgr, ".png")
+    cases = {
+        "half.jpg": (jpg[: len(jpg) // 2], "truncated JPEG"),  # libjpeg would decode it with grey rows
+        "half.png": (png[: len(png) // 2], "truncated PNG"),
+        "empty.jpg": (b"", "empty"),
+        "rgb16.png": (_enc(bgr.astype(np.uint16) * 257, ".png"), "8-bit grey or RGB, decoded uint16"),
+        "rgba.png": (_enc(np.dstack([bgr, bgr[..., :1]]), ".png"), "8-bit grey or RGB, the PNG is 'RGBA'"),
+        "grey16.png": (_enc(np.zeros((48, 64), np.uint16), ".png"), "8-bit grey or RGB, the PNG is 'I;16'"),
+        "tiff.png": (_enc(bgr, ".tiff"), "not a readable JPEG or PNG"),
+    }
+    for name, (data, msg) in cases.items():
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(FrameError, match=msg) as e:
+            read_rgb(tmp_path / name)
+        assert e.value.reason == "unreadable" and name in str(e.value), name
+    # JPEG padded with zeros after its end marker and 8-bit grey are fine
+    (tmp_path / "pad.jpg").write_bytes(jpg + b"\x00" * 7)
+    np.testing.assert_array_equal(read_rgb(tmp_path / "pad.jpg"), cv2.cvtColor(cv2.imdecode(np.frombuffer(jpg, np.uint8), 1), cv2.COLOR_BGR2RGB))
+    (tmp_path / "grey.png").write_bytes(_enc(rgb[..., 1], ".png"))
+    np.testing.assert_array_equal(read_rgb(tmp_path / "grey.png"), np.repeat(rgb[..., 1:2], 3, axis=2))
+    # depth: truncated, 8-bit and JPEG are unreadable
+    d = _enc((np.arange(48 * 64).reshape(48, 64) % 5000).astype(np.uint16), ".png")
+    for name, data, msg in (("cut.png", d[:-20], "truncated PNG"), ("jpg.png", jpg, "16-bit PNG, got JPEG")):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(FrameError, match=msg):
+            read_depth_png(tmp_path / name, 1000.0)

@@ -4,6 +4,7 @@ generated folders, the bad-input cases, and the real 7-Scenes fixture."""
 from __future__ import annotations
 
 import logging
+import re
 import sys
 from pathlib import Path
 
@@ -204,8 +205,11 @@ def test_sens_open_is_lazy(tmp_path, monkeypatch):
     def boom(*a, **k):
         raise AssertionError("decoded at open time")
 
-    monkeypatch.setattr(sens_mod.cv2, "imdecode", boom)
-    monkeypatch.setattr(sens_mod.zlib, "decompress", boom)
+    import depthgt.io as io_mod
+
+    monkeypatch.setattr(io_mod.cv2, "imdecode", boom)
+    monkeypatch.setattr(sens_mod, "decode_color", boom)
+    monkeypatch.setattr(sens_mod.zlib, "decompressobj", boom)
     assert len(SensFile(path)) == 5
 
 
@@ -452,3 +456,218 @@ def test_tum_bad_inputs(tmp_path):
     make_tum(seq2, n=2)
     assert base.list_scenes("tum", seq2) == ["rgbd_dataset_freiburg3_x"]
     assert len(base.open_scene("tum", seq2, ".")) == 2
+
+
+# ------------------------------------------------------------------ hostile .sens input
+
+from fuzz_harness import N_SENS_FRAMES, crafted_sens_kwargs, write_base_sens, zlib_bomb  # noqa: E402
+
+
+def _crafted_sens(tmp_path, name, param=0):
+    from fuzz_harness import _patch_sens
+
+    kw = crafted_sens_kwargs(name, param)
+    patch = kw.pop("patch", None)
+    write_base_sens(tmp_path / "scene0100_00.sens", **kw)
+    if patch:
+        _patch_sens(tmp_path / "scene0100_00.sens", patch)
+    return base.open_scene("scannet", tmp_path, "scene0100_00")
+
+
+@pytest.mark.parametrize("name,param,frame,reason,message", [
+    ("sens_empty_colour_payload", 0, 2, "unreadable", "frame 2 colour: empty payload"),
+    ("sens_jpeg_declares_60000x60000", 0, 2, "unreadable", "frame 2 colour: .*absurd size"),
+    ("sens_jpeg_declares_40000x26000", 0, 2, "unreadable", "frame 2 colour: .*absurd size"),
+    ("sens_jpeg_declares_16000x16000", 0, 2, "unreadable", "frame 2 colour: .*absurd size"),
+    ("sens_jpeg_declares_8000x6000", 0, 2, "unreadable", "frame 2 colour: JPEG header declares 8000x6000 pixels, beyond"),
+    ("sens_jpeg_declares_256x192", 0, 2, "size_mismatch", "frame 2 colour: JPEG is 256x192, expected colour size is 128x96"),
+    ("sens_jpeg_truncated_half", 0, 2, "unreadable", "frame 2 colour: truncated JPEG"),
+    ("sens_png_truncated_half", 0, 2, "unreadable", "frame 2 colour: truncated PNG"),
+    ("sens_png16_colour", 0, 2, "unreadable", "frame 2 colour: colour must be 8-bit grey or RGB, decoded uint16"),
+    ("sens_rgba_colour", 0, 2, "unreadable", "frame 2 colour: colour must be 8-bit grey or RGB, the PNG is 'RGBA'"),
+    ("sens_tiff_colour", 0, 2, "unreadable", "frame 2 colour: not a readable JPEG or PNG"),
+    ("sens_png_in_jpeg_file", 0, 2, "unreadable", "frame 2 colour: colour payload is PNG, expected JPEG"),
+    ("sens_zlib_bomb", 64 << 20, 1, "unreadable", "frame 1 depth: payload of .* more than a frame of this size can take"),
+    ("sens_zlib_bomb", 6 << 20, 1, "unreadable", "frame 1 depth: zlib payload inflates beyond the 6144 bytes"),
+    ("sens_pose_bottom_row_0000", 0, 3, "invalid_pose", "frame 3: pose's bottom row is 0 0 0 0, expected 0 0 0 1"),
+    ("sens_pose_bottom_row_0002", 0, 3, "invalid_pose", "frame 3: pose's bottom row is 0 0 0 2, expected 0 0 0 1"),
+    ("sens_pose_reflection", 0, 3, "invalid_pose", "frame 3: pose rotation has determinant -1"),
+])
+def test_sens_hostile_frame_is_a_recorded_skip(tmp_path, name, param, frame, reason, message):
+    """Each crafted case of issue 10 fails as its own frame, naming file and frame; the
+    other frames of the file read normally."""
+    scene = _crafted_sens(tmp_path, name, param)
+    assert len(scene) == N_SENS_FRAMES and scene.problems == []
+    with pytest.raises(FrameError, match=f"scene0100_00.sens {message}") as e:
+        scene.read(frame)
+    assert e.value.reason == reason
+    for i in set(range(N_SENS_FRAMES)) - {frame}:
+        scene.read(i)
+
+
+def test_sens_grey_colour_is_expanded(tmp_path):
+    scene = _crafted_sens(tmp_path, "sens_grey_colour")
+    rgb = scene.read(2).rgb
+    assert rgb.shape == (48, 64, 3) and (rgb[..., 0] == rgb[..., 1]).all() and (rgb[..., 1] == rgb[..., 2]).all()
+
+
+def test_sens_pose_checks_when_poses_are_optional(tmp_path):
+    """require_pose: false drops an unusable pose (the frame stays usable without it)."""
+    write_base_sens(tmp_path / "scene0101_00.sens", **crafted_sens_kwargs("sens_pose_bottom_row_0000"))
+    lax = base.open_scene("scannet", tmp_path, "scene0101_00", require_pose=False)
+    assert lax.read(3).T_world_cam is None and lax.read(2).T_world_cam is not None
+
+
+def test_inflate_is_bounded_by_the_image_size():
+    """A zlib bomb inflates no further than the h*w*2 bytes of a depth image."""
+    import tracemalloc
+    import zlib
+
+    from depthgt.sources.sens import _inflate_bounded
+
+    bomb = zlib_bomb(256 << 20)  # 256 MiB of zeros in ~260 KB
+    tracemalloc.start()
+    try:
+        with pytest.raises(FrameError, match="inflates beyond the 614400 bytes") as e:
+            _inflate_bounded(bomb, 640 * 480 * 2, "f frame 0 depth")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert e.value.reason == "unreadable" and peak < 2 * 614400 + 2 * len(bomb)
+    good = zlib.compress(bytes(range(256)) * 6)
+    assert _inflate_bounded(good, 1536, "f") == bytes(range(256)) * 6
+    assert _inflate_bounded(good + b"junk", 1536, "f") == bytes(range(256)) * 6  # bytes after the stream: ignored
+    with pytest.raises(FrameError, match="truncated zlib payload"):
+        _inflate_bounded(good[:-6], 1536, "f")
+    with pytest.raises(FrameError, match="corrupt zlib payload"):
+        _inflate_bounded(b"\x00" * 8 + good, 1536, "f")
+
+
+@pytest.mark.parametrize("name,problem", [
+    ("sens_lowered_frame_count", r"unexpected bytes after the 4 announced frames \(it holds 2 more frame record\(s\)"),
+    ("sens_garbage_after_frames", r"1160 unexpected bytes after the 6 announced frames \(it is not a valid IMU block\)"),
+    ("sens_frame_count_2^64-1", r"truncated .sens: header announces 18446744073709551615 frames, 6 found"),
+    ("sens_colour_size_2^63", r"truncated .sens: header announces 6 frames, 2 found \(frame 2 payload ends at byte"),
+])
+def test_sens_frames_never_vanish_unrecorded(tmp_path, name, problem):
+    """Data after the announced frames must be the IMU block; otherwise (a frame count
+    lowered by corruption) the frames it holds are recorded as a scene problem."""
+    scene = _crafted_sens(tmp_path, name)
+    assert len(scene.problems) == 1 and re.search(problem, scene.problems[0]), scene.problems
+    assert "scene0100_00.sens" in scene.problems[0]
+
+
+def test_sens_imu_block_or_nothing_is_clean(tmp_path):
+    for imu in (None, 0, 3):
+        write_base_sens(tmp_path / f"s{imu}.sens", imu_frames=imu)
+        sens = SensFile(tmp_path / f"s{imu}.sens")
+        assert len(sens) == N_SENS_FRAMES and sens.problems == [], imu
+
+
+@pytest.mark.parametrize("name,message", [
+    ("sens_header_colour_60000x60000", r"corrupt .sens header \(colour 60000x60000"),
+    ("sens_name_length_2^60", r"corrupt .sens header \(sensor name length 1152921504606846976\)"),
+])
+def test_sens_absurd_header_is_a_source_error(tmp_path, name, message):
+    with pytest.raises(SourceError, match=f"scene0100_00.sens: {message}"):
+        _crafted_sens(tmp_path, name)
+
+
+# ------------------------------------------------------------------ pose and size checks
+
+
+def test_pose_problem_cases():
+    T = _pose(3)
+    assert base.pose_problem(T) is None and base.usable_pose(T) is T
+    noisy = T.copy()
+    noisy[:3, :3] += 1.5e-4 * np.random.default_rng(0).standard_normal((3, 3))  # 7-Scenes-sized rounding: accepted
+    assert base.pose_problem(noisy) is None
+    cases = {
+        "bottom row is 0 0 0 0": (3, slice(None), (0, 0, 0, 0)),
+        "bottom row is 0 0 0 2": (3, slice(None), (0, 0, 0, 2)),
+        "bottom row is 0 0.1 0 1": (3, 1, 0.1),
+        "determinant -1": (slice(0, 3), 2, -T[:3, 2]),
+        r"not orthonormal \(max \|R R\^T - I\| = 0.0201": (slice(0, 3), slice(0, 3), 1.01 * T[:3, :3]),
+    }
+    for msg, (rows, cols, value) in cases.items():
+        bad = T.copy()
+        bad[rows, cols] = value
+        reason, text = base.pose_problem(bad)
+        assert reason == "invalid_pose" and re.search(msg, text), (msg, text)
+        assert base.usable_pose(bad) is None
+        frame = base.Frame(np.zeros((2, 2, 3), np.uint8), np.ones((2, 2), np.float32), bad)
+        with pytest.raises(FrameError, match=f"f7: .*{msg}") as e:
+            base.check_frame(frame, (2, 2), "f7", need_pose=True)
+        assert e.value.reason == "invalid_pose"
+        base.check_frame(frame, (2, 2), "f7", need_pose=False)  # not needed: not checked
+    assert base.pose_problem(np.full((4, 4), np.nan))[0] == "nonfinite_pose"
+    assert base.pose_problem(np.eye(3))[0] == "invalid_pose"
+    assert base.pose_problem(None)[0] == "missing_pose"
+
+
+def test_first_depth_of_another_size_does_not_decide(tmp_path):
+    """The scene's size is the majority of the sampled depth images: one odd first
+    image is the one rejected, and the message names it and the majority size."""
+    scene_dir = make_exported(tmp_path, numbers=(0, 1, 2, 3, 4))
+    cv2.imwrite(str(scene_dir / "depth" / "0.png"), _depth_raw(0, h=HD // 2, w=WD // 2))
+    scene = base.open_scene("scannet", tmp_path, "scene0000_00")
+    assert scene.image_size == (HD, WD)
+    assert len(scene.problems) == 1 and "32x24 (4), 16x12 (1)" in scene.problems[0]
+    with pytest.raises(FrameError, match=r"depth/0\.png: PNG is 16x12, the scene's depth size \(that of 4 of 5 sampled "
+                                         r"depth images\) is 32x24") as e:
+        scene.read(0)
+    assert e.value.reason == "size_mismatch"
+    for i in range(1, 5):
+        assert scene.read(i).depth_m.shape == (HD, WD)
+
+
+# ------------------------------------------------------------------ TUM lists
+
+
+def test_tum_unsorted_and_repeated_lists_are_cleaned_and_recorded(tmp_path, caplog):
+    seq = tmp_path / "rgbd_dataset_freiburg1_room"
+    t_depth = make_tum(seq)
+    lines = (seq / "depth.txt").read_text().splitlines()
+    header, rows = lines[:2], lines[2:]
+    # out of order (line 5 before line 4) and frame 1 listed twice
+    (seq / "depth.txt").write_text("\n".join(header + [rows[0], rows[2], rows[1], rows[1], rows[3], rows[4]]) + "\n")
+    with caplog.at_level(logging.WARNING):
+        s = base.open_scene("tum", tmp_path, seq.name)
+    assert [s.frame_id(i) for i in range(len(s))] == [f"{t:.6f}" for t in t_depth]  # sorted, each image once
+    assert len(s.problems) == 2
+    assert re.search(r"depth.txt: 1 entries out of time order \(first at line 5\); sorted", s.problems[0])
+    assert re.search(r"depth.txt: 1 repeated entries dropped \(same timestamp or file; first: line 6 repeats line 5\)",
+                     s.problems[1])
+    assert sum("repeated entries dropped" in r.getMessage() for r in caplog.records) == 1
+
+
+@pytest.mark.parametrize("file,value", [("depth.txt", "nan"), ("depth.txt", "inf"), ("rgb.txt", "-inf"),
+                                        ("groundtruth.txt", "nan")])
+def test_tum_nonfinite_timestamp_is_a_source_error(tmp_path, file, value):
+    """A NaN timestamp would be paired with any image (NaN > max_dt is False)."""
+    seq = tmp_path / "rgbd_dataset_freiburg1_room"
+    make_tum(seq)
+    lines = (seq / file).read_text().splitlines()
+    k = next(i for i, line in enumerate(lines) if not line.startswith("#")) + 1  # second data line
+    fields = lines[k].split()
+    lines[k] = " ".join([value] + fields[1:])
+    (seq / file).write_text("\n".join(lines) + "\n")
+    with pytest.raises(SourceError, match=rf"{file}: line {k + 1}: timestamp '{value}' is not finite"):
+        base.open_scene("tum", tmp_path, seq.name)
+
+
+def test_tum_nonfinite_pose_value_is_a_frame_problem(tmp_path):
+    seq = tmp_path / "rgbd_dataset_freiburg1_room"
+    t_depth = make_tum(seq)
+    lines = (seq / "groundtruth.txt").read_text().splitlines()
+    rows = [np.array(line.split(), dtype=float) for line in lines[2:]]
+    k = int(np.argmin([abs(r[0] - t_depth[2]) for r in rows]))
+    fields = lines[2 + k].split()
+    fields[4] = "nan"
+    lines[2 + k] = " ".join(fields)
+    (seq / "groundtruth.txt").write_text("\n".join(lines) + "\n")
+    s = base.open_scene("tum", tmp_path, seq.name)
+    with pytest.raises(FrameError) as e:
+        s.read(2)
+    assert e.value.reason == "nonfinite_pose"
+    s.read(1)

@@ -2,7 +2,17 @@
 
 All readers raise :class:`~depthgt.errors.FrameError` naming the path at fault, with a
 reason tag: ``"missing_file"`` (no such file), ``"unreadable"`` (the decoder failed or
-the file is not an image of the expected kind). Writers create parent folders.
+the file is not an image of the expected kind), ``"size_mismatch"`` (the image's
+declared size is not the size the caller expects). Writers create parent folders.
+
+Encoded images (JPEG/PNG files and ``.sens`` payloads) are untrusted input. Before any
+pixel is decoded, :func:`probe_image` reads the declared format, size and mode from the
+header (Pillow's lazy ``Image.open``, which decodes nothing) and the size is checked
+against the caller's expectation and :data:`MAX_IMAGE_PIXELS`, so that a header
+claiming 60000x60000 pixels costs nothing. A JPEG must end with its end-of-image marker
+and a PNG with its ``IEND`` chunk: libjpeg decodes a truncated JPEG with only a warning
+on stderr, so truncation is detected here. OpenCV then decodes; whatever it reports
+(``None`` or ``cv2.error``) becomes a FrameError.
 
 Conventions: depth (H, W) float32 metres, 0 = invalid; colour (H, W, 3) uint8 RGB
 order; poses (4, 4) float64.
@@ -10,16 +20,28 @@ order; poses (4, 4) float64.
 
 from __future__ import annotations
 
+import io
 import json
+import struct
+import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
 import cv2
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
 from depthgt.errors import FrameError
 
 __all__ = [
+    "MAX_IMAGE_PIXELS",
+    "MAX_IMAGE_SIDE",
+    "ImageHeader",
+    "probe_image",
+    "probe_image_file",
+    "decode_color",
+    "decode_depth_png",
     "read_depth_png",
     "read_rgb",
     "write_rgb_png",
@@ -30,54 +52,225 @@ __all__ = [
     "fit_rgb_to_depth",
 ]
 
+#: Largest declared image accepted (pixels): 40 Mpx, above 8K UHD (33 Mpx). A decoded
+#: 8-bit RGB image of this size takes 120 MB, so one frame stays far below 512 MiB.
+MAX_IMAGE_PIXELS = 40_000_000
+#: Largest declared side (pixels).
+MAX_IMAGE_SIDE = 32_768
+#: Largest image file read (bytes); an 8-bit RGB PNG of MAX_IMAGE_PIXELS is ~120 MB.
+MAX_IMAGE_FILE_BYTES = 256 * 1024 * 1024
+
+_PNG_IEND = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # the fixed last chunk of every PNG
+_JPEG_EOI = b"\xff\xd9"  # end-of-image marker
+# What Pillow's header parsers raise on malformed input (Image.open tries its plugins
+# and ends in UnidentifiedImageError, an OSError; DecompressionBombError above
+# 2 * Image.MAX_IMAGE_PIXELS; the others from plugins that accepted the first bytes).
+_PIL_ERRORS = (OSError, ValueError, TypeError, SyntaxError, EOFError, IndexError, KeyError, struct.error,
+               Image.DecompressionBombError)
+_COLOR_MODES = {"L", "RGB", "P"}  # 8-bit grey, 8-bit colour, 8-bit palette (PNG)
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    """What an encoded image declares in its header (nothing decoded).
+
+    Attributes:
+        format: ``"JPEG"`` or ``"PNG"``.
+        width, height: declared size in pixels.
+        mode: Pillow's mode, e.g. ``"L"`` (8-bit grey), ``"RGB"``, ``"RGBA"``,
+            ``"I;16"`` (16-bit grey), ``"CMYK"``.
+    """
+
+    format: str
+    width: int
+    height: int
+    mode: str
+
+    @property
+    def hw(self) -> tuple[int, int]:
+        return (self.height, self.width)
+
 
 def _require_file(path: Path) -> None:
     if not path.is_file():
         raise FrameError(f"{path}: file not found", "missing_file")
 
 
-def read_depth_png(path: str | Path, scale: float) -> np.ndarray:
+def _open_header(source, where: str) -> ImageHeader:
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # the size is checked by the caller
+            with Image.open(source, formats=("JPEG", "PNG")) as im:
+                return ImageHeader(str(im.format), int(im.size[0]), int(im.size[1]), str(im.mode))
+    except Image.DecompressionBombError as exc:
+        raise FrameError(f"{where}: image header declares an absurd size ({exc})", "unreadable") from exc
+    except UnidentifiedImageError as exc:
+        raise FrameError(f"{where}: not a readable JPEG or PNG image (unknown format or corrupt header)", "unreadable") from exc
+    except _PIL_ERRORS as exc:
+        raise FrameError(f"{where}: not a readable JPEG or PNG image ({type(exc).__name__}: {exc})", "unreadable") from exc
+
+
+def probe_image(data: bytes, where: str) -> ImageHeader:
+    """Format, declared size and mode of an encoded JPEG/PNG image, from its header only.
+
+    Raises:
+        FrameError: ("unreadable") empty data, not a JPEG or PNG (TIFF, garbage), or a
+            header that does not parse; the message names ``where``.
+    """
+    if not data:
+        raise FrameError(f"{where}: empty image payload (0 bytes)", "unreadable")
+    return _open_header(io.BytesIO(data), where)
+
+
+def probe_image_file(path: str | Path) -> ImageHeader:
+    """:func:`probe_image` of a file, reading only its header.
+
+    Raises:
+        FrameError: missing file ("missing_file"), empty or unparsable file ("unreadable").
+    """
+    path = Path(path)
+    _require_file(path)
+    if path.stat().st_size == 0:
+        raise FrameError(f"{path}: empty file (0 bytes)", "unreadable")
+    return _open_header(path, str(path))
+
+
+def _check_declared_size(header: ImageHeader, where: str, expected_hw: tuple[int, int] | None, what: str) -> None:
+    w, h = header.width, header.height
+    if min(w, h) <= 0 or max(w, h) > MAX_IMAGE_SIDE or w * h > MAX_IMAGE_PIXELS:
+        raise FrameError(
+            f"{where}: {header.format} header declares {w}x{h} pixels, beyond the limit of {MAX_IMAGE_SIDE} per side "
+            f"and {MAX_IMAGE_PIXELS} in all (not decoded)",
+            "unreadable",
+        )
+    if expected_hw is not None and header.hw != tuple(expected_hw):
+        raise FrameError(f"{where}: {header.format} is {w}x{h}, {what} is {expected_hw[1]}x{expected_hw[0]}", "size_mismatch")
+
+
+def _check_complete(data: bytes, header: ImageHeader, where: str) -> None:
+    """Truncation check: libjpeg decodes a cut JPEG with a warning only (grey rows)."""
+    if header.format == "JPEG" and not data.rstrip(b"\x00").endswith(_JPEG_EOI):
+        raise FrameError(f"{where}: truncated JPEG (no end-of-image marker after {len(data)} bytes)", "unreadable")
+    if header.format == "PNG" and not data.endswith(_PNG_IEND):
+        raise FrameError(f"{where}: truncated PNG (no IEND chunk after {len(data)} bytes)", "unreadable")
+
+
+def _imdecode(data: bytes, header: ImageHeader, where: str) -> np.ndarray:
+    try:
+        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise FrameError(f"{where}: cannot decode {header.format} ({str(exc).strip().splitlines()[-1]})", "unreadable") from exc
+    if img is None:
+        raise FrameError(f"{where}: cannot decode {header.format} image", "unreadable")
+    if img.shape[:2] != header.hw:
+        raise FrameError(
+            f"{where}: decoded {img.shape[1]}x{img.shape[0]}, the {header.format} header declares {header.width}x{header.height}",
+            "unreadable",
+        )
+    return img
+
+
+def decode_color(data: bytes, where: str, expected_hw: tuple[int, int] | None = None,
+                 formats: tuple[str, ...] = ("JPEG", "PNG")) -> np.ndarray:
+    """Decode an encoded colour image to (H, W, 3) uint8 RGB.
+
+    Accepted: 8-bit grey (expanded to three channels), 8-bit RGB and 8-bit palette
+    images, JPEG or PNG (``formats``). Rejected before decoding: empty data, other
+    formats (TIFF, ...), modes with alpha, 16 bits or CMYK, declared sizes other than
+    ``expected_hw`` or beyond :data:`MAX_IMAGE_PIXELS`, truncated files; after decoding:
+    anything OpenCV does not return as 8-bit with 1 or 3 channels (16-bit RGB PNG).
+
+    Args:
+        data: the encoded bytes.
+        where: file (and frame) named in errors.
+        expected_hw: (H, W) the image must have, or None for any size within the limits.
+
+    Raises:
+        FrameError: ("unreadable") or ("size_mismatch") naming ``where``.
+    """
+    header = probe_image(data, where)
+    if header.format not in formats:
+        raise FrameError(f"{where}: colour payload is {header.format}, expected {' or '.join(formats)}", "unreadable")
+    if header.mode not in _COLOR_MODES:
+        raise FrameError(f"{where}: colour must be 8-bit grey or RGB, the {header.format} is {header.mode!r}", "unreadable")
+    _check_declared_size(header, where, expected_hw, "expected colour size")
+    _check_complete(data, header, where)
+    img = _imdecode(data, header, where)
+    channels = 1 if img.ndim == 2 else img.shape[2]
+    if img.dtype != np.uint8 or channels not in (1, 3):
+        raise FrameError(f"{where}: colour must be 8-bit grey or RGB, decoded {img.dtype} with {channels} channels", "unreadable")
+    return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB if channels == 1 else cv2.COLOR_BGR2RGB)
+
+
+def decode_depth_png(data: bytes, where: str, expected_hw: tuple[int, int] | None = None,
+                     what: str = "expected depth size") -> np.ndarray:
+    """Decode a 16-bit single-channel depth PNG to (H, W) uint16 raw units.
+
+    Args:
+        expected_hw: (H, W) the image must have (checked on the header, before
+            decoding), or None for any size within :data:`MAX_IMAGE_PIXELS`.
+        what: how ``expected_hw`` is named in the size-mismatch message.
+
+    Raises:
+        FrameError: ("unreadable") empty, not a PNG, truncated, not single-channel
+            uint16; ("size_mismatch") declared size differs from ``expected_hw``.
+    """
+    header = probe_image(data, where)
+    if header.format != "PNG":
+        raise FrameError(f"{where}: depth must be a 16-bit PNG, got {header.format}", "unreadable")
+    _check_declared_size(header, where, expected_hw, what)
+    _check_complete(data, header, where)
+    raw = _imdecode(data, header, where)
+    if raw.dtype != np.uint16 or raw.ndim != 2:
+        raise FrameError(f"{where}: depth must be single-channel uint16, got {raw.dtype} with shape {raw.shape}", "unreadable")
+    return raw
+
+
+def _read_image_file(path: Path) -> bytes:
+    _require_file(path)
+    size = path.stat().st_size
+    if size > MAX_IMAGE_FILE_BYTES:
+        raise FrameError(f"{path}: {size} bytes, larger than any image accepted ({MAX_IMAGE_FILE_BYTES} bytes)", "unreadable")
+    return path.read_bytes()
+
+
+def read_depth_png(path: str | Path, scale: float, expected_hw: tuple[int, int] | None = None,
+                   what: str = "expected depth size") -> np.ndarray:
     """Read a 16-bit depth PNG and convert it to metres.
 
     Args:
         path: uint16 single-channel PNG (e.g. millimetres for Kinect/ScanNet).
         scale: raw units per metre (1000 for millimetres, 5000 for TUM).
+        expected_hw: (H, W) the image must have (checked before decoding), or None.
+        what: how ``expected_hw`` is named in the size-mismatch message.
 
     Returns:
         (H, W) float32 depth in metres; raw value 0 stays 0 (invalid).
 
     Raises:
-        FrameError: missing file ("missing_file"), undecodable file or not a
-            single-channel uint16 image ("unreadable").
+        FrameError: missing file ("missing_file"), undecodable, truncated or not a
+            single-channel uint16 PNG ("unreadable"), another size ("size_mismatch").
     """
     path = Path(path)
     if not scale > 0:
         raise ValueError(f"depth scale must be > 0, got {scale} for {path}")
-    _require_file(path)
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise FrameError(f"{path}: cannot decode depth image", "unreadable")
-    if raw.dtype != np.uint16 or raw.ndim != 2:
-        raise FrameError(
-            f"{path}: depth must be single-channel uint16, got {raw.dtype} with shape {raw.shape}", "unreadable"
-        )
+    raw = decode_depth_png(_read_image_file(path), str(path), expected_hw, what)
     return raw.astype(np.float32) / np.float32(scale)
 
 
 def read_rgb(path: str | Path) -> np.ndarray:
     """Read a colour image (JPEG/PNG) as (H, W, 3) uint8 in RGB order.
 
-    Grey images are expanded to three channels; 16-bit images are rejected.
+    Grey images are expanded to three channels; 16-bit, alpha, CMYK and non-JPEG/PNG
+    images are rejected, as are truncated files and declared sizes beyond
+    :data:`MAX_IMAGE_PIXELS` (see :func:`decode_color`).
 
     Raises:
-        FrameError: missing file ("missing_file") or undecodable file ("unreadable").
+        FrameError: missing file ("missing_file") or a file that is not such an image
+            ("unreadable").
     """
     path = Path(path)
-    _require_file(path)
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise FrameError(f"{path}: cannot decode colour image", "unreadable")
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    return decode_color(_read_image_file(path), str(path))
 
 
 def write_rgb_png(path: str | Path, rgb: np.ndarray) -> None:

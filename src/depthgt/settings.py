@@ -621,6 +621,9 @@ class SourceSettings:
             for scene in self.scenes:
                 check_scene_name(scene, f"{where}.scenes")
         _require(isinstance(self.options, Mapping), f"{where}.options", "must be a mapping")
+        from depthgt.sources.base import check_options  # numpy only
+
+        check_options(self.kind, self.options, f"config key {where}.options")
 
 
 # --------------------------------------------------------------------------- everything

@@ -6,6 +6,7 @@ from pathlib import Path
 from snakemake.utils import validate
 
 from depthgt.settings import check_config, check_scene_name, settings_from_config
+from depthgt.sources.base import check_scene_identity  # numpy only
 
 check_config(config, workflow.source_path("../schemas/config.schema.yaml"))
 validate(config, schema="../schemas/config.schema.yaml", set_default=True)
@@ -25,7 +26,9 @@ def _scenes_of(src):
     return list(src["scenes"])
 
 
-SCENES = [(name, scene) for name, src in SOURCES.items() for scene in _scenes_of(src)]
+_SCENES_OF = {name: _scenes_of(src) for name, src in SOURCES.items()}
+SCENES = [(name, scene) for name, scenes in _SCENES_OF.items() for scene in scenes]
+check_scene_identity(list(SOURCES.values()), _SCENES_OF)  # a scene twice, or the same data twice / in two splits
 for _name, _scene in SCENES:
     check_scene_name(_scene, f"sources[{_name}].scenes")
 

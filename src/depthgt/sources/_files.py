@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import logging
+from collections import Counter
 from pathlib import Path
-from typing import Iterable
+from typing import Sequence
+
+import numpy as np
 
 from depthgt.errors import FrameError, SourceError
-from depthgt.io import read_depth_png
+from depthgt.io import probe_image_file, read_depth_png
 
 log = logging.getLogger(__name__)
 
@@ -22,17 +25,44 @@ def require_root(root: str | Path | None, kind: str) -> Path:
     return path
 
 
-def probe_depth_size(depth_paths: Iterable[Path], depth_scale: float, scene_path: Path, tries: int = 10) -> tuple[int, int]:
-    """(H, W) of the first readable of the first ``tries`` depth images; later frames of
-    another size fail on their own (FrameError size_mismatch)."""
-    for i, p in enumerate(depth_paths):
-        if i >= tries:
-            break
+def probe_depth_size(depth_paths: Sequence[Path], scene_path: Path, samples: int = 15) -> tuple[tuple[int, int], str, list[str]]:
+    """The scene's depth image size: the most common declared size (PNG headers only,
+    nothing decoded) among up to ``samples`` depth images spread evenly over the scene.
+
+    A single odd image, first or not, thus cannot decide the size of all the others;
+    each image of another size later fails on its own (FrameError size_mismatch) with
+    a message naming it and this majority size.
+
+    Args:
+        depth_paths: the scene's depth images in frame order.
+
+    Returns:
+        ``(H, W)``; how it is named in size-mismatch messages; scene-level problems
+        (sampled images of differing sizes), empty when all agree.
+
+    Raises:
+        SourceError: none of the sampled depth images has a readable header.
+    """
+    n = len(depth_paths)
+    picks = np.unique(np.linspace(0, n - 1, min(n, samples)).round().astype(np.int64)) if n else []
+    sizes: Counter[tuple[int, int]] = Counter()
+    for k in picks:
         try:
-            return tuple(read_depth_png(p, depth_scale).shape)  # type: ignore[return-value]
+            sizes[probe_image_file(depth_paths[int(k)]).hw] += 1
         except FrameError as exc:
             log.warning("%s", exc)
-    raise SourceError(f"{scene_path}: none of the first depth images is readable, cannot tell the image size")
+    if not sizes:
+        raise SourceError(f"{scene_path}: none of the {len(picks)} sampled depth images is readable, cannot tell the image size")
+    (h, w), count = sizes.most_common(1)[0]  # ties: the size met first
+    total = sum(sizes.values())
+    what = f"the scene's depth size (that of {count} of {total} sampled depth images)"
+    problems = []
+    if len(sizes) > 1:
+        seen = ", ".join(f"{sw}x{sh} ({c})" for (sh, sw), c in sizes.most_common())
+        problems.append(f"{scene_path}: depth images differ in size ({seen} of {total} sampled); the scene uses {w}x{h}, "
+                        "frames of another size are skipped as size_mismatch")
+        log.warning("%s", problems[-1])
+    return (h, w), what, problems
 
 
 def list_sequences(path: Path, is_sequence) -> list[str]:
@@ -57,6 +87,17 @@ class FileScene:
         self.depth_scale = float(depth_scale)
         self.require_pose = bool(require_pose)
         self.problems: list[str] = []
+        self._size_what = "expected depth size"
+
+    def _set_size(self, probed: tuple[tuple[int, int], str, list[str]]) -> tuple[int, int]:
+        hw, self._size_what, problems = probed
+        self.problems.extend(problems)
+        return hw
+
+    def _read_depth(self, path: Path) -> np.ndarray:
+        """(H, W) float32 metres of a depth image of the scene's size (checked on the
+        PNG header before decoding; FrameError size_mismatch names the majority size)."""
+        return read_depth_png(path, self.depth_scale, expected_hw=self.image_size, what=self._size_what)
 
 
 class NumberedFrames(FileScene):
@@ -65,8 +106,8 @@ class NumberedFrames(FileScene):
     depth image path), ``depth_scale`` and ``path``."""
 
     def _probe_size(self) -> tuple[int, int]:
-        paths = [self._depth[int(n)] for n in self._ids[:10] if int(n) in self._depth]
-        return probe_depth_size(paths, self.depth_scale, self.path)
+        paths = [self._depth[int(n)] for n in self._ids if int(n) in self._depth]
+        return self._set_size(probe_depth_size(paths, self.path))
 
     def __len__(self) -> int:
         return int(self._ids.size)

@@ -12,7 +12,8 @@
    Frames are the numbers N found in ``color/`` or ``depth/`` (sorted numerically,
    gaps allowed); a number with a file missing in one folder is a frame that fails
    with ``FrameError("missing_file")`` so that it is recorded, not silently dropped.
-   ``image_size`` is read from the first readable depth image.
+   ``image_size`` is the most common size among depth images sampled over the scene
+   (PNG headers; see :func:`depthgt.sources._files.probe_depth_size`).
 
 2. a raw stream ``root/<name>.sens`` or ``root/<name>/<name>.sens`` (see
    :mod:`depthgt.sources.sens`); depth scale, sizes and intrinsics come from its
@@ -24,9 +25,10 @@ about 1 pixel, which is the registration the exported data offers.
 
 Options (``open_scene(root, scene, **options)``):
     depth_scale: raw depth units per metre for exported folders (default 1000).
-    require_pose: when True (default) a frame whose pose is missing or non-finite
-        raises ``FrameError`` ("missing_file" / "nonfinite_pose"); when False such a
-        frame is returned with ``T_world_cam=None`` (registration does not need it).
+    require_pose: when True (default) a frame whose pose is missing, non-finite or not
+        rigid raises ``FrameError`` ("missing_file" / "nonfinite_pose" /
+        "invalid_pose"); when False such a frame is returned with ``T_world_cam=None``
+        (registration does not need it).
     intrinsics: (3, 3) matrix overriding the file's depth intrinsics.
 """
 
@@ -38,10 +40,10 @@ from pathlib import Path
 
 import numpy as np
 
-from depthgt.errors import FrameError, SourceError
-from depthgt.io import fit_rgb_to_depth, read_depth_png, read_pose_txt, read_rgb
+from depthgt.errors import SourceError
+from depthgt.io import fit_rgb_to_depth, read_pose_txt, read_rgb
 from depthgt.sources._files import NumberedFrames, require_root
-from depthgt.sources.base import Frame, check_frame
+from depthgt.sources.base import Frame, check_frame, usable_pose
 
 __all__ = ["ScanNetExportedScene", "ScanNetSensScene", "open_scene", "list_scenes"]
 
@@ -73,10 +75,10 @@ def _check_intrinsics(K: np.ndarray, where: str) -> np.ndarray:
 
 
 def _finish(frame: Frame, hw: tuple[int, int], where: str, require_pose: bool) -> Frame:
-    """Common validation: with ``require_pose`` False a non-finite pose becomes None."""
-    T = frame.T_world_cam
-    if not require_pose and T is not None and not np.isfinite(T).all():
-        frame = Frame(frame.rgb, frame.depth_m, None, frame.clean_depth_m)
+    """Common validation: with ``require_pose`` False an unusable pose (non-finite, not
+    rigid, bottom row not 0 0 0 1) becomes None."""
+    if not require_pose and frame.T_world_cam is not None:
+        frame = Frame(frame.rgb, frame.depth_m, usable_pose(frame.T_world_cam), frame.clean_depth_m)
     return check_frame(frame, hw, where, need_pose=require_pose)
 
 
@@ -121,13 +123,7 @@ class ScanNetExportedScene(NumberedFrames):
         n = int(self._ids[i])
         depth_path = self._depth.get(n, self.path / "depth" / f"{n}.png")
         color_path = self._color.get(n, self.path / "color" / f"{n}.jpg")
-        depth_m = read_depth_png(depth_path, self.depth_scale)
-        if depth_m.shape != self.image_size:
-            raise FrameError(
-                f"{depth_path}: depth is {depth_m.shape[1]}x{depth_m.shape[0]}, the scene's intrinsics are for "
-                f"{self.image_size[1]}x{self.image_size[0]}",
-                "size_mismatch",
-            )
+        depth_m = self._read_depth(depth_path)
         rgb = fit_rgb_to_depth(read_rgb(color_path), self.image_size, str(color_path))
         T = None
         if self.has_poses:

@@ -15,10 +15,19 @@ Layout (little-endian; ScanNet ``SensReader/c++/src/sensorData.h``)::
         uint64  timestamp_color, timestamp_depth, color_size_bytes, depth_size_bytes
         color_size_bytes of colour payload, depth_size_bytes of depth payload
     }
-    (IMU frames may follow; they are not used)
+    uint64  num_imu_frames, then num_imu_frames x 128 bytes (five float64 3-vectors and
+            a uint64 timestamp); not used, and absent in some files
 
 Opening a file parses the header and walks the frame headers once with seeks, building
-an offset table; no payload is decoded or held. :meth:`SensFile.read_color` and
+an offset table; no payload is decoded or held. Whatever follows the announced frames
+must be that IMU block (or nothing): anything else is recorded in ``problems`` with the
+number of further frame records it appears to hold, since a header whose frame count is
+too low would otherwise drop those frames without a word.
+
+Every payload is untrusted: a size beyond what a frame of the header's size can take is
+rejected before reading, images are checked by :func:`depthgt.io.decode_color` (header
+size, format, truncation, bit depth) and zlib depth is inflated to at most the
+``h * w * 2`` bytes it must hold. :meth:`SensFile.read_color` and
 :meth:`SensFile.read_depth_m` seek to one frame and decode it. The per-frame header
 walk is a Python loop over frames (not pixels): each frame's position depends on the
 previous frame's payload sizes, so it cannot be vectorised.
@@ -35,10 +44,10 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from depthgt.errors import FrameError, SourceError
+from depthgt.io import MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE, decode_color
 
 __all__ = ["SensHeader", "SensFile", "COLOR_COMPRESSION", "DEPTH_COMPRESSION"]
 
@@ -54,6 +63,26 @@ _MAX_NAME = 1 << 16  # a longer sensor name means the header is not a .sens head
 _MATS = struct.Struct("<64f")  # four 4x4 float32 calibration matrices
 _TAIL = struct.Struct("<iiIIIIfQ")  # compressions, sizes, depth_shift, num_frames
 _FRAME = struct.Struct("<16fQQQQ")  # pose, timestamps, payload sizes (96 bytes)
+_IMU_COUNT = struct.Struct("<Q")
+_IMU_FRAME_BYTES = 5 * 3 * 8 + 8  # rotation rate, acceleration, magnetic field, attitude, gravity; timestamp
+_PAYLOAD_SLACK = 64 * 1024  # headers and tables of an encoded image beyond its pixels
+_FORMAT_OF = {"png": "PNG", "jpeg": "JPEG"}
+
+
+def max_payload_bytes(compression: str, hw: tuple[int, int], bytes_per_pixel: int) -> int:
+    """Largest payload a frame of ``hw`` pixels can need (bytes).
+
+    Raw: exactly ``h * w * bytes_per_pixel``. zlib: deflate's worst case adds 5 bytes
+    per 16 KiB block. PNG/JPEG: twice the raw size plus headers (uniform noise at
+    640x480 takes 1.37x raw as a quality-100 4:4:4 JPEG, 1.002x as an uncompressed PNG).
+    """
+    h, w = hw
+    raw = h * w * bytes_per_pixel
+    if compression in ("raw", "raw_ushort"):
+        return raw
+    if compression == "zlib_ushort":
+        return raw + raw // 1000 + 1024
+    return 2 * raw + _PAYLOAD_SLACK
 
 
 @dataclass(frozen=True)
@@ -114,8 +143,11 @@ def read_header(path: str | Path) -> SensHeader:
         raise SourceError(f"{path}: colour compression {color_compression!r} is not supported ({sorted(SUPPORTED_COLOR)})")
     if depth_compression not in SUPPORTED_DEPTH:
         raise SourceError(f"{path}: depth compression {depth_compression!r} is not supported ({sorted(SUPPORTED_DEPTH)})")
-    if min(cw, ch, dw, dh) == 0:
-        raise SourceError(f"{path}: corrupt .sens header (colour {cw}x{ch}, depth {dw}x{dh})")
+    if min(cw, ch, dw, dh) == 0 or max(cw, ch, dw, dh) > MAX_IMAGE_SIDE or max(cw * ch, dw * dh) > MAX_IMAGE_PIXELS:
+        raise SourceError(
+            f"{path}: corrupt .sens header (colour {cw}x{ch}, depth {dw}x{dh}; at most {MAX_IMAGE_SIDE} pixels per "
+            f"side and {MAX_IMAGE_PIXELS} in all)"
+        )
     if not (np.isfinite(shift) and shift > 0):
         raise SourceError(f"{path}: corrupt .sens header (depth_shift {shift})")
     return SensHeader(
@@ -174,31 +206,24 @@ class SensFile:
         with self.path.open("rb") as f:
             pos = h.header_bytes
             for i in range(cap):
-                f.seek(pos)
-                raw = f.read(_FRAME.size)
-                if len(raw) != _FRAME.size:
-                    reason = f"frame {i} header cut at byte {pos + len(raw)}"
+                frame = _read_frame_header(f, pos, file_size)
+                if isinstance(frame, str):
+                    reason = f"frame {i} {frame}"
                     break
-                vals = _FRAME.unpack(raw)
-                c_size, d_size = vals[18], vals[19]
-                payload_start = pos + _FRAME.size
-                end = payload_start + c_size + d_size
-                if end > file_size:
-                    reason = f"frame {i} payload ends at byte {end} beyond the file size {file_size}"
-                    break
+                vals, end = frame
                 poses[i] = vals[:16]
                 ts[i] = vals[16:18]
-                sizes[i] = (c_size, d_size)
-                offsets[i] = payload_start
+                sizes[i] = (vals[18], vals[19])
+                offsets[i] = pos + _FRAME.size
                 pos = end
                 found += 1
             else:
                 if cap < n:
                     reason = f"file of {file_size} bytes cannot hold frame {cap}"
-        if found < n:
-            msg = f"{self.path}: truncated .sens: header announces {n} frames, {found} found ({reason})"
-            log.warning(msg)
-            self.problems.append(msg)
+            if found < n:
+                self._problem(f"{self.path}: truncated .sens: header announces {n} frames, {found} found ({reason})")
+            else:
+                self._check_trailing(f, pos, file_size)
         self.poses = poses[:found].reshape(found, 4, 4)
         self.timestamps_color = ts[:found, 0].copy()
         self.timestamps_depth = ts[:found, 1].copy()
@@ -206,6 +231,25 @@ class SensFile:
         self.color_sizes = sizes[:found, 0].copy()
         self.depth_offsets = self.color_offsets + self.color_sizes
         self.depth_sizes = sizes[:found, 1].copy()
+
+    def _problem(self, msg: str) -> None:
+        log.warning("%s", msg)
+        self.problems.append(msg)
+
+    def _check_trailing(self, f, pos: int, file_size: int) -> None:
+        """After the announced frames only the IMU block may follow (or nothing)."""
+        rest = file_size - pos
+        if rest == 0:
+            return
+        if rest >= _IMU_COUNT.size:
+            f.seek(pos)
+            (n_imu,) = _IMU_COUNT.unpack(f.read(_IMU_COUNT.size))
+            if rest == _IMU_COUNT.size + n_imu * _IMU_FRAME_BYTES:
+                return
+        more = _count_frame_records(f, pos, file_size)
+        hint = (f"it holds {more} more frame record(s): the header's frame count ({self.header.num_frames}) is "
+                "probably too low and those frames are not read") if more else "it is not a valid IMU block"
+        self._problem(f"{self.path}: {rest} unexpected bytes after the {self.header.num_frames} announced frames ({hint})")
 
     def __len__(self) -> int:
         return int(self.poses.shape[0])
@@ -215,55 +259,107 @@ class SensFile:
             raise IndexError(f"{self.path}: frame {i} out of range 0..{len(self) - 1}")
         return int(i)
 
-    def _payload(self, offset: int, size: int) -> bytes:
+    def _payload(self, offset: int, size: int, where: str, limit: int) -> bytes:
+        if size == 0:
+            raise FrameError(f"{where}: empty payload (0 bytes)", "unreadable")
+        if size > limit:
+            raise FrameError(f"{where}: payload of {size} bytes, more than a frame of this size can take ({limit})", "unreadable")
         with self.path.open("rb") as f:
             f.seek(offset)
             data = f.read(size)
         if len(data) != size:
-            raise FrameError(f"{self.path}: payload at byte {offset} is cut short", "unreadable")
+            raise FrameError(f"{where}: payload at byte {offset} is cut short", "unreadable")
         return data
 
     def read_color(self, i: int) -> np.ndarray:
         """Colour of frame ``i`` as (H, W, 3) uint8 RGB at ``header.color_hw``.
 
         Raises:
-            FrameError: corrupt payload ("unreadable") or decoded size differing from
-                the header ("size_mismatch"); the message names file and frame.
+            FrameError: empty, oversized, truncated or corrupt payload, a payload that is
+                not the header's format or not 8-bit grey/RGB ("unreadable"), or a
+                declared size differing from the header ("size_mismatch"); the message
+                names file and frame.
         """
         i = self._check_index(i)
         h, w = self.header.color_hw
-        data = self._payload(int(self.color_offsets[i]), int(self.color_sizes[i]))
+        comp = self.header.color_compression
         where = f"{self.path} frame {i} colour"
-        if self.header.color_compression == "raw":
+        data = self._payload(int(self.color_offsets[i]), int(self.color_sizes[i]), where,
+                             max_payload_bytes(comp, (h, w), 3))
+        if comp == "raw":
             if len(data) != h * w * 3:
                 raise FrameError(f"{where}: raw payload has {len(data)} bytes, expected {h * w * 3}", "unreadable")
             return np.frombuffer(data, dtype=np.uint8).reshape(h, w, 3).copy()
-        bgr = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise FrameError(f"{where}: cannot decode {self.header.color_compression} payload", "unreadable")
-        if bgr.shape[:2] != (h, w):
-            raise FrameError(f"{where}: decoded {bgr.shape[1]}x{bgr.shape[0]}, header says {w}x{h}", "size_mismatch")
-        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        return decode_color(data, where, expected_hw=(h, w), formats=(_FORMAT_OF[comp],))
 
     def read_depth_raw(self, i: int) -> np.ndarray:
         """Depth of frame ``i`` as (H, W) uint16 raw units (``header.depth_shift`` per metre).
 
         Raises:
-            FrameError: corrupt zlib stream or wrong payload length ("unreadable").
+            FrameError: empty or oversized payload, corrupt or truncated zlib stream, a
+                stream inflating beyond ``h * w * 2`` bytes, or a wrong length
+                ("unreadable").
         """
         i = self._check_index(i)
         h, w = self.header.depth_hw
-        data = self._payload(int(self.depth_offsets[i]), int(self.depth_sizes[i]))
+        expected = h * w * 2
+        comp = self.header.depth_compression
         where = f"{self.path} frame {i} depth"
-        if self.header.depth_compression == "zlib_ushort":
-            try:
-                data = zlib.decompress(data)
-            except zlib.error as exc:
-                raise FrameError(f"{where}: corrupt zlib payload ({exc})", "unreadable") from exc
-        if len(data) != h * w * 2:
-            raise FrameError(f"{where}: {len(data)} bytes of depth, expected {h * w * 2} ({w}x{h} uint16)", "unreadable")
+        data = self._payload(int(self.depth_offsets[i]), int(self.depth_sizes[i]), where,
+                             max_payload_bytes(comp, (h, w), 2))
+        if comp == "zlib_ushort":
+            data = _inflate_bounded(data, expected, where)
+        if len(data) != expected:
+            raise FrameError(f"{where}: {len(data)} bytes of depth, expected {expected} ({w}x{h} uint16)", "unreadable")
         return np.frombuffer(data, dtype="<u2").reshape(h, w).astype(np.uint16)
 
     def read_depth_m(self, i: int) -> np.ndarray:
         """Depth of frame ``i`` as (H, W) float32 metres, 0 = invalid."""
         return self.read_depth_raw(i).astype(np.float32) / np.float32(self.header.depth_shift)
+
+
+def _read_frame_header(f, pos: int, file_size: int) -> tuple[tuple, int] | str:
+    """The frame record at byte ``pos``: (unpacked header fields, end of its payloads),
+    or why there is none (a string)."""
+    f.seek(pos)
+    raw = f.read(_FRAME.size)
+    if len(raw) != _FRAME.size:
+        return f"header cut at byte {pos + len(raw)}"
+    vals = _FRAME.unpack(raw)
+    end = pos + _FRAME.size + vals[18] + vals[19]
+    if end > file_size:
+        return f"payload ends at byte {end} beyond the file size {file_size}"
+    return vals, end
+
+
+def _count_frame_records(f, pos: int, file_size: int, limit: int = 1_000_000) -> int:
+    """How many consecutive frame records fit from ``pos`` to the end of the file,
+    each with a non-empty colour and depth payload (a walk over headers, no payload read)."""
+    count = 0
+    while count < limit:
+        frame = _read_frame_header(f, pos, file_size)
+        if isinstance(frame, str) or frame[0][18] == 0 or frame[0][19] == 0:
+            break
+        pos = frame[1]
+        count += 1
+    return count
+
+
+def _inflate_bounded(data: bytes, expected: int, where: str) -> bytes:
+    """zlib-inflate ``data`` into at most ``expected`` bytes (a "zlib bomb" stops there).
+
+    Raises:
+        FrameError: ("unreadable") corrupt stream, a stream that would inflate beyond
+            ``expected`` bytes, or one that ends early.
+    """
+    inflater = zlib.decompressobj()
+    try:
+        out = inflater.decompress(data, expected)
+        # input left over once ``expected`` bytes are out: only the stream's end may remain
+        if inflater.unconsumed_tail and inflater.decompress(inflater.unconsumed_tail, 1):
+            raise FrameError(f"{where}: zlib payload inflates beyond the {expected} bytes of a depth image", "unreadable")
+    except zlib.error as exc:
+        raise FrameError(f"{where}: corrupt zlib payload ({exc})", "unreadable") from exc
+    if not inflater.eof:
+        raise FrameError(f"{where}: truncated zlib payload ({len(out)} of {expected} bytes inflated)", "unreadable")
+    return out

@@ -27,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from depthgt.errors import FrameError, SourceError
-from depthgt.io import fit_rgb_to_depth, read_depth_png, read_pose_txt, read_rgb
+from depthgt.errors import SourceError
+from depthgt.io import fit_rgb_to_depth, read_pose_txt, read_rgb
 from depthgt.sources._files import NumberedFrames, list_sequences, require_root
-from depthgt.sources.base import Frame, check_frame
+from depthgt.sources.base import Frame, check_frame, usable_pose
 
 __all__ = ["DEFAULT_INTRINSICS", "SevenScenesScene", "open_scene", "list_scenes"]
 
@@ -110,14 +110,8 @@ class SevenScenesScene(NumberedFrames):
             raise IndexError(f"{self.path}: frame position {i} out of range 0..{len(self) - 1}")
         n = int(self._ids[i])
         depth_path = self._file(self._depth, n, "depth.png")
-        depth_m = read_depth_png(depth_path, self.depth_scale)
+        depth_m = self._read_depth(depth_path)
         depth_m[depth_m >= np.float32((INVALID_RAW - 0.5) / self.depth_scale)] = 0.0  # half a unit below: no float rounding issue
-        if depth_m.shape != self.image_size:
-            raise FrameError(
-                f"{depth_path}: depth is {depth_m.shape[1]}x{depth_m.shape[0]}, the scene's intrinsics are for "
-                f"{self.image_size[1]}x{self.image_size[0]}",
-                "size_mismatch",
-            )
         color_path = self._file(self._color, n, "color.png")
         rgb = fit_rgb_to_depth(read_rgb(color_path), self.image_size, str(color_path))
         T = None
@@ -126,8 +120,8 @@ class SevenScenesScene(NumberedFrames):
             pose_path = self._file(self._pose, n, "pose.txt")
             if pose_path.is_file() or need_pose:
                 T = read_pose_txt(pose_path)
-            if T is not None and not need_pose and not np.isfinite(T).all():
-                T = None
+            if not need_pose:
+                T = usable_pose(T)
         return check_frame(Frame(rgb, depth_m, T), self.image_size, f"{self.path} frame {n}", need_pose)
 
 

@@ -10,8 +10,11 @@ A sequence folder (``rgbd_dataset_freiburg1_xyz``, ...) holds::
                            registered to the colour camera by the OpenNI driver
 
 ``root`` is a folder of sequence folders (or a sequence folder itself, scene ``"."``
-or its name). Frames are the depth images in ``depth.txt`` order; ``frame_id`` is the
-depth timestamp as written there. Each depth image is associated with the colour image
+or its name). Frames are the depth images of ``depth.txt`` in time order; ``frame_id``
+is the depth timestamp as written there. A ``depth.txt`` out of time order is sorted and
+an entry repeating an earlier timestamp or file is dropped, both recorded in
+``problems`` (a frame set could otherwise hold one image twice); a timestamp that is
+not a finite number, in any of the three lists, is a SourceError naming file and line. Each depth image is associated with the colour image
 and the ground-truth pose nearest in time; an association further than ``max_dt``
 seconds (default 0.02) makes the frame fail with ``FrameError("no_association")``
 (the pose one only when ``require_pose``; otherwise the pose is None).
@@ -32,9 +35,9 @@ from pathlib import Path
 import numpy as np
 
 from depthgt.errors import FrameError, SourceError
-from depthgt.io import fit_rgb_to_depth, read_depth_png, read_rgb
+from depthgt.io import fit_rgb_to_depth, read_rgb
 from depthgt.sources._files import FileScene, list_sequences, probe_depth_size, require_root
-from depthgt.sources.base import Frame, check_frame
+from depthgt.sources.base import Frame, check_frame, usable_pose
 
 __all__ = ["CAMERAS", "DEPTH_SCALE", "TumScene", "associate", "poses_from_tum", "open_scene", "list_scenes"]
 
@@ -52,12 +55,12 @@ DEPTH_SCALE = 5000.0  # raw units per metre in TUM depth PNGs
 _CAMERA_IN_NAME = re.compile(r"(?:freiburg|fr)([123])", re.IGNORECASE)
 
 
-def _read_list(path: Path, columns: int) -> np.ndarray:
+def _read_list(path: Path, columns: int) -> tuple[np.ndarray, np.ndarray]:
     """Rows of a TUM text file ("#" comments and blank lines skipped) as an
-    (N, columns) str array."""
+    (N, columns) str array, and the (N,) 1-based line number of each row."""
     if not path.is_file():
         raise SourceError(f"{path}: file not found")
-    rows = []
+    rows, numbers = [], []
     for number, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
         fields = line.split()
         if not fields or fields[0].startswith("#"):
@@ -65,14 +68,65 @@ def _read_list(path: Path, columns: int) -> np.ndarray:
         if len(fields) != columns:
             raise SourceError(f"{path}: line {number} has {len(fields)} fields, expected {columns}")
         rows.append(fields)
-    return np.array(rows, dtype=str).reshape(len(rows), columns)
+        numbers.append(number)
+    return np.array(rows, dtype=str).reshape(len(rows), columns), np.array(numbers, dtype=np.int64)
 
 
-def _timestamps(col: np.ndarray, path: Path) -> np.ndarray:
+def _numbers(col: np.ndarray, lines: np.ndarray, path: Path, what: str = "timestamp", finite: bool = True) -> np.ndarray:
+    """(N,) float64 of a column; SourceError naming the file and line of the first value
+    that does not parse or (with ``finite``) is not finite: a ``nan`` timestamp would
+    pair with anything. Non-finite pose values are left to the per-frame pose check."""
     try:
-        return col.astype(np.float64)
-    except ValueError as exc:
-        raise SourceError(f"{path}: timestamps do not parse as numbers ({exc})") from exc
+        values = col.astype(np.float64)
+    except ValueError:
+        for k, text in enumerate(col.tolist()):  # find the culprit's line for the message
+            try:
+                float(text)
+            except ValueError:
+                raise SourceError(f"{path}: line {lines[k]}: {what} {text!r} is not a number") from None
+        raise
+    bad = np.flatnonzero(~np.isfinite(values)) if finite else ()
+    if len(bad):
+        raise SourceError(f"{path}: line {lines[bad[0]]}: {what} {str(col[bad[0]])!r} is not finite "
+                          f"({len(bad)} such value(s))")
+    return values
+
+
+def clean_list(t: np.ndarray, files: np.ndarray, lines: np.ndarray, path: Path) -> tuple[np.ndarray, list[str]]:
+    """Order a TUM list by time and drop repeated entries.
+
+    TUM lists are written in time order with one line per image; a list edited by hand
+    or concatenated may be out of order or repeat an image, which would put the same
+    image twice into a frame set. Entries are sorted by timestamp (stable) and an entry
+    whose timestamp or file name was already listed is dropped; both are recorded.
+
+    Args:
+        t: (N,) finite timestamps (seconds); files: (N,) file names; lines: (N,) line
+            numbers (for the messages).
+
+    Returns:
+        (M,) int64 positions into the list to keep, in time order; the problems found
+        (one message per kind, naming the file and the first line concerned).
+    """
+    problems = []
+    order = np.argsort(t, kind="stable")
+    backwards = np.flatnonzero(np.diff(t) < 0)
+    if backwards.size:
+        problems.append(f"{path}: {backwards.size} entries out of time order (first at line {lines[backwards[0] + 1]}); "
+                        "sorted by timestamp")
+    keep, seen_t, seen_f, dropped = [], {}, {}, []
+    for k in order.tolist():
+        earlier = seen_t.get(t[k], seen_f.get(files[k]))
+        if earlier is not None:
+            dropped.append((lines[k], lines[earlier]))
+            continue
+        seen_t[t[k]] = seen_f[files[k]] = k
+        keep.append(k)
+    if dropped:
+        first, of = min(dropped)
+        problems.append(f"{path}: {len(dropped)} repeated entries dropped (same timestamp or file; first: line {first} "
+                        f"repeats line {of})")
+    return np.array(keep, dtype=np.int64), problems
 
 
 def associate(t_query: np.ndarray, t_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -146,27 +200,23 @@ class TumScene(FileScene):
         self.max_dt = float(max_dt)
         self.intrinsics = self._intrinsics(camera, intrinsics)
 
-        depth_rows = _read_list(self.path / "depth.txt", 2)
-        rgb_rows = _read_list(self.path / "rgb.txt", 2)
+        depth_rows, t_depth = self._list("depth.txt", clean=True)
+        rgb_rows, t_rgb = self._list("rgb.txt", clean=False)  # any order: colour is associated by nearest time
         if depth_rows.shape[0] == 0:
             raise SourceError(f"{self.path / 'depth.txt'}: no depth frames listed")
         self._depth_ids = depth_rows[:, 0]
         self._depth_files = depth_rows[:, 1]
         self._rgb_files = rgb_rows[:, 1]
-        t_depth = _timestamps(depth_rows[:, 0], self.path / "depth.txt")
-        t_rgb = _timestamps(rgb_rows[:, 0], self.path / "rgb.txt")
         self._rgb_index, self._rgb_dt = associate(t_depth, t_rgb)
 
         gt_path = self.path / "groundtruth.txt"
         self.has_poses = gt_path.is_file()
         if self.has_poses:
-            gt = _read_list(gt_path, 8)
-            try:
-                values = gt.astype(np.float64)
-            except ValueError as exc:
-                raise SourceError(f"{gt_path}: values do not parse as numbers ({exc})") from exc
-            self._poses = poses_from_tum(values[:, 1:])
-            self._pose_index, self._pose_dt = associate(t_depth, values[:, 0])
+            gt, gt_lines = _read_list(gt_path, 8)
+            t_gt = _numbers(gt[:, 0], gt_lines, gt_path)
+            values = np.stack([_numbers(gt[:, c], gt_lines, gt_path, "pose value", finite=False) for c in range(1, 8)], axis=1)
+            self._poses = poses_from_tum(values)
+            self._pose_index, self._pose_dt = associate(t_depth, t_gt)
         n_rgb = int((self._rgb_dt > self.max_dt).sum())
         if n_rgb:
             log.info("%s: %d of %d depth frames have no colour within %.3f s", self.path, n_rgb, t_depth.size, self.max_dt)
@@ -192,8 +242,23 @@ class TumScene(FileScene):
         fx, fy, cx, cy = CAMERAS[camera]
         return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
+    def _list(self, name: str, clean: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of ``rgb.txt`` / ``depth.txt`` and their (N,) finite timestamps; with
+        ``clean``, in time order without repeats (see :func:`clean_list`, recorded in
+        ``problems``)."""
+        path = self.path / name
+        rows, lines = _read_list(path, 2)
+        t = _numbers(rows[:, 0], lines, path)
+        if not clean:
+            return rows, t
+        keep, problems = clean_list(t, rows[:, 1], lines, path)
+        for msg in problems:
+            log.warning("%s", msg)
+        self.problems.extend(problems)
+        return rows[keep], t[keep]
+
     def _probe_size(self) -> tuple[int, int]:
-        return probe_depth_size([self.path / rel for rel in self._depth_files[:10]], self.depth_scale, self.path)
+        return self._set_size(probe_depth_size([self.path / rel for rel in self._depth_files], self.path))
 
     def __len__(self) -> int:
         return int(self._depth_ids.size)
@@ -216,20 +281,14 @@ class TumScene(FileScene):
         if self.has_poses:
             if self._pose_dt[i] <= self.max_dt:
                 T = self._poses[self._pose_index[i]].copy()
-                if not need_pose and not np.isfinite(T).all():
-                    T = None
+                if not need_pose:
+                    T = usable_pose(T)
             elif need_pose:
                 raise FrameError(
                     f"{depth_path}: no ground-truth pose within {self.max_dt} s (nearest {self._pose_dt[i]:.4f} s)",
                     "no_association",
                 )
-        depth_m = read_depth_png(depth_path, self.depth_scale)
-        if depth_m.shape != self.image_size:
-            raise FrameError(
-                f"{depth_path}: depth is {depth_m.shape[1]}x{depth_m.shape[0]}, the scene's intrinsics are for "
-                f"{self.image_size[1]}x{self.image_size[0]}",
-                "size_mismatch",
-            )
+        depth_m = self._read_depth(depth_path)
         color_path = self.path / str(self._rgb_files[self._rgb_index[i]])
         rgb = fit_rgb_to_depth(read_rgb(color_path), self.image_size, str(color_path))
         return check_frame(Frame(rgb, depth_m, T), self.image_size, where, need_pose)
