@@ -61,3 +61,19 @@ def scene_summaries(what="framesets"):
 # changing one re-runs exactly the jobs it affects (Snakemake's params rerun trigger).
 INDEX_CONFIG = {k: config.get(k) for k in ("seed", "frameset", "split", "registration", "resize")}
 FRAMESET_CONFIG = {k: config.get(k) for k in ("seed", "device", "frameset", "resize", "registration", "render", "patches")}
+
+
+# Per-job resources. The rules declare them so that every executor sees one request:
+# the SLURM executor (profiles/slurm) turns threads, mem_mb, runtime (minutes) and gpu
+# into sbatch --cpus-per-task, --mem, -t and --gpus; the local executor limits by them
+# only where --resources names them. A job that runs torch on the config's `device` asks
+# for one GPU when that is cuda (auto and cpu ask for none).
+GPUS = 1 if config["device"] == "cuda" else 0
+# One frame set: peak RSS (benchmarks/*.tsv, max_rss) with headroom, and a time limit in
+# minutes on one CPU core. Measured at 256x256: given poses 0.6 GB / 5 s (7-Scenes),
+# overfit fast 0.7 GB / 9 s, overfit paper 5.9 GB / 830 s (issue 9). A job that handles
+# several frame sets in turn needs the same memory and the summed runtime.
+_REG = config["registration"]
+_OVERFIT_PAPER = _REG.get("method") == "overfit" and _REG.get("preset") != "fast"
+FRAMESET_MEM_MB = 8000 if _OVERFIT_PAPER else 2000
+FRAMESET_RUNTIME_MIN = 60 if _OVERFIT_PAPER else 10
