@@ -57,9 +57,10 @@ install_slurm() {
     export DEBIAN_FRONTEND=noninteractive
     # Refresh the package lists once, only when the packages are not known yet (or the
     # cached lists point at files the mirror no longer has).
-    if ! apt-get install -y --no-install-recommends "${PACKAGES[@]}" >"$STATE/apt.log" 2>&1; then
-        apt-get update >>"$STATE/apt.log" 2>&1 || die 3 "apt-get update failed (see $STATE/apt.log)"
-        apt-get install -y --no-install-recommends "${PACKAGES[@]}" >>"$STATE/apt.log" 2>&1 \
+    local apt=(apt-get -o DPkg::Lock::Timeout=300)  # wait for another apt run to finish
+    if ! "${apt[@]}" install -y --no-install-recommends "${PACKAGES[@]}" >"$STATE/apt.log" 2>&1; then
+        "${apt[@]}" update >>"$STATE/apt.log" 2>&1 || die 3 "apt-get update failed (see $STATE/apt.log)"
+        "${apt[@]}" install -y --no-install-recommends "${PACKAGES[@]}" >>"$STATE/apt.log" 2>&1 \
             || die 3 "apt-get install ${PACKAGES[*]} failed (see $STATE/apt.log)"
     fi
     have_slurm || die 3 "SLURM packages installed but their commands are missing (see $STATE/apt.log)"
@@ -83,8 +84,9 @@ link_system_conf() {
     elif [ -e "$SYSTEM_CONF" ]; then
         die 3 "$SYSTEM_CONF belongs to another SLURM installation; not replacing it"
     fi
-    mkdir -p "$(dirname "$SYSTEM_CONF")" && ln -sfn "$STATE/slurm.conf" "$SYSTEM_CONF" \
-        || die 3 "cannot link $SYSTEM_CONF to $STATE/slurm.conf (needs root)"
+    if ! { mkdir -p "$(dirname "$SYSTEM_CONF")" && ln -sfn "$STATE/slurm.conf" "$SYSTEM_CONF"; }; then
+        die 3 "cannot link $SYSTEM_CONF to $STATE/slurm.conf (needs root)"
+    fi
 }
 
 unlink_system_conf() {
