@@ -123,7 +123,8 @@ def test_tiny_workflow_runs_through_slurm(slurm, tmp_path):
 
     jobs = submitted_jobs(proc.stderr)
     remote = [j for j in jobs if not j["local"]]
-    assert len(remote) >= 4 and all(j["slurm_id"] for j in remote), jobs
+    # at least the frame-set work and the dataset assembly ran as SLURM jobs
+    assert len(remote) >= 2 and all(j["slurm_id"] for j in remote), jobs
     assert all(j["slurm_id"] is None for j in jobs if j["local"])
     done = completion_records(slurm)
     for job in remote:

@@ -20,7 +20,7 @@ rule frameset:
     threads: 1
     resources:
         mem_mb=FRAMESET_MEM_MB,
-        runtime=FRAMESET_RUNTIME_MIN,
+        runtime=frameset_runtime_min(1),
         gpu=GPUS,
     script:
         "../scripts/frameset.py"
