@@ -64,3 +64,25 @@ def scene_summaries(what="framesets", ext="parquet"):
 # depthgt.settings.settings_from_config, and use only these sections of it.
 INDEX_CONFIG = {k: config.get(k) for k in ("seed", "frameset", "split", "registration", "resize")}
 FRAMESET_CONFIG = {k: config.get(k) for k in ("seed", "device", "frameset", "resize", "registration", "render", "patches")}
+
+
+# Per-job resources. The rules declare them so that every executor sees one request:
+# the SLURM executor (profiles/slurm) turns threads, mem_mb, runtime (minutes) and gpu
+# into sbatch --cpus-per-task, --mem, -t and --gpus; the local executor limits by them
+# only where --resources names them. A job that runs torch on the config's `device` asks
+# for one GPU when that is cuda (auto and cpu ask for none).
+GPUS = 1 if config["device"] == "cuda" else 0
+# Frame sets: peak RSS (benchmarks/*.tsv, max_rss) and CPU time on one core, measured at
+# 256x256: given poses 0.6 GB / 5 s (7-Scenes), overfit fast 0.7 GB / 9 s, overfit paper
+# 5.9 GB / 830 s (issue 9); declared with headroom. A job that handles several frame sets
+# in turn needs the memory of one and the time of all.
+_REG = config["registration"]
+_OVERFIT_PAPER = _REG.get("method") == "overfit" and _REG.get("preset") != "fast"
+FRAMESET_MEM_MB = 8000 if _OVERFIT_PAPER else 2000
+FRAMESET_CPU_S = 1800 if _OVERFIT_PAPER else 60
+
+
+def frameset_runtime_min(n_framesets=1):
+    """SLURM time limit (minutes) of a job that builds n frame sets: 10 minutes for
+    start-up (Python, torch, Snakemake) plus FRAMESET_CPU_S per frame set."""
+    return 10 + -(-n_framesets * FRAMESET_CPU_S // 60)

@@ -88,6 +88,8 @@ rule train_model:
     benchmark:
         "benchmarks/train/{model}.tsv"
     threads: 2
+    resources:
+        gpu=GPUS,
     script:
         "../scripts/train.py"
 

@@ -19,9 +19,18 @@ rule frameset:
         "benchmarks/framesets/{dataset}/{scene}/{target}.tsv"
     threads: 1
     resources:
-        mem_mb=2000,
+        mem_mb=FRAMESET_MEM_MB,
+        runtime=frameset_runtime_min(1),
+        gpu=GPUS,
     script:
         "../scripts/frameset.py"
+
+
+# Runs in the main Snakemake process on a cluster: its input is read from the scene's
+# checkpoint, which a job started by a remote executor cannot resolve (Snakemake 9.27
+# hands such a job the unresolved input "<TBD>").
+localrules:
+    scene_summary,
 
 
 rule scene_summary:

@@ -19,6 +19,9 @@ rule pretrain_registration:
     benchmark:
         "benchmarks/models/pretrain_registration.tsv"
     threads: 2
+    resources:
+        mem_mb=4000,  # measured 2.2 GB peak RSS (preset paper and fast, 256x256)
+        gpu=GPUS,
     script:
         "../scripts/pretrain_registration.py"
 

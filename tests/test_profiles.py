@@ -1,0 +1,83 @@
+"""The workflow profile profiles/default: Snakemake 9 finds it beside the Snakefile (also
+when it is started elsewhere with -s/-d), and its settings make the README's promise hold:
+a run killed with SIGKILL while its first job runs finishes when the same command is
+run again, with the outputs of an uninterrupted run."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from test_workflow import REPO, digest_outputs, make_workdir
+
+# two scenes, three frame sets: the smallest build with a train and a test split
+SMALL = {
+    "seed": 5,
+    "device": "cpu",
+    "sources": [
+        {"name": "syn", "kind": "synthetic", "scenes": ["room_000"], "split": "train",
+         "options": {"n_frames": 14, "width": 320, "height": 240}},
+        {"name": "syntest", "kind": "synthetic", "scenes": ["room_003"], "split": "test",
+         "options": {"n_frames": 13, "width": 320, "height": 240}},
+    ],
+    "frameset": {"neighbours": 3, "stride": 2, "target_step": 1},
+    "resize": 128,
+    "patches": {"count": 6, "size": 64, "max_missing": 0.15, "filter_on": "gt"},
+}
+
+
+def plain_command(workdir: Path, *args: str) -> list[str]:
+    """The command a user types, without --cores, --rerun-incomplete or --unlock: all of
+    that must come from the workflow profile."""
+    return [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "-d", str(workdir), *args]
+
+
+def run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    return subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, env=env, timeout=900)
+
+
+def test_default_profile_is_found_beside_the_snakefile(tmp_path):
+    """Started from another folder with -s/-d and no --cores: the profile beside the
+    Snakefile supplies the cores; without it Snakemake refuses to run."""
+    wd = make_workdir(tmp_path / "wd", SMALL)
+    target = "results/report/config.yaml"
+    without = run(plain_command(wd, "--workflow-profile", "none", target), cwd=tmp_path)
+    assert without.returncode != 0
+    assert "cores have to be specified" in without.stderr
+    with_profile = run(plain_command(wd, target), cwd=tmp_path)
+    assert with_profile.returncode == 0, with_profile.stderr[-3000:]
+    assert f"workflow specific profile {REPO / 'profiles' / 'default'}" in with_profile.stderr
+    assert (wd / target).is_file()
+
+
+@pytest.mark.slow
+def test_kill9_during_first_job_then_same_command_finishes(tmp_path):
+    reference = make_workdir(tmp_path / "reference", SMALL)
+    done = run(plain_command(reference, "dataset"), cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+
+    wd = make_workdir(tmp_path / "killed", SMALL)
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    proc = subprocess.Popen(plain_command(wd, "dataset"), cwd=tmp_path, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    # Snakemake marks the outputs of a running job in .snakemake/incomplete: kill the
+    # whole process group (Snakemake and its job) as soon as the first job has started
+    incomplete = wd / ".snakemake" / "incomplete"
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None and not any(incomplete.glob("*")):
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert any(incomplete.glob("*")), "no job was running when the build was killed"
+    assert not (wd / "results/dataset/summary.json").exists()
+
+    again = run(plain_command(wd, "dataset"), cwd=tmp_path)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert digest_outputs(wd) == digest_outputs(reference)

@@ -1,0 +1,151 @@
+"""The workflow on a real SLURM cluster.
+
+cluster/slurm-local.sh starts a single-node SLURM cluster on this machine (installing
+Debian's slurmctld, slurmd, slurm-client and munge when they are missing; the test is
+skipped, with the script's reason, where that is impossible). The tiny synthetic workflow
+then runs through snakemake-executor-plugin-slurm with profiles/slurm, and the test
+checks, without sacct, that SLURM ran every non-local job (the job completion record of
+the cluster) and that each sbatch request is what the job's rule declares: memory, time
+limit, cores, and a GPU exactly when the job asks for one (config `device: cuda`).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from test_workflow import REPO, make_workdir
+
+pytestmark = pytest.mark.slow
+
+SCRIPT = REPO / "cluster" / "slurm-local.sh"
+
+TINY = {
+    "seed": 3,
+    "device": "cpu",
+    "sources": [
+        {"name": "syn", "kind": "synthetic", "scenes": ["room_000"], "split": "train",
+         "options": {"n_frames": 14, "width": 320, "height": 240}},
+        {"name": "syntest", "kind": "synthetic", "scenes": ["room_003"], "split": "test",
+         "options": {"n_frames": 13, "width": 320, "height": 240}},
+    ],
+    "frameset": {"neighbours": 3, "stride": 2, "target_step": 1},
+    "resize": 128,
+    "patches": {"count": 6, "size": 64, "max_missing": 0.15, "filter_on": "gt"},
+}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def slurm(tmp_path_factory) -> dict[str, str]:
+    """Environment of a running single-node cluster (SLURM_CONF set); stopped after."""
+    state = tmp_path_factory.mktemp("slurm-state")
+    env = dict(os.environ, DEPTHGT_SLURM_STATE=str(state), DEPTHGT_SLURMCTLD_PORT=str(free_port()),
+               DEPTHGT_SLURMD_PORT=str(free_port()), DEPTHGT_SLURM_GPUS="2")
+    start = subprocess.run(["bash", str(SCRIPT), "start"], env=env, capture_output=True, text=True, timeout=900)
+    if start.returncode == 3:  # the script's code for "SLURM cannot be installed or set up here"
+        pytest.skip(f"no SLURM cluster on this machine: {start.stderr.strip()}")
+    try:
+        assert start.returncode == 0, f"cluster/slurm-local.sh start failed ({start.returncode}):\n{start.stderr}"
+        yield dict(env, SLURM_CONF=str(state / "slurm.conf"), OMP_NUM_THREADS="1")
+    finally:
+        subprocess.run(["bash", str(SCRIPT), "stop"], env=env, capture_output=True, text=True, timeout=300)
+
+
+def snakemake_on_slurm(workdir: Path, env: dict[str, str], target: str, *args: str) -> subprocess.CompletedProcess:
+    """The README's cluster command, plus what this accounting-free test cluster needs:
+    job states from squeue, no account, and a short first status check."""
+    cmd = [sys.executable, "-m", "snakemake", target, "-s", str(REPO / "Snakefile"), "-d", str(workdir),
+           "--profile", str(REPO / "profiles" / "slurm"), "--executor", "slurm",
+           "--slurm-status-command", "squeue", "--slurm-no-account",
+           "--slurm-init-seconds-before-status-checks", "2", *args]
+    return subprocess.run(cmd, cwd=workdir, capture_output=True, text=True, env=env, timeout=900)
+
+
+def submitted_jobs(log: str) -> list[dict]:
+    """Snakemake's record of each job it ran: rule, local or not, threads, resources, and
+    the SLURM job id it was submitted as (None for local jobs)."""
+    # the logs of failed jobs that Snakemake echoes (show-failed-logs) hold their own
+    # job records: leave them out
+    log = re.sub(r"^Logfile [^\n]*:\n={80}\n.*?^={80}$", "", log, flags=re.M | re.S)
+    jobs = {}
+    for block in re.split(r"\n(?=(?:local)?(?:rule|checkpoint) \w+:\n)", log)[1:]:
+        head = re.match(r"(local)?(?:rule|checkpoint) (\w+):", block)
+        jobid = re.search(r"^\s+jobid: (\d+)$", block, re.M)
+        resources = re.search(r"^\s+resources: (.*)$", block, re.M)
+        threads = re.search(r"^\s+threads: (\d+)$", block, re.M)
+        jobs[jobid.group(1)] = {
+            "rule": head.group(2), "local": head.group(1) is not None,
+            "threads": int(threads.group(1)) if threads else 1,
+            "resources": dict(kv.split("=", 1) for kv in resources.group(1).split(", ")) if resources else {},
+            "slurm_id": None,
+        }
+    for jobid, slurm_id in re.findall(r"Job (\d+) has been submitted with SLURM jobid (\d+)", log):
+        jobs[jobid]["slurm_id"] = slurm_id
+    return list(jobs.values())
+
+
+def completion_records(state_env: dict[str, str]) -> dict[str, dict[str, str]]:
+    """The cluster's job completion log (jobcomp/filetxt), by SLURM job id."""
+    path = Path(state_env["DEPTHGT_SLURM_STATE"]) / "jobcomp.txt"
+    records = [dict(re.findall(r"(\w+)=(\S*)", line)) for line in path.read_text().splitlines() if line.strip()]
+    return {r["JobId"]: r for r in records}
+
+
+def slurm_job(slurm_id: str, env: dict[str, str]) -> dict[str, str]:
+    """slurmctld's record of a job (kept MinJobAge = 10 min after it ends)."""
+    out = subprocess.run(["scontrol", "show", "job", "-o", slurm_id], env=env, capture_output=True, text=True,
+                         check=True).stdout
+    return dict(re.findall(r"(\w+)=(\S*)", out))
+
+
+def test_tiny_workflow_runs_through_slurm(slurm, tmp_path):
+    wd = make_workdir(tmp_path / "wd", TINY)
+    proc = snakemake_on_slurm(wd, slurm, "dataset")
+    assert proc.returncode == 0, f"{proc.stdout[-2000:]}\n{proc.stderr[-8000:]}"
+
+    for split in ("train", "test"):
+        assert len(pd.read_parquet(wd / f"results/dataset/{split}.parquet")) > 0
+    fs = pd.read_parquet(wd / "results/dataset/framesets.parquet")
+    assert (fs["status"] == "ok").sum() == 3  # targets 6 and 7 of room_000, 6 of room_003
+
+    jobs = submitted_jobs(proc.stderr)
+    remote = [j for j in jobs if not j["local"]]
+    # at least the frame-set work and the dataset assembly ran as SLURM jobs
+    assert len(remote) >= 2 and all(j["slurm_id"] for j in remote), jobs
+    assert all(j["slurm_id"] is None for j in jobs if j["local"])
+    done = completion_records(slurm)
+    for job in remote:
+        record = done[job["slurm_id"]]
+        assert record["JobState"] == "COMPLETED" and record["WorkDir"] == str(wd), record
+        # one job, one request: what the rule declares, never a group's sum
+        tres = dict(kv.split("=") for kv in record["Tres"].split(","))
+        assert tres["mem"] == f"{job['resources']['mem_mb']}M", (job, record)
+        assert int(tres["cpu"]) == job["threads"] and tres["node"] == "1", (job, record)
+        assert int(record["TimeLimit"]) == int(job["resources"]["runtime"]), (job, record)
+        assert "gpu" not in slurm_job(job["slurm_id"], slurm).get("TresPerJob", ""), job
+
+
+def test_cuda_config_requests_a_gpu_per_torch_job(slurm, tmp_path):
+    """With `device: cuda` the jobs that run torch ask SLURM for one GPU each, the others
+    for none. (This machine's GPU may be a placeholder: only the requests are checked.)"""
+    cfg = dict(TINY, sources=TINY["sources"][1:], device="cuda")  # one scene, one frame set
+    wd = make_workdir(tmp_path / "cuda", cfg)
+    proc = snakemake_on_slurm(wd, slurm, "framesets")
+    jobs = [j for j in submitted_jobs(proc.stderr) if j["slurm_id"]]
+    assert any(j["resources"].get("gpu") == "1" for j in jobs), jobs
+    for job in jobs:
+        per_job = slurm_job(job["slurm_id"], slurm).get("TresPerJob", "")
+        assert (per_job == "gres:gpu:1") == (job["resources"].get("gpu", "0") == "1"), (job, per_job)
