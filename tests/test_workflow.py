@@ -91,7 +91,9 @@ def test_layout(built):
             for name in FRAMESET_FILES:
                 assert (fdir / name).exists(), fdir / name
             gt = read_exr(fdir / "gt.exr")
-            assert set(gt) == {"Z", "W", "N"} and gt["Z"].shape == (128, 128)
+            assert set(gt) == {"Z", "W", "N", "S"} and gt["Z"].shape == (128, 128)
+            # S: the GT's expected std (metres), positive wherever there is GT depth
+            assert (gt["S"][gt["Z"] > 0] > 0).all() and np.isfinite(gt["S"]).all()
             inp = read_exr(fdir / "input.exr")
             assert {"Z", "T"} <= set(inp)
             doc = json.loads((fdir / "frameset.json").read_text())

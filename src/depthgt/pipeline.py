@@ -163,9 +163,13 @@ def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: GTRenderSettings,
     eye = torch.eye(4, dtype=T_j_to_t.dtype, device=T_j_to_t.device)[None]
     T = torch.cat([eye, T_j_to_t], dim=0)[members]
     K = data.K[None].expand(depth.shape[0], 3, 3)
-    cloud = cloud_in_target(depth, K, T, src_hw=data.src_hw)
+    cloud = cloud_in_target(depth, K, T, src_hw=data.src_hw, noise_sigma_1m=settings.noise_sigma_1m,
+                            noise_sigma_abs_m=settings.noise_sigma_abs_m)
     h, w = data.depth_m.shape[-2:]
-    return render_gt(cloud.points, data.K[None].to(depth.dtype), (h, w), cloud.valid, settings, normals_cam=cloud.normals)
+    chosen = list(range(len(data.depth_m)))[members] if isinstance(members, slice) else list(members)
+    with_target = bool(chosen) and chosen[0] == 0  # the target's own depth is fused, as frame 0 of the cloud
+    return render_gt(cloud.points, data.K[None].to(depth.dtype), (h, w), cloud.valid, settings, normals_cam=cloud.normals,
+                     sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=data.src_hw, target_frame=0 if with_target else None)
 
 
 def _atomic(path: Path, writer, *args) -> None:
@@ -235,6 +239,7 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
 
     depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
     gt_depth = gt.depth[0, 0].detach().cpu().numpy().astype(np.float32)
+    gt_sigma = gt.sigma[0, 0].detach().cpu().numpy().astype(np.float32)
     truth = data.truth_m[0, 0].cpu().numpy().astype(np.float32) if data.truth_m is not None else None
     rgb8 = (data.rgb[0].permute(1, 2, 0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
 
@@ -242,6 +247,7 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
         "input_missing": float((depth_in <= 0).mean()),
         "gt_missing": float((gt_depth <= 0).mean()),
         "gt_mean_points": float(gt.count[0, 0].float().mean()),
+        "gt_median_sigma_m": float(np.median(gt_sigma[gt_depth > 0])) if (gt_depth > 0).any() else float("nan"),
         "neighbours_fused": len(fused) - 1,
     }
     if truth is None:
@@ -259,7 +265,7 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     lap("quality")
 
     rng = np.random.default_rng(stable_seed(settings.seed, dataset, scene.name, target, "patches"))
-    patches = make_patches(depth_in, gt_depth, rgb8, settings.patches, rng, truth_m=truth)
+    patches = make_patches(depth_in, gt_depth, rgb8, settings.patches, rng, truth_m=truth, gt_sigma_m=gt_sigma)
     stats["patches_drawn"] = int(len(patches["kept"]))
     stats["patches_kept"] = int(patches["kept"].sum())
     lap("patches")
@@ -268,7 +274,7 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     if truth is not None:
         input_channels["T"] = truth
     _atomic(out / "gt.exr", io.write_exr, {"Z": gt_depth, "W": gt.weight_sum[0, 0].detach().cpu().numpy().astype(np.float32),
-                                          "N": gt.count[0, 0].cpu().numpy().astype(np.float32)})
+                                          "N": gt.count[0, 0].cpu().numpy().astype(np.float32), "S": gt_sigma})
     _atomic(out / "input.exr", io.write_exr, input_channels)
     _atomic(out / "rgb.png", io.write_rgb_png, rgb8)
     _atomic(out / "patches.npz", _save_npz, patches)
