@@ -188,7 +188,7 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
             A = C + (st.slope_prior + 1e-6) * np.eye(2)
             extrap = mean_o @ np.linalg.solve(A, mean_o)
             var_iz = ((wt * s**2).sum() / sw + (wt * resid**2).sum() / sw) / max(n_frames, 1) * (1 + extrap)
-            sig2 = zz**4 * var_iz
+            sig2 = 0.53**2 * zz**4 * var_iz  # 0.53: the documented calibration of the error model
             if ambiguous:
                 iz_f = np.mean([c["iz"] for c in clusters[fi]])
                 iz_b = np.mean([c["iz"] for c in clusters[bi]])
