@@ -72,7 +72,8 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
     sigma_m (N,), frame (N,), written from the rules of its docstring and of
     ``GTRenderSettings``.
 
-    Returns depth, weight_sum, count, sigma as (H, W) float64 / float64 / int / float64 arrays.
+    Returns depth, weight_sum, count, sigma as (H, W) float64 / float64 / int / float64
+    arrays and the (J,) agreement share of every frame (NaN where not measured).
     """
     st = settings
     P = np.asarray(points_cam, dtype=np.float64)
@@ -104,6 +105,38 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
             cos = abs(d0) / max(np.linalg.norm(N[i]) * np.linalg.norm(P[i]), 1e-12)
             if cos >= st.min_cos_incidence and z[i] * np.linalg.norm(g) * R <= st.max_correction_rel:
                 grads[i] = g
+    def pixel_candidates(y, x, use):
+        out = []
+        for i in range(n):
+            if not use[i] or not z[i] > st.min_depth_m:
+                continue
+            o = np.array([u[i] - gu[x], v[i] - gv[y]])  # projection minus sample position
+            d2 = o @ o
+            if d2 < R * R:
+                out.append(dict(i=i, o=o, d2=d2, iz=iz[i], s=s_iz[i], f=i if frame is None else int(frame[i])))
+        return out
+
+    # frames that disagree with the target's own samples are left out
+    n_fr = 0 if frame is None else int(np.max(frame)) + 1
+    agreement = np.full(n_fr, np.nan)
+    if target_frame is not None and frame is not None:
+        n_cmp, n_ok = np.zeros(n_fr), np.zeros(n_fr)
+        for y in range(h):
+            for x in range(w):
+                cands = pixel_candidates(y, x, valid)
+                tgt = [c for c in cands if c["f"] == target_frame and c["d2"] <= 0.05**2]
+                if not tgt:
+                    continue
+                t = tgt[-1]  # (one target sample per position)
+                for c in cands:
+                    if c["f"] != target_frame and c["d2"] <= 0.5**2:
+                        tol = st.gap_sigmas * np.hypot(c["s"], t["s"]) + st.gap_slope_rel * c["iz"] * math.sqrt(c["d2"])
+                        n_cmp[c["f"]] += 1
+                        n_ok[c["f"]] += abs(c["iz"] - t["iz"]) <= tol
+        with np.errstate(invalid="ignore", divide="ignore"):
+            agreement = np.where(n_cmp >= 200, n_ok / np.maximum(n_cmp, 1), np.nan)  # judged on >= 200 samples
+        bad = agreement < st.min_frame_agreement
+        valid = valid & ~bad[np.asarray(frame)]
     depth = np.zeros((h, w))
     wsum = np.zeros((h, w))
     count = np.zeros((h, w), int)
@@ -197,4 +230,4 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
             if st.max_sigma_m is not None and sigma[y, x] > st.max_sigma_m:
                 continue
             depth[y, x] = zz
-    return depth, wsum, count, sigma
+    return depth, wsum, count, sigma, agreement

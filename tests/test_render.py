@@ -164,9 +164,10 @@ def _two_layer_cloud(seed: int, n_bg: int = 900, n_fg: int = 250):
 def _compare_with_reference(p, nrm, valid, K, frame, sigma, st, src_hw, target_frame=None):
     out = render_gt(p, K, (16, 16), valid, st, nrm, sigma, frame, src_hw, target_frame)
     assert isinstance(out, GTRender)
-    rd, rw, rc, rs = render_gt_reference(p[0].numpy(), K[0].numpy(), (16, 16), valid[0].numpy(), st,
-                                         None if nrm is None else nrm[0].numpy(), None if sigma is None else sigma[0].numpy(),
-                                         None if frame is None else frame[0].numpy(), src_hw, target_frame)
+    rd, rw, rc, rs, ra = render_gt_reference(p[0].numpy(), K[0].numpy(), (16, 16), valid[0].numpy(), st,
+                                             None if nrm is None else nrm[0].numpy(), None if sigma is None else sigma[0].numpy(),
+                                             None if frame is None else frame[0].numpy(), src_hw, target_frame)
+    np.testing.assert_allclose(out.agreement[0].numpy(), ra, atol=1e-6)
     np.testing.assert_array_equal(out.count[0, 0].numpy(), rc)
     np.testing.assert_allclose(out.weight_sum[0, 0].numpy(), rw, atol=1e-12)
     np.testing.assert_allclose(out.depth[0, 0].numpy(), rd, atol=1e-10)
@@ -209,6 +210,38 @@ def test_render_gt_matches_reference(seed, src_hw, variant):
 def test_render_gt_matches_reference_without_frames_and_sigmas(seed):
     p, nrm, valid, K, _, _ = _two_layer_cloud(seed)
     _compare_with_reference(p, None, valid, K, None, None, GTRenderSettings(m=7, noise_sigma_1m=0.004), None)
+
+
+def test_render_gt_leaves_out_a_misregistered_frame():
+    """A neighbour 5 cm off (misregistered) disagrees with the target's own depth and is
+    left out; the correct neighbours stay (vectorised renderer vs the oracle)."""
+    g = torch.Generator().manual_seed(5)
+    h = w = 24
+    K = _K(1, 20.0, 11.5, 11.5)
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    plane = lambda uv: 2.0 + 0.01 * uv[:, 0] + 0.02 * uv[:, 1]  # noqa: E731 (depth of a slanted plane)
+    uv_t = torch.stack([u.flatten(), v.flatten()], 1)
+    pts, frames = [_unproject(uv_t, plane(uv_t), K[0])], [torch.zeros(h * w, dtype=torch.long)]
+    for j in range(1, 5):
+        uv = torch.rand(h * w, 2, generator=g, dtype=torch.float64) * (w - 1)
+        z = plane(uv) + (0.05 if j == 4 else 0.0) + 0.002 * torch.randn(h * w, generator=g, dtype=torch.float64)
+        pts.append(_unproject(uv, z, K[0]))
+        frames.append(torch.full((h * w,), j))
+    p, frame = torch.cat(pts)[None], torch.cat(frames)[None]
+    st = GTRenderSettings(noise_sigma_1m=0.0012)
+    out = render_gt(p, K, (h, w), settings=st, frame=frame, target_frame=0)
+    rd, rw, rc, rs, ra = render_gt_reference(p[0].numpy(), K[0].numpy(), (h, w), None, st, frame=frame[0].numpy(),
+                                             target_frame=0)
+    np.testing.assert_allclose(out.agreement[0].numpy(), ra, atol=1e-6)
+    np.testing.assert_allclose(out.depth[0, 0].numpy(), rd, atol=1e-5)
+    np.testing.assert_array_equal(out.count[0, 0].numpy(), rc)
+    assert np.isnan(ra[0]) and (ra[1:4] > 0.95).all() and ra[4] < 0.9
+    truth = plane(uv_t).reshape(h, w)
+    assert float((out.depth[0, 0] - truth).abs().mean()) < 0.002
+    # without the check the off frame drags the GT towards itself
+    off = render_gt(p, K, (h, w), settings=GTRenderSettings(noise_sigma_1m=0.0012, min_frame_agreement=0.0), frame=frame,
+                    target_frame=0)
+    assert float((off.depth[0, 0] - truth).abs().mean()) > 2 * float((out.depth[0, 0] - truth).abs().mean())
 
 
 def test_render_gt_guard_hides_occluded_points():

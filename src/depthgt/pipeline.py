@@ -250,6 +250,12 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
         "gt_median_sigma_m": float(np.median(gt_sigma[gt_depth > 0])) if (gt_depth > 0).any() else float("nan"),
         "neighbours_fused": len(fused) - 1,
     }
+    # neighbours the renderer left out: too few of their samples agree with the target's depth
+    offsets_fused = [members[i] - target for i in fused]
+    share = gt.agreement[0].cpu().numpy()
+    stats["render_agreement"] = {f"{o:+d}": round(float(a), 4) for o, a in zip(offsets_fused, share) if np.isfinite(a)}
+    stats["render_left_out"] = [o for o, a in zip(offsets_fused, share) if np.isfinite(a) and a < settings.render.min_frame_agreement
+                                and o != 0]
     if truth is None:
         # Leave-target-out consistency: fuse the neighbours alone and compare with the
         # target's raw valid depth -- the only accuracy check possible on real data
