@@ -216,8 +216,8 @@ def test_render_gt_leaves_out_a_misregistered_frame():
     """A neighbour 5 cm off (misregistered) disagrees with the target's own depth and is
     left out; the correct neighbours stay (vectorised renderer vs the oracle)."""
     g = torch.Generator().manual_seed(5)
-    h = w = 24
-    K = _K(1, 20.0, 11.5, 11.5)
+    h = w = 20
+    K = _K(1, 20.0, 9.5, 9.5)
     v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     plane = lambda uv: 2.0 + 0.01 * uv[:, 0] + 0.02 * uv[:, 1]  # noqa: E731 (depth of a slanted plane)
     uv_t = torch.stack([u.flatten(), v.flatten()], 1)
