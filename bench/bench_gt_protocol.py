@@ -24,6 +24,8 @@ exact depth at the sample positions of the input and of the GT):
 * ``mae_counted``: MAE over truth pixels, a missing pixel counting as its truth depth;
 * ``mae_both``: MAE over pixels where the GT, the input and the truth all have depth;
 * ratios GT / input of both MAEs;
+* the confidence (gt.exr channel ``S``): rank correlation with the actual error, the
+  share of GT pixels with |error| <= sigma and <= 2 sigma, the MAE of the most certain 80 %;
 * ``clean_own``: the renderer's own error, the GT fused from the 6 neighbours' clean
   depth with exact poses, MAE vs the truth (and its completeness).
 
@@ -229,7 +231,7 @@ def write_png(path: Path, item: dict, inp: np.ndarray, gt: np.ndarray, ref: np.n
 def run_set(set_name: str, settings: GTRenderSettings, cache: Path, registration: str | None,
             png_dir: Path | None, clean: bool) -> list[dict]:
     pool, pool_by = Pool(), {}
-    t_render = []
+    t_render, conf_err, conf_sigma = [], [], []
     for group in SETS[set_name]:
         gname = f"{group['family']}/s{group['seed']}/{group['sensor']}"
         gp = pool_by.setdefault(gname, Pool())
@@ -252,6 +254,9 @@ def run_set(set_name: str, settings: GTRenderSettings, cache: Path, registration
                 cats = categories(item)
                 for p in (pool, gp):
                     score(p, cats, {"input": inp, "gt": gt}, ref)
+                m = (gt > 0) & (ref > 0)
+                conf_err.append(np.abs(gt - ref)[m])
+                conf_sigma.append(out.sigma[0, 0].numpy()[m])
                 if clean and not registration:
                     own = fuse(data, poses_from_source(data), settings, depth_m=data.truth_m, members=slice(1, None))
                     g = own.depth[0, 0].numpy()
@@ -272,7 +277,19 @@ def run_set(set_name: str, settings: GTRenderSettings, cache: Path, registration
     for gname, gp in pool_by.items():
         rows += summarise(gp, f"{set_name}:{gname}", variant)
     print(f"render CPU time per frame set: median {np.median(t_render):.3f} s over {len(t_render)}", file=sys.stderr)
+    print(confidence_summary(set_name, np.concatenate(conf_err), np.concatenate(conf_sigma)))
     return rows
+
+
+def confidence_summary(set_name: str, err: np.ndarray, sigma: np.ndarray) -> str:
+    """How well the GT's sigma (gt.exr channel S) predicts its actual error, over all GT pixels."""
+    from scipy.stats import spearmanr
+
+    keep = sigma <= np.quantile(sigma, 0.8)
+    return (f"confidence on {set_name}: Spearman(sigma, |error|) {spearmanr(sigma, err).correlation:.3f}; "
+            f"|error| <= sigma for {(err <= sigma).mean():.3f}, <= 2 sigma for {(err <= 2 * sigma).mean():.3f} of GT pixels; "
+            f"median |error| / sigma {np.median(err / sigma):.3f}; MAE over all GT pixels {1000 * err.mean():.2f} mm, "
+            f"over the 80 % most certain {1000 * err[keep].mean():.2f} mm (sigma <= {1000 * np.quantile(sigma, 0.8):.1f} mm)")
 
 
 # -------------------------------------------------------------------------- 7-Scenes
