@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import argparse
 import ast
-import hashlib
 import json
 import sys
 import time
@@ -283,10 +282,9 @@ def run_set(set_name: str, settings: GTRenderSettings, cache: Path, registration
 
 def confidence_summary(set_name: str, err: np.ndarray, sigma: np.ndarray) -> str:
     """How well the GT's sigma (gt.exr channel S) predicts its actual error, over all GT pixels."""
-    from scipy.stats import spearmanr
-
     keep = sigma <= np.quantile(sigma, 0.8)
-    return (f"confidence on {set_name}: Spearman(sigma, |error|) {spearmanr(sigma, err).correlation:.3f}; "
+    rho = pd.Series(sigma).corr(pd.Series(err), method="spearman")
+    return (f"confidence on {set_name}: Spearman(sigma, |error|) {rho:.3f}; "
             f"|error| <= sigma for {(err <= sigma).mean():.3f}, <= 2 sigma for {(err <= 2 * sigma).mean():.3f} of GT pixels; "
             f"median |error| / sigma {np.median(err / sigma):.3f}; MAE over all GT pixels {1000 * err.mean():.2f} mm, "
             f"over the 80 % most certain {1000 * err[keep].mean():.2f} mm (sigma <= {1000 * np.quantile(sigma, 0.8):.1f} mm)")
