@@ -75,9 +75,11 @@ def load_room(room: str) -> dict:
 def render_case(data: dict, frames: list[int], depth_kind: str, exact_pos: bool, settings: RenderSettings,
                 device: str = "cpu") -> torch.Tensor:
     d = data[depth_kind][frames].to(device)
-    cloud = cloud_in_target(d, data["K"].to(device).expand(len(frames), 3, 3), data["T"][frames].to(device),
-                            src_hw=data["hw"] if exact_pos else None)
-    return render_gt(cloud.points, data["K"][None].to(device), SIZE, cloud.valid, settings, cloud.normals).depth[0, 0].cpu()
+    src_hw = data["hw"] if exact_pos else None
+    cloud = cloud_in_target(d, data["K"].to(device).expand(len(frames), 3, 3), data["T"][frames].to(device), src_hw=src_hw,
+                            noise_sigma_1m=settings.noise_sigma_1m, noise_sigma_abs_m=settings.noise_sigma_abs_m)
+    return render_gt(cloud.points, data["K"][None].to(device), SIZE, cloud.valid, settings, cloud.normals, cloud.sigma_m,
+                     cloud.frame, src_hw).depth[0, 0].cpu()
 
 
 def mae_mm(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -87,14 +89,14 @@ def mae_mm(a: torch.Tensor, b: torch.Tensor) -> float:
 
 def accuracy(rooms: list[str], settings: RenderSettings) -> list[dict]:
     rows = []
-    naive = RenderSettings(m=10_000, radius_px=settings.radius_px, rel_band=1e6, plane_correction=False,
-                             coverage_frac=1.0, extend_uncovered=True)
+    naive = RenderSettings(m=10_000, radius_px=settings.radius_px, gap_sigmas=1e9, gap_slope_rel=0.0, min_frames=1,
+                             plane="none", drop_ambiguous=False, extend_uncovered=True)
     for room in rooms:
         data = load_room(room)
         near, exact = data["clean"][TARGET, 0], data["exact"]
         rows.append(dict(bench="accuracy", case=f"{room}/reference", metric="ref_own", unit="mm", value=mae_mm(near, exact)))
         rows.append(dict(bench="accuracy", case=f"{room}/input_noisy", metric="input", unit="mm",
-                         value=mae_mm(data["noisy"][TARGET, 0], exact)))
+                         value=mae_mm(data["noisy"][TARGET, 0], near)))
         cases = [
             ("6nb/clean/exact_pos", NEIGHBOURS, "clean", True, settings),
             ("6nb/clean/centre_pos", NEIGHBOURS, "clean", False, settings),
@@ -127,12 +129,12 @@ def speed_inputs(device: str):
     feats = torch.rand(7, 256 * 256, 3, generator=g)
     per_view = cloud.points.reshape(7, -1, 3)
     return {k: v.to(device) for k, v in dict(K=K, points=cloud.points, normals=cloud.normals, valid=cloud.valid,
-                                             per_view=per_view, feats=feats).items()}
+                                             sigma=cloud.sigma_m, frame=cloud.frame, per_view=per_view, feats=feats).items()}
 
 
 def run_one(fn: str, x: dict):
     if fn == "render_gt":
-        return render_gt(x["points"], x["K"][None], SIZE, x["valid"], RenderSettings(), x["normals"])
+        return render_gt(x["points"], x["K"][None], SIZE, x["valid"], RenderSettings(), x["normals"], x["sigma"], x["frame"])
     if fn == "splat_soft":
         return splat_soft(x["per_view"], x["feats"], x["K"].expand(7, 3, 3), SIZE)
     if fn == "splat_soft_fwd_bwd":

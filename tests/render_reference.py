@@ -2,7 +2,8 @@
 
 Test oracles only: Python loops over pixels and points, float64 numpy, written
 directly from the rules stated in the docstrings of ``splat_soft`` and ``render_gt``
-without any of the vectorisation tricks (candidate windows, partial sorts).
+(and of ``RenderSettings``) without any of the vectorisation tricks (candidate
+windows, composite-key sorts, scatter reductions, closed-form per-pixel solves).
 Use them on tiny images (e.g. 16x16) only.
 """
 
@@ -59,11 +60,20 @@ def splat_soft_reference(points_cam, features, K, size_hw, valid=None, radius_px
     return out_f, out_z, out_w
 
 
-def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, normals_cam=None):
-    """Loop version of ``render_gt`` for one image: points (N, 3), K (3, 3), normals (N, 3).
+def _resampled(n_src: int, n_dst: int) -> np.ndarray:
+    """Position (output px) of the source pixel centre nearest to each output pixel centre."""
+    i = np.clip(np.floor((np.arange(n_dst) + 0.5) * n_src / n_dst), 0, n_src - 1)
+    return (i + 0.5) * n_dst / n_src - 0.5
 
-    ``settings`` is a ``depthgt.settings.RenderSettings``. Returns depth, weight_sum, count as (H, W)
-    float64 / float64 / int arrays.
+
+def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, normals_cam=None, sigma_m=None, frame=None,
+                        src_hw=None, target_frame=None):
+    """Loop version of ``render_gt`` for one image: points (N, 3), K (3, 3), normals (N, 3),
+    sigma_m (N,), frame (N,), written from the rules of its docstring and of
+    ``RenderSettings``.
+
+    Returns depth, weight_sum, count, sigma as (H, W) float64 / float64 / int / float64
+    arrays and the (J,) agreement share of every frame (NaN where not measured).
     """
     st = settings
     P = np.asarray(points_cam, dtype=np.float64)
@@ -74,59 +84,150 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
     valid = np.ones(n, bool) if valid is None else np.asarray(valid, bool)
     u, v, z = _project(P, K)
     R = st.radius_px
-    use_planes = normals_cam is not None and st.plane_correction
-    if use_planes:
+    gu = np.arange(w, dtype=np.float64) if src_hw is None else _resampled(src_hw[1], w)
+    gv = np.arange(h, dtype=np.float64) if src_hw is None else _resampled(src_hw[0], h)
+    # per-point inverse depth, its std, and the tangent-plane gradient of inverse depth
+    iz = 1.0 / np.maximum(z, st.min_depth_m)
+    if sigma_m is None:
+        s1 = 0.0012 if st.noise_sigma_1m is None else st.noise_sigma_1m
+        sz = np.sqrt(st.noise_sigma_abs_m**2 + (s1 * z * z) ** 2)
+    else:
+        sz = np.asarray(sigma_m, dtype=np.float64)
+    s_iz = np.maximum(sz * iz * iz, 1e-12)
+    grads = np.zeros((n, 2))
+    if normals_cam is not None:
         N = np.nan_to_num(np.asarray(normals_cam, dtype=np.float64))
+        for i in range(n):
+            d0 = N[i] @ P[i]
+            if abs(d0) <= 1e-12:
+                continue
+            g = (Kinv.T @ N[i])[:2] / d0
+            cos = abs(d0) / max(np.linalg.norm(N[i]) * np.linalg.norm(P[i]), 1e-12)
+            if cos >= st.min_cos_incidence and z[i] * np.linalg.norm(g) * R <= st.max_correction_rel:
+                grads[i] = g
+    def pixel_candidates(y, x, use):
+        out = []
+        for i in range(n):
+            if not use[i] or not z[i] > st.min_depth_m:
+                continue
+            o = np.array([u[i] - gu[x], v[i] - gv[y]])  # projection minus sample position
+            d2 = o @ o
+            if d2 < R * R:
+                out.append(dict(i=i, o=o, d2=d2, iz=iz[i], s=s_iz[i], f=i if frame is None else int(frame[i])))
+        return out
+
+    # frames that disagree with the target's own samples are left out
+    n_fr = 0 if frame is None else int(np.max(frame)) + 1
+    agreement = np.full(n_fr, np.nan)
+    if target_frame is not None and frame is not None:
+        n_cmp, n_ok = np.zeros(n_fr), np.zeros(n_fr)
+        for y in range(h):
+            for x in range(w):
+                cands = pixel_candidates(y, x, valid)
+                tgt = [c for c in cands if c["f"] == target_frame and c["d2"] <= 0.05**2]
+                if not tgt:
+                    continue
+                t = tgt[-1]  # (one target sample per position)
+                for c in cands:
+                    if c["f"] != target_frame and c["d2"] <= 0.5**2:
+                        tol = st.gap_sigmas * np.hypot(c["s"], t["s"]) + st.gap_slope_rel * c["iz"] * math.sqrt(c["d2"])
+                        n_cmp[c["f"]] += 1
+                        n_ok[c["f"]] += abs(c["iz"] - t["iz"]) <= tol
+        with np.errstate(invalid="ignore", divide="ignore"):
+            agreement = np.where(n_cmp >= 200, n_ok / np.maximum(n_cmp, 1), np.nan)  # judged on >= 200 samples
+        bad = agreement < st.min_frame_agreement
+        valid = valid & ~bad[np.asarray(frame)]
     depth = np.zeros((h, w))
     wsum = np.zeros((h, w))
     count = np.zeros((h, w), int)
+    sigma = np.zeros((h, w))
     for y in range(h):
         for x in range(w):
-            cands = []  # dicts with d2, offset, z
+            cands = []
             for i in range(n):
                 if not valid[i] or not z[i] > st.min_depth_m:
                     continue
-                d2 = (x - u[i]) ** 2 + (y - v[i]) ** 2
-                if not d2 < R * R:
-                    continue
-                zc = z[i]
-                if use_planes:
-                    # the tangent plane n.X = n.p met by the ray through the pixel centre
-                    nrm, p = N[i], P[i]
-                    d0 = nrm @ p
-                    cos = abs(d0) / max(np.linalg.norm(nrm) * np.linalg.norm(p), 1e-12)
-                    grad = (Kinv.T @ nrm)[:2] / d0 if abs(d0) > 1e-12 else np.zeros(2)
-                    if cos >= st.min_cos_incidence and z[i] * np.linalg.norm(grad) * R <= st.max_correction_rel:
-                        ray = Kinv @ np.array([x, y, 1.0])
-                        zc = d0 / (nrm @ ray)
-                cands.append({"d2": d2, "off": np.array([x - u[i], y - v[i]]), "z": zc})
+                o = np.array([u[i] - gu[x], v[i] - gv[y]])  # projection minus sample position
+                d2 = o @ o
+                if d2 < R * R:
+                    cands.append(dict(i=i, o=o, d2=d2, iz=iz[i], s=s_iz[i], f=i if frame is None else int(frame[i])))
             if not cands:
                 continue
-            z_min = min(c["z"] for c in cands)
-            band = lambda z0: z0 * (1 + st.rel_band) + st.abs_band_m  # noqa: E731
-            front = [c for c in cands if c["z"] <= band(z_min)]
-            behind = [c for c in cands if c["z"] > band(z_min)]
-            centroid = np.linalg.norm(sum(c["off"] for c in front)) / len(front)
-            z_ref = z_min
-            if behind and st.ambiguous_band is not None:
-                lo, hi = st.ambiguous_band
-                if lo * R < centroid < hi * R:
-                    continue  # an edge too close to the centre: left empty
-            uncovered = centroid > st.coverage_frac * R  # F's samples sit on one side of the centre
-            if uncovered and behind and st.compare_next_layer:
-                z_b = min(c["z"] for c in behind)
-                nxt = [c for c in behind if c["z"] <= band(z_b)]
-                uncovered = centroid > np.linalg.norm(sum(c["off"] for c in nxt)) / len(nxt)
-            if uncovered:
-                if behind:
-                    z_ref = min(c["z"] for c in behind)
-                elif not st.extend_uncovered:
-                    continue  # nothing seen there: the pixel stays empty
-            layer = [c for c in cands if z_ref <= c["z"] <= band(z_ref)]
-            layer = sorted(layer, key=lambda c: c["d2"])[: st.m]
-            ws = [math.exp(-c["d2"] / (R * R)) for c in layer]
-            count[y, x] = len(layer)
-            wsum[y, x] = sum(ws)
-            if len(layer) >= st.min_points and wsum[y, x] > 0:
-                depth[y, x] = sum(wi * c["z"] for wi, c in zip(ws, layer)) / wsum[y, x]
-    return depth, wsum, count
+            # surfaces: gaps in inverse depth, front first
+            cands = sorted(cands, key=lambda c: -c["iz"])
+            clusters = [[cands[0]]]
+            for a, b in zip(cands[:-1], cands[1:]):
+                tol = st.gap_sigmas * np.hypot(a["s"], b["s"]) + st.gap_slope_rel * a["iz"] * np.linalg.norm(a["o"] - b["o"])
+                if a["iz"] - b["iz"] > tol:
+                    clusters.append([])
+                clusters[-1].append(b)
+            qualified = [len({c["f"] for c in cl}) >= st.min_frames
+                         or (target_frame is not None and frame is not None
+                             and any(c["f"] == target_frame and c["d2"] <= 0.05**2 for c in cl)) for cl in clusters]
+            fi = qualified.index(True) if any(qualified) else 0
+            bi = next((k for k in range(fi + 1, len(clusters)) if qualified[k]), None)
+
+            def geometry(cl):
+                offs = np.array([c["o"] for c in cl])
+                cen = offs.mean(0)
+                norm = np.linalg.norm(cen)
+                reach = np.inf if norm <= 1e-9 else -min(offs @ (cen / norm))
+                d_near = min(c["d2"] for c in cl)
+                hit = d_near <= 0.05**2
+                return reach, d_near, hit, (reach >= st.edge_margin_px) or hit
+
+            reach_f, dn_f, hit_f, cov_f = geometry(clusters[fi])
+            chosen = fi
+            if bi is not None and not cov_f:
+                _, dn_b, _, cov_b = geometry(clusters[bi])
+                if cov_b or dn_b < dn_f:
+                    chosen = bi
+            if not (cov_f or bi is not None or st.extend_uncovered):
+                continue
+            ambiguous = bi is not None and not hit_f and abs(reach_f - st.edge_margin_px) < st.ambiguous_px
+            if ambiguous and st.drop_ambiguous:
+                continue
+            kept = sorted(clusters[chosen], key=lambda c: c["d2"])[: st.m]  # stable: ties keep point order
+            wsp = np.array([math.exp(-c["d2"] / (R * R)) for c in kept])
+            s = np.array([c["s"] for c in kept])
+            wt = wsp / s**2
+            offs = np.array([c["o"] for c in kept])
+            izs = np.array([c["iz"] for c in kept])
+            g = np.array([grads[c["i"]] for c in kept])
+            sw = wt.sum()
+            mean_o = (wt[:, None] * offs).sum(0) / sw
+            cen = offs - mean_o
+            C = (wt[:, None, None] * cen[:, :, None] * cen[:, None, :]).sum(0) / sw
+            if st.plane == "fit":
+                lam = st.slope_prior
+                A = C + lam * np.eye(2)
+                b = (wt[:, None] * cen * (izs - (wt * izs).sum() / sw)[:, None]).sum(0) / sw + lam * (wt[:, None] * g).sum(0) / sw
+                slope = np.linalg.solve(A, b) if np.linalg.det(A) > 1e-12 else np.zeros(2)
+                iz_hat = (wt * izs).sum() / sw - slope @ mean_o
+                resid = izs - (iz_hat + offs @ slope)
+            elif st.plane == "normals":
+                izc = izs - (g * offs).sum(1)
+                iz_hat = (wt * izc).sum() / sw
+                resid = izc - iz_hat
+            else:
+                iz_hat = (wt * izs).sum() / sw
+                resid = izs - iz_hat
+            count[y, x] = len(kept)
+            wsum[y, x] = wsp.sum()
+            if len(kept) < st.min_points or not iz_hat > 0:
+                continue
+            zz = 1.0 / iz_hat
+            n_frames = len({c["f"] for c in kept})
+            A = C + (st.slope_prior + 1e-6) * np.eye(2)
+            extrap = mean_o @ np.linalg.solve(A, mean_o)
+            var_iz = ((wt * s**2).sum() / sw + (wt * resid**2).sum() / sw) / max(n_frames, 1) * (1 + extrap)
+            sig2 = 0.53**2 * zz**4 * var_iz  # 0.53: the documented calibration of the error model
+            if ambiguous:
+                iz_f = np.mean([c["iz"] for c in clusters[fi]])
+                iz_b = np.mean([c["iz"] for c in clusters[bi]])
+                sig2 += (0.5 * zz * zz * abs(iz_f - iz_b)) ** 2
+            sigma[y, x] = math.sqrt(sig2)
+            if st.max_sigma_m is not None and sigma[y, x] > st.max_sigma_m:
+                continue
+            depth[y, x] = zz
+    return depth, wsum, count, sigma, agreement

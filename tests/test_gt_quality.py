@@ -1,16 +1,17 @@
 """Issue 2 acceptance on the default synthetic scenes with the source's (exact) poses:
 the GT beats the raw Kinect-style input against the clean truth, in completeness and in
-accuracy where the input has data."""
+accuracy where the input has data; the GT's confidence (sigma) tracks its actual error."""
 
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
-from depthgt.eval.metrics import depth_errors
-from depthgt.gt.frameset import fuse, load_frameset, poses_from_source
 from depthgt.jobs.common import open_source_scene
+from depthgt.gt.frameset import fuse, load_frameset, poses_from_source
+from depthgt.eval.metrics import depth_errors
 from depthgt.settings import FrameSetSettings, RenderSettings
 
 
@@ -27,10 +28,16 @@ def framesets():
     return out
 
 
-def test_gt_beats_input_against_truth(framesets):
+@pytest.fixture(scope="module")
+def rendered(framesets):
+    """The default GT of every frame set (GTRender), rendered once for the module."""
+    return [fuse(data, T, RenderSettings()) for data, T in framesets]
+
+
+def test_gt_beats_input_against_truth(framesets, rendered):
     ratios_counted, ratios_valid, completeness = [], [], []
-    for data, T in framesets:
-        gt = fuse(data, T, RenderSettings()).depth[0, 0].numpy()
+    for (data, T), out in zip(framesets, rendered):
+        gt = out.depth[0, 0].numpy()
         inp = data.depth_m[0, 0].numpy()
         truth = data.truth_m[0, 0].numpy()
         g, i = depth_errors(gt, truth), depth_errors(inp, truth)
@@ -43,12 +50,37 @@ def test_gt_beats_input_against_truth(framesets):
     assert np.mean(ratios_valid) <= 0.80
 
 
-def test_leave_target_out_uses_neighbours_only(framesets):
+def test_leave_target_out_uses_neighbours_only(framesets, rendered):
     data, T = framesets[0]
+    full = rendered[0].depth[0, 0].numpy()
     lto = fuse(data, T, RenderSettings(), members=slice(1, None)).depth[0, 0].numpy()
     truth = data.truth_m[0, 0].numpy()
     s = depth_errors(lto, truth)
     assert s["completeness"] > 0.9 and s["mae_m"] < 0.01
     # removing the target changes the result (the target contributes to the full GT)
-    full = fuse(data, T, RenderSettings()).depth[0, 0].numpy()
     assert not np.array_equal(full, lto)
+
+
+def test_confidence_tracks_actual_error(framesets, rendered):
+    """sigma (gt.exr channel S) against the known truth: larger where the GT is worse,
+    about calibrated, and leaving out the least certain pixels cuts the error."""
+    errs, sigmas = [], []
+    for (data, T), out in zip(framesets, rendered):
+        gt, sigma = out.depth[0, 0].numpy(), out.sigma[0, 0].numpy()
+        truth = data.truth_m[0, 0].numpy()
+        m = (gt > 0) & (truth > 0)
+        assert (sigma[gt > 0] > 0).all() and (sigma[out.count[0, 0].numpy() == 0] == 0).all()
+        errs.append(np.abs(gt - truth)[m])
+        sigmas.append(sigma[m])
+    e, s = np.concatenate(errs), np.concatenate(sigmas)
+    assert pd.Series(s).corr(pd.Series(e), method="spearman") > 0.4
+    assert 0.5 < (e <= s).mean() < 0.9 and (e <= 3 * s).mean() > 0.9
+    confident = s <= np.quantile(s, 0.8)
+    assert e[confident].mean() < 0.5 * e.mean()
+    # the render option leaves those pixels out of the GT
+    data, T = framesets[0]
+    thr = float(np.quantile(s, 0.8))
+    full = rendered[0].depth[0, 0].numpy()
+    cut = fuse(data, T, RenderSettings(max_sigma_m=thr))
+    assert 0 < (cut.depth[0, 0].numpy() > 0).sum() < (full > 0).sum()
+    assert (cut.sigma[0, 0].numpy()[cut.depth[0, 0].numpy() > 0] <= thr).all()

@@ -72,3 +72,26 @@ def test_crop_pairs_at_given_boxes():
     np.testing.assert_array_equal(out["kept"], [False, True])
     np.testing.assert_array_equal(out["boxes"], boxes[1:])
     assert out["gt"].shape == (1, 4, 4) and out["all_missing_gt"].tolist() == [1.0, 0.0]
+
+
+def test_confidence_filter_leaves_out_uncertain_gt():
+    h = w = 64
+    gt = np.full((h, w), 2.0, np.float32)
+    sigma = np.full((h, w), 0.002, np.float32)
+    sigma[:, 40:] = 0.05  # an uncertain band on the right
+    inp = np.ones((h, w), np.float32)
+    rgb = np.zeros((h, w, 3), np.uint8)
+    s = PatchSettings(count=100, size=16, max_gt_sigma_m=0.01)
+    out = make_patches(inp, gt, rgb, s, np.random.default_rng(0), gt_sigma_m=sigma)
+    # crops reaching into the band lose those pixels (set to 0, counted as missing) and are rejected
+    rej = ~out["kept"]
+    assert rej.any() and out["kept"].any()
+    assert ((out["all_boxes"][rej, 1] + 16) > 40).all() and ((out["boxes"][:, 1] + 16) <= 40 + 0).all()
+    assert (out["gt_sigma"] <= 0.01).all() and (out["gt"] == 2.0).all()
+    # without the option every crop is kept, and the sigma patches come along
+    out = make_patches(inp, gt, rgb, PatchSettings(count=100, size=16), np.random.default_rng(0), gt_sigma_m=sigma)
+    assert out["kept"].all() and out["gt_sigma"].shape == (100, 16, 16)
+    with pytest.raises(ValueError, match="max_gt_sigma_m"):
+        make_patches(inp, gt, rgb, s, np.random.default_rng(0))
+    with pytest.raises(ConfigError, match="patches.max_gt_sigma_m"):
+        PatchSettings(max_gt_sigma_m=0)

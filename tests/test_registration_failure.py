@@ -4,6 +4,7 @@ frame set is rendered from the registered ones or excluded, and the reason is wr
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -64,9 +65,12 @@ def test_failed_neighbours_are_dropped_or_the_set_excluded(scene_and_truth, tmp_
     keep = [0, 2, 3, 4, 5]  # positions of offsets 0, -4, -2, 2, 4
     expected = fuse(data, T_true, settings.render, members=keep).depth[0, 0].numpy()
     np.testing.assert_allclose(gt, expected, atol=1e-6)
-    with_bad = fuse(data, _fake_registration(T_true, {-6, 6})(None, None, None, [0, -6, -4, -2, 2, 4, 6], None).T_j_to_t,
-                    settings.render).depth[0, 0].numpy()
+    T_bad = _fake_registration(T_true, {-6, 6})(None, None, None, [0, -6, -4, -2, 2, 4, 6], None).T_j_to_t
+    no_check = replace(settings.render, min_frame_agreement=0.0)
+    with_bad = fuse(data, T_bad, no_check).depth[0, 0].numpy()
     assert np.abs(with_bad - gt).max() > 0.1  # the moved neighbours would have shown in the GT
+    # (the renderer's own frame-agreement check also leaves such neighbours out)
+    assert (fuse(data, T_bad, settings.render).agreement[0, [1, 6]] < settings.render.min_frame_agreement).all()
     if on_failure == "exclude":
         assert doc["status"] == "failed" and "-6" in doc["reason"] and "+6" in doc["reason"]
     else:

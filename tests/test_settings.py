@@ -44,7 +44,7 @@ def test_default_config_builds_every_stage():
 
 def test_missing_sections_take_defaults():
     s = settings_from_config({})
-    assert s.patches.count == 6 and s.render.m == 16 and s.registration.refine_settings.iters == (10, 8, 6)
+    assert s.patches.count == 6 and s.render.m == 64 and s.registration.refine_settings.iters == (10, 8, 6)
 
 
 @pytest.mark.parametrize("config, key", [

@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.parametrize("kind,options,message", [
-    ("synthetic", {"n_frame": 10}, r"src\.options\.n_frame: unknown synthetic option; known options: cx, cy, fx"),
+    ("synthetic", {"n_frame": 10}, r"src\.options\.n_frame: unknown synthetic option; known options: cx, cy, family, fx"),
     ("synthetic", {"n_frames": 0}, r"src\.options\.n_frames: must be an integer in \[1, 1000000\], got 0"),
     ("synthetic", {"width": 100000}, r"src\.options\.width: must be an integer in \[32, 4096\], got 100000"),
     ("synthetic", {"noise": "yes"}, r"src\.options\.noise: must be true or false, got 'yes'"),
@@ -58,12 +58,13 @@ def test_check_options_accepts_valid_options():
 def test_option_names_match_the_adapters():
     """The torch-free option lists mirror the adapters (which import OpenCV or torch)."""
     from depthgt.sources import scannet, sevenscenes, synthetic, tum
-    from depthgt.synth.noise import KinectNoise
+    from depthgt.synth.noise import SENSOR_PROFILES, KinectNoise
 
     for kind, module in (("scannet", scannet), ("sevenscenes", sevenscenes), ("tum", tum)):
         params = list(inspect.signature(module.open_scene).parameters)[2:]
         assert base.option_names(kind) == sorted(params), kind
     assert base.SYNTHETIC_NOISE_FIELDS == tuple(f.name for f in fields(KinectNoise))
+    assert base.SYNTHETIC_SENSORS == tuple(SENSOR_PROFILES) and base.SYNTHETIC_FAMILIES == synthetic.FAMILIES
     assert base.option_names("synthetic") == sorted(list(synthetic._DEFAULTS) + [f"noise_{n}" for n in base.SYNTHETIC_NOISE_FIELDS])
     assert synthetic._DEFAULTS["seed"] == base.SYNTHETIC_DEFAULT_SEED
     assert base.check_options("tum", {"camera": "fr2"}) is None and sorted(tum.CAMERAS) == ["fr1", "fr2", "fr3", "ros_default"]

@@ -56,7 +56,9 @@ def test_layout(built):
             for name in FRAMESET_FILES:
                 assert (fdir / name).exists(), fdir / name
             gt = read_exr(fdir / "gt.exr")
-            assert set(gt) == {"Z", "W", "N"} and gt["Z"].shape == (128, 128)
+            assert set(gt) == {"Z", "W", "N", "S"} and gt["Z"].shape == (128, 128)
+            # S: the GT's expected std (metres), positive wherever there is GT depth
+            assert (gt["S"][gt["Z"] > 0] > 0).all() and np.isfinite(gt["S"]).all()
             inp = read_exr(fdir / "input.exr")
             assert {"Z", "T"} <= set(inp)
             doc = json.loads((fdir / "frameset.json").read_text())
@@ -165,3 +167,21 @@ def test_overfit_registration_in_workflow(tmp_path):
         assert np.linalg.norm(T[:3, 3] - ref[:3, 3]) < 0.01  # metres
         cos = (np.trace(T[:3, :3] @ ref[:3, :3].T) - 1) / 2
         assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 0.5
+
+
+def test_store_reads_and_extracts_a_frameset(built, tmp_path):
+    """depthgt.gt.store gives one built frame set's arrays and copies its files out."""
+    from depthgt.errors import DepthGTError
+    from depthgt.gt.store import extract_frameset, read_frameset
+
+    meta = json.loads((built / "results/scenes/syn/room_000/index.json").read_text())
+    target = meta["framesets_ok"][0]
+    rec = read_frameset(built / "results", "syn", "room_000", target)
+    assert rec.gt_m.shape == rec.input_m.shape == rec.gt_sigma_m.shape == rec.rgb.shape[:2] == (128, 128)
+    assert rec.truth_m is not None and rec.meta["target"] == target and rec.patches["kept"].dtype == bool
+    assert (rec.gt_sigma_m[rec.gt_m > 0] > 0).all()
+    written = extract_frameset(built / "results", "syn", "room_000", target, tmp_path / "one")
+    assert sorted(p.name for p in written) == sorted(FRAMESET_FILES)
+    np.testing.assert_array_equal(read_exr(tmp_path / "one" / "gt.exr")["Z"], rec.gt_m)
+    with pytest.raises(DepthGTError, match="not built"):
+        read_frameset(built / "results", "syn", "room_000", 999_999)

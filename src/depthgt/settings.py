@@ -48,6 +48,7 @@ DEVICES = ("auto", "cpu", "cuda")
 # fewer than min_ok_fraction of the neighbours registered is excluded either way.
 ON_FAILURE = ("drop_neighbours", "exclude")
 REGISTRATION_METHODS = ("given", "overfit")
+RENDER_PLANES = ("fit", "normals", "none")  # render.plane
 
 # Upper bounds on values that size memory (a typo such as patches.count: 60000 or
 # resize: 25600 would otherwise be found by the kernel's OOM killer, hours into a run).
@@ -133,12 +134,16 @@ class PatchSettings:
         max_missing: a pair is kept when its missing ratio is strictly below this.
         filter_on: which image's missing ratio decides ("gt", "input" or "both"; the
             paper does not say which).
+        max_gt_sigma_m: GT pixels whose expected std (gt.exr channel ``S``, metres)
+            exceeds this are left out of the GT patch and count as missing; None
+            (default) keeps every GT pixel.
     """
 
     count: int = 6
     size: int = 128
     max_missing: float = 0.05
     filter_on: str = "gt"
+    max_gt_sigma_m: float | None = None
 
     def __post_init__(self):
         _require(self.filter_on in ("gt", "input", "both"), "patches.filter_on",
@@ -146,6 +151,8 @@ class PatchSettings:
         _require(1 <= self.count <= MAX_PATCH_COUNT, "patches.count", f"must be in [1, {MAX_PATCH_COUNT}], got {self.count}")
         _require(self.size >= 1, "patches.size", f"must be >= 1, got {self.size}")
         _require(0.0 < self.max_missing <= 1.0, "patches.max_missing", f"must be in (0, 1], got {self.max_missing}")
+        _require(self.max_gt_sigma_m is None or self.max_gt_sigma_m > 0, "patches.max_gt_sigma_m",
+                 f"must be null or > 0, got {self.max_gt_sigma_m}")
 
 
 # --------------------------------------------------------------------------- GT renderer
@@ -154,85 +161,120 @@ class PatchSettings:
 @dataclass(frozen=True)
 class RenderSettings:
     """Settings of :func:`depthgt.gt.render.render_gt` (config ``render``; paper eq. 5
-    plus the front-surface guard).
+    with surface selection by geometry).
+
+    The renderer reasons in inverse depth, where a disparity sensor's noise is about
+    constant (its depth noise grows as z^2) and planes are affine in screen space.
+    Every depth sample carries an expected standard deviation
+    ``sigma_z = sqrt(noise_sigma_abs_m^2 + (noise_sigma_1m * z^2)^2)``, i.e.
+    ``sigma_z / z^2`` in inverse depth.
+
+    Defaults were chosen on the TUNING set of bench/bench_gt_protocol.py (synthetic
+    ``room`` and ``varied`` scenes of seed 0, Kinect v1 profile) and are reported on its
+    disjoint EVALUATION set (README "GT renderer").
 
     Attributes:
-        m: at most this many nearest projected points (by pixel distance) per pixel.
-            The paper does not state m; 7 frames at one resolution put about
-            7 * pi * R^2 ~ 34 points within R = 1.25 px of a pixel centre, and m = 16
-            keeps the nearest half of them (an effective radius of ~0.85 px), which
-            keeps the footprint small at edges while averaging over ~2 points per frame.
-        radius_px: R, radius in output pixels of the neighbourhood of a pixel centre
-            and the scale of the weights exp(-d / R^2) (d squared pixel distance).
-        rel_band, abs_band_m: depth band of one surface layer: a candidate belongs to
-            the layer starting at depth z0 when z0 <= z <= z0 * (1 + rel_band) +
-            abs_band_m (metres). It must exceed the depth noise of the input (Kinect:
-            ~1% at 3 m) and stay below the depth gaps between objects.
-        coverage_frac: the front layer F (starting at the nearest candidate depth)
-            takes the pixel when the mean offset of its candidates from the pixel
-            centre is at most ``coverage_frac * R``: its samples then surround the
-            centre. When F's edge passes near the centre without covering it, its
-            samples sit on one side (a uniformly sampled half disk has its centroid at
-            4R / (3 pi) = 0.42 R), and the pixel takes the next layer behind F.
-        compare_next_layer: an uncovered F must also sit more to one side than the
-            next layer's candidates (larger mean offset). Sensors drop depth next to
-            discontinuities (Kinect), which leaves F's samples on one side of a centre
-            that F does cover; without this check such edges erode (Kinect-noised
-            synthetic rooms: GT MAE 8.1 -> 6.8 mm; clean depth: unchanged).
-        ambiguous_band: (lo, hi) fractions of R: a pixel where F and a layer behind it
-            both have candidates and F's mean offset lies between lo * R and hi * R is
-            left empty: an edge passes within ~0.1 px of its centre and its side cannot
-            be decided reliably. None keeps every pixel. On synthetic rooms (exact
-            poses) this empties ~1-2% of the pixels and cuts the GT MAE by 2-4x (clean
-            depth: ~0.9 -> 0.2 and 2.2 -> 0.7 mm; Kinect-noised: 4.0 -> 2.4 and
-            6.8 -> 4.4 mm, below the input's own 3.8 and 5.3 mm).
-        extend_uncovered: what an uncovered pixel with no layer behind F gets: False
-            leaves it empty (no frame saw what is there: typically background that only
-            the target sees, next to a foreground edge); True (default) gives it F
-            (extrapolates surfaces by up to ~R at the borders of the data). Measured on
-            6 synthetic frame sets with Kinect noise and exact poses: completeness 96.9
-            -> 98.5 %, MAE with missing counted 0.43 -> 0.23 of the input's, MAE where
-            the input is valid unchanged (0.42 of the input's); the MAE over all GT
-            pixels rises (3.1 -> 5.1 mm) from the extrapolated silhouette pixels.
-        min_points: pixels with fewer kept points get depth 0 (their weight sum and
-            count are still reported).
-        plane_correction: when normals are given, move every candidate's depth along
-            its local tangent plane to the pixel-centre ray (exact on planes; done in
-            inverse depth, which is affine in screen space) instead of using the depth
-            of the point at its own sub-pixel position.
-        min_cos_incidence: no plane correction for points whose normal makes |cos|
-            below this with the viewing ray (grazing planes are unreliable).
-        max_correction_rel: no plane correction for points whose correction could
-            exceed this fraction of the depth within R (a normal taken across an edge).
+        m: at most this many samples of the chosen surface per pixel, nearest to the
+            sample position first (7 frames put ~34 samples within R = 1.25 px).
+        radius_px: R, radius in output pixels of a pixel's neighbourhood and scale of
+            the spatial weights exp(-d / R^2) (d squared pixel distance).
+        noise_sigma_1m: sigma of one depth sample at 1 m in metres (the z^2 law). None:
+            estimated from the depth images being fused
+            (:func:`depthgt.gt.render.estimate_noise_sigma_1m`, done by
+            :func:`depthgt.gt.render.cloud_in_target`), so that
+            the tolerances follow the sensor at hand; :func:`~depthgt.gt.render.render_gt` called
+            with bare points uses :data:`depthgt.gt.render.KINECT_SIGMA_1M`.
+        noise_sigma_abs_m: floor of the per-sample sigma in metres (millimetre
+            rounding of depth files, residual pose error).
+        gap_sigmas: samples of a pixel sorted by inverse depth form one surface while
+            consecutive samples differ by at most ``gap_sigmas`` times the std of their
+            difference; a wider gap separates two surfaces. A gap criterion (not a band
+            from the nearest sample) keeps a slanted or grazing surface, whose samples
+            spread over a wide but densely filled depth range, in one piece.
+        gap_slope_rel: the tolerance grows by this fraction of the inverse depth per
+            pixel between the two samples: consecutive samples of a slanted surface
+            differ by its slope times their distance, and a surface at 78 deg
+            incidence (fx ~ 230 px) changes depth by ~2% per pixel. Matters where the
+            noise is small (clean depth) and normals are unknown.
+        min_frames: a surface hides the ones behind it only when samples of at least
+            this many frames support it (a lone frame's outliers or misregistered
+            samples do not punch into the GT; a thin pole that several frames see is
+            kept). A pixel where no surface has that support takes the nearest one.
+        edge_margin_px: a surface covers the sample position when its samples reach at
+            least this far beyond it, measured opposite their centroid (the position
+            is inside the sampled footprint, also for a pole 1-3 px wide), or when one
+            of its samples lies within 0.05 px of it (the target's own sample). The front
+            surface takes a pixel it covers; otherwise the surface behind does when it
+            covers it; when neither does (a gap between the two), the one with the
+            sample nearest to the position.
+        ambiguous_px: a pixel where the front surface's edge passes within this of
+            ``edge_margin_px`` and a surface lies behind it is ambiguous (its side
+            cannot be decided): its sigma grows by half the depth step between the two
+            surfaces, and with ``drop_ambiguous`` it is left empty.
+        drop_ambiguous: leave ambiguous pixels empty (see ``ambiguous_px``).
+        extend_uncovered: a pixel not covered by the front surface with nothing behind
+            it (the border of what any frame saw) keeps the front surface (True) or
+            stays empty (False).
+        min_points: pixels with fewer kept samples get no GT.
+        plane: how the depth at the sample position is estimated from the kept
+            samples: ``fit`` (weighted least-squares plane in inverse depth, with the
+            samples' normals as a weak prior on its slope), ``normals`` (each sample
+            moved along its own tangent plane, then averaged) or ``none`` (plain
+            weighted average).
+        slope_prior: weight (in px^2) of the normals' slope in the ``fit`` plane: the
+            slope shrinks towards it where the samples' spread determines it poorly.
+        min_cos_incidence, max_correction_rel: a sample's normal is not used when its
+            |cos| with the viewing ray is below ``min_cos_incidence`` or its tangent
+            plane changes depth by more than ``max_correction_rel`` within R.
+        max_sigma_m: GT pixels whose expected std (the ``sigma`` output, metres) exceeds
+            this get no GT (depth 0, sigma kept); None keeps all.
+        min_frame_agreement: with the target's own depth fused (``target_frame``), a
+            frame is left out when fewer than this share of its samples next to the
+            target's samples agree with them (gap rule above): a misregistered
+            neighbour. 0 disables the check.
         min_depth_m: points at or nearer than this (metres) are ignored.
     """
 
-    m: int = 16
+    m: int = 64
     radius_px: float = 1.25
-    rel_band: float = 0.02
-    abs_band_m: float = 0.01
-    coverage_frac: float = 0.42
-    compare_next_layer: bool = True
-    ambiguous_band: tuple[float, float] | None = (0.3, 0.55)
+    noise_sigma_1m: float | None = None
+    noise_sigma_abs_m: float = 0.001
+    gap_sigmas: float = 4.0
+    gap_slope_rel: float = 0.02
+    min_frames: int = 2
+    edge_margin_px: float = -0.05
+    ambiguous_px: float = 0.4
+    drop_ambiguous: bool = True
     extend_uncovered: bool = True
     min_points: int = 1
-    plane_correction: bool = True
+    plane: str = "fit"
+    slope_prior: float = 0.01
     min_cos_incidence: float = 0.15
     max_correction_rel: float = 0.05
+    max_sigma_m: float | None = None
+    min_frame_agreement: float = 0.95
     min_depth_m: float = 1e-3
 
     def __post_init__(self) -> None:
         _require(self.m >= 1, "render.m", f"must be >= 1, got {self.m}")
         _require(self.radius_px > 0, "render.radius_px", f"must be > 0, got {self.radius_px}")
-        _require(self.rel_band >= 0 and self.abs_band_m >= 0, "render.rel_band/abs_band_m",
-                 f"bands must be >= 0, got rel_band={self.rel_band}, abs_band_m={self.abs_band_m}")
-        _require(0 < self.coverage_frac <= 1, "render.coverage_frac", f"must be in (0, 1], got {self.coverage_frac}")
+        _require(self.noise_sigma_1m is None or self.noise_sigma_1m > 0, "render.noise_sigma_1m",
+                 f"must be null or > 0, got {self.noise_sigma_1m}")
+        _require(self.noise_sigma_abs_m >= 0, "render.noise_sigma_abs_m", f"must be >= 0, got {self.noise_sigma_abs_m}")
+        _require(self.gap_sigmas > 0, "render.gap_sigmas", f"must be > 0, got {self.gap_sigmas}")
+        _require(self.gap_slope_rel >= 0, "render.gap_slope_rel", f"must be >= 0, got {self.gap_slope_rel}")
+        _require(self.min_frames >= 1, "render.min_frames", f"must be >= 1, got {self.min_frames}")
         _require(self.min_points >= 1, "render.min_points", f"must be >= 1, got {self.min_points}")
-        if self.ambiguous_band is not None:
-            band = tuple(float(x) for x in self.ambiguous_band)
-            _require(len(band) == 2 and 0 <= band[0] < band[1], "render.ambiguous_band",
-                     f"must be None or (lo, hi) with 0 <= lo < hi, got {self.ambiguous_band}")
-            object.__setattr__(self, "ambiguous_band", band)  # a list from YAML becomes a tuple
+        _require(self.ambiguous_px >= 0, "render.ambiguous_px", f"must be >= 0, got {self.ambiguous_px}")
+        _require(self.slope_prior >= 0, "render.slope_prior", f"must be >= 0, got {self.slope_prior}")
+        _require(self.plane in RENDER_PLANES, "render.plane", f"must be one of {', '.join(RENDER_PLANES)}, got {self.plane!r}")
+        _require(0.0 <= self.min_frame_agreement <= 1.0, "render.min_frame_agreement",
+                 f"must be in [0, 1], got {self.min_frame_agreement}")
+        _require(self.max_sigma_m is None or self.max_sigma_m > 0, "render.max_sigma_m",
+                 f"must be null or > 0, got {self.max_sigma_m}")
+        _require(0 < self.min_cos_incidence < 1, "render.min_cos_incidence", f"must be in (0, 1), got {self.min_cos_incidence}")
+        _require(self.max_correction_rel > 0, "render.max_correction_rel", f"must be > 0, got {self.max_correction_rel}")
+        _require(self.min_depth_m > 0, "render.min_depth_m", f"must be > 0, got {self.min_depth_m}")
 
 
 # --------------------------------------------------------------------------- registration

@@ -74,6 +74,9 @@ METRIC_UNITS = {
     "rde_missing": "fraction",
     "gt_mean_points": "points",
     "neighbours_fused": "frames",
+    "gt_median_sigma_m": "m",
+    "render_agreement": "fraction",  # per neighbour (keyed by frame offset): share of samples agreeing with the target
+    "render_left_out": "frame offsets",  # neighbours the renderer left out (too little agreement)
     "patches_drawn": "patches",
     "patches_kept": "patches",
 }

@@ -191,9 +191,13 @@ def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, d
     eye = torch.eye(4, dtype=T_j_to_t.dtype, device=T_j_to_t.device)[None]
     T = torch.cat([eye, T_j_to_t], dim=0)[members]
     K = data.K[None].expand(depth.shape[0], 3, 3)
-    cloud = cloud_in_target(depth, K, T, src_hw=data.src_hw)
+    cloud = cloud_in_target(depth, K, T, src_hw=data.src_hw, noise_sigma_1m=settings.noise_sigma_1m,
+                            noise_sigma_abs_m=settings.noise_sigma_abs_m)
     h, w = data.depth_m.shape[-2:]
-    return render_gt(cloud.points, data.K[None].to(depth.dtype), (h, w), cloud.valid, settings, normals_cam=cloud.normals)
+    chosen = list(range(len(data.depth_m)))[members] if isinstance(members, slice) else list(members)
+    with_target = bool(chosen) and chosen[0] == 0  # the target's own depth is fused, as frame 0 of the cloud
+    return render_gt(cloud.points, data.K[None].to(depth.dtype), (h, w), cloud.valid, settings, normals_cam=cloud.normals,
+                     sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=data.src_hw, target_frame=0 if with_target else None)
 
 
 def quality_statistics(data: FrameSetData, alignment: Alignment, gt_m: np.ndarray, settings: RenderSettings) -> dict:
@@ -257,6 +261,7 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
 
     depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
     gt_depth = gt.depth[0, 0].detach().cpu().numpy().astype(np.float32)
+    gt_sigma = gt.sigma[0, 0].detach().cpu().numpy().astype(np.float32)
     truth = data.truth_m[0, 0].cpu().numpy().astype(np.float32) if data.truth_m is not None else None
     rgb8 = (data.rgb[0].permute(1, 2, 0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
 
@@ -264,13 +269,20 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
         "input_missing": float((depth_in <= 0).mean()),
         "gt_missing": float((gt_depth <= 0).mean()),
         "gt_mean_points": float(gt.count[0, 0].float().mean()),
+        "gt_median_sigma_m": float(np.median(gt_sigma[gt_depth > 0])) if (gt_depth > 0).any() else float("nan"),
         "neighbours_fused": len(fused) - 1,
     }
+    # neighbours the renderer left out: too few of their samples agree with the target's depth
+    offsets_fused = [members[i] - target for i in fused]
+    share = gt.agreement[0].cpu().numpy()
+    stats["render_agreement"] = {f"{o:+d}": round(float(a), 4) for o, a in zip(offsets_fused, share) if np.isfinite(a)}
+    stats["render_left_out"] = [o for o, a in zip(offsets_fused, share)
+                                if np.isfinite(a) and a < settings.render.min_frame_agreement and o != 0]
     stats.update(quality_statistics(data, alignment, gt_depth, settings.render))
     lap("quality")
 
     rng = np.random.default_rng(stable_seed(settings.seed, dataset, scene.name, target, "patches"))
-    patches = make_patches(depth_in, gt_depth, rgb8, settings.patches, rng, truth_m=truth)
+    patches = make_patches(depth_in, gt_depth, rgb8, settings.patches, rng, truth_m=truth, gt_sigma_m=gt_sigma)
     stats["patches_drawn"] = int(len(patches["kept"]))
     stats["patches_kept"] = int(patches["kept"].sum())
     lap("patches")
@@ -279,7 +291,8 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     if truth is not None:
         input_channels["T"] = truth
     write_atomic(out.gt, io.write_exr, {"Z": gt_depth, "W": gt.weight_sum[0, 0].detach().cpu().numpy().astype(np.float32),
-                                        "N": gt.count[0, 0].cpu().numpy().astype(np.float32)})
+                                        "N": gt.count[0, 0].cpu().numpy().astype(np.float32),
+                                        "S": gt_sigma})
     write_atomic(out.input, io.write_exr, input_channels)
     write_atomic(out.rgb, io.write_rgb_png, rgb8)
     write_atomic(out.patches, save_npz, patches)
@@ -315,8 +328,9 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
 
 
 def _units(stats: dict) -> dict[str, str]:
-    """Unit of every statistic (nested error dicts share their metrics' units)."""
+    """Unit of every statistic (nested error dicts share their metrics' units; a dict
+    keyed by frame offset, such as ``render_agreement``, has its own unit)."""
     names = set()
     for key, value in stats.items():
-        names.update(value if isinstance(value, dict) else [key])
+        names.update(value if isinstance(value, dict) and key not in METRIC_UNITS else [key])
     return {k: METRIC_UNITS[k] for k in sorted(names)}

@@ -2,7 +2,10 @@
 
 Paper Sec. 4.1: 6 random 128x128 crops per 256x256 pair, kept when the missing ratio
 is below 5 %. The paper does not say which image the ratio is measured on; the
-default is the GT patch, configurable (``gt`` | ``input`` | ``both``).
+default is the GT patch, configurable (``gt`` | ``input`` | ``both``). With
+``max_gt_sigma_m`` the GT's per-pixel confidence (the ``S`` channel of gt.exr, an
+expected standard deviation in metres) joins the filter: GT pixels less certain than
+that are left out of the patch (set to 0) and count as missing.
 """
 
 from __future__ import annotations
@@ -53,8 +56,9 @@ def passes_missing_filter(max_missing: float, *ratios: np.ndarray) -> np.ndarray
 
 
 def crop_pairs(input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray, boxes: np.ndarray, max_missing: float,
-               filter_on: str = "gt", truth_m: np.ndarray | None = None) -> dict[str, np.ndarray]:
-    """Crop (input, GT, rgb[, truth]) at ``boxes`` and keep the pairs that pass the
+               filter_on: str = "gt", truth_m: np.ndarray | None = None, gt_sigma_m: np.ndarray | None = None,
+               max_gt_sigma_m: float | None = None) -> dict[str, np.ndarray]:
+    """Crop (input, GT, rgb[, truth, GT sigma]) at ``boxes`` and keep the pairs that pass the
     missing filter on ``filter_on`` ("gt", "input" or "both").
 
     Args:
@@ -63,10 +67,14 @@ def crop_pairs(input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray, boxes: np
         rgb: (H, W, 3) uint8 colour.
         boxes: (P, 4) int boxes (y0, x0, h, w) of equal size.
         truth_m: optional (H, W) clean depth (synthetic sources).
+        gt_sigma_m: optional (H, W) expected std of the GT in metres (gt.exr's ``S``);
+            needed when ``max_gt_sigma_m`` is set.
+        max_gt_sigma_m: GT pixels whose ``gt_sigma_m`` exceeds this are left out of the
+            GT (set to 0) before the missing filter; None keeps every GT pixel.
 
     Returns:
         Arrays ``input``, ``gt``, ``rgb``, ``boxes``, ``missing_input``, ``missing_gt``
-        (and ``truth``) of the kept pairs, plus ``all_boxes``, ``all_missing_input``,
+        (and ``truth``, ``gt_sigma``) of the kept pairs, plus ``all_boxes``, ``all_missing_input``,
         ``all_missing_gt`` and ``kept`` (bool) for every crop so that rejected crops are
         recorded, not lost.
     """
@@ -74,6 +82,12 @@ def crop_pairs(input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray, boxes: np
         raise ValueError(f"input {input_m.shape}, gt {gt_m.shape} and rgb {rgb.shape} sizes differ")
     if filter_on not in ("gt", "input", "both"):
         raise ValueError(f"filter_on must be gt, input or both, got {filter_on!r}")
+    if gt_sigma_m is not None and gt_sigma_m.shape != gt_m.shape:
+        raise ValueError(f"gt_sigma_m {gt_sigma_m.shape} and gt {gt_m.shape} sizes differ")
+    if max_gt_sigma_m is not None:
+        if gt_sigma_m is None:
+            raise ValueError("patches.max_gt_sigma_m is set but no GT confidence (gt_sigma_m) was given")
+        gt_m = np.where(gt_sigma_m <= max_gt_sigma_m, gt_m, 0).astype(gt_m.dtype)
     p_in, p_gt = crop(input_m, boxes), crop(gt_m, boxes)
     miss_in, miss_gt = missing_ratio(p_in), missing_ratio(p_gt)
     decisive = {"gt": (miss_gt,), "input": (miss_in,), "both": (miss_gt, miss_in)}[filter_on]
@@ -92,14 +106,17 @@ def crop_pairs(input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray, boxes: np
     }
     if truth_m is not None:
         out["truth"] = crop(truth_m, boxes)[keep].astype(np.float32)
+    if gt_sigma_m is not None:
+        out["gt_sigma"] = crop(gt_sigma_m, boxes)[keep].astype(np.float32)
     return out
 
 
 def make_patches(input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray, settings: PatchSettings, rng: np.random.Generator,
-                 truth_m: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                 truth_m: np.ndarray | None = None, gt_sigma_m: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Draw ``settings.count`` crop boxes and :func:`crop_pairs` them (see there for the
     arrays returned)."""
     if input_m.shape != gt_m.shape or rgb.shape[:2] != gt_m.shape:
         raise ValueError(f"input {input_m.shape}, gt {gt_m.shape} and rgb {rgb.shape} sizes differ")
     boxes = crop_boxes(gt_m.shape, settings, rng)
-    return crop_pairs(input_m, gt_m, rgb, boxes, settings.max_missing, settings.filter_on, truth_m)
+    return crop_pairs(input_m, gt_m, rgb, boxes, settings.max_missing, settings.filter_on, truth_m,
+                      gt_sigma_m, settings.max_gt_sigma_m)

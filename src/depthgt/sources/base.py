@@ -245,10 +245,15 @@ def _number(lo: float, strict: bool) -> OptionCheck:
 
 _OPTIONAL_POSITIVE = OptionCheck("null or a number > 0", lambda v: v is None or (_is_number(v) and v > 0))
 
+#: Sensor profiles (depthgt.synth.noise.SENSOR_PROFILES) and scene families
+#: (depthgt.sources.synthetic.FAMILIES) of the synthetic source.
+SYNTHETIC_SENSORS = ("kinect_v1", "coarse_stereo")
+SYNTHETIC_FAMILIES = ("room", "varied")
+
 #: Fields of depthgt.synth.noise.KinectNoise (option ``noise_<field>``); a test keeps
 #: this list equal to the dataclass, which is not imported here (it needs OpenCV).
 SYNTHETIC_NOISE_FIELDS = (
-    "baseline_m", "disparity_step_px", "sigma_disp_px", "sigma_disp_smooth_px", "jitter_px", "shadow_tol_px",
+    "baseline_m", "disparity_step_px", "sigma_disp_px", "sigma_disp_smooth_px", "sigma_disp_falloff", "jitter_px", "shadow_tol_px",
     "shadow_grow_px", "edge_band_px", "edge_rel_jump", "edge_drop_prob", "grazing_cos", "dark_level", "min_range_m",
     "max_range_m", "far_ramp_m", "blob_fraction", "border_right_px", "round_mm",
 )
@@ -282,6 +287,9 @@ _OPTIONS: dict[str, dict[str, OptionCheck]] = {
         "rgb_noise": _number(0.0, strict=False),
         "step_mm": _number(0.0, strict=True),
         "sweep_m": _number(0.0, strict=False),
+        # names mirror depthgt.synth.noise.SENSOR_PROFILES and synthetic.FAMILIES (a test keeps them equal)
+        "sensor": OptionCheck("one of kinect_v1, coarse_stereo", lambda v: v in SYNTHETIC_SENSORS),
+        "family": OptionCheck("one of room, varied", lambda v: v in SYNTHETIC_FAMILIES),
         **{f"noise_{name}": OptionCheck("a number >= 0 (or true/false for round_mm)",
                                         lambda v: isinstance(v, (bool, np.bool_)) or (_is_number(v) and v >= 0))
            for name in SYNTHETIC_NOISE_FIELDS},

@@ -1,28 +1,46 @@
-"""Synthetic RGB-D source: procedural furnished rooms seen by a simulated Kinect v1.
+"""Synthetic RGB-D source: procedural indoor scenes seen by a simulated depth sensor.
 
 The embedded default of the workflow and the synthetic test set (the paper's
 SceneNet role): every frame comes with its exact depth (``clean_depth_m``) and pose,
 so the GT's own error against the truth can be measured.
 
-Scenes are named ``room_000``, ``room_001``, ...; the number together with the
-``seed`` option fixes the room layout and its textures, and with ``n_frames`` the
-camera path (chosen to stay clear of the furniture over the whole sequence; it does
-not depend on the resolution). Any frame is
-rendered on demand from closed-form poses (random access); nothing per frame is
-cached. ``root`` is ignored (may be None).
+Two families, chosen by the scene name:
+
+* ``room_000``, ``room_001``, ...: furnished rooms of 3.5-5 m
+  (:func:`depthgt.synth.scene.generate_layout`) seen by a camera circling the table
+  (:func:`depthgt.synth.camera.make_path`), default intrinsics of a Kinect v1;
+* ``varied_000``, ``varied_001``, ...: the harder family of
+  :mod:`depthgt.synth.spaces` (open rooms, corridors and offices of 3-9 m, far walls
+  at 5-8 m, floors and ceilings at grazing angles, thin poles and legs of 1-3 cm,
+  clutter, dark and glossy surfaces) seen by a walking camera that pans and tilts
+  (:func:`depthgt.synth.camera.make_walk_path`); each scene draws its own intrinsics
+  (fx from 450 to 600 at 640 px width) unless they are given, and the sensor's range
+  reaches 8 m (``max_range_m`` 8, dropout ramping up over the last 2.5 m).
+
+The number together with the ``seed`` option fixes the layout and its textures, and
+with ``n_frames`` the camera path (chosen to stay clear of the furniture over the whole
+sequence; it does not depend on the resolution). Any frame is rendered on demand from
+closed-form poses (random access); nothing per frame is cached. ``root`` is ignored
+(may be None).
 
 Options (all optional):
 
-* ``seed`` (int, 0), ``n_frames`` (int, 40), ``n_scenes`` (int, 3; for ``list_scenes``);
-* ``width``, ``height`` (640, 480), ``fx``, ``fy``, ``cx``, ``cy`` (585, 585, 320,
-  240 at the default size; when only the size is given, scaled from those);
-* ``noise`` (bool, true): Kinect v1 noise on ``depth_m``; otherwise ``depth_m`` is
-  the exact depth;
-* ``noise_<field>``: any field of :class:`depthgt.synth.noise.KinectNoise`, e.g.
-  ``noise_sigma_disp_px``, ``noise_max_range_m``, ``noise_jitter_px``;
+* ``seed`` (int, 0), ``n_frames`` (int, 40), ``n_scenes`` (int, 3) and ``family``
+  (``room`` or ``varied``) for ``list_scenes``;
+* ``width``, ``height`` (640, 480), ``fx``, ``fy``, ``cx``, ``cy`` (rooms: 585, 585,
+  320, 240 at the default size; when only the size is given, scaled from those);
+* ``noise`` (bool, true): sensor noise on ``depth_m``; otherwise ``depth_m`` is the
+  exact depth;
+* ``sensor`` (``kinect_v1``): the sensor profile, one of
+  :data:`depthgt.synth.noise.SENSOR_PROFILES` (``kinect_v1``: calibrated on the
+  7-Scenes fixture; ``coarse_stereo``: coarser far-range quantisation, a noise law
+  without the Kinect's fall-off, wider edge shadows);
+* ``noise_<field>``: any field of :class:`depthgt.synth.noise.KinectNoise`, replacing
+  the profile's, e.g. ``noise_sigma_disp_px``, ``noise_max_range_m``;
 * ``rgb_noise`` (float, 2.0): std of the colour sensor noise in 8-bit levels;
 * ``step_mm`` (float, 5): mean camera translation per frame; ``sweep_m`` (float,
-  0.5): amplitude of the gaze sweep (sets the rotation per frame, ~0.2-1 deg).
+  0.5): amplitude of the gaze sweep of the room family (sets the rotation per
+  frame, ~0.2-1 deg).
 """
 
 from __future__ import annotations
@@ -30,22 +48,26 @@ from __future__ import annotations
 import logging
 import re
 from dataclasses import fields
-from typing import Any
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
 
 from depthgt.errors import ConfigError, FrameError, SourceError
 from depthgt.sources.base import Frame
-from depthgt.synth.camera import CameraPath, make_path
-from depthgt.synth.noise import KinectNoise, kinect_noise
-from depthgt.synth.scene import Layout, albedo, generate_layout, raycast, shade
+from depthgt.synth.camera import CameraPath, WalkPath, make_path, make_walk_path
+from depthgt.synth.noise import SENSOR_PROFILES, KinectNoise, infrared_return, kinect_noise, sensor_profile
+from depthgt.synth.scene import Layout, albedo, generate_layout, raycast, shade, thin_mask
+from depthgt.synth.spaces import generate_space_layout
 
-__all__ = ["SyntheticScene", "open_scene", "list_scenes", "parse_scene_name"]
+__all__ = ["SyntheticScene", "ExactView", "FAMILIES", "open_scene", "list_scenes", "parse_scene_name"]
 
 log = logging.getLogger(__name__)
 
-_NAME = re.compile(r"^room_(\d{3,})$")
+FAMILIES = ("room", "varied")
+_NAME = re.compile(r"^(room|varied)_(\d{3,})$")
+# sensor settings the varied family changes from the profile: depth out to 8 m
+_FAMILY_NOISE = {"room": {}, "varied": {"max_range_m": 8.0, "far_ramp_m": 2.5}}
 _NOISE_FIELDS = {f.name for f in fields(KinectNoise)}
 _DEFAULTS: dict[str, Any] = {
     "seed": 0,
@@ -58,20 +80,27 @@ _DEFAULTS: dict[str, Any] = {
     "cx": None,
     "cy": None,
     "noise": True,
+    "sensor": "kinect_v1",
+    "family": "room",
     "rgb_noise": 2.0,
     "step_mm": 5.0,
     "sweep_m": 0.5,
 }
-# Seed-sequence stream tags: layout, path, depth noise, colour noise.
-_STREAM_LAYOUT, _STREAM_PATH, _STREAM_DEPTH, _STREAM_RGB = 0, 1, 2, 3
+# Seed-sequence stream tags: layout, path, depth noise, colour noise, intrinsics.
+_STREAM_LAYOUT, _STREAM_PATH, _STREAM_DEPTH, _STREAM_RGB, _STREAM_INTRINSICS = 0, 1, 2, 3, 4
+# the varied family's seed sequences carry this extra tag, so that varied_000 and
+# room_000 of one seed draw independent numbers
+_FAMILY_TAG = {"room": (), "varied": (1,)}
 
 
-def parse_scene_name(scene: str) -> int:
-    """Room number of a scene name ``room_NNN``; raises SourceError naming it."""
+def parse_scene_name(scene: str) -> tuple[str, int]:
+    """(family, number) of a scene name ``room_NNN`` or ``varied_NNN``; raises
+    SourceError naming it."""
     m = _NAME.match(str(scene))
     if m is None:
-        raise SourceError(f"synthetic scene name {scene!r} is not of the form room_000, room_001, ...")
-    return int(m.group(1))
+        raise SourceError(f"synthetic scene name {scene!r} is not of the form room_000, room_001, ... or "
+                          f"varied_000, varied_001, ...")
+    return m.group(1), int(m.group(2))
 
 
 def _int_option(opts, key, lo):
@@ -88,7 +117,7 @@ def _float_option(opts, key, lo, strict=True):
     return float(v)
 
 
-def _resolve_options(options: dict[str, Any]) -> tuple[dict[str, Any], KinectNoise]:
+def _resolve_options(options: dict[str, Any], family: str = "room") -> tuple[dict[str, Any], KinectNoise]:
     noise_kw = {}
     opts = dict(_DEFAULTS)
     for key, value in options.items():
@@ -101,54 +130,93 @@ def _resolve_options(options: dict[str, Any]) -> tuple[dict[str, Any], KinectNoi
             raise ConfigError(f"unknown synthetic option {key!r}; known options: {', '.join(known)}")
     for key, lo in (("seed", 0), ("n_frames", 1), ("n_scenes", 1), ("width", 32), ("height", 32)):
         opts[key] = _int_option(opts, key, lo)
-    w, h = opts["width"], opts["height"]
-    defaults = {"fx": 585.0 * w / 640, "fy": 585.0 * h / 480, "cx": (320.0 + 0.5) * w / 640 - 0.5, "cy": (240.0 + 0.5) * h / 480 - 0.5}
     for key in ("fx", "fy", "cx", "cy"):
-        if opts[key] is None:
-            opts[key] = defaults[key]
-        opts[key] = _float_option(opts, key, 0.0)
+        if opts[key] is not None:
+            opts[key] = _float_option(opts, key, 0.0)
     if not isinstance(opts["noise"], (bool, np.bool_)):
         raise ConfigError(f"synthetic option 'noise' must be true or false, got {opts['noise']!r}")
+    if opts["sensor"] not in SENSOR_PROFILES:
+        raise ConfigError(f"synthetic option 'sensor' must be one of {', '.join(SENSOR_PROFILES)}, got {opts['sensor']!r}")
+    if opts["family"] not in FAMILIES:
+        raise ConfigError(f"synthetic option 'family' must be one of {', '.join(FAMILIES)}, got {opts['family']!r}")
     opts["rgb_noise"] = _float_option(opts, "rgb_noise", 0.0, strict=False)
     opts["step_mm"] = _float_option(opts, "step_mm", 0.0)
     opts["sweep_m"] = _float_option(opts, "sweep_m", 0.0, strict=False)
     try:
-        noise = KinectNoise(**noise_kw)
+        noise = sensor_profile(opts["sensor"], **{**_FAMILY_NOISE[family], **noise_kw})
     except (TypeError, ValueError) as e:
         raise ConfigError(f"synthetic noise options: {e}") from e
     return opts, noise
 
 
-class SyntheticScene:
-    """One procedural room and its camera path (see the module docstring).
+def _intrinsics(opts: dict[str, Any], family: str, rng: np.random.Generator) -> np.ndarray:
+    """(3, 3) intrinsics at the option's size: the given values, else the family's
+    (rooms: Kinect v1, fx = 585 at 640 px; varied: fx drawn from 450-600 at 640 px,
+    fy within 1% of it, principal point within 8 px of the centre)."""
+    w, h = opts["width"], opts["height"]
+    if family == "varied":
+        fx = rng.uniform(450.0, 600.0)
+        fy = fx * rng.uniform(0.99, 1.01)
+        cx, cy = 319.5 + rng.uniform(-8.0, 8.0), 239.5 + rng.uniform(-6.0, 6.0)
+    else:
+        fx, fy, cx, cy = 585.0, 585.0, 320.0, 240.0
+    defaults = {"fx": fx * w / 640, "fy": fy * h / 480, "cx": (cx + 0.5) * w / 640 - 0.5, "cy": (cy + 0.5) * h / 480 - 0.5}
+    v = {k: (opts[k] if opts[k] is not None else defaults[k]) for k in defaults}
+    return np.array([[v["fx"], 0.0, v["cx"]], [0.0, v["fy"], v["cy"]], [0.0, 0.0, 1.0]])
 
-    Attributes follow :class:`depthgt.sources.base.Scene`; in addition ``layout``
-    (the room), ``path`` (the camera path) and ``noise_settings``.
+
+class ExactView(NamedTuple):
+    """The exact geometry of one view of a synthetic scene (:meth:`SyntheticScene.exact_view`).
+
+    depth_m: (H, W) float32 exact z-depth at the pixel centres.
+    cos_incidence: (H, W) float32 |cos| of the angle between the viewing ray and the
+        surface normal (1 = seen head-on; incidence above 65 deg is cos < 0.423).
+    thin: (H, W) bool, the pixel sees a thin structure (a pole, leg or rod at most
+        3 cm wide, :attr:`depthgt.synth.scene.Primitive.thin`).
+    """
+
+    depth_m: np.ndarray
+    cos_incidence: np.ndarray
+    thin: np.ndarray
+
+
+class SyntheticScene:
+    """One procedural scene and its camera path (see the module docstring).
+
+    Attributes follow :class:`depthgt.sources.base.Scene`; in addition ``family``,
+    ``layout`` (the room), ``path`` (the camera path) and ``noise_settings``.
     """
 
     has_poses = True
     has_clean_depth = True
 
     def __init__(self, scene: str, **options: Any):
-        self.room = parse_scene_name(scene)
+        self.family, self.room = parse_scene_name(scene)
         self.name = scene
-        opts, self.noise_settings = _resolve_options(options)
+        opts, self.noise_settings = _resolve_options(options, self.family)
         self.options = opts
         self.seed = opts["seed"]
         self.n_frames = opts["n_frames"]
         self.image_size = (opts["height"], opts["width"])
-        self.intrinsics = np.array([[opts["fx"], 0.0, opts["cx"]], [0.0, opts["fy"], opts["cy"]], [0.0, 0.0, 1.0]])
-        self.layout: Layout = generate_layout(self._rng(_STREAM_LAYOUT))
-        self.path: CameraPath = make_path(
-            self.layout, self._rng(_STREAM_PATH), self.n_frames, self.intrinsics, self.image_size,
-            step_m=opts["step_mm"] / 1000.0, sweep_m=opts["sweep_m"],
-        )
+        self.intrinsics = _intrinsics(opts, self.family, self._rng(_STREAM_INTRINSICS))
+        self.path: CameraPath | WalkPath
+        if self.family == "varied":
+            self.layout: Layout = generate_space_layout(self._rng(_STREAM_LAYOUT))
+            self.path = make_walk_path(self.layout, self._rng(_STREAM_PATH), self.n_frames, self.intrinsics,
+                                       self.image_size, step_m=opts["step_mm"] / 1000.0)
+        else:
+            self.layout = generate_layout(self._rng(_STREAM_LAYOUT))
+            self.path = make_path(
+                self.layout, self._rng(_STREAM_PATH), self.n_frames, self.intrinsics, self.image_size,
+                step_m=opts["step_mm"] / 1000.0, sweep_m=opts["sweep_m"],
+            )
         self._ir_return = np.array([m.ir_return for m in self.layout.materials], np.float32)
+        self._gloss = np.array([m.gloss for m in self.layout.materials], np.float32)
         log.debug("opened synthetic %s (seed %d): room %s m, %d primitives", scene, self.seed,
                   self.layout.size.round(2).tolist(), len(self.layout.primitives))
 
     def _rng(self, stream: int, frame: int = 0) -> np.random.Generator:
-        return np.random.default_rng([self.seed, self.room, stream, frame])
+        return np.random.default_rng([self.seed, self.room, stream, frame, *_FAMILY_TAG[self.family]])
 
     def __len__(self) -> int:
         return self.n_frames
@@ -182,23 +250,49 @@ class SyntheticScene:
         if self.options["noise"]:
             normals_cam = hits.normals_world @ T_world_cam[:3, :3].astype(np.float32)
             ir = alb.mean(-1) * self._ir_return[hits.material]
+            if self._gloss.any():  # glossy surfaces return little at oblique angles, saturate head-on
+                cos = _cos_incidence(normals_cam, self.intrinsics, self.image_size)
+                ir = infrared_return(alb.mean(-1), self._ir_return[hits.material], self._gloss[hits.material], cos)
             depth = kinect_noise(clean, self.intrinsics, self._rng(_STREAM_DEPTH, int(i)), self.noise_settings, normals_cam, ir)
         else:
             depth = clean.copy()
         return Frame(rgb=rgb_u8, depth_m=depth, T_world_cam=T_world_cam, clean_depth_m=clean)
 
+    def exact_view(self, i: int, K: np.ndarray | None = None, size_hw: tuple[int, int] | None = None) -> ExactView:
+        """Exact depth, incidence and thin-structure mask of frame ``i``'s view, ray cast
+        at the pixel centres of intrinsics ``K`` (3, 3) at ``size_hw`` (default: the
+        scene's own); e.g. the truth at the working resolution for per-pixel categories."""
+        K = self.intrinsics if K is None else np.asarray(K, np.float64)
+        hw = self.image_size if size_hw is None else tuple(size_hw)
+        T_world_cam = self.pose(i)
+        hits = raycast(self.layout, T_world_cam, K, hw)
+        normals_cam = hits.normals_world @ T_world_cam[:3, :3].astype(np.float32)
+        return ExactView(hits.depth_m, _cos_incidence(normals_cam, K, hw), thin_mask(self.layout, hits))
+
+
+def _cos_incidence(normals_cam: np.ndarray, K: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    """(H, W) float32 |cos| between the pixel rays of ``K`` and the (H, W, 3) camera-frame normals."""
+    h, w = hw
+    u = np.arange(w, dtype=np.float32)[None, :]
+    v = np.arange(h, dtype=np.float32)[:, None]
+    x_n = (u - np.float32(K[0, 2])) / np.float32(K[0, 0])
+    y_n = (v - np.float32(K[1, 2])) / np.float32(K[1, 1])
+    norm = np.sqrt(x_n * x_n + y_n * y_n + 1)
+    return (np.abs(normals_cam[..., 0] * x_n + normals_cam[..., 1] * y_n + normals_cam[..., 2]) / norm).astype(np.float32)
+
 
 def open_scene(root: str | None, scene: str, **options: Any) -> SyntheticScene:
-    """Open synthetic scene ``scene`` (``room_NNN``); ``root`` is ignored.
+    """Open synthetic scene ``scene`` (``room_NNN`` or ``varied_NNN``); ``root`` is ignored.
 
     Raises:
-        SourceError: the name is not ``room_NNN``.
+        SourceError: the name is neither ``room_NNN`` nor ``varied_NNN``.
         ConfigError: an option is unknown or invalid (the message names it).
     """
     return SyntheticScene(scene, **options)
 
 
 def list_scenes(root: str | None, **options: Any) -> list[str]:
-    """``room_000`` .. ``room_{n_scenes-1}`` (option ``n_scenes``, default 3)."""
+    """``{family}_000`` .. ``{family}_{n_scenes-1}`` (options ``family``, default ``room``,
+    and ``n_scenes``, default 3)."""
     opts, _ = _resolve_options(options)
-    return [f"room_{k:03d}" for k in range(opts["n_scenes"])]
+    return [f"{opts['family']}_{k:03d}" for k in range(opts["n_scenes"])]

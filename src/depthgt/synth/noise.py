@@ -34,16 +34,26 @@ Defaults are calibrated against the 7-Scenes kitchen fixture with the estimator 
 :mod:`depthgt.synth.calibration` (bench/calibrate_noise.py). The procedure is written
 here because no installed library simulates a structured-light sensor; OpenCV does
 the filtering and resampling.
+
+Sensor profiles (:data:`SENSOR_PROFILES`, the synthetic source's ``sensor`` option):
+
+* ``kinect_v1``: the defaults above (calibrated on the fixture);
+* ``coarse_stereo``: an active-stereo-like sensor with a different noise law, so that
+  nothing downstream is tuned to one model: a shorter baseline (5.5 cm) and coarser
+  sub-pixel disparity (1/5 px), i.e. depth levels 2.2x the Kinect's spacing
+  (~6.2e-3 z^2 m at fx = 585: 10 cm at 4 m, 22 cm at 6 m), disparity noise that does
+  not fall with range (std constant in disparity, so depth noise grows exactly as
+  z^2), wider edge shadows and unmatched bands (6 and 2 px), more lateral jitter.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import cv2
 import numpy as np
 
-__all__ = ["KinectNoise", "kinect_noise", "smooth_field"]
+__all__ = ["KinectNoise", "SENSOR_PROFILES", "sensor_profile", "infrared_return", "kinect_noise", "smooth_field"]
 
 
 @dataclass(frozen=True)
@@ -51,12 +61,14 @@ class KinectNoise:
     """Settings of the Kinect v1 model (units in the names). Pixel-sized settings
     (``*_px``) are given at the Kinect's 640-pixel width and scaled with the image
     width, so that noise, quantisation levels and hole patterns do not depend on
-    the rendering resolution; ``sigma_disp_*`` are the stds at 1 m."""
+    the rendering resolution; ``sigma_disp_*`` are the stds at 1 m, falling as
+    z^-``sigma_disp_falloff`` (0: constant disparity noise)."""
 
     baseline_m: float = 0.075
     disparity_step_px: float = 0.125
     sigma_disp_px: float = 0.035
     sigma_disp_smooth_px: float = 0.015
+    sigma_disp_falloff: float = 0.25
     jitter_px: float = 0.6
     shadow_tol_px: float = 0.5
     shadow_grow_px: int = 3
@@ -83,6 +95,54 @@ class KinectNoise:
             raise ValueError("KinectNoise.baseline_m and disparity_step_px must be > 0")
         if self.max_range_m <= self.min_range_m:
             raise ValueError(f"KinectNoise.max_range_m ({self.max_range_m}) must exceed min_range_m ({self.min_range_m})")
+
+
+SENSOR_PROFILES: dict[str, KinectNoise] = {
+    "kinect_v1": KinectNoise(),
+    "coarse_stereo": KinectNoise(
+        baseline_m=0.055,
+        disparity_step_px=0.2,
+        sigma_disp_px=0.05,
+        sigma_disp_smooth_px=0.02,
+        sigma_disp_falloff=0.0,
+        jitter_px=1.0,
+        shadow_grow_px=6,
+        edge_band_px=2,
+        edge_rel_jump=0.03,
+        grazing_cos=0.25,
+        blob_fraction=0.015,
+        border_right_px=12,
+    ),
+}
+
+
+def sensor_profile(name: str, **overrides) -> KinectNoise:
+    """The settings of sensor profile ``name`` (see :data:`SENSOR_PROFILES`) with
+    fields replaced by ``overrides``; ValueError naming an unknown profile."""
+    if name not in SENSOR_PROFILES:
+        raise ValueError(f"unknown sensor profile {name!r}; known: {', '.join(SENSOR_PROFILES)}")
+    return replace(SENSOR_PROFILES[name], **overrides)
+
+
+def infrared_return(albedo_gray: np.ndarray, ir_return: np.ndarray, gloss: np.ndarray, cos_incidence: np.ndarray,
+                    saturate_cos: float = 0.97) -> np.ndarray:
+    """Infrared reflectance seen by the sensor, the ``ir_reflectance`` of :func:`kinect_noise`.
+
+    The matte share ``1 - gloss`` returns ``albedo * ir_return`` at any angle; the
+    glossy share comes back only near normal incidence (a cos^8 lobe), where it
+    saturates the sensor: pixels of glossy surfaces (gloss >= 0.3) with the viewing
+    ray within acos(``saturate_cos``) of their normal return 0 (no depth).
+
+    Args:
+        albedo_gray, ir_return, gloss, cos_incidence: (H, W) arrays; cos_incidence is
+            |cos| of the angle between the viewing ray and the surface normal.
+
+    Returns:
+        (H, W) float32 reflectance in [0, 1].
+    """
+    lobe = np.clip(cos_incidence, 0.0, 1.0) ** 8
+    out = albedo_gray * ir_return * (1.0 - gloss + gloss * lobe)
+    return np.where((gloss >= 0.3) & (cos_incidence > saturate_cos), 0.0, out).astype(np.float32)
 
 
 def smooth_field(rng: np.random.Generator, hw: tuple[int, int], sigma_px: float) -> np.ndarray:
@@ -196,7 +256,7 @@ def kinect_noise(
 
     # 4. disparity noise and 1/8-pixel quantisation
     disp = fb / zs
-    scale = np.maximum(zs, 0.5) ** -0.25  # disparity noise std falls as z^-1/4 (see above)
+    scale = np.maximum(zs, 0.5) ** -s.sigma_disp_falloff  # Kinect: std falls as z^-1/4 (see above)
     disp = disp + s.sigma_disp_px * px * scale * rng.standard_normal((h, w), dtype=np.float32)
     if s.sigma_disp_smooth_px > 0:
         disp = disp + s.sigma_disp_smooth_px * px * scale * smooth_field(rng, (h, w), 4.0 * px)

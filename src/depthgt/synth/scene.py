@@ -26,9 +26,11 @@ import numpy as np
 
 from depthgt.synth.textures import make_texture
 
-__all__ = ["Material", "Primitive", "Layout", "RayHits", "generate_layout", "raycast", "albedo", "shade", "camera_rays"]
+__all__ = ["Material", "Primitive", "Layout", "RayHits", "THIN_WIDTH_M", "generate_layout", "raycast", "albedo", "shade",
+           "camera_rays", "thin_mask"]
 
 _NEAR_M = 0.05
+THIN_WIDTH_M = 0.03  # poles, legs and rods at most this wide count as thin structures
 _CORNER_SIGNS = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij"), np.float64).reshape(3, -1).T
 # inward normals of the room faces, in hit-id order: x=0, x=Lx, y=0, y=Ly, floor, ceiling
 _FACE_NORMALS = np.array(
@@ -45,11 +47,16 @@ class Material:
         period_m: metres of surface covered by one texture tile.
         ir_return: relative strength of the surface's infrared return in (0, 1]; low
             values (black, glossy) make the Kinect drop depth there (see noise.py).
+        gloss: share of the infrared return reflected specularly, in [0, 1]: it comes
+            back only near normal incidence (where it saturates the sensor), so a
+            glossy surface returns little at oblique angles (see
+            :func:`depthgt.synth.noise.infrared_return`). 0 = matte.
     """
 
     texture: int
     period_m: float
     ir_return: float = 1.0
+    gloss: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -78,6 +85,16 @@ class Primitive:
     def aabb(self) -> np.ndarray:
         """(6,) world axis-aligned bounds (xmin, ymin, zmin, xmax, ymax, zmax)."""
         return np.concatenate([self.corners.min(0), self.corners.max(0)])
+
+    @property
+    def thin(self) -> bool:
+        """A pole, leg or rod: at most ``THIN_WIDTH_M`` wide across its longest axis
+        and at least 4 times as long (a cylinder of radius <= 1.5 cm, a box whose two
+        smaller extents are <= 3 cm)."""
+        full = np.sort(2.0 * self.half)  # ascending full extents
+        if self.kind == "sphere":
+            return False
+        return bool(full[1] <= THIN_WIDTH_M and full[2] >= 4.0 * full[1])
 
 
 @dataclass
@@ -650,3 +667,10 @@ def shade(layout: Layout, hits: RayHits, albedo_rgb: np.ndarray | None = None) -
     falloff = 1.0 / (1.0 + (dist / 3.0) ** 2)
     light = layout.ambient + 1.1 * np.clip(cos, 0, 1) * falloff
     return np.clip(albedo_rgb * light[..., None], 0, 1)
+
+
+def thin_mask(layout: Layout, hits: RayHits) -> np.ndarray:
+    """(H, W) bool: pixels whose surface is a thin primitive (:attr:`Primitive.thin`)."""
+    thin = np.zeros(6 + len(layout.primitives), bool)
+    thin[6:] = [p.thin for p in layout.primitives]
+    return thin[hits.prim]

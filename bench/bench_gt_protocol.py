@@ -1,0 +1,375 @@
+"""The GT renderer's tuning protocol: a TUNING set to choose defaults on, a disjoint
+EVALUATION set to report on, scored per pixel category against the synthetic truth.
+
+Sets (frame sets of targets 8, 20, 32 of 40-frame sequences, 640x480 frames resized to
+256x256 as the workflow does, the pipeline's own code path ``depthgt.gt.frameset.fuse``):
+
+* ``tuning``: ``room`` family seed 0 (room_000-002) and ``varied`` family seed 0
+  (varied_000-003), Kinect v1 profile. Every renderer default is chosen on these.
+* ``evaluation``: never used for choosing anything: ``room`` seed 1 (room_000-002,
+  Kinect v1), ``varied`` seed 1 (varied_000-005, Kinect v1) and ``varied`` seed 2
+  (varied_000-005) with the second sensor profile ``coarse_stereo``.
+
+Per-pixel categories of the target, from the exact geometry of its 640x480 pixels
+(``SyntheticScene.exact_view``) nearest-resized to 256x256 like the depth: ``grazing``
+(incidence above 65 deg),
+``far`` (exact depth beyond 4 m), ``thin`` (a pole, leg or rod <= 3 cm wide), ``rest``
+(none of these); ``all``. The first three may overlap.
+
+Metrics, pooled over every pixel of a set (not averaged per frame set), against the
+pipeline's truth (the nearest-resized clean target depth, as in gt_quality.csv: the
+exact depth at the sample positions of the input and of the GT):
+
+* ``completeness``: share of truth pixels with depth;
+* ``mae_counted``: MAE over truth pixels, a missing pixel counting as its truth depth;
+* ``mae_both``: MAE over pixels where the GT, the input and the truth all have depth;
+* ratios GT / input of both MAEs;
+* the confidence (gt.exr channel ``S``): rank correlation with the actual error, the
+  share of GT pixels with |error| <= sigma and <= 2 sigma, the MAE of the most certain 80 %;
+* ``clean_own``: the renderer's own error, the GT fused from the 6 neighbours' clean
+  depth with exact poses, MAE vs the truth (and its completeness).
+
+Usage::
+
+    python3 bench/bench_gt_protocol.py --sets tuning                      # choose defaults on this
+    python3 bench/bench_gt_protocol.py --sets evaluation                  # report this
+    python3 bench/bench_gt_protocol.py --sets evaluation --registration fast   # overfit registration, preset fast
+    python3 bench/bench_gt_protocol.py --fixture                          # 7-Scenes: GT completeness, leave-target-out
+    python3 bench/bench_gt_protocol.py --sets tuning --set rel_sigma=3 --png /tmp/pngs
+
+Frame sets are generated once and cached (``--cache``, default /tmp/depthgt_protocol);
+registrations are cached there too. Prints Markdown tables and writes a tidy CSV.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from depthgt.gt.framesets import stable_seed
+from depthgt.gt.frameset import FrameSetData, fuse, load_frameset, poses_from_source
+from depthgt.settings import FrameSetSettings, RenderSettings
+
+REPO = Path(__file__).resolve().parents[1]
+SIZE = (256, 256)
+TARGETS = (8, 20, 32)
+N_FRAMES = 40
+GRAZING_COS = float(np.cos(np.radians(65.0)))
+FAR_M = 4.0
+
+SETS: dict[str, list[dict]] = {
+    "tuning": [
+        dict(family="room", seed=0, sensor="kinect_v1", scenes=range(0, 3)),
+        dict(family="varied", seed=0, sensor="kinect_v1", scenes=range(0, 4)),
+    ],
+    "evaluation": [
+        dict(family="room", seed=1, sensor="kinect_v1", scenes=range(0, 3)),
+        dict(family="varied", seed=1, sensor="kinect_v1", scenes=range(0, 6)),
+        dict(family="varied", seed=2, sensor="coarse_stereo", scenes=range(0, 6)),
+    ],
+}
+CATEGORIES = ("all", "grazing", "far", "thin", "rest")
+
+
+# ------------------------------------------------------------------------------ data
+
+
+def _key(group: dict, k: int, t: int) -> str:
+    return f"{group['family']}_{k:03d}_s{group['seed']}_{group['sensor']}_t{t:03d}"
+
+
+def load_cached(cache: Path, group: dict, k: int, t: int) -> dict:
+    """The frame set (FrameSetData fields) and the target's exact view at 256x256."""
+    path = cache / "framesets" / f"{_key(group, k, t)}.npz"
+    if not path.exists():
+        from depthgt.geometry import _centre_indices
+        from depthgt.sources.base import open_scene
+
+        scene = open_scene("synthetic", None, f"{group['family']}_{k:03d}", seed=group["seed"], sensor=group["sensor"],
+                           n_frames=N_FRAMES)
+        members = [t + o for o in FrameSetSettings().offsets]
+        data = load_frameset(scene, members, SIZE, True, torch.device("cpu"))
+        # the exact geometry at the source's pixels, nearest-resized like the depth: the
+        # categories of the very points the input, the truth and the GT describe
+        view = scene.exact_view(t)
+        iy = _centre_indices(scene.image_size[0], SIZE[0], torch.device("cpu")).numpy()
+        ix = _centre_indices(scene.image_size[1], SIZE[1], torch.device("cpu")).numpy()
+        view = type(view)(*(a[iy][:, ix] for a in view))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(path, rgb=(data.rgb.numpy() * 255 + 0.5).astype(np.uint8), depth=data.depth_m.numpy(),
+                            truth=data.truth_m.numpy(), K=data.K.numpy(), T=data.T_world_cam.numpy(),
+                            src_hw=np.array(data.src_hw), exact=view.depth_m, cos=view.cos_incidence, thin=view.thin,
+                            members=np.array(members))
+    z = np.load(path)
+    data = FrameSetData(rgb=torch.from_numpy(z["rgb"]).float() / 255.0, depth_m=torch.from_numpy(z["depth"]),
+                        K=torch.from_numpy(z["K"]), T_world_cam=torch.from_numpy(z["T"]),
+                        truth_m=torch.from_numpy(z["truth"]), frame_ids=[str(m) for m in z["members"]],
+                        src_hw=tuple(int(x) for x in z["src_hw"]))
+    return dict(data=data, exact=z["exact"], cos=z["cos"], thin=z["thin"], members=[int(m) for m in z["members"]])
+
+
+def registered_poses(cache: Path, item: dict, key: str, preset: str) -> tuple[torch.Tensor, list[int]]:
+    """T_j_to_t (F-1, 4, 4) of the overfit registration (cached) and the fused member positions."""
+    path = cache / "registration" / preset / f"{key}.json"
+    if not path.exists():
+        from depthgt.registration import make_settings, register_frameset
+
+        data = item["data"]
+        offsets = FrameSetSettings().offsets
+        res = register_frameset(data.rgb, data.depth_m, data.K, list(offsets), make_settings(preset=preset),
+                                seed=stable_seed(0, "protocol", key))
+        fused = [0] + [i + 1 for i, st in enumerate(res.neighbour_status) if st == "ok"]
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps({"T_j_to_t": np.asarray(res.T_j_to_t, dtype=np.float64).tolist(), "fused": fused}))
+    doc = json.loads(path.read_text())
+    return torch.tensor(doc["T_j_to_t"], dtype=torch.float64), doc["fused"]
+
+
+# --------------------------------------------------------------------------- scoring
+
+
+class Pool:
+    """Pooled sums per (category, estimate) over many frame sets."""
+
+    def __init__(self):
+        self.sums: dict[tuple[str, str, str], float] = {}
+
+    def add(self, cat: str, est: str, name: str, value: float) -> None:
+        k = (cat, est, name)
+        self.sums[k] = self.sums.get(k, 0.0) + float(value)
+
+    def get(self, cat: str, est: str, name: str) -> float:
+        return self.sums.get((cat, est, name), 0.0)
+
+
+def categories(item: dict) -> dict[str, np.ndarray]:
+    exact, cos, thin = item["exact"], item["cos"], item["thin"]
+    grazing = (cos < GRAZING_COS) & (exact > 0)
+    far = exact > FAR_M
+    return {"all": exact > 0, "grazing": grazing, "far": far, "thin": thin & (exact > 0),
+            "rest": (exact > 0) & ~grazing & ~far & ~thin}
+
+
+def score(pool: Pool, cats: dict[str, np.ndarray], estimates: dict[str, np.ndarray], ref: np.ndarray) -> None:
+    """Add the pooled sums of every estimate vs ``ref`` (both (H, W) metres, 0 = none)."""
+    ref_ok = ref > 0
+    both = ref_ok & (estimates["input"] > 0) & (estimates["gt"] > 0)
+    for cat, mask in cats.items():
+        m = mask & ref_ok
+        pool.add(cat, "-", "n_ref", m.sum())
+        pool.add(cat, "-", "n_both", (m & both).sum())
+        for name, est in estimates.items():
+            ok = m & (est > 0)
+            err = np.abs(est.astype(np.float64) - ref)
+            pool.add(cat, name, "n_valid", ok.sum())
+            pool.add(cat, name, "sum_counted", np.where(est > 0, err, ref)[m].sum())
+            pool.add(cat, name, "sum_valid", err[ok].sum())
+            pool.add(cat, name, "sum_both", err[m & both].sum())
+
+
+def summarise(pool: Pool, set_name: str, variant: str) -> list[dict]:
+    rows = []
+    for cat in CATEGORIES:
+        n_ref, n_both = pool.get(cat, "-", "n_ref"), pool.get(cat, "-", "n_both")
+        if n_ref == 0:
+            continue
+        r = dict(set=set_name, variant=variant, category=cat, pixels=int(n_ref))
+        for est in ("input", "gt"):
+            r[f"{est}_completeness"] = pool.get(cat, est, "n_valid") / n_ref
+            r[f"{est}_mae_counted_mm"] = 1000 * pool.get(cat, est, "sum_counted") / n_ref
+            r[f"{est}_mae_both_mm"] = 1000 * pool.get(cat, est, "sum_both") / max(n_both, 1)
+        r["ratio_counted"] = r["gt_mae_counted_mm"] / r["input_mae_counted_mm"]
+        r["ratio_both"] = r["gt_mae_both_mm"] / max(r["input_mae_both_mm"], 1e-12)
+        n_clean = pool.get(cat, "clean", "n_valid")
+        if pool.get(cat, "clean", "n_ref") or n_clean:
+            r["clean_own_mae_mm"] = 1000 * pool.get(cat, "clean", "sum_valid") / max(n_clean, 1)
+            r["clean_own_completeness"] = n_clean / max(pool.get(cat, "clean", "n_ref"), 1)
+        rows.append(r)
+    return rows
+
+
+def _colour(z: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    import cv2
+
+    img = cv2.applyColorMap((np.clip((z - lo) / max(hi - lo, 1e-6), 0, 1) * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+    return img * (z > 0)[..., None]
+
+
+def write_png(path: Path, item: dict, inp: np.ndarray, gt: np.ndarray, ref: np.ndarray, conf: np.ndarray | None) -> None:
+    """input | GT | truth on one depth colour scale; |GT - truth| and |input - truth| (0-5 cm); categories."""
+    import cv2
+
+    lo, hi = float(np.quantile(ref[ref > 0], 0.01)), float(np.quantile(ref[ref > 0], 0.99))
+    def err(e):
+        v = np.where((e > 0) & (ref > 0), np.abs(e - ref), 0)
+        img = cv2.applyColorMap((np.clip(v / 0.05, 0, 1) * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
+        img[(e <= 0) & (ref > 0)] = (255, 255, 255)  # missing: white
+        return img
+    cats = categories(item)
+    cat_img = np.zeros(ref.shape + (3,), np.uint8)
+    cat_img[cats["grazing"]] = (0, 160, 0)
+    cat_img[cats["far"]] += np.array((160, 0, 0), np.uint8)
+    cat_img[cats["thin"]] = (0, 0, 255)
+    row1 = np.concatenate([_colour(inp, lo, hi), _colour(gt, lo, hi), _colour(ref, lo, hi)], 1)
+    extra = cat_img if conf is None else cv2.applyColorMap((np.clip(conf / 0.03, 0, 1) * 255).astype(np.uint8),
+                                                            cv2.COLORMAP_VIRIDIS) * (conf > 0)[..., None]
+    row2 = np.concatenate([err(inp), err(gt), extra if conf is not None else cat_img], 1)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.concatenate([row1, row2], 0))
+
+
+def run_set(set_name: str, settings: RenderSettings, cache: Path, registration: str | None,
+            png_dir: Path | None, clean: bool) -> list[dict]:
+    pool, pool_by = Pool(), {}
+    t_render, conf_err, conf_sigma = [], [], []
+    for group in SETS[set_name]:
+        gname = f"{group['family']}/s{group['seed']}/{group['sensor']}"
+        gp = pool_by.setdefault(gname, Pool())
+        for k in group["scenes"]:
+            for t in TARGETS:
+                key = _key(group, k, t)
+                item = load_cached(cache, group, k, t)
+                data = item["data"]
+                if registration:
+                    T, fused = registered_poses(cache, item, key, registration)
+                    members = fused if len(fused) < len(item["members"]) else slice(None)
+                else:
+                    T, members = poses_from_source(data), slice(None)
+                c0 = time.process_time()
+                out = fuse(data, T, settings, members=members)
+                t_render.append(time.process_time() - c0)
+                gt = out.depth[0, 0].numpy()
+                inp = data.depth_m[0, 0].numpy()
+                ref = data.truth_m[0, 0].numpy()
+                cats = categories(item)
+                for p in (pool, gp):
+                    score(p, cats, {"input": inp, "gt": gt}, ref)
+                m = (gt > 0) & (ref > 0)
+                conf_err.append(np.abs(gt - ref)[m])
+                conf_sigma.append(out.sigma[0, 0].numpy()[m])
+                if clean and not registration:
+                    own = fuse(data, poses_from_source(data), settings, depth_m=data.truth_m, members=slice(1, None))
+                    g = own.depth[0, 0].numpy()
+                    exact = ref
+                    for cat, mask in cats.items():
+                        m = mask & (exact > 0)
+                        ok = m & (g > 0)
+                        for p in (pool, gp):
+                            p.add(cat, "clean", "n_ref", m.sum())
+                            p.add(cat, "clean", "n_valid", ok.sum())
+                            p.add(cat, "clean", "sum_valid", np.abs(g.astype(np.float64) - exact)[ok].sum())
+                if png_dir is not None:
+                    conf = getattr(out, "sigma", None)
+                    write_png(png_dir / set_name / f"{key}.png", item, inp, gt, ref,
+                              None if conf is None else conf[0, 0].numpy())
+    variant = f"registration={registration}" if registration else "source poses"
+    rows = summarise(pool, set_name, variant)
+    for gname, gp in pool_by.items():
+        rows += summarise(gp, f"{set_name}:{gname}", variant)
+    print(f"render CPU time per frame set: median {np.median(t_render):.3f} s over {len(t_render)}", file=sys.stderr)
+    print(confidence_summary(set_name, np.concatenate(conf_err), np.concatenate(conf_sigma)))
+    return rows
+
+
+def confidence_summary(set_name: str, err: np.ndarray, sigma: np.ndarray) -> str:
+    """How well the GT's sigma (gt.exr channel S) predicts its actual error, over all GT pixels."""
+    keep = sigma <= np.quantile(sigma, 0.8)
+    rho = pd.Series(sigma).corr(pd.Series(err), method="spearman")
+    return (f"confidence on {set_name}: Spearman(sigma, |error|) {rho:.3f}; "
+            f"|error| <= sigma for {(err <= sigma).mean():.3f}, <= 2 sigma for {(err <= 2 * sigma).mean():.3f} of GT pixels; "
+            f"median |error| / sigma {np.median(err / sigma):.3f}; MAE over all GT pixels {1000 * err.mean():.2f} mm, "
+            f"over the 80 % most certain {1000 * err[keep].mean():.2f} mm (sigma <= {1000 * np.quantile(sigma, 0.8):.1f} mm)")
+
+
+# -------------------------------------------------------------------------- 7-Scenes
+
+
+def run_fixture(fixture: Path, settings: RenderSettings, step: int) -> list[dict]:
+    """GT completeness and leave-target-out consistency on the real fixture (reference
+    poses), as the workflow computes them (pipeline.fuse, quality.error_stats)."""
+    from depthgt.jobs.common import open_source_scene
+    from depthgt.eval.metrics import depth_errors
+
+    scene = open_source_scene({"kind": "sevenscenes", "root": str(fixture)}, fixture.name)
+    fs = FrameSetSettings()
+    rows = []
+    for t in range(fs.reach, len(scene) - fs.reach, step):
+        data = load_frameset(scene, [t + o for o in fs.offsets], SIZE, True, torch.device("cpu"))
+        T = poses_from_source(data)
+        gt = fuse(data, T, settings).depth[0, 0].numpy()
+        lto = fuse(data, T, settings, members=slice(1, None)).depth[0, 0].numpy()
+        inp = data.depth_m[0, 0].numpy()
+        s = depth_errors(lto, inp)
+        rows.append(dict(target=t, gt_completeness=float((gt > 0).mean()), input_completeness=float((inp > 0).mean()),
+                         lto_mae_valid_mm=1000 * s["mae_m"], lto_completeness=s["completeness"]))
+    return rows
+
+
+# ---------------------------------------------------------------------------- main
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sets", nargs="*", default=[], choices=list(SETS))
+    ap.add_argument("--registration", default=None, help="overfit registration preset (e.g. fast) instead of the source's poses")
+    ap.add_argument("--no-clean", action="store_true", help="skip the clean-neighbours (renderer's own error) case")
+    ap.add_argument("--fixture", nargs="?", const=str(next((p for p in (REPO.parent / "shared/data/7scenes-kitchen", REPO.parents[1] / "shared/data/7scenes-kitchen") if p.is_dir()), REPO.parent / "shared/data/7scenes-kitchen")), default=None)
+    ap.add_argument("--fixture-step", type=int, nargs="+", default=[9, 4])
+    ap.add_argument("--set", nargs="*", default=[], help="RenderSettings overrides key=value (python literals)")
+    ap.add_argument("--grid", default=None, help="key=v1;v2;... : one RenderSettings field over values (compact table)")
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/depthgt_protocol"))
+    ap.add_argument("--png", type=Path, default=None, help="write input | GT | truth images here")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--out", type=Path, default=Path("/tmp/bench_gt_protocol.csv"))
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    settings = RenderSettings(**{k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in a.set)})
+    print(f"command: python3 bench/bench_gt_protocol.py {' '.join(sys.argv[1:] if argv is None else argv)}")
+    if a.grid:
+        key, _, values = a.grid.partition("=")
+        compact = []
+        for value in values.split(";"):
+            st = replace(settings, **{key: ast.literal_eval(value)})
+            for s in a.sets:
+                for r in run_set(s, st, a.cache, a.registration, None, not a.no_clean):
+                    if ":" not in r["set"]:
+                        compact.append(dict(value=value, **r))
+        df = pd.DataFrame(compact)
+        cols = ["value", "set", "category", "gt_completeness", "input_completeness", "ratio_counted", "ratio_both"]
+        cols += [c for c in ("clean_own_mae_mm", "clean_own_completeness") if c in df]
+        print(f"grid over {key}")
+        print(df[cols].to_markdown(index=False, floatfmt=".4g"))
+        return
+    rows = []
+    for s in a.sets:
+        rows += run_set(s, settings, a.cache, a.registration, a.png, not a.no_clean)
+    pd.set_option("display.width", 250)
+    pd.set_option("display.max_columns", 30)
+    if rows:
+        df = pd.DataFrame(rows)
+        df.to_csv(a.out, index=False)
+        cols = ["set", "category", "pixels", "input_completeness", "gt_completeness", "input_mae_counted_mm",
+                "gt_mae_counted_mm", "ratio_counted", "input_mae_both_mm", "gt_mae_both_mm", "ratio_both"]
+        cols += [c for c in ("clean_own_mae_mm", "clean_own_completeness") if c in df]
+        print(f"\nreference: the pipeline's truth (nearest-resized clean target); {df['variant'].iloc[0]}")
+        print(df[cols].to_markdown(index=False, floatfmt=".4g"))
+    if a.fixture:
+        for step in a.fixture_step:
+            fx = pd.DataFrame(run_fixture(Path(a.fixture), settings, step))
+            print(f"\n7-Scenes fixture, reference poses, targets every {step} frames ({len(fx)} frame sets): "
+                  f"GT completeness {fx.gt_completeness.mean():.4f} (input {fx.input_completeness.mean():.4f}), "
+                  f"leave-target-out MAE where both valid {fx.lto_mae_valid_mm.mean():.2f} mm, "
+                  f"completeness {fx.lto_completeness.mean():.4f}")
+
+
+if __name__ == "__main__":
+    main()
