@@ -5,6 +5,7 @@ from pathlib import Path
 
 from snakemake.utils import validate
 
+from depthgt.device import check_device_available  # torch-free
 from depthgt.settings import check_config, check_scene_name, settings_from_config
 from depthgt.sources.base import check_scene_identity  # numpy only
 
@@ -14,6 +15,10 @@ validate(config, schema="../schemas/config.schema.yaml", set_default=True)
 # patches.size <= resize, registration keys whatever the method); jobs rebuild theirs
 # from the config sections their rule passes (depthgt.settings.settings_from_config).
 SETTINGS = settings_from_config(config)
+# device: cuda on a machine without CUDA stops a local run here (torch-free check); a
+# cluster's submitting node may have no GPU, there each job checks before any work.
+if workflow.is_main_process and workflow.local_exec:
+    check_device_available(SETTINGS.device)
 
 SOURCES = {src["name"]: src for src in config["sources"]}  # names checked unique by the settings
 
