@@ -15,10 +15,6 @@ validate(config, schema="../schemas/config.schema.yaml", set_default=True)
 # patches.size <= resize, registration keys whatever the method); jobs rebuild theirs
 # from the config sections their rule passes (depthgt.settings.settings_from_config).
 SETTINGS = settings_from_config(config)
-# device: cuda on a machine without CUDA stops a local run here (torch-free check); a
-# cluster's submitting node may have no GPU, there each job checks before any work.
-if workflow.is_main_process and workflow.local_exec:
-    check_device_available(SETTINGS.device)
 
 SOURCES = {src["name"]: src for src in config["sources"]}  # names checked unique by the settings
 
@@ -91,3 +87,12 @@ def frameset_runtime_min(n_framesets=1):
     """SLURM time limit (minutes) of a job that builds n frame sets: 10 minutes for
     start-up (Python, torch, Snakemake) plus FRAMESET_CPU_S per frame set."""
     return 10 + -(-n_framesets * FRAMESET_CPU_S // 60)
+
+
+# device: cuda on a machine without CUDA stops a local run before its first job
+# (torch-free check). It runs in `onstart` because the executor is known only there
+# (while this file is parsed a SLURM run still looks local); on a cluster the submitting
+# node may have no GPU, there each job checks before any work (depthgt.device).
+onstart:
+    if workflow.local_exec:
+        check_device_available(SETTINGS.device)
