@@ -299,6 +299,9 @@ class RefineSettings:
         max_dist_m: association gate for point-to-plane and depth differences (metres),
             per scale.
         damping: initial Levenberg-Marquardt damping (relative to the diagonal).
+        geo_ref_depth_m: beyond this depth (metres) the robust scale and the gate of
+            the point-to-plane residuals grow as (z / geo_ref_depth_m)^2, like the depth
+            noise and quantisation of disparity sensors; 0 keeps them constant.
     """
 
     scales: tuple[int, ...] = (4, 2, 1)
@@ -311,9 +314,11 @@ class RefineSettings:
     robust: str = "huber"
     max_dist_m: tuple[float, ...] = (0.10, 0.05, 0.03)
     damping: float = 1e-4
+    geo_ref_depth_m: float = 0.0
 
     def __post_init__(self):
         where = "registration.refine_settings"
+        _require(self.geo_ref_depth_m >= 0, f"{where}.geo_ref_depth_m", f"must be >= 0, got {self.geo_ref_depth_m}")
         n = len(self.scales)
         _require(len(self.iters) == len(self.point_stride) == len(self.max_dist_m) == len(self.geo_scale_m) == n,
                  where, "scales, iters, point_stride, max_dist_m and geo_scale_m need the same length")

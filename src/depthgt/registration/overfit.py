@@ -274,7 +274,7 @@ def _chain(fs: _Frameset, T_init: torch.Tensor, table, offsets, s: RegistrationS
     level.gray = torch.cat([level.gray[:1], level.gray[pairs[:, 1]]])
     level.valid = torch.cat([level.valid[:1], level.valid[pairs[:, 1]]])
     level.maps = torch.cat([level.maps[:1], level.maps[pairs[:, 1]]])
-    ls = LevelSettings(rs.geo_scale_m[-1], rs.photo_scale, rs.photo_weight, rs.robust)
+    ls = LevelSettings(rs.geo_scale_m[-1], rs.photo_scale, rs.photo_weight, rs.robust, rs.geo_ref_depth_m)
     # Mean cost per point that lands on a surface of the target, not the sum: a sum
     # charges points that leave the view and so favours the candidate of the largest
     # overlap (the identity) over the right one. A candidate that sees less than half

@@ -19,7 +19,7 @@ gradients and sampling come from kornia/torch.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 import torch.nn.functional as F
@@ -97,12 +97,14 @@ def _erode(mask: torch.Tensor) -> torch.Tensor:
 class LevelSettings:
     """The residual settings of one scale (see :class:`~depthgt.settings.RefineSettings`):
     robust scales of the point-to-plane (metres) and intensity residuals, the weight of
-    the photometric term and the robust kernel ("huber" | "cauchy")."""
+    the photometric term, the robust kernel ("huber" | "cauchy") and the depth beyond
+    which the geometric scale and gate grow as (z / geo_ref_depth_m)^2 (0: constant)."""
 
     geo_scale_m: float
     photo_scale: float
     photo_weight: float
     robust: str
+    geo_ref_depth_m: float = 0.0
 
 
 class Level:
@@ -179,7 +181,15 @@ def _residuals(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "LevelS
     seen = level.valid[b] & inb & (smp[:, 9] > 0.999)
     d = (qx - X[0], qy - X[1], qz - X[2])
     r_geo = Nrm[0] * d[0] + Nrm[1] * d[1] + Nrm[2] * d[2]
-    ok = seen & ((qz - X[2]).abs() < gate) & (r_geo.abs() < gate)
+    if s.geo_ref_depth_m > 0:
+        # a disparity sensor's depth noise and quantisation grow as z^2: so do the
+        # robust scale and the gate of the point-to-plane residual
+        sz = (X[2] * (1.0 / s.geo_ref_depth_m)).square().clamp(min=1.0)
+        gate_pt = gate * sz
+        inv_geo = 1.0 / (s.geo_scale_m * sz)
+    else:
+        gate_pt, inv_geo = gate, 1.0 / s.geo_scale_m
+    ok = seen & ((qz - X[2]).abs() < gate_pt) & (r_geo.abs() < gate_pt)
     qv = (qx, qy, qz)
     J_geo = torch.stack([*Nrm, *_cross(qv, Nrm)], 1)  # (P, 6, N)
     r_ph = smp[:, 6] - level.gray[b]
@@ -189,11 +199,11 @@ def _residuals(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "LevelS
     J_ph = torch.stack([*ga, *_cross(qv, ga)], 1)
     wp = math.sqrt(s.photo_weight)
     # geometric then photometric residuals side by side: (P, 2N), (P, 6, 2N)
-    r = torch.cat([r_geo * (1.0 / s.geo_scale_m), r_ph * (wp / s.photo_scale)], 1)
-    J = torch.cat([J_geo * (1.0 / s.geo_scale_m), J_ph * (wp / s.photo_scale)], 2)
+    r = torch.cat([r_geo * inv_geo, r_ph * (wp / s.photo_scale)], 1)
+    J = torch.cat([J_geo * (inv_geo[:, None] if torch.is_tensor(inv_geo) else inv_geo), J_ph * (wp / s.photo_scale)], 2)
     valid = torch.cat([ok, ok & (s.photo_weight > 0)], 1)
     vis = torch.cat([seen, seen & (s.photo_weight > 0)], 1)
-    return r, J, valid, vis
+    return r, J, valid, vis, r_geo
 
 
 def _sample_grouped(maps: torch.Tensor, grid: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
@@ -257,7 +267,7 @@ def _system(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings
     a, b = pairs[:, 0], pairs[:, 1]
     Tinv = torch.linalg.inv(T)
     T_ab = Tinv[a] @ T[b]
-    r, J, valid, vis = _residuals(level, T_ab, pairs, s, gate)
+    r, J, valid, vis, _ = _residuals(level, T_ab, pairs, s, gate)
     wgt, rho = _robust(r, s.robust)
     Jw = J * (wgt * valid)[:, None]  # (P, 6, 2N)
     H_rel = (Jw @ J.transpose(1, 2)).to(torch.float64)
@@ -373,7 +383,8 @@ def refine_poses(
     last = None
     for li, (scale, n_it, stride, gate) in enumerate(zip(settings.scales, settings.iters, settings.point_stride, settings.max_dist_m)):
         level = Level(rgb, depth_m, K, scale, stride)
-        ls = LevelSettings(settings.geo_scale_m[li], settings.photo_scale, settings.photo_weight, settings.robust)
+        ls = LevelSettings(settings.geo_scale_m[li], settings.photo_scale, settings.photo_weight, settings.robust,
+                           settings.geo_ref_depth_m)
         lam = settings.damping
         cur = _system(level, T, pairs, ls, gate)
         if li == len(settings.scales) - 1:
@@ -413,7 +424,8 @@ def refine_poses(
     H_tgt.index_add_(0, other[tgt_pairs], H_rel[tgt_pairs])
     cond[1:] = pair_information(H_tgt[1:], float(level.median_depth))
     out.condition = cond
-    out.residual_m = target_residuals(level, T, pairs[sel], ls, settings.max_dist_m[-1], Fn)
+    # the statistic of the high_residual check, calibrated with constant scale and gate
+    out.residual_m = target_residuals(level, T, pairs[sel], replace(ls, geo_ref_depth_m=0.0), settings.max_dist_m[-1], Fn)
     return out
 
 
@@ -422,11 +434,11 @@ def target_residuals(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: Leve
     """(F,) median |point-to-plane residual| (metres) of the associated points of the
     pairs (0, b), b's points in the target."""
     T_ab = torch.linalg.inv(T[pairs[:, 0]]) @ T[pairs[:, 1]]
-    r, _, valid, _ = _residuals(level, T_ab, pairs, s, gate)
+    _, _, valid, _, r_geo = _residuals(level, T_ab, pairs, s, gate)
     n = level.valid.shape[1]
-    r_geo = (r[:, :n] * s.geo_scale_m).abs().to(torch.float64)
+    r_geo = r_geo.abs().to(torch.float64)
     med = torch.where(valid[:, :n], r_geo, torch.full_like(r_geo, float("nan"))).nanmedian(dim=1).values
-    out = torch.zeros(n_frames, dtype=torch.float64, device=r.device)
+    out = torch.zeros(n_frames, dtype=torch.float64, device=r_geo.device)
     out[pairs[:, 1]] = med
     return out
 
