@@ -277,15 +277,17 @@ def _chain(fs: _Frameset, T_init: torch.Tensor, table, offsets, s: RegistrationS
     ls = LevelSettings(rs.geo_scale_m[-1], rs.photo_scale, rs.photo_weight, rs.robust, rs.geo_ref_depth_m)
     # Mean cost per point that lands on a surface of the target, not the sum: a sum
     # charges points that leave the view and so favours the candidate of the largest
-    # overlap (the identity) over the right one. A candidate that sees less than half
-    # the overlap of the best-overlapping one of its neighbour is not chosen.
+    # overlap (the identity) over the right one. A candidate that sees less than a
+    # quarter of the overlap of the best-overlapping one of its neighbour is not chosen
+    # (not a half: next to the holes of real depth, a pose on the pixel grid such as the
+    # identity sees up to twice the points of a sub-pixel one).
     cost, n_vis = pair_mean_cost(level, Tv, vpairs.to(fs.depth.device), ls, rs.max_dist_m[-1])
     T_out = T_init.clone()
     choice = {}
     owners_t = torch.tensor(owners)
     for j in range(1, Fn):
         idx = torch.nonzero(owners_t == j)[:, 0]
-        c = torch.where(n_vis[idx] >= 0.5 * n_vis[idx].max(), cost[idx], torch.full_like(cost[idx], math.inf))
+        c = torch.where(n_vis[idx] >= 0.25 * n_vis[idx].max(), cost[idx], torch.full_like(cost[idx], math.inf))
         best = idx[c.argmin()]
         T_out[j] = T_c[best]
         choice[int(offsets[j])] = labels[int(best)]
