@@ -451,10 +451,13 @@ REGISTRATION_PRESETS: dict[str, dict[str, Any]] = {
     "paper_only": {"chaining": False, "refine": False, "precision": "auto"},
     # CPU-friendly: one pass of a small encoder (pretrained weights when given) for the
     # correspondence initialisation, no overfit iterations, then chaining and a
-    # sparser refinement.
+    # sparser refinement, its point-to-plane scale growing as z^2 beyond 1.5 m and a
+    # stronger photometric term (chosen on bench_gt_protocol.py's tuning sets: pose
+    # error vs the source's poses and GT error; README "GT renderer").
     "fast": {
         "n_blocks": 1, "channels": 32, "n_candidates": 1024, "iterations": 0, "render_stride": 2,
-        "refine_settings": {"scales": (4, 2, 1), "iters": (8, 5, 3), "point_stride": (1, 2, 4)},
+        "refine_settings": {"scales": (4, 2, 1), "iters": (8, 5, 3), "point_stride": (1, 2, 4),
+                            "geo_ref_depth_m": 1.5, "photo_weight": 1.0},
     },
 }
 
