@@ -268,7 +268,7 @@ def write_png(path: Path, item: dict, inp: np.ndarray, gt: np.ndarray, ref: np.n
 
 def run_set(set_name: str, settings: RenderSettings, cache: Path, registration: str | None,
             png_dir: Path | None, clean: bool, reg_set: list[str] = (), reg_tag: str = "",
-            scenes_per_group: int | None = None) -> list[dict]:
+            scenes_per_group: int | None = None, fuse_all: bool = False) -> list[dict]:
     pool, pool_by = Pool(), {}
     t_render, conf_err, conf_sigma = [], [], []
     pose_rows = []
@@ -287,7 +287,7 @@ def run_set(set_name: str, settings: RenderSettings, cache: Path, registration: 
                                           rot_max_deg=float(dr.max()), trans_med_cm=100 * float(np.median(dt)),
                                           trans_max_cm=100 * float(dt.max())))
                     pose_rows[-1]["_dr"], pose_rows[-1]["_dt"] = dr, dt
-                    members = fused if len(fused) < len(item["members"]) else slice(None)
+                    members = fused if len(fused) < len(item["members"]) and not fuse_all else slice(None)
                 else:
                     T, members = poses_from_source(data), slice(None)
                 c0 = time.process_time()
@@ -382,6 +382,8 @@ def main(argv=None) -> None:
                          "e.g. refine_settings.iters=(8,5,3); cached separately")
     ap.add_argument("--scenes", type=int, default=None,
                     help="a subset: only the first N scenes of each group of a set (default all)")
+    ap.add_argument("--fuse-all", action="store_true",
+                    help="diagnostic: fuse every neighbour, also those the registration's checks failed")
     ap.add_argument("--reg-tag", default="", help="extra name of the registration cache (e.g. a code version)")
     ap.add_argument("--no-clean", action="store_true", help="skip the clean-neighbours (renderer's own error) case")
     ap.add_argument("--fixture", nargs="?", const=str(next((p for p in (REPO.parent / "shared/data/7scenes-kitchen", REPO.parents[1] / "shared/data/7scenes-kitchen") if p.is_dir()), REPO.parent / "shared/data/7scenes-kitchen")), default=None)
@@ -402,7 +404,7 @@ def main(argv=None) -> None:
         for value in values.split(";"):
             st = replace(settings, **{key: ast.literal_eval(value)})
             for s in a.sets:
-                for r in run_set(s, st, a.cache, a.registration, None, not a.no_clean, a.reg_set, a.reg_tag, a.scenes):
+                for r in run_set(s, st, a.cache, a.registration, None, not a.no_clean, a.reg_set, a.reg_tag, a.scenes, a.fuse_all):
                     if ":" not in r["set"]:
                         compact.append(dict(value=value, **r))
         df = pd.DataFrame(compact)
@@ -413,7 +415,7 @@ def main(argv=None) -> None:
         return
     rows = []
     for s in a.sets:
-        rows += run_set(s, settings, a.cache, a.registration, a.png, not a.no_clean, a.reg_set, a.reg_tag, a.scenes)
+        rows += run_set(s, settings, a.cache, a.registration, a.png, not a.no_clean, a.reg_set, a.reg_tag, a.scenes, a.fuse_all)
     pd.set_option("display.width", 250)
     pd.set_option("display.max_columns", 30)
     if rows:
