@@ -134,15 +134,7 @@ class Level:
         valid = (d > 0).to(d.dtype)
         X = backproject(d, Kb).transpose(1, 2).reshape(Fn, 3, h, w)
         N = depth_to_normals(d, Kb, normalize_points=False)
-        # normals (and bilinear samples) need all 3x3 neighbours valid and on one
-        # surface: a depth jump within the 3x3 neighbourhood (an occluding edge) gives
-        # normals and interpolated points of neither surface, whose residuals bias the
-        # poses along the directions the rest of the scene constrains weakly
-        big = torch.where(d > 0, d, torch.full_like(d, 1e6))
-        d_max = F.max_pool2d(d, 3, stride=1, padding=1)
-        d_min = -F.max_pool2d(-big, 3, stride=1, padding=1)
-        smooth = (d_max - d_min) <= EDGE_REL_JUMP * d
-        nvalid = _erode(valid) * smooth.to(d.dtype)
+        nvalid = _erode(valid)  # normals need all 3x3 neighbours valid
         g = spatial_gradient(gray, mode="sobel", order=1, normalized=True)[:, 0]  # (F, 2, h, w) per pixel
         # channels: X(3) N(3) gray gx gy valid
         self.maps = torch.cat([X, N, gray, g, nvalid], 1)
@@ -153,11 +145,6 @@ class Level:
         self.gray = gray.flatten(2)[:, 0, idx]  # (F, N)
         self.valid = valid.flatten(2)[:, 0, idx] > 0  # (F, N)
         self.median_depth = d[d > 0].median() if (d > 0).any() else torch.tensor(1.0)
-
-
-# Largest depth range within a 3x3 neighbourhood, relative to the depth, of a pixel
-# whose normal and point the refinement samples (larger: an occluding edge).
-EDGE_REL_JUMP = 0.1
 
 
 def _cross(a, b):
