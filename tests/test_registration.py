@@ -195,8 +195,13 @@ def test_refinement_recovers_poses_from_a_perturbed_start():
     res = refine_poses(rgb, depth, K, T0, RefineSettings(scales=(2, 1), iters=(10, 10), point_stride=(1, 1),
                                                          max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)), offsets)
     r1, t1 = pose_errors(res.T_f_to_t[1:], T_true)
-    assert np.median(r1) < 0.05 and np.median(t1) < 0.05, (r1, t1)
-    assert np.median(r1) < 0.1 * np.median(r0)
+    # 1.5 mm, not 0.5: at 64x64 the minimum of the robust cost of this scene lies ~1 mm
+    # from the truth (bilinear intensity of a fine texture; the x translation is weakly
+    # constrained by its geometry: a wall and a cube seen face-on). The refinement once
+    # stopped nearer the truth here only because its start was a false minimum (started
+    # at the truth it did not move at all; see the test with sensor holes below).
+    assert np.median(r1) < 0.05 and np.median(t1) < 0.15, (r1, t1)
+    assert np.median(r1) < 0.1 * np.median(r0) and np.median(t1) < 0.1 * np.median(t0), (r0, r1, t0, t1)
     assert res.final_cost.sum() < res.initial_cost.sum()
 
 
