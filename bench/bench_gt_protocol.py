@@ -6,6 +6,9 @@ Sets (frame sets of targets 8, 20, 32 of 40-frame sequences, 640x480 frames resi
 
 * ``tuning``: ``room`` family seed 0 (room_000-002) and ``varied`` family seed 0
   (varied_000-003), Kinect v1 profile. Every renderer default is chosen on these.
+* ``tuning_stereo``: ``varied`` family seed 0 (varied_000-003) with the second sensor
+  profile ``coarse_stereo``: an auxiliary tuning set for what depends on the sensor
+  (the registration's settings were checked on it).
 * ``evaluation``: never used for choosing anything: ``room`` seed 1 (room_000-002,
   Kinect v1), ``varied`` seed 1 (varied_000-005, Kinect v1) and ``varied`` seed 2
   (varied_000-005) with the second sensor profile ``coarse_stereo``.
@@ -71,6 +74,12 @@ SETS: dict[str, list[dict]] = {
         dict(family="room", seed=0, sensor="kinect_v1", scenes=range(0, 3)),
         dict(family="varied", seed=0, sensor="kinect_v1", scenes=range(0, 4)),
     ],
+    # an auxiliary tuning set: the tuning set's varied rooms (seed 0) seen by the second
+    # sensor profile, to tune what depends on the sensor (e.g. the registration) without
+    # looking at the evaluation set's coarse_stereo rooms (seed 2)
+    "tuning_stereo": [
+        dict(family="varied", seed=0, sensor="coarse_stereo", scenes=range(0, 4)),
+    ],
     "evaluation": [
         dict(family="room", seed=1, sensor="kinect_v1", scenes=range(0, 3)),
         dict(family="varied", seed=1, sensor="kinect_v1", scenes=range(0, 6)),
@@ -117,21 +126,51 @@ def load_cached(cache: Path, group: dict, k: int, t: int) -> dict:
     return dict(data=data, exact=z["exact"], cos=z["cos"], thin=z["thin"], members=[int(m) for m in z["members"]])
 
 
-def registered_poses(cache: Path, item: dict, key: str, preset: str) -> tuple[torch.Tensor, list[int]]:
-    """T_j_to_t (F-1, 4, 4) of the overfit registration (cached) and the fused member positions."""
-    path = cache / "registration" / preset / f"{key}.json"
+def registration_section(preset: str, overrides: list[str]) -> dict:
+    """The ``registration`` config section of ``--registration`` and ``--reg-set``
+    (``key=value`` or ``section.key=value``, python literals)."""
+    section: dict = {"preset": preset}
+    for item in overrides:
+        k, v = item.split("=", 1)
+        *outer, last = k.split(".")
+        d = section
+        for o in outer:
+            d = d.setdefault(o, {})
+        d[last] = ast.literal_eval(v)
+    return section
+
+
+def registered_poses(cache: Path, item: dict, key: str, preset: str, overrides: list[str] = (),
+                     tag: str = "") -> tuple[torch.Tensor, list[int]]:
+    """T_j_to_t (F-1, 4, 4) of the overfit registration (cached per preset, overrides
+    and ``tag``) and the fused member positions."""
+    name = preset + "".join(f"__{o}" for o in overrides).replace("/", "_").replace(" ", "") + (f"__{tag}" if tag else "")
+    path = cache / "registration" / name / f"{key}.json"
     if not path.exists():
-        from depthgt.registration import make_settings, register_frameset
+        from depthgt.registration import register_frameset
+        from depthgt.settings import registration_settings
 
         data = item["data"]
         offsets = FrameSetSettings().offsets
-        res = register_frameset(data.rgb, data.depth_m, data.K, list(offsets), make_settings(preset=preset),
+        res = register_frameset(data.rgb, data.depth_m, data.K, list(offsets),
+                                registration_settings(registration_section(preset, list(overrides))),
                                 seed=stable_seed(0, "protocol", key))
         fused = [0] + [i + 1 for i, st in enumerate(res.neighbour_status) if st == "ok"]
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps({"T_j_to_t": np.asarray(res.T_j_to_t, dtype=np.float64).tolist(), "fused": fused}))
+        path.write_text(json.dumps({"T_j_to_t": np.asarray(res.T_j_to_t, dtype=np.float64).tolist(), "fused": fused,
+                                    "status": res.neighbour_status, "reasons": res.neighbour_reasons,
+                                    "seconds": res.timings.get("total")}))
     doc = json.loads(path.read_text())
     return torch.tensor(doc["T_j_to_t"], dtype=torch.float64), doc["fused"]
+
+
+def pose_errors_vs_source(T_est: torch.Tensor, data: FrameSetData) -> tuple[np.ndarray, np.ndarray]:
+    """Per neighbour (rotation deg, translation m) error of estimated T_j_to_t vs the source's."""
+    from depthgt.eval.metrics import pose_delta
+
+    T_src = poses_from_source(data).to(torch.float64)
+    dt, dr = pose_delta((torch.linalg.inv(T_src) @ T_est.to(torch.float64)).numpy())
+    return np.asarray(dr), np.asarray(dt)
 
 
 # --------------------------------------------------------------------------- scoring
@@ -228,20 +267,27 @@ def write_png(path: Path, item: dict, inp: np.ndarray, gt: np.ndarray, ref: np.n
 
 
 def run_set(set_name: str, settings: RenderSettings, cache: Path, registration: str | None,
-            png_dir: Path | None, clean: bool) -> list[dict]:
+            png_dir: Path | None, clean: bool, reg_set: list[str] = (), reg_tag: str = "",
+            scenes_per_group: int | None = None, fuse_all: bool = False) -> list[dict]:
     pool, pool_by = Pool(), {}
     t_render, conf_err, conf_sigma = [], [], []
+    pose_rows = []
     for group in SETS[set_name]:
         gname = f"{group['family']}/s{group['seed']}/{group['sensor']}"
         gp = pool_by.setdefault(gname, Pool())
-        for k in group["scenes"]:
+        for k in list(group["scenes"])[:scenes_per_group]:
             for t in TARGETS:
                 key = _key(group, k, t)
                 item = load_cached(cache, group, k, t)
                 data = item["data"]
                 if registration:
-                    T, fused = registered_poses(cache, item, key, registration)
-                    members = fused if len(fused) < len(item["members"]) else slice(None)
+                    T, fused = registered_poses(cache, item, key, registration, reg_set, reg_tag)
+                    dr, dt = pose_errors_vs_source(T, data)
+                    pose_rows.append(dict(frameset=key, n_fused=len(fused) - 1, rot_med_deg=float(np.median(dr)),
+                                          rot_max_deg=float(dr.max()), trans_med_cm=100 * float(np.median(dt)),
+                                          trans_max_cm=100 * float(dt.max())))
+                    pose_rows[-1]["_dr"], pose_rows[-1]["_dt"] = dr, dt
+                    members = fused if len(fused) < len(item["members"]) and not fuse_all else slice(None)
                 else:
                     T, members = poses_from_source(data), slice(None)
                 c0 = time.process_time()
@@ -271,6 +317,16 @@ def run_set(set_name: str, settings: RenderSettings, cache: Path, registration: 
                     conf = getattr(out, "sigma", None)
                     write_png(png_dir / set_name / f"{key}.png", item, inp, gt, ref,
                               None if conf is None else conf[0, 0].numpy())
+    if pose_rows:
+        pr = pd.DataFrame(pose_rows)
+        dr_all = np.concatenate(list(pr.pop("_dr")))
+        dt_all = np.concatenate(list(pr.pop("_dt")))
+        print(f"\nregistration error vs the source's poses on {set_name}, per frame set:")
+        print(pr.to_markdown(index=False, floatfmt=".3g"))
+        print(f"registration error on {set_name} over all {len(dr_all)} neighbours: rotation median "
+              f"{np.median(dr_all):.3f} deg (90th pct {np.quantile(dr_all, 0.9):.3f}, max {dr_all.max():.3f}), "
+              f"translation median {100 * np.median(dt_all):.3f} cm (90th pct {100 * np.quantile(dt_all, 0.9):.3f}, "
+              f"max {100 * dt_all.max():.3f}); neighbours fused {int(pr.n_fused.sum())} of {len(dr_all)}\n")
     variant = f"registration={registration}" if registration else "source poses"
     rows = summarise(pool, set_name, variant)
     for gname, gp in pool_by.items():
@@ -321,6 +377,14 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sets", nargs="*", default=[], choices=list(SETS))
     ap.add_argument("--registration", default=None, help="overfit registration preset (e.g. fast) instead of the source's poses")
+    ap.add_argument("--reg-set", nargs="*", default=[],
+                    help="registration overrides key=value or section.key=value (python literals), "
+                         "e.g. refine_settings.iters=(8,5,3); cached separately")
+    ap.add_argument("--scenes", type=int, default=None,
+                    help="a subset: only the first N scenes of each group of a set (default all)")
+    ap.add_argument("--fuse-all", action="store_true",
+                    help="diagnostic: fuse every neighbour, also those the registration's checks failed")
+    ap.add_argument("--reg-tag", default="", help="extra name of the registration cache (e.g. a code version)")
     ap.add_argument("--no-clean", action="store_true", help="skip the clean-neighbours (renderer's own error) case")
     ap.add_argument("--fixture", nargs="?", const=str(next((p for p in (REPO.parent / "shared/data/7scenes-kitchen", REPO.parents[1] / "shared/data/7scenes-kitchen") if p.is_dir()), REPO.parent / "shared/data/7scenes-kitchen")), default=None)
     ap.add_argument("--fixture-step", type=int, nargs="+", default=[9, 4])
@@ -340,7 +404,7 @@ def main(argv=None) -> None:
         for value in values.split(";"):
             st = replace(settings, **{key: ast.literal_eval(value)})
             for s in a.sets:
-                for r in run_set(s, st, a.cache, a.registration, None, not a.no_clean):
+                for r in run_set(s, st, a.cache, a.registration, None, not a.no_clean, a.reg_set, a.reg_tag, a.scenes, a.fuse_all):
                     if ":" not in r["set"]:
                         compact.append(dict(value=value, **r))
         df = pd.DataFrame(compact)
@@ -351,7 +415,7 @@ def main(argv=None) -> None:
         return
     rows = []
     for s in a.sets:
-        rows += run_set(s, settings, a.cache, a.registration, a.png, not a.no_clean)
+        rows += run_set(s, settings, a.cache, a.registration, a.png, not a.no_clean, a.reg_set, a.reg_tag, a.scenes, a.fuse_all)
     pd.set_option("display.width", 250)
     pd.set_option("display.max_columns", 30)
     if rows:

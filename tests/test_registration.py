@@ -66,8 +66,10 @@ def _rot(axis_angle):
     return np.eye(3) + math.sin(th) * Kx + (1 - math.cos(th)) * Kx @ Kx
 
 
-def _frameset(offsets, hw=(64, 64), flat=False, textured=True, step_t=0.02, step_deg=1.0, noise_m=0.0, seed=0):
-    """Synthetic frame set on a smooth trajectory; returns rgb, depth, K, true T_j_to_t."""
+def _frameset(offsets, hw=(64, 64), flat=False, textured=True, step_t=0.02, step_deg=1.0, noise_m=0.0, seed=0,
+              holes=0.0):
+    """Synthetic frame set on a smooth trajectory (``holes``: share of depth pixels
+    dropped at random, like a sensor's); returns rgb, depth, K, true T_j_to_t."""
     K = np.array([[0.9 * hw[1], 0, hw[1] / 2 - 0.5], [0, 0.9 * hw[1], hw[0] / 2 - 0.5], [0, 0, 1.0]])
     rng = np.random.default_rng(seed)
     poses = {}
@@ -81,6 +83,8 @@ def _frameset(offsets, hw=(64, 64), flat=False, textured=True, step_t=0.02, step
         dep, col = _raycast_room(poses[o], K, hw, textured=textured, flat=flat)
         if noise_m:
             dep = dep + rng.normal(0, noise_m, dep.shape).astype(np.float32) * dep ** 2
+        if holes:
+            dep[rng.random(dep.shape) < holes] = 0
         rgbs.append(col)
         depths.append(dep)
     rgb = torch.from_numpy(np.stack(rgbs)).permute(0, 3, 1, 2).contiguous()
@@ -191,9 +195,49 @@ def test_refinement_recovers_poses_from_a_perturbed_start():
     res = refine_poses(rgb, depth, K, T0, RefineSettings(scales=(2, 1), iters=(10, 10), point_stride=(1, 1),
                                                          max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)), offsets)
     r1, t1 = pose_errors(res.T_f_to_t[1:], T_true)
-    assert np.median(r1) < 0.05 and np.median(t1) < 0.05, (r1, t1)
-    assert np.median(r1) < 0.1 * np.median(r0)
+    # 1.5 mm, not 0.5: at 64x64 the minimum of the robust cost of this scene lies ~1 mm
+    # from the truth (bilinear intensity of a fine texture; the x translation is weakly
+    # constrained by its geometry: a wall and a cube seen face-on). The refinement once
+    # stopped nearer the truth here only because its start was a false minimum (started
+    # at the truth it did not move at all; see the test with sensor holes below).
+    assert np.median(r1) < 0.05 and np.median(t1) < 0.15, (r1, t1)
+    assert np.median(r1) < 0.1 * np.median(r0) and np.median(t1) < 0.1 * np.median(t0), (r0, r1, t0, t1)
     assert res.final_cost.sum() < res.initial_cost.sum()
+
+
+def test_refinement_leaves_the_identity_start_with_sensor_holes():
+    # Depth with holes (as every sensor's): at the identity start every warped point sits
+    # on a pixel centre, and any motion lets some points fall off the view or next to a
+    # hole. The LM test once charged those points as mismatches, so the start was a false
+    # minimum: every step was refused and the poses stayed at the identity (errors
+    # 1.5-2.4 deg, 1.1-2.2 cm here). Compared on the points seen at both poses, it converges.
+    offsets = [0, -4, -2, 2, 4]
+    rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64), step_t=0.005, step_deg=0.6, noise_m=0.0005, holes=0.1)
+    T0 = torch.eye(4, dtype=torch.float64).repeat(len(offsets), 1, 1)
+    r0, t0 = pose_errors(T0[1:], T_true)
+    assert r0.max() > 2.0 and t0.max() > 2.0  # a real offset to recover
+    res = refine_poses(rgb, depth, K, T0, RefineSettings(scales=(2, 1), iters=(10, 6), point_stride=(1, 1),
+                                                         max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)), offsets)
+    r1, t1 = pose_errors(res.T_f_to_t[1:], T_true)
+    assert r1.max() < 0.2 and t1.max() < 0.8, (r1, t1)
+    assert np.all(r1 < 0.1 * r0) and np.all(t1 < 0.5 * t0), (r0, r1, t0, t1)
+
+
+def test_chaining_keeps_the_right_pose_next_to_holes():
+    # The chaining step scores candidate initialisations (direct, identity, via nearer
+    # neighbours) by their mean cost per point that lands on the target, among those with
+    # at least a quarter of the largest overlap: with sensor holes the identity (on the
+    # pixel grid) sees ~2x the points of the right pose, which must still be chosen.
+    from depthgt.registration.overfit import _chain, _prepare
+
+    offsets = [0, -2, 2]
+    rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64), step_t=0.01, step_deg=1.5, noise_m=0.0005, holes=0.1)
+    s = RegistrationSettings(**FAST_TEST, iterations=0)
+    fs = _prepare(rgb, depth, K, s, torch.Generator().manual_seed(0))
+    T_init = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+    T_init[1:] = torch.from_numpy(T_true)
+    T_out, choice = _chain(fs, T_init, {}, offsets, s)
+    assert choice == {-2: "direct", 2: "direct"}, choice
 
 
 def test_residual_size_separates_aligned_from_settled_off_poses():

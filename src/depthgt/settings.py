@@ -299,6 +299,9 @@ class RefineSettings:
         max_dist_m: association gate for point-to-plane and depth differences (metres),
             per scale.
         damping: initial Levenberg-Marquardt damping (relative to the diagonal).
+        geo_ref_depth_m: beyond this depth (metres) the robust scale and the gate of
+            the point-to-plane residuals grow as (z / geo_ref_depth_m)^2, like the depth
+            noise and quantisation of disparity sensors; 0 keeps them constant.
     """
 
     scales: tuple[int, ...] = (4, 2, 1)
@@ -311,9 +314,11 @@ class RefineSettings:
     robust: str = "huber"
     max_dist_m: tuple[float, ...] = (0.10, 0.05, 0.03)
     damping: float = 1e-4
+    geo_ref_depth_m: float = 0.0
 
     def __post_init__(self):
         where = "registration.refine_settings"
+        _require(self.geo_ref_depth_m >= 0, f"{where}.geo_ref_depth_m", f"must be >= 0, got {self.geo_ref_depth_m}")
         n = len(self.scales)
         _require(len(self.iters) == len(self.point_stride) == len(self.max_dist_m) == len(self.geo_scale_m) == n,
                  where, "scales, iters, point_stride, max_dist_m and geo_scale_m need the same length")
@@ -446,10 +451,13 @@ REGISTRATION_PRESETS: dict[str, dict[str, Any]] = {
     "paper_only": {"chaining": False, "refine": False, "precision": "auto"},
     # CPU-friendly: one pass of a small encoder (pretrained weights when given) for the
     # correspondence initialisation, no overfit iterations, then chaining and a
-    # sparser refinement.
+    # sparser refinement, its point-to-plane scale growing as z^2 beyond 1.5 m and a
+    # stronger photometric term (chosen on bench_gt_protocol.py's tuning sets: pose
+    # error vs the source's poses and GT error; README "GT renderer").
     "fast": {
         "n_blocks": 1, "channels": 32, "n_candidates": 1024, "iterations": 0, "render_stride": 2,
-        "refine_settings": {"scales": (4, 2, 1), "iters": (8, 5, 3), "point_stride": (1, 2, 4)},
+        "refine_settings": {"scales": (4, 2, 1), "iters": (8, 5, 3), "point_stride": (1, 2, 4),
+                            "geo_ref_depth_m": 1.5, "photo_weight": 1.0},
     },
 }
 

@@ -27,7 +27,7 @@ from depthgt.registration.correspondences import find_correspondences, sample_ca
 from depthgt.registration.encoder import build_encoder, lift_points
 from depthgt.registration.losses import correspondence_loss, default_render_fn, render_losses
 from depthgt.registration.procrustes import procrustes_random_subsets
-from depthgt.registration.refine import Level, LevelSettings, normal_system, refine_poses
+from depthgt.registration.refine import Level, LevelSettings, pair_mean_cost, refine_poses
 from depthgt.settings import RegistrationSettings
 
 __all__ = ["RegistrationResult", "register_frameset", "pretrain_encoder", "frameset_loss"]
@@ -274,14 +274,21 @@ def _chain(fs: _Frameset, T_init: torch.Tensor, table, offsets, s: RegistrationS
     level.gray = torch.cat([level.gray[:1], level.gray[pairs[:, 1]]])
     level.valid = torch.cat([level.valid[:1], level.valid[pairs[:, 1]]])
     level.maps = torch.cat([level.maps[:1], level.maps[pairs[:, 1]]])
-    ls = LevelSettings(rs.geo_scale_m[-1], rs.photo_scale, rs.photo_weight, rs.robust)
-    _, _, cost, _, _ = normal_system(level, Tv, vpairs.to(fs.depth.device), ls, rs.max_dist_m[-1])
+    ls = LevelSettings(rs.geo_scale_m[-1], rs.photo_scale, rs.photo_weight, rs.robust, rs.geo_ref_depth_m)
+    # Mean cost per point that lands on a surface of the target, not the sum: a sum
+    # charges points that leave the view and so favours the candidate of the largest
+    # overlap (the identity) over the right one. A candidate that sees less than a
+    # quarter of the overlap of the best-overlapping one of its neighbour is not chosen
+    # (not a half: next to the holes of real depth, a pose on the pixel grid such as the
+    # identity sees up to twice the points of a sub-pixel one).
+    cost, n_vis = pair_mean_cost(level, Tv, vpairs.to(fs.depth.device), ls, rs.max_dist_m[-1])
     T_out = T_init.clone()
     choice = {}
     owners_t = torch.tensor(owners)
     for j in range(1, Fn):
         idx = torch.nonzero(owners_t == j)[:, 0]
-        best = idx[cost[idx].argmin()]
+        c = torch.where(n_vis[idx] >= 0.25 * n_vis[idx].max(), cost[idx], torch.full_like(cost[idx], math.inf))
+        best = idx[c.argmin()]
         T_out[j] = T_c[best]
         choice[int(offsets[j])] = labels[int(best)]
     return T_out, choice

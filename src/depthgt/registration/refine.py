@@ -19,7 +19,7 @@ gradients and sampling come from kornia/torch.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 import torch.nn.functional as F
@@ -31,7 +31,7 @@ from depthgt.geometry import backproject, resize_depth_nearest, resize_rgb, scal
 from depthgt.settings import RefineSettings
 
 __all__ = ["RefineResult", "Level", "LevelSettings", "frame_pairs", "refine_poses", "adjoint", "normal_system",
-           "pair_information", "target_residuals"]
+           "pair_mean_cost", "pair_information", "target_residuals"]
 
 
 @dataclass
@@ -97,12 +97,14 @@ def _erode(mask: torch.Tensor) -> torch.Tensor:
 class LevelSettings:
     """The residual settings of one scale (see :class:`~depthgt.settings.RefineSettings`):
     robust scales of the point-to-plane (metres) and intensity residuals, the weight of
-    the photometric term and the robust kernel ("huber" | "cauchy")."""
+    the photometric term, the robust kernel ("huber" | "cauchy") and the depth beyond
+    which the geometric scale and gate grow as (z / geo_ref_depth_m)^2 (0: constant)."""
 
     geo_scale_m: float
     photo_scale: float
     photo_weight: float
     robust: str
+    geo_ref_depth_m: float = 0.0
 
 
 class Level:
@@ -152,7 +154,9 @@ def _cross(a, b):
 
 def _residuals(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "LevelSettings", gate: float):
     """Scaled residuals r (P, 2N) (N geometric, then N photometric), Jacobians
-    J (P, 6, 2N) w.r.t. a left twist (v, w) of T_ab, and validity (P, 2N).
+    J (P, 6, 2N) w.r.t. a left twist (v, w) of T_ab, validity (P, 2N) (associated:
+    seen and within the gate) and visibility (P, 2N) (a valid source point that lands
+    on a destination pixel with a surface, whether or not within the gate).
 
     Planar layout (one contiguous (P, N) plane per component) keeps the element-wise
     work cache friendly."""
@@ -174,10 +178,18 @@ def _residuals(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "LevelS
     n_inv = torch.rsqrt((smp[:, 3:6] * smp[:, 3:6]).sum(1).clamp(min=1e-12))
     Nrm = (smp[:, 3] * n_inv, smp[:, 4] * n_inv, smp[:, 5] * n_inv)
     inb = (qz > 1e-3) & (u > -0.5) & (u < w - 0.5) & (v > -0.5) & (v < h - 0.5)
-    ok = level.valid[b] & inb & (smp[:, 9] > 0.999) & ((qz - X[2]).abs() < gate)
+    seen = level.valid[b] & inb & (smp[:, 9] > 0.999)
     d = (qx - X[0], qy - X[1], qz - X[2])
     r_geo = Nrm[0] * d[0] + Nrm[1] * d[1] + Nrm[2] * d[2]
-    ok = ok & (r_geo.abs() < gate)
+    if s.geo_ref_depth_m > 0:
+        # a disparity sensor's depth noise and quantisation grow as z^2: so do the
+        # robust scale and the gate of the point-to-plane residual
+        sz = (X[2] * (1.0 / s.geo_ref_depth_m)).square().clamp(min=1.0)
+        gate_pt = gate * sz
+        inv_geo = 1.0 / (s.geo_scale_m * sz)
+    else:
+        gate_pt, inv_geo = gate, 1.0 / s.geo_scale_m
+    ok = seen & ((qz - X[2]).abs() < gate_pt) & (r_geo.abs() < gate_pt)
     qv = (qx, qy, qz)
     J_geo = torch.stack([*Nrm, *_cross(qv, Nrm)], 1)  # (P, 6, N)
     r_ph = smp[:, 6] - level.gray[b]
@@ -187,10 +199,11 @@ def _residuals(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "LevelS
     J_ph = torch.stack([*ga, *_cross(qv, ga)], 1)
     wp = math.sqrt(s.photo_weight)
     # geometric then photometric residuals side by side: (P, 2N), (P, 6, 2N)
-    r = torch.cat([r_geo * (1.0 / s.geo_scale_m), r_ph * (wp / s.photo_scale)], 1)
-    J = torch.cat([J_geo * (1.0 / s.geo_scale_m), J_ph * (wp / s.photo_scale)], 2)
+    r = torch.cat([r_geo * inv_geo, r_ph * (wp / s.photo_scale)], 1)
+    J = torch.cat([J_geo * (inv_geo[:, None] if torch.is_tensor(inv_geo) else inv_geo), J_ph * (wp / s.photo_scale)], 2)
     valid = torch.cat([ok, ok & (s.photo_weight > 0)], 1)
-    return r, J, valid
+    vis = torch.cat([seen, seen & (s.photo_weight > 0)], 1)
+    return r, J, valid, vis, r_geo
 
 
 def _sample_grouped(maps: torch.Tensor, grid: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
@@ -227,10 +240,49 @@ def _robust(r: torch.Tensor, kind: str) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _gate_cost(gate: float, s: "LevelSettings") -> float:
-    # An unassociated point pays the cost of a residual at the gate, so that costs of
-    # different association sets compare fairly in the LM acceptance test.
+    # A point that lands on a surface of the destination but outside the gate pays the
+    # cost of a residual at the gate (a truncated robust cost).
     _, rho = _robust(torch.tensor([gate / s.geo_scale_m]), s.robust)
     return float(rho[0])
+
+
+@dataclass
+class _System:
+    """The linearisation of every pair at one set of poses (see :func:`normal_system`),
+    with the per-point costs and visibility the LM acceptance test compares on."""
+
+    H_rel: torch.Tensor
+    g_rel: torch.Tensor
+    pair_cost: torch.Tensor
+    inliers: torch.Tensor
+    Tinv: torch.Tensor
+    cost_pts: torch.Tensor  # (P, 2N) robust cost of every visible point, 0 elsewhere
+    vis: torch.Tensor  # (P, 2N) bool
+
+    def astuple(self):
+        return self.H_rel, self.g_rel, self.pair_cost, self.inliers, self.Tinv
+
+
+def _system(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings, gate: float) -> _System:
+    a, b = pairs[:, 0], pairs[:, 1]
+    Tinv = torch.linalg.inv(T)
+    T_ab = Tinv[a] @ T[b]
+    r, J, valid, vis, _ = _residuals(level, T_ab, pairs, s, gate)
+    wgt, rho = _robust(r, s.robust)
+    Jw = J * (wgt * valid)[:, None]  # (P, 6, 2N)
+    H_rel = (Jw @ J.transpose(1, 2)).to(torch.float64)
+    g_rel = (Jw @ r[..., None])[..., 0].to(torch.float64)
+    # Only points that land on a surface of the destination take part in the cost: an
+    # associated point its robust cost, a seen point outside the gate the gate's cost.
+    # A point that leaves the view (or lands in a hole) costs nothing here and is left
+    # out of the comparison of two poses (:func:`_accept`): charging it, as a mismatch,
+    # would make the pose with the largest overlap -- the identity, the start -- a false
+    # minimum that holds the refinement near where it began.
+    cost_pts = torch.where(valid, rho, torch.full_like(rho, _gate_cost(gate, s))) * vis
+    N_ = level.valid.shape[1]
+    pair_cost = cost_pts.sum(1).to(torch.float64)
+    inl = (valid[:, :N_] & level.valid[b]).sum(1)
+    return _System(H_rel, g_rel, pair_cost, inl, Tinv, cost_pts, vis)
 
 
 def normal_system(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings, gate: float):
@@ -243,21 +295,27 @@ def normal_system(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSe
     Returns:
         ``(H_rel (P, 6, 6), g_rel (P, 6), pair_cost (P,), inliers (P,), T^-1 (F', 4, 4))``
         in float64, Jacobians w.r.t. a left twist (v, w) of ``T_ab = T_a^-1 T_b``.
+        ``pair_cost`` sums the robust cost over the points that land on a surface of
+        the destination (gate cost beyond the gate); :func:`pair_mean_cost` normalises it.
     """
-    a, b = pairs[:, 0], pairs[:, 1]
-    Tinv = torch.linalg.inv(T)
-    T_ab = Tinv[a] @ T[b]
-    r, J, valid = _residuals(level, T_ab, pairs, s, gate)
-    wgt, rho = _robust(r, s.robust)
-    Jw = J * (wgt * valid)[:, None]  # (P, 6, 2N)
-    H_rel = (Jw @ J.transpose(1, 2)).to(torch.float64)
-    g_rel = (Jw @ r[..., None])[..., 0].to(torch.float64)
-    cost_pts = torch.where(valid, rho, torch.full_like(rho, _gate_cost(gate, s)))
-    N_ = level.valid.shape[1]
-    cost_pts = cost_pts * level.valid[b].repeat(1, 2)
-    pair_cost = cost_pts.sum(1).to(torch.float64)
-    inl = (valid[:, :N_] & level.valid[b]).sum(1)
-    return H_rel, g_rel, pair_cost, inl, Tinv
+    return _system(level, T, pairs, s, gate).astuple()
+
+
+def pair_mean_cost(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings,
+                   gate: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean robust cost per visible point (P,) and the visible points (P,) of every pair:
+    a score that compares poses of different overlap (e.g. candidate initialisations)."""
+    sys_ = _system(level, T, pairs, s, gate)
+    n_vis = sys_.vis.sum(1).to(torch.float64)
+    return sys_.pair_cost / n_vis.clamp(min=1), n_vis
+
+
+def _accept(old: _System, new: _System) -> tuple[float, float]:
+    """Costs of two linearisations over the points visible in both (old, new): a fair
+    comparison whatever the change of overlap."""
+    both = old.vis & new.vis
+    return (float((old.cost_pts * both).sum(dtype=torch.float64)),
+            float((new.cost_pts * both).sum(dtype=torch.float64)))
 
 
 def _assemble(H_rel, g_rel, Tinv, pairs, n_frames):
@@ -325,14 +383,14 @@ def refine_poses(
     last = None
     for li, (scale, n_it, stride, gate) in enumerate(zip(settings.scales, settings.iters, settings.point_stride, settings.max_dist_m)):
         level = Level(rgb, depth_m, K, scale, stride)
-        ls = LevelSettings(settings.geo_scale_m[li], settings.photo_scale, settings.photo_weight, settings.robust)
+        ls = LevelSettings(settings.geo_scale_m[li], settings.photo_scale, settings.photo_weight, settings.robust,
+                           settings.geo_ref_depth_m)
         lam = settings.damping
-        H_rel, g_rel, pcost, inl, Tinv = normal_system(level, T, pairs, ls, gate)
-        cost = float(pcost.sum())
+        cur = _system(level, T, pairs, ls, gate)
         if li == len(settings.scales) - 1:
-            out.initial_cost = _per_frame(pcost, tgt_pairs, other, Fn)
+            out.initial_cost = _per_frame(cur.pair_cost, tgt_pairs, other, Fn)
         for _ in range(n_it):
-            H, g = _assemble(H_rel, g_rel, Tinv, pairs, Fn)
+            H, g = _assemble(cur.H_rel, cur.g_rel, cur.Tinv, pairs, Fn)
             Hr = H[1:, 1:].permute(0, 2, 1, 3).reshape(6 * (Fn - 1), 6 * (Fn - 1))
             gr = g[1:].reshape(-1)
             diag = torch.diagonal(Hr).clamp(min=1e-9)
@@ -341,19 +399,18 @@ def refine_poses(
                 delta = torch.linalg.solve(Hr + lam * torch.diag(diag) + 1e-9 * eye6, -gr).reshape(Fn - 1, 6)
                 T_new = T.clone()
                 T_new[1:] = Se3.exp(delta).matrix().to(torch.float64) @ T[1:]
-                sys_new = normal_system(level, T_new, pairs, ls, gate)
-                c_new = float(sys_new[2].sum())
-                if c_new <= cost:
-                    T, cost = T_new, c_new
-                    H_rel, g_rel, pcost, inl, Tinv = sys_new
+                new = _system(level, T_new, pairs, ls, gate)
+                c_old, c_new = _accept(cur, new)
+                if c_new <= c_old:
+                    T, cur = T_new, new
                     lam = max(lam / 3.0, 1e-7)
                     improved = True
                     break
                 lam *= 10.0
-            out.cost_curve.append(cost)
+            out.cost_curve.append(float(cur.pair_cost.sum()))
             if not improved or float(delta.abs().max()) < 1e-7:
                 break
-        last = (level, H_rel, pcost, inl)
+        last = (level, cur.H_rel, cur.pair_cost, cur.inliers)
     level, H_rel, pcost, inl = last
     out.T_f_to_t = T
     out.final_cost = _per_frame(pcost, tgt_pairs, other, Fn)
@@ -367,7 +424,8 @@ def refine_poses(
     H_tgt.index_add_(0, other[tgt_pairs], H_rel[tgt_pairs])
     cond[1:] = pair_information(H_tgt[1:], float(level.median_depth))
     out.condition = cond
-    out.residual_m = target_residuals(level, T, pairs[sel], ls, settings.max_dist_m[-1], Fn)
+    # the statistic of the high_residual check, calibrated with constant scale and gate
+    out.residual_m = target_residuals(level, T, pairs[sel], replace(ls, geo_ref_depth_m=0.0), settings.max_dist_m[-1], Fn)
     return out
 
 
@@ -376,11 +434,11 @@ def target_residuals(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: Leve
     """(F,) median |point-to-plane residual| (metres) of the associated points of the
     pairs (0, b), b's points in the target."""
     T_ab = torch.linalg.inv(T[pairs[:, 0]]) @ T[pairs[:, 1]]
-    r, _, valid = _residuals(level, T_ab, pairs, s, gate)
+    _, _, valid, _, r_geo = _residuals(level, T_ab, pairs, s, gate)
     n = level.valid.shape[1]
-    r_geo = (r[:, :n] * s.geo_scale_m).abs().to(torch.float64)
+    r_geo = r_geo.abs().to(torch.float64)
     med = torch.where(valid[:, :n], r_geo, torch.full_like(r_geo, float("nan"))).nanmedian(dim=1).values
-    out = torch.zeros(n_frames, dtype=torch.float64, device=r.device)
+    out = torch.zeros(n_frames, dtype=torch.float64, device=r_geo.device)
     out[pairs[:, 1]] = med
     return out
 
