@@ -114,10 +114,10 @@ def test_scene_outputs_matches_whole_folders_only():
                                                       "results/framesets/syn/room_1/000002/gt.exr"]
 
 
-def test_report_writes_html(built, tmp_path):
-    out = tmp_path / "report.html"
-    depthgt("report", "-d", str(built), "--out", str(out))
-    assert out.stat().st_size > 1000 and b"<html" in out.read_bytes()[:5000].lower()
+def test_report_of_an_unfinished_build_says_what_to_run(built, tmp_path):
+    # the report of a finished build is tested in test_workflow_enhance (it needs training)
+    proc = depthgt("report", "-d", str(built), "--out", str(tmp_path / "r.html"), check=False)
+    assert proc.returncode == 2 and "depthgt build" in proc.stderr
 
 
 def test_bench_runs_a_benchmark():

@@ -156,6 +156,12 @@ def _cmd_extract(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
+    # Snakemake's report needs every file marked for it: say what to run instead of
+    # Snakemake's "marked for report but does not exist"
+    plan = subprocess.run(snakemake_command(args, "-n", "--quiet", "all"), capture_output=True, text=True)
+    if plan.returncode != 0 or "Nothing to be done" not in plan.stdout + plan.stderr:
+        raise DepthGTError(f"the build in {Path(args.directory).resolve()} is not finished (or its config fails): "
+                           "run `depthgt build` first, then `depthgt report`")
     _run(snakemake_command(args, "--report", str(Path(args.out).resolve())))
     return 0
 
@@ -227,6 +233,9 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
+        if args.command != "bench" and not args.snakefile:
+            # the checkout the rules' conda environment installs (workflow/envs/depthgt.yaml)
+            os.environ.setdefault("DEPTHGT_REPO", str(repo_root()))
         return int(args.func(args) or 0)
     except DepthGTError as exc:
         print(f"depthgt: error: {exc}", file=sys.stderr)
