@@ -23,6 +23,16 @@ def _plt():
     return plt
 
 
+def _save(plt, fig, out_path: str | Path, dpi: int = 100) -> Path:
+    """Lay out, write (creating the folder) and close a figure."""
+    fig.tight_layout()
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=dpi)
+    plt.close(fig)
+    return out
+
+
 def shared_depth_range(images: list[np.ndarray], lo_pct: float = 1.0, hi_pct: float = 99.0) -> tuple[float, float]:
     """(vmin, vmax) in metres from the valid (> 0) pixels of all images (percentiles,
     so that a few outliers do not flatten the colours); (0, 1) when none is valid."""
@@ -108,12 +118,7 @@ def training_curve(loss_log: str | Path, out_path: str | Path, title: str = "") 
     ax.set_yscale("log")
     ax.set_title(title)
     ax.legend()
-    fig.tight_layout()
-    out = Path(out_path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
-    return out
+    return _save(plt, fig, out_path)
 
 
 def frameset_panel(rec, out_path: str | Path, title: str = "") -> Path:
@@ -150,9 +155,4 @@ def frameset_panel(rec, out_path: str | Path, title: str = "") -> Path:
         ax.axis("off")
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    out = Path(out_path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
-    return out
+    return _save(plt, fig, out_path)
