@@ -8,6 +8,7 @@ configfile: "config/config.yaml"
 
 
 include: "workflow/rules/common.smk"
+include: "workflow/rules/inputs.smk"
 include: "workflow/rules/index.smk"
 include: "workflow/rules/registration.smk"
 include: "workflow/rules/framesets.smk"

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from test_workflow import REPO, digest_outputs, make_workdir
+from conftest import REPO, digest_outputs, make_workdir
 
 # two scenes, three frame sets: the smallest build with a train and a test split
 SMALL = {

@@ -21,7 +21,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from test_workflow import REPO, make_workdir
+from conftest import REPO, make_workdir
 
 pytestmark = pytest.mark.slow
 

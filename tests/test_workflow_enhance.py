@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import copy
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pandas as pd
@@ -88,6 +90,15 @@ def test_html_report(synthetic_only):
     wd = synthetic_only
     snakemake(wd, "--report", str(wd / "report.html"))
     assert (wd / "report.html").stat().st_size > 10_000
+
+
+def test_depthgt_report_command(synthetic_only, tmp_path):
+    """`depthgt report` on a finished build writes the same kind of report."""
+    out = tmp_path / "r.html"
+    proc = subprocess.run([sys.executable, "-m", "depthgt.cli", "report", "-d", str(synthetic_only), "--out", str(out)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert out.stat().st_size > 10_000
 
 
 @pytest.mark.skipif(not FIXTURE.is_dir(), reason="../shared/data/7scenes-kitchen is absent")

@@ -12,6 +12,8 @@ rule dataset:
         summary="results/dataset/summary.json",
         summary_md="results/dataset/summary.md",
         quality="results/dataset/gt_quality.csv",
+    conda:
+        ENV
     log:
         "logs/dataset.log",
     benchmark:

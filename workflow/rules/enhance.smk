@@ -1,37 +1,6 @@
 # Enhancement: the global-reconstruction GT (RDE), training of LapDEN and the learned
 # baselines, and the evaluation of every method on the held-out test frame sets.
 
-from depthgt import registry
-
-ENHANCE = config.get("enhance", {})
-MODELS = list(registry.learned())  # every trainable model of the registry (target `train`)
-METHODS = list(SETTINGS.evaluation.methods)
-EVALUATED_MODELS = SETTINGS.evaluation.models  # trained by the default target
-KINDS = {name: src["kind"] for name, src in SOURCES.items()}
-MANIFESTS = {"depthgt": "results/dataset", "rde": "results/rde"}  # the GT a learned method trains on
-
-
-def train_config(wildcards):
-    """The config sections that decide a model's training (its params: a change re-runs
-    exactly this model); the job builds its TrainSettings from the whole config."""
-    key = registry.METHODS[wildcards.model].settings_key
-    models = ENHANCE.get("models", {})
-    return {"seed": config.get("seed", 0), "device": config.get("device", "auto"),
-            "enhance": {"train": ENHANCE.get("train", {}), "models": {key: models[key]} if key in models else {}}}
-
-
-def train_manifests(wildcards):
-    d = MANIFESTS[registry.METHODS[wildcards.model].trains_on]
-    return {"train": f"{d}/train.parquet", "val": f"{d}/val.parquet"}
-
-
-def method_inputs(wildcards):
-    """The trained model of a learned method (none for input and filters)."""
-    if registry.METHODS[wildcards.method].kind == "learned":
-        return {"checkpoint": f"results/models/{wildcards.method}/best.pt"}
-    return {}
-
-
 rule rde_scene:
     input:
         framesets="results/scenes/{dataset}/{scene}/framesets.parquet",
@@ -43,6 +12,8 @@ rule rde_scene:
     params:
         source=source_of,
         config={"enhance": {"rde": ENHANCE.get("rde", {})}},
+    conda:
+        ENV
     log:
         "logs/rde/{dataset}/{scene}.log",
     benchmark:
@@ -61,14 +32,12 @@ rule rde_dataset:
         val="results/rde/val.parquet",
         test="results/rde/test.parquet",
         framesets="results/rde/framesets.parquet",
+    conda:
+        ENV
     log:
         "logs/rde/dataset.log",
-    run:
-        from depthgt.jobs.common import logging_to
-        from depthgt.jobs.enhance import run_rde_dataset
-
-        with logging_to(log[0]):
-            run_rde_dataset(list(input.framesets), list(input.patches), dict(output.items()))
+    script:
+        "../scripts/rde_dataset.py"
 
 
 rule train_model:
@@ -83,6 +52,8 @@ rule train_model:
         config=train_config,
     wildcard_constraints:
         model="|".join(MODELS),
+    conda:
+        ENV
     log:
         "logs/train/{model}.log",
     benchmark:
@@ -110,10 +81,14 @@ rule evaluate_method:
         config={"device": config.get("device", "auto"), "evaluation": {"split": SETTINGS.evaluation.split}},
     wildcard_constraints:
         method="|".join(METHODS),
+    conda:
+        ENV
     log:
         "logs/eval/{method}.log",
     benchmark:
         "benchmarks/eval/{method}.tsv"
     threads: 1
+    resources:
+        gpu=GPUS,  # learned methods run inference on the config's device
     script:
         "../scripts/evaluate.py"

@@ -13,6 +13,8 @@ rule frameset:
     params:
         source=source_of,
         config=FRAMESET_CONFIG,
+    conda:
+        ENV
     log:
         "logs/framesets/{dataset}/{scene}/{target}.log",
     benchmark:
@@ -41,6 +43,8 @@ rule scene_summary:
         framesets="results/scenes/{dataset}/{scene}/framesets.parquet",
         patches="results/scenes/{dataset}/{scene}/patches.parquet",
         quality="results/scenes/{dataset}/{scene}/quality.parquet",
+    conda:
+        ENV
     log:
         "logs/scenes/{dataset}/{scene}/summary.log",
     script:

@@ -7,6 +7,8 @@ checkpoint scene_index:
     params:
         source=source_of,
         config=INDEX_CONFIG,
+    conda:
+        ENV
     log:
         "logs/scenes/{dataset}/{scene}/index.log",
     benchmark:

@@ -2,10 +2,6 @@
 # point of every frame set's overfit training when registration.method is overfit.
 
 
-def train_scene_indices(wildcards=None):
-    return [f"results/scenes/{d}/{s}/index.json" for d, s in SCENES]
-
-
 rule pretrain_registration:
     input:
         indices=train_scene_indices,
@@ -14,6 +10,8 @@ rule pretrain_registration:
     params:
         sources=SOURCES,
         config=FRAMESET_CONFIG,
+    conda:
+        ENV
     log:
         "logs/models/pretrain_registration.log",
     benchmark:
@@ -24,10 +22,3 @@ rule pretrain_registration:
         gpu=GPUS,
     script:
         "../scripts/pretrain_registration.py"
-
-
-def registration_encoder(wildcards):
-    """The pretrained encoder when frame sets are registered by the overfit method."""
-    if SETTINGS.registration.method == "overfit":
-        return "results/models/registration/encoder.pt"
-    return []

@@ -21,6 +21,8 @@ rule tables:
         quality_csv="results/tables/table_gt_quality.csv",
     params:
         kinds=KINDS,
+    conda:
+        ENV
     log:
         "logs/tables.log",
     script:
@@ -42,6 +44,8 @@ rule figures:
         models=EVALUATED_MODELS,
         split=SETTINGS.evaluation.split,
         frames_per_scene=SETTINGS.evaluation.figure_frames_per_scene,
+    conda:
+        ENV
     log:
         "logs/figures.log",
     script:
@@ -53,11 +57,12 @@ rule run_config:
         report("results/report/config.yaml", caption="../report/config.rst", category="Configuration"),
     params:
         config=config,
-    run:
-        import yaml
-
-        Path(output[0]).parent.mkdir(parents=True, exist_ok=True)
-        Path(output[0]).write_text(yaml.safe_dump(params.config, sort_keys=False))
+    conda:
+        ENV
+    log:
+        "logs/run_config.log",
+    script:
+        "../scripts/run_config.py"
 
 
 rule report:

@@ -1,4 +1,4 @@
-"""Figures: method comparison rows (paper Figs. 5-7) and training curves.
+"""Figures: method comparison rows (paper Figs. 5-7), training curves and one frame set's panel.
 
 matplotlib is imported lazily with the Agg backend (no display needed).
 """
@@ -11,7 +11,7 @@ from typing import Mapping
 import numpy as np
 import pandas as pd
 
-__all__ = ["shared_depth_range", "comparison_figure", "training_curve"]
+__all__ = ["shared_depth_range", "comparison_figure", "training_curve", "frameset_panel"]
 
 
 def _plt():
@@ -21,6 +21,16 @@ def _plt():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def _save(plt, fig, out_path: str | Path, dpi: int = 100) -> Path:
+    """Lay out, write (creating the folder) and close a figure."""
+    fig.tight_layout()
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=dpi)
+    plt.close(fig)
+    return out
 
 
 def shared_depth_range(images: list[np.ndarray], lo_pct: float = 1.0, hi_pct: float = 99.0) -> tuple[float, float]:
@@ -108,9 +118,41 @@ def training_curve(loss_log: str | Path, out_path: str | Path, title: str = "") 
     ax.set_yscale("log")
     ax.set_title(title)
     ax.legend()
-    fig.tight_layout()
-    out = Path(out_path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
-    return out
+    return _save(plt, fig, out_path)
+
+
+def frameset_panel(rec, out_path: str | Path, title: str = "") -> Path:
+    """One built frame set side by side: RGB | input | GT | confidence (| truth).
+
+    Args:
+        rec: a :class:`depthgt.gt.store.FrameSetRecord`.
+        out_path: PNG path.
+
+    Depth panels share one colour range (metres; missing depth in black); the confidence
+    panel shows the GT's expected standard deviation in millimetres.
+    """
+    plt = _plt()
+    depths = [("input", rec.input_m), ("GT", rec.gt_m)] + ([("truth", rec.truth_m)] if rec.truth_m is not None else [])
+    vmin, vmax = shared_depth_range([d for _, d in depths])
+    sigma_mm = np.where(rec.gt_m > 0, rec.gt_sigma_m * 1000.0, np.nan)
+    n = 2 + len(depths)
+    fig, axes = plt.subplots(1, n, figsize=(2.6 * n, 2.9))
+    axes[0].imshow(rec.rgb)
+    axes[0].set_title("RGB")
+    cmap = plt.get_cmap("turbo").copy()
+    cmap.set_bad("black")
+    panels = [depths[0], depths[1], ("confidence: std (mm)", sigma_mm)] + depths[2:]
+    for ax, (name, img) in zip(axes[1:], panels):
+        if name.startswith("confidence"):
+            finite = sigma_mm[np.isfinite(sigma_mm)]
+            hi = float(np.percentile(finite, 99)) if finite.size else 1.0
+            im = ax.imshow(np.ma.masked_invalid(img), cmap=cmap, vmin=0.0, vmax=max(hi, 1e-3))
+            fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+        else:
+            ax.imshow(np.ma.masked_less_equal(img, 0), cmap=cmap, vmin=vmin, vmax=vmax)
+        ax.set_title(name)
+    for ax in axes:
+        ax.axis("off")
+    if title:
+        fig.suptitle(title)
+    return _save(plt, fig, out_path)

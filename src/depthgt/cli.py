@@ -1,0 +1,246 @@
+"""The ``depthgt`` command: the jobs people do by hand, over the Snakemake workflow.
+
+    depthgt build [TARGET ...]        run the workflow (default target: everything)
+    depthgt rebuild DATASET SCENE     build one scene's frame sets again
+    depthgt show DATASET SCENE TARGET statistics of one frame set and a PNG panel
+    depthgt extract DATASET SCENE TARGET DEST   one frame set's files into a folder
+    depthgt report [--out FILE]       Snakemake's HTML report (tables and figures)
+    depthgt bench NAME [ARGS ...]     one of the benchmarks in bench/
+
+Snakemake runs in a child process (``python -m snakemake``) rather than through its
+Python API: the API changes between Snakemake majors while the command line is stable,
+and a child keeps Snakemake's global state (logging, locks, signal handlers) out of
+this process. Every subcommand works on a working directory (``-d``, default: the
+current one) that holds ``config/config.yaml`` and gets ``results/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from depthgt.errors import DepthGTError
+
+__all__ = ["main", "repo_root", "snakemake_command", "scene_outputs"]
+
+
+def repo_root() -> Path:
+    """The checkout holding the Snakefile and bench/ (the package is installed from it
+    in editable mode: src/depthgt/cli.py -> the repository root)."""
+    root = Path(__file__).resolve().parents[2]
+    if not (root / "Snakefile").is_file():
+        raise DepthGTError(
+            f"no Snakefile at {root}: depthgt's command needs the checkout it was installed from "
+            "(pip install -e <checkout>); pass --snakefile to name the workflow")
+    return root
+
+
+def snakemake_command(args: argparse.Namespace, *extra: str) -> list[str]:
+    """``python -m snakemake`` with the workflow, working directory and shared options."""
+    snakefile = Path(args.snakefile) if args.snakefile else repo_root() / "Snakefile"
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(snakefile), "-d", str(Path(args.directory).resolve())]
+    if getattr(args, "cores", None) is not None:
+        cmd += ["--cores", str(args.cores)]
+    if getattr(args, "profile", None):
+        cmd += ["--profile", args.profile]
+    cmd += list(extra)
+    # --configfile takes several values: it goes last, after the targets (Snakemake 9)
+    if getattr(args, "configfile", None):
+        cmd += ["--configfile", *[str(Path(c).resolve()) for c in args.configfile]]
+    return cmd
+
+
+def _run(cmd: Sequence[str], capture: bool = False) -> subprocess.CompletedProcess:
+    print("+ " + " ".join(cmd), file=sys.stderr)
+    proc = subprocess.run(list(cmd), text=True, capture_output=capture)
+    if proc.returncode != 0:
+        if capture:
+            sys.stderr.write(proc.stdout[-4000:] + proc.stderr[-4000:])
+        raise SystemExit(proc.returncode)
+    return proc
+
+
+def scene_outputs(summary: str, dataset: str, scene: str) -> list[str]:
+    """The files of one scene in the text of ``snakemake --summary``: every output whose
+    path has ``<dataset>/<scene>`` as two consecutive folders (frame sets, summaries, RDE).
+
+    >>> s = "output_file\\tdate\\nresults/scenes/a/r0/framesets.parquet\\t-\\nresults/scenes/a/r1/x\\t-\\n"
+    >>> scene_outputs(s, "a", "r0")
+    ['results/scenes/a/r0/framesets.parquet']
+    """
+    out = []
+    for line in summary.splitlines()[1:]:
+        path = line.split("\t", 1)[0].strip()
+        parts = Path(path).parts
+        if any(parts[i:i + 2] == (dataset, scene) for i in range(len(parts) - 1)):
+            out.append(path)
+    return out
+
+
+def _cmd_build(args: argparse.Namespace) -> int:
+    extra = list(args.targets)
+    if args.dry_run:
+        extra.append("-n")
+    _run(snakemake_command(args, *extra))
+    return 0
+
+
+def _cmd_rebuild(args: argparse.Namespace) -> int:
+    target = f"results/scenes/{args.dataset}/{args.scene}/framesets.parquet"
+    # the scene's own jobs, read from the plan of all frame sets rather than hard-coded,
+    # so that this follows the layout of the frame-set stage and accepts only scenes the
+    # config lists; shared jobs (a pretrained encoder) are not forced
+    summary = _run(snakemake_command(args, "framesets", "--summary"), capture=True).stdout
+    files = scene_outputs(summary, args.dataset, args.scene)
+    if not files:
+        raise DepthGTError(f"scene {args.dataset}/{args.scene} is not in the plan: the config's `sources` "
+                           f"have no source {args.dataset!r} listing scene {args.scene!r}")
+    extra = [target, "--forcerun", *files]
+    if args.dry_run:
+        extra.append("-n")
+    _run(snakemake_command(args, *extra))
+    return 0
+
+
+def _read(args: argparse.Namespace):
+    from depthgt.gt import store
+
+    results = Path(args.directory) / "results"
+    return store.read_frameset(results, args.dataset, args.scene, args.target)
+
+
+def frameset_statistics(rec) -> dict[str, float | str]:
+    """Numbers of one frame set for a person: completeness of input and GT, the GT's
+    median expected std and, when the truth is known, the MAE of both against it."""
+    import numpy as np
+
+    stats: dict[str, float | str] = {"status": str(rec.meta.get("status", "?")),
+                                     "split": str(rec.meta.get("split", "?"))}
+    n = rec.gt_m.size
+    stats["input_completeness"] = float((rec.input_m > 0).sum() / n)
+    stats["gt_completeness"] = float((rec.gt_m > 0).sum() / n)
+    valid = rec.gt_m > 0
+    stats["gt_sigma_median_m"] = float(np.median(rec.gt_sigma_m[valid])) if valid.any() else float("nan")
+    if rec.truth_m is not None:
+        t = rec.truth_m > 0
+        for name, d in (("input", rec.input_m), ("gt", rec.gt_m)):
+            both = t & (d > 0)
+            stats[f"{name}_mae_vs_truth_m"] = (float(np.abs(d[both] - rec.truth_m[both]).mean())
+                                              if both.any() else float("nan"))
+    return stats
+
+
+def _cmd_show(args: argparse.Namespace) -> int:
+    from depthgt.eval.figures import frameset_panel
+
+    rec = _read(args)
+    for key, value in frameset_statistics(rec).items():
+        print(f"{key:24s} {value:.4f}" if isinstance(value, float) else f"{key:24s} {value}")
+    out = Path(args.out or f"{args.dataset}_{args.scene}_{args.target:06d}.png")
+    frameset_panel(rec, out, title=f"{args.dataset}/{args.scene}/{args.target:06d}")
+    print(f"panel: {out}")
+    return 0
+
+
+def _cmd_extract(args: argparse.Namespace) -> int:
+    from depthgt.gt import store
+
+    for p in store.extract_frameset(Path(args.directory) / "results", args.dataset, args.scene, args.target,
+                                    args.dest):
+        print(p)
+    return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    # Snakemake's report needs every file marked for it: say what to run instead of
+    # Snakemake's "marked for report but does not exist"
+    plan = subprocess.run(snakemake_command(args, "-n", "--quiet", "all"), capture_output=True, text=True)
+    if plan.returncode != 0 or "Nothing to be done" not in plan.stdout + plan.stderr:
+        raise DepthGTError(f"the build in {Path(args.directory).resolve()} is not finished (or its config fails): "
+                           "run `depthgt build` first, then `depthgt report`")
+    _run(snakemake_command(args, "--report", str(Path(args.out).resolve())))
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    bench = repo_root() / "bench"
+    names = sorted(p.stem for p in bench.glob("*.py"))
+    if args.name not in names:
+        raise DepthGTError(f"no benchmark {args.name!r} in {bench}; there are: {', '.join(names)}")
+    proc = subprocess.run([sys.executable, str(bench / f"{args.name}.py"), *args.args],
+                          env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    return proc.returncode
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="depthgt", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("-d", "--directory", default=".",
+                        help="working directory with config/config.yaml and results/ (default: .)")
+    common.add_argument("--snakefile", help="the workflow (default: the Snakefile of depthgt's checkout)")
+    run = argparse.ArgumentParser(add_help=False)
+    run.add_argument("--cores", type=int, help="cores for Snakemake (default: the profile's)")
+    run.add_argument("--profile", help="a Snakemake profile (e.g. profiles/slurm)")
+    run.add_argument("--configfile", nargs="+", help="config files over config/config.yaml")
+    run.add_argument("-n", "--dry-run", action="store_true", help="show the jobs, run none")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    b = sub.add_parser("build", parents=[common, run], help="run the workflow",
+                       description="Run the workflow on the working directory's config.")
+    b.add_argument("targets", nargs="*", help="targets (rules or files; default: all)")
+    b.set_defaults(func=_cmd_build)
+
+    r = sub.add_parser("rebuild", parents=[common, run], help="build one scene again",
+                       description="Force one scene's jobs (frame sets, summaries) to run again.")
+    r.add_argument("dataset", help="a source name of the config")
+    r.add_argument("scene", help="a scene of that source")
+    r.set_defaults(func=_cmd_rebuild)
+
+    fs = argparse.ArgumentParser(add_help=False)
+    fs.add_argument("dataset")
+    fs.add_argument("scene")
+    fs.add_argument("target", type=int, help="the target frame's index")
+
+    s = sub.add_parser("show", parents=[common, fs], help="statistics and a PNG panel of one frame set",
+                       description="Print one built frame set's statistics and write a panel "
+                                   "RGB | input | GT | confidence (| truth).")
+    s.add_argument("--out", help="PNG path (default: DATASET_SCENE_TARGET.png)")
+    s.set_defaults(func=_cmd_show)
+
+    e = sub.add_parser("extract", parents=[common, fs], help="one frame set's files into a folder",
+                       description="Write one built frame set's files (EXR, PNG, JSON, NPZ) into DEST.")
+    e.add_argument("dest")
+    e.set_defaults(func=_cmd_extract)
+
+    rep = sub.add_parser("report", parents=[common], help="Snakemake's HTML report",
+                         description="Write Snakemake's report (tables, figures) of a finished build.")
+    rep.add_argument("--out", default="report.html", help="HTML file (default: report.html)")
+    rep.set_defaults(func=_cmd_report)
+
+    be = sub.add_parser("bench", help="run a benchmark of bench/",
+                        description="Run bench/NAME.py with ARGS (see bench/README.md).")
+    be.add_argument("name", help="the benchmark, e.g. bench_render")
+    be.add_argument("args", nargs=argparse.REMAINDER, help="its arguments")
+    be.set_defaults(func=_cmd_bench)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        if args.command != "bench" and not args.snakefile:
+            # the checkout the rules' conda environment installs (workflow/envs/depthgt.yaml)
+            os.environ.setdefault("DEPTHGT_REPO", str(repo_root()))
+        return int(args.func(args) or 0)
+    except DepthGTError as exc:
+        print(f"depthgt: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,46 @@
+# Input functions and names the rules share (Snakemake's lint: functions apart from
+# rules). Nothing heavy is imported here.
+from depthgt import registry
+
+# every rule's software environment (README "Development": --software-deployment-method conda)
+ENV = "../envs/depthgt.yaml"
+
+
+def train_scene_indices(wildcards=None):
+    return [f"results/scenes/{d}/{s}/index.json" for d, s in SCENES]
+
+
+def registration_encoder(wildcards):
+    """The pretrained encoder when frame sets are registered by the overfit method."""
+    if SETTINGS.registration.method == "overfit":
+        return "results/models/registration/encoder.pt"
+    return []
+
+
+ENHANCE = config.get("enhance", {})
+MODELS = list(registry.learned())  # every trainable model of the registry (target `train`)
+METHODS = list(SETTINGS.evaluation.methods)
+EVALUATED_MODELS = SETTINGS.evaluation.models  # trained by the default target
+KINDS = {name: src["kind"] for name, src in SOURCES.items()}
+MANIFESTS = {"depthgt": "results/dataset", "rde": "results/rde"}  # the GT a learned method trains on
+
+
+def train_config(wildcards):
+    """The config sections that decide a model's training (its params: a change re-runs
+    exactly this model); the job builds its TrainSettings from the whole config."""
+    key = registry.METHODS[wildcards.model].settings_key
+    models = ENHANCE.get("models", {})
+    return {"seed": config.get("seed", 0), "device": config.get("device", "auto"),
+            "enhance": {"train": ENHANCE.get("train", {}), "models": {key: models[key]} if key in models else {}}}
+
+
+def train_manifests(wildcards):
+    d = MANIFESTS[registry.METHODS[wildcards.model].trains_on]
+    return {"train": f"{d}/train.parquet", "val": f"{d}/val.parquet"}
+
+
+def method_inputs(wildcards):
+    """The trained model of a learned method (none for input and filters)."""
+    if registry.METHODS[wildcards.method].kind == "learned":
+        return {"checkpoint": f"results/models/{wildcards.method}/best.pt"}
+    return {}
