@@ -29,9 +29,53 @@ import torch
 
 from depthgt import geometry
 from depthgt.errors import FrameError
-from depthgt.sources.base import Frame, Scene
+from depthgt.sources.base import Frame, Scene, check_frame
 
-__all__ = ["FrameCacheWriter", "CachedScene"]
+__all__ = ["resize_frame", "ResizedScene", "FrameCacheWriter", "CachedScene"]
+
+
+def _depth_at(depth_m: np.ndarray, size_hw: tuple[int, int]) -> np.ndarray:
+    d = torch.from_numpy(np.ascontiguousarray(depth_m, dtype=np.float32))[None, None]
+    return geometry.resize_depth_nearest(d, size_hw)[0, 0].numpy()
+
+
+def resize_frame(frame: Frame, size_hw: tuple[int, int]) -> Frame:
+    """A frame at the working resolution: depth and truth nearest/valid-aware, colour
+    area-averaged (uint8), pose unchanged."""
+    rgb = torch.from_numpy(np.ascontiguousarray(frame.rgb)).permute(2, 0, 1)[None].float() / 255.0
+    rgb = geometry.resize_rgb(rgb, size_hw)[0].permute(1, 2, 0).numpy()
+    return Frame(rgb=(rgb * 255.0 + 0.5).astype(np.uint8), depth_m=_depth_at(frame.depth_m, size_hw),
+                 T_world_cam=frame.T_world_cam,
+                 clean_depth_m=_depth_at(frame.clean_depth_m, size_hw) if frame.clean_depth_m is not None else None)
+
+
+class ResizedScene:
+    """A source scene served at the working resolution, frame by frame (what the frame
+    cache holds, without the cache): for jobs that read a scene's frames once, such as
+    the RDE GT's TSDF, so that they see the frames the frame sets see."""
+
+    def __init__(self, scene: Scene, size_hw: tuple[int, int]):
+        self._scene = scene
+        self.size_hw = (int(size_hw[0]), int(size_hw[1]))
+        self.name = scene.name
+        self.image_size = self.size_hw
+        self.source_size = tuple(int(x) for x in scene.image_size)
+        self.intrinsics = geometry.scale_intrinsics(np.asarray(scene.intrinsics, dtype=np.float64), scene.image_size,
+                                                    self.size_hw)
+        self.has_poses = bool(scene.has_poses)
+        self.has_clean_depth = bool(scene.has_clean_depth)
+
+    def __len__(self) -> int:
+        return len(self._scene)
+
+    def frame_id(self, i: int) -> str:
+        return self._scene.frame_id(i)
+
+    def read(self, i: int) -> Frame:
+        """Frame ``i`` resized (raises the source's FrameError for a bad frame)."""
+        frame = self._scene.read(i)
+        check_frame(frame, self._scene.image_size, f"{self.name} frame {self.frame_id(i)}", need_pose=False)
+        return resize_frame(frame, self.size_hw)
 
 
 class FrameCacheWriter:
@@ -77,17 +121,14 @@ class FrameCacheWriter:
         return arr
 
     def put(self, i: int, frame: Frame) -> None:
-        """Resize and store frame ``i`` (depth nearest/valid-aware, colour area-averaged)."""
-        depth = torch.from_numpy(np.ascontiguousarray(frame.depth_m, dtype=np.float32))[None, None]
-        self._arrays["depth"][i] = geometry.resize_depth_nearest(depth, self.size_hw)[0, 0].numpy()
-        rgb = torch.from_numpy(np.ascontiguousarray(frame.rgb)).permute(2, 0, 1)[None].float() / 255.0
-        rgb = geometry.resize_rgb(rgb, self.size_hw)[0].permute(1, 2, 0).numpy()
-        self._arrays["rgb"][i] = (rgb * 255.0 + 0.5).astype(np.uint8)
-        if frame.T_world_cam is not None:
-            self._arrays["poses"][i] = frame.T_world_cam
-        if "truth" in self._arrays and frame.clean_depth_m is not None:
-            truth = torch.from_numpy(np.ascontiguousarray(frame.clean_depth_m, dtype=np.float32))[None, None]
-            self._arrays["truth"][i] = geometry.resize_depth_nearest(truth, self.size_hw)[0, 0].numpy()
+        """Resize and store frame ``i`` (:func:`resize_frame`)."""
+        small = resize_frame(frame, self.size_hw)
+        self._arrays["depth"][i] = small.depth_m
+        self._arrays["rgb"][i] = small.rgb
+        if small.T_world_cam is not None:
+            self._arrays["poses"][i] = small.T_world_cam
+        if "truth" in self._arrays and small.clean_depth_m is not None:
+            self._arrays["truth"][i] = small.clean_depth_m
         self._arrays["valid"][i] = True
 
     def close(self) -> None:
