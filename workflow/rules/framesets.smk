@@ -4,7 +4,6 @@
 rule frameset_batch:
     input:
         index="results/scenes/{dataset}/{scene}/index.parquet",
-        cache="results/scenes/{dataset}/{scene}/frames",
         encoder=registration_encoder,
     output:
         shard="results/framesets/{dataset}/{scene}/{first}-{last}.zip",

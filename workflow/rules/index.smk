@@ -1,5 +1,5 @@
 # The scene index: every frame checked once (validity and reason), the scene's frame
-# sets with their status, and the frames at the working resolution for the batch jobs.
+# sets with their status.
 # A plain rule: the frame sets are planned from cheap metadata (common.smk), not from it.
 rule scene_index:
     input:
@@ -8,8 +8,6 @@ rule scene_index:
     output:
         table="results/scenes/{dataset}/{scene}/index.parquet",
         meta="results/scenes/{dataset}/{scene}/index.json",
-        # resized frames for the batch jobs; removed once every batch of the scene is built
-        cache=temp(directory("results/scenes/{dataset}/{scene}/frames")),
     params:
         source=scene_source,
         config=INDEX_CONFIG,

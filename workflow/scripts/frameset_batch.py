@@ -8,4 +8,4 @@ torch.set_num_threads(snakemake.threads)
 with logging_to(snakemake.log[0]):
     run_frameset_batch(snakemake.params.source, snakemake.wildcards.scene, int(snakemake.wildcards.first),
                        int(snakemake.wildcards.last), snakemake.config, snakemake.input.index, snakemake.output.shard,
-                       encoder=snakemake.input.encoder or None, cache_dir=snakemake.input.cache)
+                       encoder=snakemake.input.encoder or None)

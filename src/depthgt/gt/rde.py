@@ -355,7 +355,7 @@ def stream_for_tsdf(scene, step: int, targets: Sequence[int]):
     """Depth, colour and poses of every ``step``-th frame of ``scene`` with a finite pose
     and some valid depth (the TSDF's input), and the targets' poses.
 
-    ``scene`` is any :class:`~depthgt.sources.base.Scene`: the frame cache (frames at the
+    ``scene`` is any :class:`~depthgt.sources.base.Scene`: a ResizedScene (frames at the
     working resolution) or a source (full resolution).
 
     Returns:
@@ -396,7 +396,7 @@ def rde_scene(scene, framesets, settings: RDESettings, out_shard: str | Path, se
     written atomically.
 
     Args:
-        scene: the scene's frames (the frame cache, or the source).
+        scene: the scene's frames (a ResizedScene, or the source).
         framesets: the scene's frame-set table (``framesets.parquet`` rows: dataset,
             scene, target, split, status, frameset, has_truth).
         settings_doc: recorded in each frameset.json (default: ``settings`` as a dict).

@@ -21,23 +21,17 @@ __all__ = ["run_scene_index", "run_frameset_batch", "run_scene_summary", "run_da
 log = logging.getLogger("depthgt")
 
 
-def run_scene_index(source: dict[str, Any], scene: str, config: Mapping[str, Any], out_parquet: str, out_json: str,
-                    cache_dir: str | None = None) -> None:
-    """Check every frame of a scene and write its index (parquet + json), and the
-    frame cache at the working resolution into ``cache_dir`` when given."""
-    from depthgt.gt.cache import FrameCacheWriter
+def run_scene_index(source: dict[str, Any], scene: str, config: Mapping[str, Any], out_parquet: str,
+                    out_json: str) -> None:
+    """Check every frame of a scene and write its index (parquet + json)."""
     from depthgt.gt.index import build_index
     from depthgt.settings import settings_from_config
 
     settings = settings_from_config(config)
     need_poses = settings.registration.method == "given"
     sc = open_source_scene(source, scene, need_poses=need_poses)
-    cache = FrameCacheWriter(cache_dir, sc, settings.size_hw) if cache_dir else None
     index = build_index(sc, source["name"], source.get("split", "auto"), need_poses=need_poses,
-                        fs_settings=settings.frameset, split_settings=settings.split, seed=settings.seed, progress=True,
-                        cache=cache)
-    if cache is not None:
-        cache.close()
+                        fs_settings=settings.frameset, split_settings=settings.split, seed=settings.seed, progress=True)
     meta = dict(index.meta)
     meta["framesets_ok"] = [int(t) for t in index.framesets.loc[index.framesets["status"] == "ok", "target"]]
     meta["source"] = source
@@ -51,8 +45,7 @@ def run_scene_index(source: dict[str, Any], scene: str, config: Mapping[str, Any
 
 
 def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int, config: Mapping[str, Any],
-                       index_parquet: str, out_shard: str, encoder: str | None = None,
-                       cache_dir: str | None = None) -> list[dict[str, Any]]:
+                       index_parquet: str, out_shard: str, encoder: str | None = None) -> list[dict[str, Any]]:
     """Build the frame sets of targets ``first``..``last`` of a scene in turn and write
     them as one shard (:func:`depthgt.gt.store.write_shard`); the encoder and the scene
     are loaded once.
@@ -60,8 +53,8 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
     Every candidate target of the slice gets a record in the shard's ``batch.json``:
     ``ok`` when built, else ``skipped`` with the index's reason (invalid member frames,
     split guard) or ``not_in_scene`` when the scene holds fewer frames than planned (a
-    truncated file). Frames come from the frame cache ``cache_dir`` when given, else
-    from the source.
+    truncated file). Frames are read from the source once per batch, at the working
+    resolution (:class:`depthgt.gt.cache.ResizedScene`).
 
     Returns:
         The records of ``batch.json``.
@@ -84,12 +77,10 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
         import torch
 
         state = torch.load(encoder, map_location="cpu", weights_only=True) or None  # {}: no pretraining
-    if cache_dir:
-        from depthgt.gt.cache import CachedScene
+    from depthgt.gt.cache import ResizedScene
 
-        scene_obj = CachedScene(cache_dir)
-    else:
-        scene_obj = open_source_scene(source, scene, need_poses=(settings.registration.method == "given"))
+    scene_obj = ResizedScene(open_source_scene(source, scene, need_poses=(settings.registration.method == "given")),
+                             settings.size_hw, keep=2 * settings.frameset.reach + 2)
     records: list[dict[str, Any]] = []
     built: dict[int, Path] = {}
     with tempfile.TemporaryDirectory(prefix=".batch-", dir=Path(out_shard).parent) as tmp:
