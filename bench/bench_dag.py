@@ -66,7 +66,7 @@ def plan(sizes: list[int]) -> None:
                   "frameset": {"target_step": step}}
         with tempfile.TemporaryDirectory() as tmp:
             wd = _write_config(Path(tmp), config)
-            proc = _snakemake(REPO, wd, "framesets", "-n", "--quiet", "progress", "rules", time_it=True)
+            proc = _snakemake(REPO, wd, "framesets", "-n", "--quiet", "rules", time_it=True)
         out = proc.stdout + proc.stderr
         wall, rss = re.search(r"TIME ([\d.]+) s (\d+) KiB", out).groups()
         jobs = re.search(r"^frameset_batch\s+(\d+)$", out, re.M)
