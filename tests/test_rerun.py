@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import re
 
+import pandas as pd
+
 from conftest import digest_outputs, make_workdir, snakemake
 
 SMALL = {
@@ -79,3 +81,36 @@ def make_workdir_config(wd, config):
     import yaml
 
     (wd / "config" / "config.yaml").write_text(yaml.safe_dump(config))
+
+
+def test_targets_a_truncated_sens_lacks_are_recorded(tmp_path):
+    """The plan takes the frame count from the .sens header; frames cut off by a
+    truncated file become recorded skips, never silently missing frame sets."""
+    import numpy as np
+
+    from depthgt.jobs.common import open_source_scene
+    from depthgt.sources.sens import SensFile
+    from sens_writer import write_sens
+
+    syn = open_source_scene({"kind": "synthetic", "options": {"n_frames": 12, "width": 80, "height": 60}}, "room_000")
+    frames = [syn.read(i) for i in range(12)]
+    sens = tmp_path / "data" / "scene0000_00.sens"
+    sens.parent.mkdir()
+    K = np.asarray(syn.intrinsics)
+    write_sens(sens, [f.rgb for f in frames], [np.round(f.depth_m * 1000).astype(np.uint16) for f in frames],
+               [f.T_world_cam for f in frames], K, K)
+    cut = int(SensFile(sens).color_offsets[8]) - 10  # inside frame 8's record: 8 frames remain
+    sens.write_bytes(sens.read_bytes()[:cut])
+    config = {"seed": 0, "device": "cpu", "resize": 32,
+              "sources": [{"name": "scan", "kind": "scannet", "root": str(sens.parent), "scenes": ["scene0000_00"],
+                           "split": "train"}],
+              "frameset": {"neighbours": 1, "stride": 1, "target_step": 1, "batch_size": 4},
+              "patches": {"count": 1, "size": 16, "max_missing": 1.0}}
+    wd = make_workdir(tmp_path / "wd", config)
+    snakemake(wd, "dataset")
+    fs = pd.read_parquet(wd / "results/dataset/framesets.parquet").set_index("target")
+    assert list(fs.index) == list(range(1, 11))  # planned from the header: 12 frames
+    assert (fs.loc[1:6, "status"] == "ok").all()
+    assert (fs.loc[7:10, "status"] == "skipped").all() and fs.loc[7:10, "reason"].str.startswith("not_in_scene").all()
+    summary = (wd / "results/dataset/summary.md").read_text()
+    assert "not_in_scene" in summary and "truncated .sens" in summary
