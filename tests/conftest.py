@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import yaml
@@ -30,17 +31,28 @@ def make_workdir(path: Path, config: dict) -> Path:
     return path
 
 
+def _normalised(name: str, data: bytes) -> bytes:
+    """poses.json without its timings (wall-clock)."""
+    if name.endswith("poses.json"):
+        doc = json.loads(data)
+        doc.pop("timings_s", None)
+        return json.dumps(doc, sort_keys=True).encode()
+    return data
+
+
 def digest_outputs(workdir: Path) -> dict[str, str]:
-    """sha256 of every result file; poses.json without its timings (wall-clock); the
-    temporary frame caches are not results."""
+    """sha256 of every result file, and of every member of a zip archive (frame-set
+    shards, RDE frames); poses.json without its timings. Temporary frame caches are not
+    results."""
     out = {}
     for p in sorted((workdir / "results").rglob("*")):
         if not p.is_file() or p.parent.name == "frames":
             continue
-        data = p.read_bytes()
-        if p.name == "poses.json":
-            doc = json.loads(data)
-            doc.pop("timings_s", None)
-            data = json.dumps(doc, sort_keys=True).encode()
-        out[str(p.relative_to(workdir))] = hashlib.sha256(data).hexdigest()
+        rel = str(p.relative_to(workdir))
+        if p.suffix == ".zip":
+            with zipfile.ZipFile(p) as z:
+                for name in sorted(z.namelist()):
+                    out[f"{rel}/{name}"] = hashlib.sha256(_normalised(name, z.read(name))).hexdigest()
+            continue
+        out[rel] = hashlib.sha256(_normalised(p.name, p.read_bytes())).hexdigest()
     return out

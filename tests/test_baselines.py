@@ -127,9 +127,9 @@ def test_evaluate_frames_on_a_synthetic_frame_set(tmp_path):
     io.write_exr(d / "input.exr", {"Z": noisy, "T": truth})
     io.write_exr(d / "gt.exr", {"Z": truth + 0.001, "W": np.ones_like(truth), "N": np.ones_like(truth)})
     io.write_rgb_png(d / "rgb.png", rgb)
-    frames = pd.DataFrame([{"dataset": "synth", "scene": "s0", "target": 10, "frameset_dir": str(d), "split": "test",
+    frames = pd.DataFrame([{"dataset": "synth", "scene": "s0", "target": 10, "frameset": str(d), "split": "test",
                             "status": "ok"},
-                           {"dataset": "synth", "scene": "s0", "target": 12, "frameset_dir": str(d), "split": "train",
+                           {"dataset": "synth", "scene": "s0", "target": 12, "frameset": str(d), "split": "train",
                             "status": "ok"}])
     methods = {"input": {"baseline": "input"}, "rgf": {"baseline": "rgf"}, "gt": {"image": "gt"}}
     table = evaluate_frames(frames, methods, references=["truth"], pred_dirs={"rgf": tmp_path / "pred" / "rgf"})

@@ -212,13 +212,13 @@ def _write_frameset(folder, seed, n_patches=4, size=16):
              missing_input=(inp <= 0).mean(axis=(1, 2)), missing_gt=np.zeros(n_patches, np.float32))
     K = [[100.0, 0.0, 127.5], [0.0, 100.0, 127.5], [0.0, 0.0, 1.0]]
     (folder / "frameset.json").write_text(json.dumps({"K": K}))
-    return folder / "patches.npz"
+    return folder
 
 
 @pytest.fixture()
 def manifests(tmp_path):
     paths = [_write_frameset(tmp_path / "fs" / f"{i:06d}", i) for i in range(3)]
-    rows = [{"path": str(p), "patch": j, "split": "train" if i < 2 else "val"} for i, p in enumerate(paths) for j in range(4)]
+    rows = [{"frameset": str(p), "patch": j, "split": "train" if i < 2 else "val"} for i, p in enumerate(paths) for j in range(4)]
     table = pd.DataFrame(rows)
     table[table.split == "train"].to_parquet(tmp_path / "train.parquet")
     table[table.split == "val"].to_parquet(tmp_path / "val.parquet")
@@ -238,7 +238,7 @@ def test_patch_dataset_shifts_intrinsics_by_crop(manifests):
     assert item["input"].shape == (1, 16, 16) and item["rgb"].shape == (3, 16, 16)
     assert item["K"][0, 2].item() == pytest.approx(127.5 - 2) and item["K"][1, 2].item() == pytest.approx(127.5 - 4)
     with pytest.raises(ValueError, match="missing columns"):
-        PatchDataset(pd.DataFrame({"path": []}))
+        PatchDataset(pd.DataFrame({"path": [], "patch": []}))
 
 
 def test_flip_batch_flips_images_and_intrinsics(manifests):

@@ -10,6 +10,7 @@ import pytest
 import yaml
 
 from conftest import make_workdir, snakemake
+from depthgt.gt import store
 
 FIXTURE = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
 pytestmark = pytest.mark.skipif(not FIXTURE.is_dir(), reason="../shared/data/7scenes-kitchen is absent")
@@ -42,6 +43,6 @@ def test_gt_denser_than_input_and_consistent(kitchen):
     # (GT completeness 94.2 %, leave-target-out MAE 8.35 mm) and is no less consistent
     assert (1 - ok["gt_missing"]).mean() > 0.95
     assert lto["mae_m"] <= 0.00835
-    doc = json.loads((Path(ok.iloc[0]["frameset_dir"]) if Path(ok.iloc[0]["frameset_dir"]).is_absolute()
-                      else kitchen / ok.iloc[0]["frameset_dir"]).joinpath("frameset.json").read_text())
+    loc = ok.iloc[0]["frameset"]  # a location in a shard, relative to the working directory
+    doc = store.read_json(f"{loc if Path(loc).is_absolute() else kitchen / loc}/frameset.json")
     assert "leave_target_out" in doc["statistics"] and "gt_vs_truth" not in doc["statistics"]

@@ -116,5 +116,5 @@ def test_schema_and_settings_agree_on_the_default_config():
 
 def test_settings_doc_is_json_ready():
     doc = settings_from_config({}).doc("frameset", "registration")
-    assert doc["frameset"] == {"neighbours": 3, "stride": 2, "target_step": 1}
+    assert doc["frameset"] == {"neighbours": 3, "stride": 2, "target_step": 1, "batch_size": 32}
     assert doc["registration"]["refine_settings"]["scales"] == [4, 2, 1]

@@ -671,3 +671,32 @@ def test_tum_nonfinite_pose_value_is_a_frame_problem(tmp_path):
         s.read(2)
     assert e.value.reason == "nonfinite_pose"
     s.read(1)
+
+
+def test_frame_count_comes_from_metadata(tmp_path, monkeypatch):
+    """The workflow plans from frame_count: equal to the opened scene's length, without
+    reading a frame (synthetic: without building the room; .sens: the header)."""
+    make_exported(tmp_path / "scannet", "scene0000_00")
+    make_sens(tmp_path / "scannet" / "scene0002_00.sens", n=5, inf_pose=())
+    make_7scenes_seq(tmp_path / "7s" / "seq-01", n=3)
+    make_tum(tmp_path / "tum" / "rgbd_dataset_freiburg1_xyz")
+    for kind, root, scene in (("scannet", tmp_path / "scannet", "scene0000_00"),
+                              ("scannet", tmp_path / "scannet", "scene0002_00"),
+                              ("sevenscenes", tmp_path / "7s", "seq-01"),
+                              ("tum", tmp_path / "tum", "rgbd_dataset_freiburg1_xyz")):
+        assert base.frame_count(kind, root, scene) == len(base.open_scene(kind, root, scene)), (kind, scene)
+    from depthgt.sources import synthetic
+
+    def no_build(*args, **kwargs):
+        raise AssertionError("frame_count built the synthetic room")
+
+    monkeypatch.setattr(synthetic.SyntheticScene, "__init__", no_build)
+    assert base.frame_count("synthetic", None, "room_004", n_frames=17) == 17
+    assert base.frame_count("synthetic", None, "room_004") == 40
+    # a truncated .sens: the header's count (the jobs record the frames that are not there)
+    path = tmp_path / "scannet" / "scene0002_00.sens"
+    full = SensFile(path)
+    path.write_bytes(path.read_bytes()[: int(full.depth_offsets[3]) + 5])
+    monkeypatch.undo()
+    assert base.frame_count("scannet", tmp_path / "scannet", "scene0002_00") == 5
+    assert len(base.open_scene("scannet", tmp_path / "scannet", "scene0002_00")) == 3

@@ -93,9 +93,9 @@ def test_gt_vs_input_long_reads_frame_sets(tmp_path):
         (tmp_path / d).mkdir()
         io.write_exr(tmp_path / d / "gt.exr", {"Z": z})
     io.write_exr(tmp_path / "fs" / "input.exr", {"Z": inp})
-    fs = pd.DataFrame([{"dataset": "syn", "scene": "r", "target": 0, "status": "ok", "frameset_dir": str(tmp_path / "fs")}])
-    rde = pd.DataFrame([{"dataset": "syn", "scene": "r", "target": 0, "status": "ok", "frameset_dir": str(tmp_path / "fs"),
-                         "rde_dir": str(tmp_path / "rde")}])
+    fs = pd.DataFrame([{"dataset": "syn", "scene": "r", "target": 0, "status": "ok", "frameset": str(tmp_path / "fs")}])
+    rde = pd.DataFrame([{"dataset": "syn", "scene": "r", "target": 0, "status": "ok", "frameset": str(tmp_path / "fs"),
+                         "rde": str(tmp_path / "rde")}])
     long = tables.gt_vs_input_long(fs, rde).set_index(["gt", "metric"])["value"]
     assert long[("rde", "ssim")] == pytest.approx(1.0, abs=1e-6)  # identical to the input
     assert long[("rde", "ls")] == pytest.approx(0.0, abs=1e-12)

@@ -16,6 +16,7 @@ import pandas as pd
 import pytest
 
 from conftest import REPO, digest_outputs, make_workdir, snakemake
+from depthgt.gt import store
 from depthgt.io import read_exr
 FRAMESET_FILES = ("gt.exr", "input.exr", "rgb.png", "poses.json", "patches.npz", "frameset.json")
 
@@ -51,23 +52,34 @@ def test_layout(built):
         index = pd.read_parquet(sdir / "index.parquet")
         meta = json.loads((sdir / "index.json").read_text())
         assert len(index) == meta["n_frames"]
+        shards = sorted((wd / "results/framesets" / dataset / scene).glob("*.zip"))
+        # TINY: 1 or 2 frame sets per scene (13 or 14 frames), one batch (batch_size 32): one shard
+        targets = [6, 7][: meta["n_frames"] - 12]
+        assert [p.name for p in shards] == [f"000006-{targets[-1]:06d}.zip"]
+        assert [r["target"] for r in store.read_batch(shards[0])] == targets
+        assert store.shard_targets(shards[0]) == meta["framesets_ok"]
         for t in meta["framesets_ok"]:
-            fdir = wd / "results/framesets" / dataset / scene / f"{t:06d}"
-            for name in FRAMESET_FILES:
-                assert (fdir / name).exists(), fdir / name
-            gt = read_exr(fdir / "gt.exr")
+            loc = store.find_frameset(wd / "results", dataset, scene, t)
+            assert loc == store.location(shards[0], t)
+            with store.frameset_files(loc) as fdir:
+                assert sorted(p.name for p in fdir.iterdir()) == sorted(FRAMESET_FILES)
+                gt = read_exr(fdir / "gt.exr")
+                inp = read_exr(fdir / "input.exr")
             assert set(gt) == {"Z", "W", "N", "S"} and gt["Z"].shape == (128, 128)
             # S: the GT's expected std (metres), positive wherever there is GT depth
             assert (gt["S"][gt["Z"] > 0] > 0).all() and np.isfinite(gt["S"]).all()
-            inp = read_exr(fdir / "input.exr")
             assert {"Z", "T"} <= set(inp)
-            doc = json.loads((fdir / "frameset.json").read_text())
+            doc = store.read_json(f"{loc}/frameset.json")
             assert doc["members"] == [t, t - 6, t - 4, t - 2, t + 2, t + 4, t + 6]
             assert doc["split"] == {"syn": "train", "synval": "val", "syntest": "test"}[dataset]
-            poses = json.loads((fdir / "poses.json").read_text())
+            poses = store.read_json(f"{loc}/poses.json")
             assert sorted(poses["T_j_to_t"], key=int) == ["-6", "-4", "-2", "2", "4", "6"]
-            with np.load(fdir / "patches.npz") as npz:
-                assert npz["gt"].shape[1:] == (64, 64) and (npz["missing_gt"] < 0.15).all()
+            npz = store.read_npz(f"{loc}/patches.npz")
+            assert npz["gt"].shape[1:] == (64, 64) and (npz["missing_gt"] < 0.15).all()
+        # the scene's manifest points into the shard
+        fs = pd.read_parquet(sdir / "framesets.parquet")
+        assert set(fs.loc[fs["status"] == "ok", "frameset"]) == {
+            store.location(f"results/framesets/{dataset}/{scene}/{shards[0].name}", t) for t in meta["framesets_ok"]}
     for split in ("train", "val", "test"):
         m = pd.read_parquet(wd / f"results/dataset/{split}.parquet")
         assert len(m) > 0 and (m["split"] == split).all()
@@ -102,7 +114,7 @@ def test_kill9_resume_gives_identical_outputs(built, tmp_path):
     cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "-d", str(wd), "--cores", "2", "dataset"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 300
-    while time.time() < deadline and len(list((wd / "results").rglob("frameset.json"))) < 2:
+    while time.time() < deadline and not list((wd / "results").rglob("*.zip")):
         time.sleep(0.2)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
@@ -179,7 +191,7 @@ def test_overfit_registration_in_workflow(tmp_path):
     wd = make_workdir(tmp_path / "reg", cfg)
     snakemake(wd, "dataset")
     assert (wd / "results/models/registration/encoder.pt").exists()
-    poses = json.loads((wd / "results/framesets/syn/room_000/000006/poses.json").read_text())
+    poses = store.read_json(f"{store.find_frameset(wd / 'results', 'syn', 'room_000', 6)}/poses.json")
     assert poses["registration"]["method"] == "overfit" and poses["registration"]["status"] == "ok"
     for off, T in poses["T_j_to_t"].items():
         T, ref = np.array(T), np.array(poses["T_j_to_t_reference"][off])

@@ -20,6 +20,7 @@ import pandas as pd
 import pytest
 
 from conftest import make_workdir, snakemake
+from depthgt.gt import store
 
 FIXTURE = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
 
@@ -78,8 +79,8 @@ def test_rde_gt_and_figures(synthetic_only):
     fs = pd.read_parquet(wd / "results/dataset/framesets.parquet")
     assert len(rde) == int((fs["status"] == "ok").sum()) and (rde["status"] == "ok").all()
     assert (rde["rde_missing"] < 0.5).all()
-    doc = json.loads((Path(rde.iloc[0]["rde_dir"]) if Path(rde.iloc[0]["rde_dir"]).is_absolute()
-                      else wd / rde.iloc[0]["rde_dir"]).joinpath("frameset.json").read_text())
+    loc = rde.iloc[0]["rde"]  # a location in the scene's RDE shard, relative to the working directory
+    doc = store.read_json(f"{loc if Path(loc).is_absolute() else wd / loc}/frameset.json")
     # a TSDF of the whole (noisy) stream lies within a few cm of the clean truth
     assert doc["statistics"]["rde_vs_truth"]["mae_m"] < 0.05 and doc["units"]["mae_m"] == "m"
     for png in ("comparison.png",):

@@ -71,6 +71,10 @@ def _require(ok: bool, key: str, message: str) -> None:
 # --------------------------------------------------------------------------- frame sets and splits
 
 
+# a batch job holds one frame set at a time; its time limit grows with the batch
+MAX_BATCH_SIZE = 1024
+
+
 @dataclass(frozen=True)
 class FrameSetSettings:
     """How frame sets are formed (config ``frameset``).
@@ -79,13 +83,19 @@ class FrameSetSettings:
         neighbours: neighbours on each side of the target (paper: 3).
         stride: frames between consecutive neighbours (paper: 2).
         target_step: a target every ``target_step`` frames.
+        batch_size: frame sets one job builds in turn (a contiguous slice of one scene's
+            targets, written to one shard): process start, imports and model loading are
+            paid once per batch (README "Output layout").
     """
 
     neighbours: int = 3
     stride: int = 2
     target_step: int = 1
+    batch_size: int = 32
 
     def __post_init__(self):
+        _require(1 <= self.batch_size <= MAX_BATCH_SIZE, "frameset.batch_size",
+                 f"must be in 1..{MAX_BATCH_SIZE}, got {self.batch_size}")
         for key in ("neighbours", "stride", "target_step"):
             _require(getattr(self, key) >= 1, f"frameset.{key}", f"must be >= 1, got {getattr(self, key)}")
         _require(self.neighbours <= MAX_NEIGHBOURS, "frameset.neighbours",
@@ -100,6 +110,23 @@ class FrameSetSettings:
     @property
     def reach(self) -> int:
         return self.neighbours * self.stride
+
+    def targets(self, n_frames: int) -> range:
+        """Candidate targets of a scene of ``n_frames`` frames (every member inside it).
+
+        >>> list(FrameSetSettings(neighbours=1, stride=2, target_step=3).targets(10))
+        [2, 5]
+        """
+        return range(self.reach, max(self.reach, n_frames - self.reach), self.target_step)
+
+    def batches(self, n_frames: int) -> list[tuple[int, int]]:
+        """(first, last) target of each batch of a scene, ``batch_size`` targets each.
+
+        >>> FrameSetSettings(neighbours=1, stride=1, target_step=2, batch_size=2).batches(10)
+        [(1, 3), (5, 7)]
+        """
+        t = self.targets(n_frames)
+        return [(t[i], t[min(i + self.batch_size, len(t)) - 1]) for i in range(0, len(t), self.batch_size)]
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,5 @@
 # Config validation, wildcard constraints and input functions. Nothing heavy is
 # imported here: the DAG is built without torch, kornia or OpenEXR.
-import json
 from pathlib import Path
 
 from snakemake.utils import validate
@@ -37,22 +36,57 @@ for _name, _scene in SCENES:
 wildcard_constraints:
     dataset="|".join(map(re.escape, SOURCES)) if SOURCES else "[^/]+",
     scene="[^/]+",
-    target=r"\d{6}",
+    first=r"\d{6}",
+    last=r"\d{6}",
 
 
 def source_of(wildcards):
     return SOURCES[wildcards.dataset]
 
 
-def frameset_dirs(wildcards):
-    """Output folders of the runnable frame sets of a scene (after its index exists)."""
-    meta = checkpoints.scene_index.get(dataset=wildcards.dataset, scene=wildcards.scene).output.meta
-    targets = json.loads(Path(meta).read_text())["framesets_ok"]
-    return [f"results/framesets/{wildcards.dataset}/{wildcards.scene}/{t:06d}" for t in targets]
+def scene_source(wildcards):
+    """What decides a scene's outputs of its source's entry (params): not the list of
+    scenes, so that adding a scene to `scenes:` runs only that scene."""
+    return {k: v for k, v in SOURCES[wildcards.dataset].items() if k != "scenes"}
 
 
-def frameset_jsons(wildcards):
-    return [f"{d}/frameset.json" for d in frameset_dirs(wildcards)]
+def scene_data(wildcards):
+    """The scene's .sens file, when the source is one (an input: Snakemake then re-runs
+    the index when the file changes); folder sources have too many files to list."""
+    src = SOURCES[wildcards.dataset]
+    if src["kind"] == "scannet" and src.get("root"):
+        root = Path(src["root"])
+        for sens in (root / wildcards.scene / f"{wildcards.scene}.sens", root / f"{wildcards.scene}.sens"):
+            if sens.is_file() and not (root / wildcards.scene / "depth").is_dir():
+                return {"sens": str(sens)}
+    return {}
+
+
+# The plan: every scene's frame-set batches from its frame count (cheap metadata, see
+# depthgt.sources.base.frame_count; nothing is read or rendered), so that the DAG is
+# built in one pass for any number of frame sets. Which targets turn out skipped
+# (invalid frames, split guard, a scene shorter than planned) the jobs record.
+BATCH_SIZE = SETTINGS.frameset.batch_size
+
+
+def _plan_batches():
+    from depthgt.sources.base import frame_count
+
+    plan = {}
+    for name, scene in SCENES:
+        src = SOURCES[name]
+        n = frame_count(src["kind"], src.get("root"), scene, **src.get("options", {}))
+        plan[name, scene] = SETTINGS.frameset.batches(n)
+    return plan
+
+
+BATCHES = _plan_batches()
+
+
+def scene_shards(wildcards):
+    """The shards of a scene's frame-set batches."""
+    return [f"results/framesets/{wildcards.dataset}/{wildcards.scene}/{a:06d}-{b:06d}.zip"
+            for a, b in BATCHES[wildcards.dataset, wildcards.scene]]
 
 
 def scene_summaries(what="framesets", ext="parquet"):
@@ -63,7 +97,11 @@ def scene_summaries(what="framesets", ext="parquet"):
 # changing one re-runs exactly the jobs it affects (Snakemake's params rerun trigger).
 # Jobs build their settings from the whole (validated) config, snakemake.config, with
 # depthgt.settings.settings_from_config, and use only these sections of it.
-INDEX_CONFIG = {k: config.get(k) for k in ("seed", "frameset", "split", "registration", "resize")}
+# The index needs poses only with registration.method given: it reads that, not the
+# other registration keys; nor the batch size
+INDEX_CONFIG = {"seed": config.get("seed"), "split": config.get("split"), "resize": config.get("resize"),
+                "frameset": {k: v for k, v in config["frameset"].items() if k != "batch_size"},
+                "need_poses": SETTINGS.registration.method == "given"}
 FRAMESET_CONFIG = {k: config.get(k) for k in ("seed", "device", "frameset", "resize", "registration", "render", "patches")}
 
 

@@ -4,14 +4,13 @@
 rule rde_scene:
     input:
         framesets="results/scenes/{dataset}/{scene}/framesets.parquet",
-        cache="results/scenes/{dataset}/{scene}/frames",
     output:
-        frames=directory("results/rde/{dataset}/{scene}/frames"),
+        frames="results/rde/{dataset}/{scene}/frames.zip",
         framesets="results/rde/{dataset}/{scene}/framesets.parquet",
         patches="results/rde/{dataset}/{scene}/patches.parquet",
     params:
         source=source_of,
-        config={"enhance": {"rde": ENHANCE.get("rde", {})}},
+        config={"resize": config["resize"], "enhance": {"rde": ENHANCE.get("rde", {})}},
     conda:
         ENV
     log:

@@ -1,44 +1,34 @@
-rule frameset:
+# Frame sets in batches: one job builds a contiguous slice of one scene's targets
+# (frameset.batch_size) and writes one shard (depthgt.gt.store); the frame set stays
+# the unit of the manifests (column `frameset`: <shard>/<target>).
+rule frameset_batch:
     input:
         index="results/scenes/{dataset}/{scene}/index.parquet",
-        cache="results/scenes/{dataset}/{scene}/frames",
         encoder=registration_encoder,
     output:
-        gt="results/framesets/{dataset}/{scene}/{target}/gt.exr",
-        input="results/framesets/{dataset}/{scene}/{target}/input.exr",
-        rgb="results/framesets/{dataset}/{scene}/{target}/rgb.png",
-        poses="results/framesets/{dataset}/{scene}/{target}/poses.json",
-        patches="results/framesets/{dataset}/{scene}/{target}/patches.npz",
-        meta="results/framesets/{dataset}/{scene}/{target}/frameset.json",
+        shard="results/framesets/{dataset}/{scene}/{first}-{last}.zip",
     params:
-        source=source_of,
+        source=scene_source,
         config=FRAMESET_CONFIG,
     conda:
         ENV
     log:
-        "logs/framesets/{dataset}/{scene}/{target}.log",
+        "logs/framesets/{dataset}/{scene}/{first}-{last}.log",
     benchmark:
-        "benchmarks/framesets/{dataset}/{scene}/{target}.tsv"
+        "benchmarks/framesets/{dataset}/{scene}/{first}-{last}.tsv"
     threads: 1
     resources:
         mem_mb=FRAMESET_MEM_MB,
-        runtime=frameset_runtime_min(1),
+        runtime=frameset_runtime_min(BATCH_SIZE),
         gpu=GPUS,
     script:
-        "../scripts/frameset.py"
-
-
-# Runs in the main Snakemake process on a cluster: its input is read from the scene's
-# checkpoint, which a job started by a remote executor cannot resolve (Snakemake 9.27
-# hands such a job the unresolved input "<TBD>").
-localrules:
-    scene_summary,
+        "../scripts/frameset_batch.py"
 
 
 rule scene_summary:
     input:
         index="results/scenes/{dataset}/{scene}/index.parquet",
-        framesets=frameset_jsons,
+        shards=scene_shards,
     output:
         framesets="results/scenes/{dataset}/{scene}/framesets.parquet",
         patches="results/scenes/{dataset}/{scene}/patches.parquet",

@@ -1,11 +1,15 @@
-checkpoint scene_index:
+# The scene index: every frame checked once (validity and reason), the scene's frame
+# sets with their status.
+# A plain rule: the frame sets are planned from cheap metadata (common.smk), not from it.
+rule scene_index:
+    input:
+        # a .sens or folder source: the scene's data (a change re-runs the index)
+        unpack(scene_data),
     output:
         table="results/scenes/{dataset}/{scene}/index.parquet",
         meta="results/scenes/{dataset}/{scene}/index.json",
-        # resized frames for the frame-set jobs; removed once every frame set is built
-        cache=temp(directory("results/scenes/{dataset}/{scene}/frames")),
     params:
-        source=source_of,
+        source=scene_source,
         config=INDEX_CONFIG,
     conda:
         ENV

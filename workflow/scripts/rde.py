@@ -3,5 +3,4 @@ from depthgt.jobs.enhance import run_rde_scene
 
 with logging_to(snakemake.log[0]):
     run_rde_scene(snakemake.params.source, snakemake.wildcards.scene, snakemake.input.framesets, snakemake.config,
-                  snakemake.output.frames, snakemake.output.framesets, snakemake.output.patches,
-                  frame_cache=snakemake.input.cache)
+                  snakemake.output.frames, snakemake.output.framesets, snakemake.output.patches)

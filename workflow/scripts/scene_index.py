@@ -7,5 +7,4 @@ from depthgt.jobs.gt import run_scene_index
 torch.set_num_threads(snakemake.threads)
 with logging_to(snakemake.log[0]):
     run_scene_index(snakemake.params.source, snakemake.wildcards.scene, snakemake.config,
-                    snakemake.output.table, snakemake.output.meta,
-                    cache_dir=snakemake.output.cache)
+                    snakemake.output.table, snakemake.output.meta)

@@ -7,7 +7,7 @@ A model is chosen by name from :data:`MODELS` (``lapden``, ``ddrnet``, ``sdd``: 
 of depth maps, finest last.
 
 :func:`train` reads the patch manifests (``results/dataset/{train,val}.parquet``: one
-row per kept patch pair with ``path`` (the ``patches.npz``) and ``patch`` (its index
+row per kept patch pair with ``frameset`` (its ``patches.npz`` lies there) and ``patch`` (its index
 there)), trains with Adam and random flips, validates each epoch and writes the files
 of :class:`TrainOutputs` (in the workflow: ``results/models/{model}/``)::
 
@@ -155,43 +155,41 @@ class PatchDataset(Dataset):
     pixel: ~360 MB for 2000 pairs of 128x128).
 
     Args:
-        manifest: parquet path or DataFrame with columns ``path`` and ``patch``.
+        manifest: parquet path or DataFrame with columns ``frameset`` (the frame set's
+            location, :mod:`depthgt.gt.store`) and ``patch``.
     """
 
     REQUIRED = ("input", "gt", "rgb", "boxes")
 
     def __init__(self, manifest: str | Path | pd.DataFrame):
         table = manifest if isinstance(manifest, pd.DataFrame) else pd.read_parquet(manifest)
-        missing = {"path", "patch"} - set(table.columns)
+        missing = {"frameset", "patch"} - set(table.columns)
         if missing:
             raise ValueError(f"manifest {manifest if not isinstance(manifest, pd.DataFrame) else '<DataFrame>'}: "
                              f"missing columns {sorted(missing)}")
-        self.paths = [str(p) for p in table["path"]]
+        self.paths = [str(p) for p in table["frameset"]]
         self.index = table["patch"].astype(int).to_numpy()
         self._cache: dict[str, dict[str, np.ndarray]] = {}
 
     def __len__(self) -> int:
         return len(self.paths)
 
-    def _load(self, path: str) -> dict[str, np.ndarray]:
-        if path not in self._cache:
-            p = Path(path)
-            if not p.is_file():
-                raise FileNotFoundError(f"{p}: patches file listed in the manifest does not exist")
-            with np.load(p) as npz:
-                missing = [k for k in self.REQUIRED if k not in npz.files]
-                if missing:
-                    raise ValueError(f"{p}: missing arrays {missing}")
-                arrays = {k: npz[k] for k in self.REQUIRED}
-            fs_json = p.with_name("frameset.json")
-            if not fs_json.is_file():
-                raise FileNotFoundError(f"{fs_json}: needed for the intrinsics of {p}")
-            K = np.asarray(json.loads(fs_json.read_text())["K"], dtype=np.float32)
+    def _load(self, loc: str) -> dict[str, np.ndarray]:
+        """patches.npz and the intrinsics of the frame set at ``loc`` (depthgt.gt.store)."""
+        from depthgt.gt import store
+
+        if loc not in self._cache:
+            npz = store.read_npz(f"{loc}/patches.npz")
+            missing = [k for k in self.REQUIRED if k not in npz]
+            if missing:
+                raise ValueError(f"{loc}/patches.npz: missing arrays {missing}")
+            arrays = {k: npz[k] for k in self.REQUIRED}
+            K = np.asarray(store.read_json(f"{loc}/frameset.json")["K"], dtype=np.float32)
             if K.shape != (3, 3):
-                raise ValueError(f"{fs_json}: key 'K' must be 3x3, got {K.shape}")
+                raise ValueError(f"{loc}/frameset.json: key 'K' must be 3x3, got {K.shape}")
             arrays["K"] = K
-            self._cache[path] = arrays
-        return self._cache[path]
+            self._cache[loc] = arrays
+        return self._cache[loc]
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         a = self._load(self.paths[i])

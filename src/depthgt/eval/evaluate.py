@@ -33,22 +33,25 @@ log = logging.getLogger(__name__)
 EVAL_COLUMNS = ["dataset", "scene", "target", "method", "reference", "metric", "unit", "value"]
 
 
-def load_frame(frameset_dir: str | Path) -> dict[str, np.ndarray | None]:
-    """The images of one frame set: input, gt, truth (or None), rgb.
+def load_frame(frameset: str | Path) -> dict[str, np.ndarray | None]:
+    """The images of one frame set at its location (:mod:`depthgt.gt.store`): input, gt,
+    truth (or None), rgb.
 
     Returns:
         dict: ``input``, ``gt``, ``truth`` (H, W) float32 metres (0 = invalid;
         ``truth`` None when input.exr has no T channel), ``rgb`` (H, W, 3) uint8.
     """
     from depthgt import io
+    from depthgt.gt import store
 
-    d = Path(frameset_dir)
-    inp = io.read_exr(d / "input.exr")
-    gt = io.read_exr(d / "gt.exr")
+    with store.frameset_files(frameset) as d:
+        inp = io.read_exr(d / "input.exr")
+        gt = io.read_exr(d / "gt.exr")
+        rgb = io.read_rgb(d / "rgb.png")
+    d = Path(str(frameset))
     for path, chans in ((d / "input.exr", inp), (d / "gt.exr", gt)):
         if "Z" not in chans:
             raise ValueError(f"{path}: no channel 'Z' (has {sorted(chans)})")
-    rgb = io.read_rgb(d / "rgb.png")
     frame = {
         "input": inp["Z"].astype(np.float32),
         "gt": gt["Z"].astype(np.float32),
@@ -100,7 +103,7 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
 
     Args:
         frames: the frame-level table (or its parquet path) with ``dataset``,
-            ``scene``, ``target``, ``frameset_dir`` and optionally ``split`` and
+            ``scene``, ``target``, ``frameset`` and optionally ``split`` and
             ``status`` (only "ok" rows with a frame-set folder are used when present).
         methods: name -> method mapping (see module docstring; :func:`method_spec`).
         references: images scored against, among ``gt``, ``truth`` and ``input``; a
@@ -116,7 +119,7 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
         :data:`depthgt.eval.metrics.METRIC_UNITS`), rows by frame, method, reference.
     """
     table = frames if isinstance(frames, pd.DataFrame) else pd.read_parquet(frames)
-    missing = {"dataset", "scene", "target", "frameset_dir"} - set(table.columns)
+    missing = {"dataset", "scene", "target", "frameset"} - set(table.columns)
     if missing:
         raise ValueError(f"frame table {frames if not isinstance(frames, pd.DataFrame) else ''}: missing columns {sorted(missing)}")
     bad = [r for r in references if r not in ("gt", "truth", "input")]
@@ -126,15 +129,15 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
         table = table[table["split"] == split]
     if "status" in table.columns:
         table = table[table["status"] == "ok"]
-    table = table[table["frameset_dir"] != ""]
+    table = table[table["frameset"] != ""]
     pred_dirs = dict(pred_dirs or {})
     rows = []
     seconds = {name: 0.0 for name in methods}
     for rec in table.itertuples():
-        frame = load_frame(rec.frameset_dir)
+        frame = load_frame(rec.frameset)
         refs = [r for r in references if frame[r] is not None]
         if not refs:
-            log.info("%s: none of the references %s, skipped", rec.frameset_dir, list(references))
+            log.info("%s: none of the references %s, skipped", rec.frameset, list(references))
             continue
         for name, method in methods.items():
             t0 = time.perf_counter()

@@ -52,7 +52,7 @@ def comparison_figure(frames: pd.DataFrame, pred_dirs: Mapping[str, str | Path],
     ``{pred_dirs[method]}/{dataset}/{scene}/{target:06d}.npy``.
 
     Args:
-        frames: frame-set rows (dataset, scene, target, frameset_dir) to choose from;
+        frames: frame-set rows (dataset, scene, target, frameset) to choose from;
             up to ``frames_per_scene`` evenly spaced frames of each scene are shown.
     """
     from depthgt.eval.evaluate import load_frame
@@ -72,7 +72,7 @@ def comparison_figure(frames: pd.DataFrame, pred_dirs: Mapping[str, str | Path],
         fig.savefig(out, dpi=80)
         plt.close(fig)
         return out
-    has_truth = any(load_frame(r.frameset_dir)["truth"] is not None for r in picked)
+    has_truth = any(load_frame(r.frameset)["truth"] is not None for r in picked)
     titles = ["RGB", "input"] + methods + ["depthgt GT"] + (["truth"] if has_truth else [])
     n_cols = len(titles)
     fig, axes = plt.subplots(len(picked), n_cols, figsize=(1.9 * n_cols, 2.0 * len(picked) + 0.4), squeeze=False)
@@ -80,7 +80,7 @@ def comparison_figure(frames: pd.DataFrame, pred_dirs: Mapping[str, str | Path],
     cmap.set_bad("black")
     image = None
     for row, rec in enumerate(picked):
-        fr = load_frame(rec.frameset_dir)
+        fr = load_frame(rec.frameset)
         preds = []
         for m in methods:
             p = Path(pred_dirs[m]) / str(rec.dataset) / str(rec.scene) / f"{int(rec.target):06d}.npy"

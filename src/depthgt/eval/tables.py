@@ -88,25 +88,28 @@ def gt_vs_input_long(framesets: pd.DataFrame, rde_framesets: pd.DataFrame | None
     """Per-frame SSIM and L_S of each GT against the input (long table).
 
     Args:
-        framesets: depthgt's frame-set table (``frameset_dir``, ``status`` ...).
-        rde_framesets: the RDE table (``frameset_dir``, ``rde_dir``), or None.
+        framesets: depthgt's frame-set table (``frameset``, ``status`` ...).
+        rde_framesets: the RDE table (``frameset``, ``rde``: locations), or None.
 
     Returns:
         columns dataset, scene, target, gt (``gt`` | ``rde``), metric, unit, value.
     """
     from depthgt import io
     from depthgt.eval.metrics import ls_distance, ssim_depth
+    from depthgt.gt import store
 
     jobs = []
-    for rec in framesets[(framesets["status"] == "ok") & (framesets["frameset_dir"] != "")].itertuples():
-        jobs.append((rec.dataset, rec.scene, int(rec.target), "gt", Path(rec.frameset_dir) / "gt.exr", rec.frameset_dir))
+    for rec in framesets[(framesets["status"] == "ok") & (framesets["frameset"] != "")].itertuples():
+        jobs.append((rec.dataset, rec.scene, int(rec.target), "gt", rec.frameset, rec.frameset))
     if rde_framesets is not None and len(rde_framesets):
-        for rec in rde_framesets[(rde_framesets["status"] == "ok") & (rde_framesets["rde_dir"] != "")].itertuples():
-            jobs.append((rec.dataset, rec.scene, int(rec.target), "rde", Path(rec.rde_dir) / "gt.exr", rec.frameset_dir))
+        for rec in rde_framesets[(rde_framesets["status"] == "ok") & (rde_framesets["rde"] != "")].itertuples():
+            jobs.append((rec.dataset, rec.scene, int(rec.target), "rde", rec.rde, rec.frameset))
     rows = []
-    for dataset, scene, target, which, gt_path, fs_dir in jobs:
-        gt = io.read_exr(gt_path)["Z"]
-        inp = io.read_exr(Path(fs_dir) / "input.exr")["Z"]
+    for dataset, scene, target, which, gt_loc, fs_loc in jobs:
+        with store.frameset_files(gt_loc) as d:
+            gt = io.read_exr(d / "gt.exr")["Z"]
+        with store.frameset_files(fs_loc) as d:
+            inp = io.read_exr(d / "input.exr")["Z"]
         for metric, value in (("ssim", ssim_depth(gt, inp)), ("ls", ls_distance(gt, inp))):
             rows.append({"dataset": dataset, "scene": scene, "target": target, "gt": which, "metric": metric,
                          "unit": unit_of(metric), "value": float(value)})
@@ -116,12 +119,12 @@ def gt_vs_input_long(framesets: pd.DataFrame, rde_framesets: pd.DataFrame | None
 def rde_quality_long(rde_framesets: pd.DataFrame) -> pd.DataFrame:
     """Per-scene mean error of the RDE GT against the truth, in gt_quality.csv's form
     (dataset, scene, estimate='rde', reference='truth', metric, unit, value)."""
-    import json
+    from depthgt.gt import store
 
     rows = []
-    ok = rde_framesets[(rde_framesets["status"] == "ok") & (rde_framesets["rde_dir"] != "")] if len(rde_framesets) else rde_framesets
+    ok = rde_framesets[(rde_framesets["status"] == "ok") & (rde_framesets["rde"] != "")] if len(rde_framesets) else rde_framesets
     for rec in ok.itertuples():
-        st = json.loads((Path(rec.rde_dir) / "frameset.json").read_text())["statistics"]
+        st = store.read_json(f"{rec.rde}/frameset.json")["statistics"]
         for metric, value in st.get("rde_vs_truth", {}).items():
             rows.append({"dataset": rec.dataset, "scene": rec.scene, "estimate": "rde", "reference": "truth",
                          "metric": metric, "unit": unit_of(metric), "value": float(value)})

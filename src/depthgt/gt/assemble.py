@@ -21,12 +21,14 @@ import pandas as pd
 from depthgt.eval.metrics import unit_of
 from depthgt.settings import SPLITS
 
-FRAMESET_COLUMNS = ["dataset", "scene", "target", "frame_id", "split", "status", "reason", "frameset_dir", "has_truth",
+FRAMESET_COLUMNS = ["dataset", "scene", "target", "frame_id", "split", "status", "reason", "frameset", "has_truth",
                     "patches_drawn", "patches_kept", "input_missing", "gt_missing"]
 # (estimate, frameset.json statistics key, reference) of the GT quality table
 QUALITY_KEYS = (("gt", "gt_vs_truth", "truth"), ("input", "input_vs_truth", "truth"),
                 ("gt", "gt_vs_truth_input_valid", "truth@input_valid"), ("leave_target_out", "leave_target_out", "target_raw"))
-PATCH_COLUMNS = ["dataset", "scene", "target", "split", "patch", "path", "y0", "x0", "size", "missing_input", "missing_gt", "kept"]
+# frameset: the frame set's location (depthgt.gt.store); its patches are <frameset>/patches.npz
+PATCH_COLUMNS = ["dataset", "scene", "target", "split", "patch", "frameset", "y0", "x0", "size", "missing_input", "missing_gt",
+                 "kept"]
 
 
 def read_index(index_parquet: str | Path) -> tuple[pd.DataFrame, dict]:
@@ -36,37 +38,50 @@ def read_index(index_parquet: str | Path) -> tuple[pd.DataFrame, dict]:
     return table, meta
 
 
-def summarize_scene(index_parquet: str | Path, frameset_dirs: list[str | Path]) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+def summarize_scene(index_parquet: str | Path, shards: list[str | Path]) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
     """Tables of one scene: frame sets, patches, and GT quality (tidy long form).
 
-    Frame sets skipped by the index appear with their reason; frame sets whose job
-    ran appear with the statistics of their frameset.json.
+    Args:
+        shards: the scene's frame-set shards (:mod:`depthgt.gt.store`).
+
+    Frame sets skipped by the index, or by a batch job (targets beyond the frames the
+    scene holds), appear with their reason; built frame sets appear with the
+    statistics of their frameset.json and their location.
     """
+    from depthgt.gt import store
+
     table, meta = read_index(index_parquet)
     dataset, scene = meta["dataset"], meta["scene"]
     rows, patch_rows, quality = [], [], []
-    by_target = {int(Path(d).name): Path(d) for d in frameset_dirs}
+    by_target: dict[int, str] = {}
+    batch_records: dict[int, dict] = {}
+    for shard in shards:
+        for rec in store.read_batch(shard):
+            batch_records[int(rec["target"])] = rec
+        by_target.update({t: store.location(shard, t) for t in store.shard_targets(shard)})
+    index_targets = set()
     for rec in table[table["is_target"]].itertuples():
         target = int(rec.position)
+        index_targets.add(target)
         row = {"dataset": dataset, "scene": scene, "target": target, "frame_id": rec.frame_id, "split": rec.frameset_split,
-               "status": rec.frameset_status, "reason": rec.frameset_reason, "frameset_dir": "", "has_truth": False,
+               "status": rec.frameset_status, "reason": rec.frameset_reason, "frameset": "", "has_truth": False,
                "patches_drawn": 0, "patches_kept": 0, "input_missing": np.nan, "gt_missing": np.nan}
         if rec.frameset_status == "ok":
-            d = by_target.get(target)
-            if d is None:
-                raise FileNotFoundError(f"{dataset}/{scene}: frame set {target} is in the index but its outputs were not given")
-            doc = json.loads((d / "frameset.json").read_text())
+            loc = by_target.get(target)
+            if loc is None:
+                raise FileNotFoundError(f"{dataset}/{scene}: frame set {target} is in the index but no shard given holds it")
+            doc = store.read_json(f"{loc}/frameset.json")
             st = doc["statistics"]
-            row.update(status=doc["status"], reason=doc["reason"], frameset_dir=str(d), has_truth="gt_vs_truth" in st,
+            row.update(status=doc["status"], reason=doc["reason"], frameset=loc, has_truth="gt_vs_truth" in st,
                        patches_drawn=st["patches_drawn"], patches_kept=st["patches_kept"],
                        input_missing=st["input_missing"], gt_missing=st["gt_missing"])
-            with np.load(d / "patches.npz") as npz:
-                kept, boxes = npz["kept"], npz["all_boxes"]
-                miss_in, miss_gt = npz["all_missing_input"], npz["all_missing_gt"]
+            npz = store.read_npz(f"{loc}/patches.npz")
+            kept, boxes = npz["kept"], npz["all_boxes"]
+            miss_in, miss_gt = npz["all_missing_input"], npz["all_missing_gt"]
             kept_index = np.cumsum(kept) - 1
             for i in range(len(kept)):
                 patch_rows.append({"dataset": dataset, "scene": scene, "target": target, "split": doc["split"],
-                                   "patch": int(kept_index[i]) if kept[i] else -1, "path": str(d / "patches.npz"),
+                                   "patch": int(kept_index[i]) if kept[i] else -1, "frameset": loc,
                                    "y0": int(boxes[i, 0]), "x0": int(boxes[i, 1]), "size": int(boxes[i, 2]),
                                    "missing_input": float(miss_in[i]), "missing_gt": float(miss_gt[i]), "kept": bool(kept[i])})
             for estimate, key, reference in QUALITY_KEYS:
@@ -77,6 +92,12 @@ def summarize_scene(index_parquet: str | Path, frameset_dirs: list[str | Path]) 
                                     "estimate": estimate, "reference": reference, "metric": metric,
                                     "unit": unit_of(metric), "value": float(value)})
         rows.append(row)
+    # targets a batch job planned but the scene does not hold (fewer frames than planned)
+    for target in sorted(set(batch_records) - index_targets):
+        rec = batch_records[target]
+        rows.append({"dataset": dataset, "scene": scene, "target": target, "frame_id": "", "split": rec.get("split", ""),
+                     "status": rec["status"], "reason": rec["reason"], "frameset": "", "has_truth": False,
+                     "patches_drawn": 0, "patches_kept": 0, "input_missing": np.nan, "gt_missing": np.nan})
     return (pd.DataFrame(rows, columns=FRAMESET_COLUMNS), pd.DataFrame(patch_rows, columns=PATCH_COLUMNS),
             pd.DataFrame(quality, columns=["dataset", "scene", "target", "split", "estimate", "reference", "metric", "unit", "value"]))
 

@@ -82,8 +82,8 @@ def load_frameset(scene: Scene, members: list[int], size_hw: tuple[int, int], ne
     """Read the member frames of any :class:`~depthgt.sources.base.Scene` and bring them
     to ``size_hw`` (depth nearest/valid-aware, colour area-averaged, intrinsics scaled).
 
-    A scene whose frames already have the working size (the frame cache,
-    :class:`depthgt.gt.cache.CachedScene`) is not resized again; it tells the size of
+    A scene whose frames already have the working size (a
+    :class:`depthgt.gt.cache.ResizedScene`) is not resized again; it tells the size of
     the images it was resized from by ``source_size``.
 
     Raises:
@@ -228,7 +228,7 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     """Build every output of one frame set and return frameset.json's content.
 
     Args:
-        scene: the scene (the frame cache :class:`~depthgt.gt.cache.CachedScene` in the
+        scene: the scene (:class:`~depthgt.gt.cache.ResizedScene` in the
             workflow, or a source scene; frames are resized when needed).
         members: frame positions, target first.
         out: the output paths (:class:`FrameSetOutputs`).
@@ -323,6 +323,7 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
         "units": _units(stats),
         "settings": settings.doc("seed", "device", "resize", "frameset", "patches", "render", "registration"),
     }
+    doc["settings"]["frameset"].pop("batch_size", None)  # how jobs are cut, not what a frame set is
     write_atomic(out.meta, io.write_json, doc)
     return doc
 

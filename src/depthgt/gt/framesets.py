@@ -57,7 +57,7 @@ def enumerate_framesets(valid: np.ndarray, reasons: list[str], splits: np.ndarra
     n = len(valid)
     offsets = np.asarray(settings.offsets)
     out = []
-    for t in range(settings.reach, n - settings.reach, settings.target_step):
+    for t in settings.targets(n):
         members = (t + offsets).tolist()
         bad = [m for m in members if not valid[m]]
         status, reason = "ok", ""

@@ -1,8 +1,9 @@
 """The scene index: every frame's validity (with the reason) and the scene's frame sets.
 
-Written once per scene (a Snakemake checkpoint); the per-frame-set jobs are expanded
-from it. Reading every frame once is the price of never discovering a broken frame in
-the middle of a frame-set job.
+Written once per scene; the frame-set batch jobs read it to know which of their targets
+are runnable (the workflow plans the batches from the frame count alone). Reading every
+frame once is the price of never discovering a broken frame in the middle of a frame-set
+job.
 """
 
 from __future__ import annotations
@@ -46,13 +47,11 @@ class SceneIndex:
 
 
 def build_index(scene: Scene, dataset: str, source_split: str, need_poses: bool, fs_settings: FrameSetSettings,
-                split_settings: SplitSettings, seed: int, progress: bool = False, cache=None) -> SceneIndex:
+                split_settings: SplitSettings, seed: int, progress: bool = False) -> SceneIndex:
     """Check every frame of ``scene`` and enumerate its frame sets.
 
     Args:
         need_poses: frames without a finite pose are invalid (``registration.method: given``).
-        cache: optional :class:`depthgt.gt.cache.FrameCacheWriter` that receives every
-            valid frame (resized to the working resolution).
     """
     n = len(scene)
     valid = np.zeros(n, dtype=bool)
@@ -68,8 +67,6 @@ def build_index(scene: Scene, dataset: str, source_split: str, need_poses: bool,
             frame = scene.read(i)
             check_frame(frame, scene.image_size, f"{dataset}/{scene.name} frame {scene.frame_id(i)}", need_pose=need_poses)
             valid[i] = True
-            if cache is not None:
-                cache.put(i, frame)
         except FrameError as err:
             reasons[i] = err.reason
             messages[i] = str(err)

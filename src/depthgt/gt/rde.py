@@ -345,16 +345,17 @@ def reconstruct_and_render(depths_m: Sequence[np.ndarray], rgbs: Sequence[np.nda
 # --------------------------------------------------------------------------- RDE GT of a scene
 
 
-RDE_FRAMESET_COLUMNS = ["dataset", "scene", "target", "split", "status", "reason", "frameset_dir", "rde_dir", "has_truth",
+# frameset: depthgt's frame set; rde: the RDE GT's location (depthgt.gt.store), in the scene's frames.zip
+RDE_FRAMESET_COLUMNS = ["dataset", "scene", "target", "split", "status", "reason", "frameset", "rde", "has_truth",
                         "patches_kept", "rde_missing", "backend"]
-RDE_PATCH_COLUMNS = ["dataset", "scene", "target", "split", "patch", "path"]
+RDE_PATCH_COLUMNS = ["dataset", "scene", "target", "split", "patch", "frameset"]
 
 
 def stream_for_tsdf(scene, step: int, targets: Sequence[int]):
     """Depth, colour and poses of every ``step``-th frame of ``scene`` with a finite pose
     and some valid depth (the TSDF's input), and the targets' poses.
 
-    ``scene`` is any :class:`~depthgt.sources.base.Scene`: the frame cache (frames at the
+    ``scene`` is any :class:`~depthgt.sources.base.Scene`: a ResizedScene (frames at the
     working resolution) or a source (full resolution).
 
     Returns:
@@ -382,49 +383,64 @@ def stream_for_tsdf(scene, step: int, targets: Sequence[int]):
     return depths, rgbs, np.asarray(scene.intrinsics, dtype=np.float64), poses, target_poses
 
 
-def rde_scene(scene, framesets, settings: RDESettings, out_dir: str | Path, settings_doc: dict | None = None):
+def rde_scene(scene, framesets, settings: RDESettings, out_shard: str | Path, settings_doc: dict | None = None):
     """Global-reconstruction GT of every runnable frame set of one scene.
 
     Fuses the scene's stream (every ``settings.frame_step``-th frame, the source's
     poses) into a TSDF, renders it at each frame set's target (the working-resolution K
-    of its frameset.json) and writes ``{out_dir}/{target:06d}/``: ``gt.exr`` (Z),
+    of its frameset.json) and writes the shard ``out_shard`` (:mod:`depthgt.gt.store`)
+    with ``{target:06d}/``: ``gt.exr`` (Z),
     ``patches.npz`` (the frame set's drawn crop boxes applied to (input, RDE GT, rgb) by
     :func:`depthgt.gt.patches.crop_pairs`, kept when the RDE GT misses less than
-    ``settings.max_missing``) and ``frameset.json`` (K, split, statistics), each written
-    atomically.
+    ``settings.max_missing``) and ``frameset.json`` (K, split, statistics); the shard is
+    written atomically.
 
     Args:
-        scene: the scene's frames (the frame cache, or the source).
+        scene: the scene's frames (a ResizedScene, or the source).
         framesets: the scene's frame-set table (``framesets.parquet`` rows: dataset,
-            scene, target, split, status, frameset_dir, has_truth).
+            scene, target, split, status, frameset, has_truth).
         settings_doc: recorded in each frameset.json (default: ``settings`` as a dict).
 
     Returns:
         Two tables: frame sets (:data:`RDE_FRAMESET_COLUMNS`) and kept patches
         (:data:`RDE_PATCH_COLUMNS`).
     """
-    import json
-    from dataclasses import asdict
+    import tempfile
 
     import pandas as pd
+
+    from depthgt.gt import store
+
+    ok = framesets[(framesets["status"] == "ok") & (framesets["frameset"] != "")]
+    rows, patch_rows = [], []
+    with tempfile.TemporaryDirectory(prefix=".rde-", dir=Path(out_shard).parent) as tmp:
+        built = _rde_targets(scene, ok, settings, Path(tmp), settings_doc, rows, patch_rows, str(out_shard))
+        store.write_shard(out_shard, built, [{"target": r["target"], "status": r["status"], "reason": r["reason"]}
+                                             for r in rows])
+    return pd.DataFrame(rows, columns=RDE_FRAMESET_COLUMNS), pd.DataFrame(patch_rows, columns=RDE_PATCH_COLUMNS)
+
+
+def _rde_targets(scene, ok, settings: RDESettings, out: Path, settings_doc: dict | None, rows: list, patch_rows: list,
+                 shard: str) -> dict[int, Path]:
+    """The RDE GT of every frame set of ``ok`` into ``out/{target:06d}/``; rows of the two
+    tables appended; returns target -> folder of those rendered."""
+    from dataclasses import asdict
 
     from depthgt import io
     from depthgt.atomic import save_npz, write_atomic
     from depthgt.eval.evaluate import load_frame
     from depthgt.eval.metrics import METRIC_UNITS, depth_errors
+    from depthgt.gt import store
     from depthgt.gt.patches import crop_pairs
 
-    ok = framesets[(framesets["status"] == "ok") & (framesets["frameset_dir"] != "")]
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    rows, patch_rows = [], []
+    built: dict[int, Path] = {}
     if ok.empty:
         log.info("%s: no runnable frame set, no RDE GT", scene.name)
-        return pd.DataFrame(rows, columns=RDE_FRAMESET_COLUMNS), pd.DataFrame(patch_rows, columns=RDE_PATCH_COLUMNS)
+        return built
     targets = [int(t) for t in ok["target"]]
-    docs = {int(r.target): json.loads((Path(r.frameset_dir) / "frameset.json").read_text()) for r in ok.itertuples()}
+    docs = {int(r.target): store.read_json(f"{r.frameset}/frameset.json") for r in ok.itertuples()}
     depths, rgbs, K, poses, target_poses = stream_for_tsdf(scene, settings.frame_step, targets)
-    frames = {int(r.target): load_frame(r.frameset_dir) for r in ok.itertuples()}
+    frames = {int(r.target): load_frame(r.frameset) for r in ok.itertuples()}
     render_targets = [t for t in targets if target_poses.get(t) is not None]
     hw = next(iter(frames.values()))["input"].shape
     if not depths:
@@ -439,7 +455,7 @@ def rde_scene(scene, framesets, settings: RDESettings, out_dir: str | Path, sett
     for r in ok.itertuples():
         t = int(r.target)
         row = {"dataset": r.dataset, "scene": r.scene, "target": t, "split": r.split, "status": "ok", "reason": "",
-               "frameset_dir": r.frameset_dir, "rde_dir": "", "has_truth": bool(r.has_truth), "patches_kept": 0,
+               "frameset": r.frameset, "rde": "", "has_truth": bool(r.has_truth), "patches_kept": 0,
                "rde_missing": np.nan, "backend": backend}
         if t not in by_target:
             row.update(status="skipped", reason="no finite global pose for the target")
@@ -447,8 +463,7 @@ def rde_scene(scene, framesets, settings: RDESettings, out_dir: str | Path, sett
             continue
         d = out / f"{t:06d}"
         gt, fr = by_target[t], frames[t]
-        with np.load(Path(r.frameset_dir) / "patches.npz") as npz:
-            boxes = npz["all_boxes"]
+        boxes = store.read_npz(f"{r.frameset}/patches.npz")["all_boxes"]
         arrays = crop_pairs(fr["input"], gt, fr["rgb"], boxes, settings.max_missing, filter_on="gt")
         keep = arrays["kept"]
         stats = {"rde_missing": float((gt <= 0).mean()), "patches_kept": int(keep.sum()), "patches_drawn": int(len(keep))}
@@ -460,12 +475,14 @@ def rde_scene(scene, framesets, settings: RDESettings, out_dir: str | Path, sett
         write_atomic(d / "frameset.json", io.write_json, {"dataset": r.dataset, "scene": r.scene, "target": t, "split": r.split,
                                                           "K": docs[t]["K"], "backend": backend, "settings": doc_settings,
                                                           "statistics": stats, "units": units})
-        row.update(rde_dir=str(d), patches_kept=int(keep.sum()), rde_missing=stats["rde_missing"])
+        loc = store.location(shard, t)
+        row.update(rde=loc, patches_kept=int(keep.sum()), rde_missing=stats["rde_missing"])
         rows.append(row)
+        built[t] = d
         for j in range(int(keep.sum())):
             patch_rows.append({"dataset": r.dataset, "scene": r.scene, "target": t, "split": r.split, "patch": j,
-                               "path": str(d / "patches.npz")})
-    return pd.DataFrame(rows, columns=RDE_FRAMESET_COLUMNS), pd.DataFrame(patch_rows, columns=RDE_PATCH_COLUMNS)
+                               "frameset": loc})
+    return built
 
 
 def rde_dataset(scene_framesets: Sequence, scene_patches: Sequence):

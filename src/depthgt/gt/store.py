@@ -1,24 +1,149 @@
-"""Reading the built frame sets back: the one reader of the frame-set outputs.
+"""Built frame sets on disk: the one writer and reader of frame-set shards.
 
-Everything that reads a frame set's outputs after it was built (a person inspecting
-it, the ``depthgt show`` command, extraction to plain files) goes through
-:func:`read_frameset`, so that the on-disk layout can change in one place.
+A batch job builds a contiguous slice of one scene's frame sets and writes them as one
+**shard**, an uncompressed zip archive ``{first:06d}-{last:06d}.zip`` whose members are
+``{target:06d}/gt.exr``, ``input.exr``, ``rgb.png``, ``poses.json``, ``patches.npz``,
+``frameset.json`` per built frame set, plus ``batch.json`` (every target of the slice
+with its status and, for a skipped one, the reason). One file per batch instead of six
+per frame set keeps a ScanNet-size build (250k frame sets) at a few thousand files and
+Snakemake metadata records; zip is a standard container every language and tool opens
+(``unzip -l``), and members are stored, not compressed (EXR and PNG already are).
+
+A frame set is addressed by its **location** ``<shard path>/<target:06d>`` (the
+``frameset`` column of the manifests); a member by ``<location>/<name>``. A location may
+also be a plain folder holding the six files (what :func:`extract_frameset` writes).
 """
 
 from __future__ import annotations
 
+import contextlib
+import io as _io
 import json
-import shutil
+import tempfile
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
 from depthgt import io
+from depthgt.atomic import write_atomic
 from depthgt.errors import DepthGTError
 
-__all__ = ["FrameSetRecord", "frameset_dir", "read_frameset", "extract_frameset"]
+__all__ = ["FRAMESET_FILES", "FrameSetRecord", "location", "shard_path", "write_shard", "shard_targets", "read_batch",
+           "member_bytes", "read_json", "read_npz", "frameset_files", "find_frameset", "read_frameset", "read_frameset_at",
+           "extract_frameset"]
+
+FRAMESET_FILES = ("gt.exr", "input.exr", "rgb.png", "poses.json", "patches.npz", "frameset.json")
+BATCH_MEMBER = "batch.json"
+
+
+def shard_path(results: str | Path, dataset: str, scene: str, first: int, last: int) -> Path:
+    """The shard of the batch of targets ``first``..``last`` of a scene."""
+    return Path(results) / "framesets" / dataset / scene / f"{int(first):06d}-{int(last):06d}.zip"
+
+
+def location(shard: str | Path, target: int) -> str:
+    """The location of frame set ``target`` in ``shard``."""
+    return f"{shard}/{int(target):06d}"
+
+
+def _split(loc: str | Path) -> tuple[Path | None, str]:
+    """(archive, path inside it) of a location or member path; (None, loc) outside any."""
+    text = str(loc)
+    marker = ".zip/"
+    cut = text.find(marker)
+    if cut < 0:
+        return None, text
+    return Path(text[:cut + 4]), text[cut + len(marker):]
+
+
+def write_shard(path: str | Path, built: dict[int, Path], batch: list[dict[str, Any]]) -> Path:
+    """Write a shard atomically: the files of each built frame set (``target -> folder``,
+    e.g. holding :data:`FRAMESET_FILES`) as ``{target:06d}/<name>`` and ``batch.json``
+    (one record per target of the slice).
+    """
+    def member(name: str) -> zipfile.ZipInfo:
+        # a fixed time stamp: the same frame sets give the same bytes (reruns compare equal)
+        info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))
+        info.compress_type = zipfile.ZIP_STORED
+        return info
+
+    def _write(tmp: Path) -> None:
+        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as z:
+            for target in sorted(built):
+                for f in sorted(p for p in Path(built[target]).iterdir() if p.is_file()):
+                    z.writestr(member(f"{int(target):06d}/{f.name}"), f.read_bytes())
+            z.writestr(member(BATCH_MEMBER), json.dumps({"framesets": batch}, indent=1, sort_keys=True))
+
+    return write_atomic(path, _write)
+
+
+def _zip(path: Path) -> zipfile.ZipFile:
+    if not path.is_file():
+        raise DepthGTError(f"frame-set shard {path} does not exist (not built yet?)")
+    try:
+        return zipfile.ZipFile(path)
+    except zipfile.BadZipFile as exc:
+        raise DepthGTError(f"frame-set shard {path} is not a readable zip archive ({exc}): rebuild it") from exc
+
+
+def read_batch(shard: str | Path) -> list[dict[str, Any]]:
+    """``batch.json`` of a shard: target, status, reason (and members, split) per target."""
+    with _zip(Path(shard)) as z:
+        return json.loads(z.read(BATCH_MEMBER))["framesets"]
+
+
+def shard_targets(shard: str | Path) -> list[int]:
+    """Targets of the frame sets built into a shard."""
+    with _zip(Path(shard)) as z:
+        return sorted({int(n.split("/")[0]) for n in z.namelist() if n.endswith("/frameset.json")})
+
+
+def member_bytes(member: str | Path) -> bytes:
+    """The bytes of ``<location>/<name>`` (inside a shard or in a folder)."""
+    archive, inner = _split(member)
+    if archive is None:
+        path = Path(inner)
+        if not path.is_file():
+            raise DepthGTError(f"{path} does not exist")
+        return path.read_bytes()
+    with _zip(archive) as z:
+        try:
+            return z.read(inner)
+        except KeyError:
+            raise DepthGTError(f"{archive} has no member {inner} (frame set not built in this shard)") from None
+
+
+def read_json(member: str | Path) -> Any:
+    return json.loads(member_bytes(member))
+
+
+def read_npz(member: str | Path) -> dict[str, np.ndarray]:
+    """Every array of an ``.npz`` member, loaded."""
+    with np.load(_io.BytesIO(member_bytes(member))) as z:
+        return {k: z[k] for k in z.files}
+
+
+@contextlib.contextmanager
+def frameset_files(loc: str | Path) -> Iterator[Path]:
+    """A folder holding the files of the frame set at ``loc`` while the context lasts
+    (the folder itself for a plain folder; a temporary copy for a shard member): for
+    readers that need file paths (OpenEXR)."""
+    archive, inner = _split(loc)
+    if archive is None:
+        yield Path(inner)
+        return
+    with _zip(archive) as z, tempfile.TemporaryDirectory(prefix="depthgt-fs-") as tmp:
+        names = [n for n in z.namelist() if n.startswith(inner.rstrip("/") + "/")]
+        if not names:
+            raise DepthGTError(f"{archive} holds no frame set {inner} (skipped or not in this batch; see its batch.json)")
+        for n in names:
+            dest = Path(tmp) / n[len(inner.rstrip('/')) + 1:]
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            dest.write_bytes(z.read(n))
+        yield Path(tmp)
 
 
 @dataclass
@@ -50,40 +175,54 @@ class FrameSetRecord:
     patches: dict[str, np.ndarray]
 
 
-def frameset_dir(results: str | Path, dataset: str, scene: str, target: int) -> Path:
-    """The folder of one frame set's outputs under the results folder."""
-    return Path(results) / "framesets" / dataset / scene / f"{int(target):06d}"
+def read_frameset_at(loc: str | Path) -> FrameSetRecord:
+    """Read the frame set at a location (``<shard>/<target>`` or a folder)."""
+    with frameset_files(loc) as d:
+        gt = io.read_exr(d / "gt.exr")
+        inp = io.read_exr(d / "input.exr")
+        with np.load(d / "patches.npz") as z:
+            patches = {k: z[k] for k in z.files}
+        return FrameSetRecord(
+            gt_m=gt["Z"], gt_sigma_m=gt.get("S", np.zeros_like(gt["Z"])), gt_weight=gt["W"], gt_count=gt["N"],
+            input_m=inp["Z"], truth_m=inp.get("T"), rgb=io.read_rgb(d / "rgb.png"),
+            poses=json.loads((d / "poses.json").read_text()), meta=json.loads((d / "frameset.json").read_text()),
+            patches=patches)
+
+
+def find_frameset(results: str | Path, dataset: str, scene: str, target: int) -> str:
+    """The location of frame set ``target`` of a scene under the results folder.
+
+    Raises:
+        DepthGTError: no shard of the scene covers the target, or it was skipped (the
+            message gives the reason recorded in the shard).
+    """
+    folder = Path(results) / "framesets" / dataset / scene
+    target = int(target)
+    for shard in sorted(folder.glob("*.zip")):
+        first, last = (int(x) for x in shard.stem.split("-"))
+        if first <= target <= last:
+            for rec in read_batch(shard):
+                if int(rec["target"]) == target:
+                    if rec["status"] != "ok":
+                        raise DepthGTError(f"frame set {dataset}/{scene}/{target:06d} was not built: "
+                                           f"{rec['status']} ({rec.get('reason', '')}) [{shard}]")
+                    return location(shard, target)
+    raise DepthGTError(f"frame set {dataset}/{scene}/{target:06d} not built: no shard in {folder} holds it")
 
 
 def read_frameset(results: str | Path, dataset: str, scene: str, target: int) -> FrameSetRecord:
-    """Read one built frame set.
-
-    Raises:
-        DepthGTError: the frame set was not built (the message names the path).
-    """
-    d = frameset_dir(results, dataset, scene, target)
-    if not (d / "frameset.json").is_file():
-        raise DepthGTError(f"frame set {dataset}/{scene}/{int(target):06d} not built: no {d / 'frameset.json'}")
-    gt = io.read_exr(d / "gt.exr")
-    inp = io.read_exr(d / "input.exr")
-    with np.load(d / "patches.npz") as z:
-        patches = {k: z[k] for k in z.files}
-    return FrameSetRecord(
-        gt_m=gt["Z"], gt_sigma_m=gt.get("S", np.zeros_like(gt["Z"])), gt_weight=gt["W"], gt_count=gt["N"],
-        input_m=inp["Z"], truth_m=inp.get("T"), rgb=io.read_rgb(d / "rgb.png"),
-        poses=json.loads((d / "poses.json").read_text()), meta=json.loads((d / "frameset.json").read_text()),
-        patches=patches)
+    """Read one built frame set of a scene (see :func:`find_frameset`)."""
+    return read_frameset_at(find_frameset(results, dataset, scene, target))
 
 
 def extract_frameset(results: str | Path, dataset: str, scene: str, target: int, dest: str | Path) -> list[Path]:
-    """Copy one built frame set's files (gt.exr, input.exr, rgb.png, poses.json,
+    """Write one built frame set's files (gt.exr, input.exr, rgb.png, poses.json,
     patches.npz, frameset.json) into ``dest``; returns the written paths."""
-    d = frameset_dir(results, dataset, scene, target)
-    read_frameset(results, dataset, scene, target)  # checks it was built
+    loc = find_frameset(results, dataset, scene, target)
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
     written = []
-    for name in ("gt.exr", "input.exr", "rgb.png", "poses.json", "patches.npz", "frameset.json"):
-        shutil.copyfile(d / name, dest / name)
+    for name in FRAMESET_FILES:
+        (dest / name).write_bytes(member_bytes(f"{loc}/{name}"))
         written.append(dest / name)
     return written

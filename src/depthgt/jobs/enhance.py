@@ -41,28 +41,21 @@ def run_train(model: str, config: Mapping[str, Any], train_manifest: str, val_ma
     return result
 
 
-def run_rde_scene(source: dict[str, Any], scene: str, scene_framesets: str, config: Mapping[str, Any], out_dir: str,
-                  out_framesets: str, out_patches: str, frame_cache: str | None = None) -> None:
-    """RDE GT of every frame set of one scene (:func:`depthgt.gt.rde.rde_scene`) into
-    ``out_dir`` (the rule's directory output), and its two tables.
-
-    Frames come from the scene's frame cache when given, else from the source.
+def run_rde_scene(source: dict[str, Any], scene: str, scene_framesets: str, config: Mapping[str, Any], out_shard: str,
+                  out_framesets: str, out_patches: str) -> None:
+    """RDE GT of every frame set of one scene (:func:`depthgt.gt.rde.rde_scene`) into the
+    shard ``out_shard``, and its two tables. Frames come from the source at the working
+    resolution (:class:`depthgt.gt.cache.ResizedScene`), the frames the frame sets saw.
     """
     import pandas as pd
 
+    from depthgt.gt.cache import ResizedScene
     from depthgt.gt.rde import rde_scene
     from depthgt.settings import settings_from_config
 
-    settings = settings_from_config(config).enhance.rde
-    if frame_cache:
-        from depthgt.gt.cache import CachedScene
-
-        sc = CachedScene(frame_cache)
-        log.info("%s/%s: TSDF input from the frame cache %s", source["name"], scene, frame_cache)
-    else:
-        sc = open_source_scene(source, scene, need_poses=True)
-    fs, patches = rde_scene(sc, pd.read_parquet(scene_framesets), settings, out_dir)
-    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    all_settings = settings_from_config(config)
+    sc = ResizedScene(open_source_scene(source, scene, need_poses=True), all_settings.size_hw)
+    fs, patches = rde_scene(sc, pd.read_parquet(scene_framesets), all_settings.enhance.rde, out_shard)
     for table, path in ((fs, out_framesets), (patches, out_patches)):
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         table.to_parquet(path, index=False)

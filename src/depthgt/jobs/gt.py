@@ -16,28 +16,22 @@ from typing import Any, Mapping
 from depthgt import io
 from depthgt.jobs.common import open_source_scene
 
-__all__ = ["run_scene_index", "run_frameset", "run_scene_summary", "run_dataset", "run_pretrain_registration"]
+__all__ = ["run_scene_index", "run_frameset_batch", "run_scene_summary", "run_dataset", "run_pretrain_registration"]
 
 log = logging.getLogger("depthgt")
 
 
-def run_scene_index(source: dict[str, Any], scene: str, config: Mapping[str, Any], out_parquet: str, out_json: str,
-                    cache_dir: str | None = None) -> None:
-    """Check every frame of a scene and write its index (parquet + json), and the
-    frame cache at the working resolution into ``cache_dir`` when given."""
-    from depthgt.gt.cache import FrameCacheWriter
+def run_scene_index(source: dict[str, Any], scene: str, config: Mapping[str, Any], out_parquet: str,
+                    out_json: str) -> None:
+    """Check every frame of a scene and write its index (parquet + json)."""
     from depthgt.gt.index import build_index
     from depthgt.settings import settings_from_config
 
     settings = settings_from_config(config)
     need_poses = settings.registration.method == "given"
     sc = open_source_scene(source, scene, need_poses=need_poses)
-    cache = FrameCacheWriter(cache_dir, sc, settings.size_hw) if cache_dir else None
     index = build_index(sc, source["name"], source.get("split", "auto"), need_poses=need_poses,
-                        fs_settings=settings.frameset, split_settings=settings.split, seed=settings.seed, progress=True,
-                        cache=cache)
-    if cache is not None:
-        cache.close()
+                        fs_settings=settings.frameset, split_settings=settings.split, seed=settings.seed, progress=True)
     meta = dict(index.meta)
     meta["framesets_ok"] = [int(t) for t in index.framesets.loc[index.framesets["status"] == "ok", "target"]]
     meta["source"] = source
@@ -50,51 +44,80 @@ def run_scene_index(source: dict[str, Any], scene: str, config: Mapping[str, Any
         log.warning("%s/%s: %s", source["name"], scene, p)
 
 
-def run_frameset(source: dict[str, Any], scene: str, target: int, config: Mapping[str, Any], index_parquet: str,
-                 outputs: Mapping[str, str], encoder: str | None = None, cache_dir: str | None = None) -> None:
-    """Build one frame set's outputs (frames from the frame cache ``cache_dir`` when
-    given, else from the source).
+def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int, config: Mapping[str, Any],
+                       index_parquet: str, out_shard: str, encoder: str | None = None) -> list[dict[str, Any]]:
+    """Build the frame sets of targets ``first``..``last`` of a scene in turn and write
+    them as one shard (:func:`depthgt.gt.store.write_shard`); the encoder and the scene
+    are loaded once.
 
-    Args:
-        outputs: the paths ``gt``, ``input``, ``rgb``, ``poses``, ``patches``, ``meta``
-            (:class:`depthgt.gt.frameset.FrameSetOutputs`).
+    Every candidate target of the slice gets a record in the shard's ``batch.json``:
+    ``ok`` when built, else ``skipped`` with the index's reason (invalid member frames,
+    split guard) or ``not_in_scene`` when the scene holds fewer frames than planned (a
+    truncated file). Frames are read from the source once per batch, at the working
+    resolution (:class:`depthgt.gt.cache.ResizedScene`).
+
+    Returns:
+        The records of ``batch.json``.
     """
-    import pandas as pd
+    import tempfile
 
+    import pandas as pd
+    from tqdm import tqdm
+
+    from depthgt.gt import store
     from depthgt.gt.frameset import FrameSetOutputs, process_frameset
     from depthgt.settings import settings_from_config
 
+    settings = settings_from_config(config)
+    planned = [t for t in settings.frameset.targets(last + settings.frameset.reach + 1) if first <= t <= last]
     table = pd.read_parquet(index_parquet)
-    row = table[(table["position"] == target) & table["is_target"]]
-    if row.empty or row.iloc[0]["frameset_status"] != "ok":
-        raise ValueError(f"{index_parquet}: target {target} is not a runnable frame set of this scene")
-    row = row.iloc[0]
+    rows = {int(r.position): r for r in table[table["is_target"]].itertuples()}
     state = None
     if encoder:
         import torch
 
         state = torch.load(encoder, map_location="cpu", weights_only=True) or None  # {}: no pretraining
-    settings = settings_from_config(config)
-    if cache_dir:
-        from depthgt.gt.cache import CachedScene
+    from depthgt.gt.cache import ResizedScene
 
-        scene_obj = CachedScene(cache_dir)
-    else:
-        scene_obj = open_source_scene(source, scene, need_poses=(settings.registration.method == "given"))
-    out = FrameSetOutputs(**{k: outputs[k] for k in FrameSetOutputs._fields})
-    doc = process_frameset(scene_obj, source["name"], target, [int(m) for m in row["members"]], row["frameset_split"],
-                           out, settings, encoder_state=state)
-    log.info("frame set %s/%s/%06d: status %s, %d/%d patches kept, GT missing %.3f (input %.3f)", source["name"], scene,
-             target, doc["status"], doc["statistics"]["patches_kept"], doc["statistics"]["patches_drawn"],
-             doc["statistics"]["gt_missing"], doc["statistics"]["input_missing"])
+    scene_obj = ResizedScene(open_source_scene(source, scene, need_poses=(settings.registration.method == "given")),
+                             settings.size_hw, keep=2 * settings.frameset.reach + 2)
+    records: list[dict[str, Any]] = []
+    built: dict[int, Path] = {}
+    with tempfile.TemporaryDirectory(prefix=".batch-", dir=Path(out_shard).parent) as tmp:
+        for target in tqdm(planned, desc=f"frame sets {source['name']}/{scene} {first:06d}-{last:06d}", unit="set"):
+            row = rows.get(target)
+            if row is None:
+                records.append({"target": target, "status": "skipped", "reason": "not_in_scene: the scene holds "
+                                f"{len(table)} frames, fewer than planned for this target", "members": [], "split": ""})
+                log.warning("%s/%s: target %d skipped: not in the scene (%d frames)", source["name"], scene, target,
+                            len(table))
+                continue
+            members = [int(m) for m in row.members]
+            if row.frameset_status != "ok":
+                records.append({"target": target, "status": row.frameset_status, "reason": row.frameset_reason,
+                                "members": members, "split": row.frameset_split})
+                continue
+            out = FrameSetOutputs.in_dir(Path(tmp) / f"{target:06d}")
+            doc = process_frameset(scene_obj, source["name"], target, members, row.frameset_split, out, settings,
+                                   encoder_state=state)
+            built[target] = Path(tmp) / f"{target:06d}"
+            records.append({"target": target, "status": doc["status"], "reason": doc["reason"], "members": members,
+                            "split": row.frameset_split})
+            log.info("frame set %s/%s/%06d: status %s, %d/%d patches kept, GT missing %.3f (input %.3f)",
+                     source["name"], scene, target, doc["status"], doc["statistics"]["patches_kept"],
+                     doc["statistics"]["patches_drawn"], doc["statistics"]["gt_missing"],
+                     doc["statistics"]["input_missing"])
+        store.write_shard(out_shard, built, records)
+    return records
 
 
-def run_scene_summary(index_parquet: str, frameset_jsons: list[str], out_framesets: str, out_patches: str,
+def run_scene_summary(index_parquet: str, shards: list[str], out_framesets: str, out_patches: str,
                       out_quality: str) -> None:
-    """Summarise a scene's frame sets, patches and GT quality into three parquet tables."""
+    """Summarise a scene's frame sets (from its shards), patches and GT quality into
+    three parquet tables."""
     from depthgt.gt.assemble import summarize_scene
 
-    fs, patches, quality = summarize_scene(index_parquet, [str(Path(p).parent) for p in frameset_jsons])
+    fs, patches, quality = summarize_scene(index_parquet, shards)
     fs.to_parquet(out_framesets, index=False)
     patches.to_parquet(out_patches, index=False)
     quality.to_parquet(out_quality, index=False)

@@ -82,7 +82,7 @@ def run_figures(framesets: str, pred_dirs: Mapping[str, str], loss_logs: Mapping
     from depthgt.eval import figures
 
     table = pd.read_parquet(framesets)
-    table = table[(table["split"] == split) & (table["status"] == "ok") & (table["frameset_dir"] != "")]
+    table = table[(table["split"] == split) & (table["status"] == "ok") & (table["frameset"] != "")]
     figures.comparison_figure(table, pred_dirs, out_comparison, frames_per_scene)
     for name, path in loss_logs.items():
         figures.training_curve(path, out_curves[name], title=name)

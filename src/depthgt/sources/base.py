@@ -128,6 +128,25 @@ def list_scenes(kind: str, root: str | None, **options: Any) -> list[str]:
     return _resolve(_adapter(kind)[1])(root, **options)
 
 
+def frame_count(kind: str, root: str | None, scene: str, **options: Any) -> int:
+    """Number of frame positions of a scene, from cheap metadata: what the workflow plans
+    its frame sets from, without reading a frame. An adapter module may define
+    ``frame_count(root, scene, **options)`` (the synthetic source: its ``n_frames``; a
+    ``.sens`` file: its header); otherwise the scene is opened, which for folder sources
+    lists files and parses text lists only. Frames that turn out unreadable are recorded
+    by the jobs (the scene index), and targets planned beyond the frames a job can read
+    are recorded as skipped there.
+
+    Raises:
+        SourceError: as :func:`open_scene`.
+    """
+    module = importlib.import_module(_adapter(kind)[0].split(":")[0])
+    counter = getattr(module, "frame_count", None)
+    if counter is not None:
+        return int(counter(root, scene, **options))
+    return len(open_scene(kind, root, scene, **options))
+
+
 # ---------------------------------------------------------------- frame checks
 
 #: Largest |R R^T - I| entry and |det R - 1| of a rigid pose. 7-Scenes' KinectFusion

@@ -189,6 +189,20 @@ def list_scenes(root: str | Path | None, **options) -> list[str]:
     return sorted(names)
 
 
+def frame_count(root: str | Path | None, scene: str, **options) -> int:
+    """Frames of a scene: the ``.sens`` header's count (no frame record is read), or
+    the exported folder's frames (a directory listing)."""
+    from depthgt.sources.sens import read_header
+
+    path = _root(root)
+    folder = path / scene
+    if not (folder.is_dir() and _is_exported(folder)):
+        for sens in (folder / f"{scene}.sens", path / f"{scene}.sens"):
+            if sens.is_file():
+                return int(read_header(sens).num_frames)
+    return len(open_scene(root, scene, **options))
+
+
 def open_scene(
     root: str | Path | None,
     scene: str,

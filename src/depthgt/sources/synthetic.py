@@ -60,7 +60,7 @@ from depthgt.synth.noise import SENSOR_PROFILES, KinectNoise, infrared_return, k
 from depthgt.synth.scene import Layout, albedo, generate_layout, raycast, shade, thin_mask
 from depthgt.synth.spaces import generate_space_layout
 
-__all__ = ["SyntheticScene", "ExactView", "FAMILIES", "open_scene", "list_scenes", "parse_scene_name"]
+__all__ = ["SyntheticScene", "ExactView", "FAMILIES", "open_scene", "list_scenes", "frame_count", "parse_scene_name"]
 
 log = logging.getLogger(__name__)
 
@@ -289,6 +289,13 @@ def open_scene(root: str | None, scene: str, **options: Any) -> SyntheticScene:
         ConfigError: an option is unknown or invalid (the message names it).
     """
     return SyntheticScene(scene, **options)
+
+
+def frame_count(root: str | None, scene: str, **options: Any) -> int:
+    """``n_frames`` (option, default 40) without building the scene."""
+    parse_scene_name(scene)
+    opts, _ = _resolve_options(options)
+    return int(opts["n_frames"])
 
 
 def list_scenes(root: str | None, **options: Any) -> list[str]:
