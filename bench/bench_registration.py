@@ -41,7 +41,9 @@ from depthgt.eval.metrics import pose_errors
 from depthgt.registration.overfit import register_frameset
 from depthgt.settings import registration_settings
 
-SEVEN = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
+# the shared fixture beside the checkout (main) or two levels up (a git worktree under wt/)
+SEVEN = next((p for p in (Path(__file__).resolve().parents[i] / "shared/data/7scenes-kitchen" for i in (2, 3)) if p.is_dir()),
+             Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen")
 OFFSETS = [0, -6, -4, -2, 2, 4, 6]
 SIZE = (256, 256)
 COLUMNS = ["dataset", "target", "offset", "method", "metric", "unit", "value"]

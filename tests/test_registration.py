@@ -266,12 +266,41 @@ def test_high_residual_neighbours_are_flagged_not_kept():
     offsets = [0, -2, 2]
     rgb, depth, K, _ = _frameset(offsets, hw=(48, 48))
     # a bound below any real residual: every neighbour must fail with the reason named
-    s = RegistrationSettings(**FAST_TEST, iterations=0, max_residual_m=1e-6, refine_settings=RefineSettings(
+    s = RegistrationSettings(**FAST_TEST, iterations=0, max_residual_m=1e-6, max_residual_sigmas=1e-6, refine_settings=RefineSettings(
         scales=(1,), iters=(3,), point_stride=(1,), max_dist_m=(0.05,), geo_scale_m=(0.005,)))
     res = register_frameset(rgb, depth, K, offsets, s, seed=0)
     assert res.status == "failed" and res.neighbour_status == ["failed", "failed"]
     assert all("high_residual" in r for r in res.neighbour_reasons), res.neighbour_reasons
     assert len(res.diagnostics["residual_m"]) == 2
+
+
+def test_residual_check_adapts_to_the_sensor_noise():
+    # a noisy, coarse_stereo-like sensor (3 mm at 1 m, z^2 law; the room is 1.7-4.3 m
+    # deep): the correctly registered neighbours' median point-to-plane residual is above
+    # the fixed 8 mm bound calibrated on Kinect noise, but within the noise the frame set
+    # shows; a neighbour 2 deg off is still caught
+    from depthgt.registration.overfit import _check_neighbours
+
+    offsets = [0, -2, 2, 4]
+    rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64), noise_m=0.003)
+    rs = RefineSettings(scales=(1,), iters=(0,), point_stride=(1,), max_dist_m=(0.05,), geo_scale_m=(0.005,))
+    T = torch.eye(4, dtype=torch.float64).repeat(4, 1, 1)
+    T[1:] = torch.from_numpy(T_true)
+    dT = torch.eye(4, dtype=torch.float64)
+    dT[:3, :3] = torch.from_numpy(_rot(np.radians(2.0) * np.array([1.0, 0.0, 0.0])))
+    T[3] = dT @ T[3]
+    refined = refine_poses(rgb, depth, K, T, rs, offsets)
+    assert 0.0025 < refined.noise_sigma_1m < 0.0035, refined.noise_sigma_1m
+    s = RegistrationSettings(**FAST_TEST, refine_settings=rs)
+    assert (refined.residual_m[1:] > s.max_residual_m).all(), refined.residual_m  # the fixed bound fails them all
+    n_corr = torch.full((4,), 1000)
+    fixed = dataclasses.replace(s, max_residual_sigmas=0.0)
+    statuses, reasons = _check_neighbours(refined.T_f_to_t, n_corr, refined, fixed)
+    assert statuses == ["failed", "failed", "failed"], reasons
+    statuses, reasons = _check_neighbours(refined.T_f_to_t, n_corr, refined, s)
+    assert statuses == ["ok", "ok", "failed"], (reasons, refined.residual_sigmas)
+    assert "high_residual" in reasons[2] and "sigma" in reasons[2]
+    assert refined.residual_sigmas[1:3].max() < 0.8 and refined.residual_sigmas[3] > 1.2, refined.residual_sigmas
 
 
 def test_bf16_encoder_matches_fp32_features():

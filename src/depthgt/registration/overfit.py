@@ -404,8 +404,10 @@ def _check_neighbours(T: torch.Tensor, n_corr: torch.Tensor, refined, s: Registr
             if not cond < s.max_condition:
                 why.append(f"degenerate_alignment(condition={cond:.3g})")
             res = float(refined.residual_m[i + 1])
-            if not res <= s.max_residual_m:  # NaN: nothing associated
-                why.append(f"high_residual({res * 100:.2f}cm)")
+            res_sig = float(refined.residual_sigmas[i + 1]) if refined.residual_sigmas is not None else float("nan")
+            # NaN: nothing associated (or no noise estimate: the metric bound alone)
+            if not (res <= s.max_residual_m or (s.max_residual_sigmas > 0 and res_sig <= s.max_residual_sigmas)):
+                why.append(f"high_residual({res * 100:.2f}cm,{res_sig:.2f}sigma)")
         if not torch.isfinite(T[i + 1]).all():
             why.append("non_finite_pose")
         statuses.append("failed" if why else "ok")
@@ -503,6 +505,8 @@ def register_frameset(
         diagnostics["inlier_fraction"] = refined.inlier_fraction[1:].cpu().tolist()
         diagnostics["condition"] = refined.condition[1:].cpu().tolist()
         diagnostics["residual_m"] = refined.residual_m[1:].cpu().tolist()
+        diagnostics["residual_sigmas"] = refined.residual_sigmas[1:].cpu().tolist()
+        diagnostics["noise_sigma_1m"] = refined.noise_sigma_1m
         timings["refine"] = time.perf_counter() - t0
 
     statuses, reasons = _check_neighbours(T, n_corr, refined, s)
