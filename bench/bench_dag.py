@@ -115,8 +115,9 @@ def cpu(n_scenes: int, old: Path | None) -> None:
     src = dict(default["sources"][0], scenes=default["sources"][0]["scenes"][:n_scenes])
     config = dict(default, sources=[src])
     rows = []
-    if old is not None:
-        c, n = _cpu_of(old, config)
+    if old is not None:  # the old layout knows no batch_size
+        c, n = _cpu_of(old, dict(config, frameset={k: v for k, v in config.get("frameset", {}).items()
+                                                   if k != "batch_size"}))
         rows.append(("old layout (one job per frame set)", c, n))
     for batch in (1, 32):
         c, n = _cpu_of(REPO, dict(config, frameset=dict(config.get("frameset", {}), batch_size=batch)))
