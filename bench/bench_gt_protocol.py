@@ -39,6 +39,7 @@ Usage::
     python3 bench/bench_gt_protocol.py --sets evaluation --registration fast   # overfit registration, preset fast
     python3 bench/bench_gt_protocol.py --fixture                          # 7-Scenes: GT completeness, leave-target-out
     python3 bench/bench_gt_protocol.py --sets tuning --set rel_sigma=3 --png /tmp/pngs
+    python3 bench/bench_gt_protocol.py --sets tuning --added ambiguous_px=0.0   # error of the pixels a variant adds
 
 Frame sets are generated once and cached (``--cache``, default /tmp/depthgt_protocol);
 registrations are cached there too. Prints Markdown tables and writes a tidy CSV.
@@ -346,6 +347,37 @@ def confidence_summary(set_name: str, err: np.ndarray, sigma: np.ndarray) -> str
             f"over the 80 % most certain {1000 * err[keep].mean():.2f} mm (sigma <= {1000 * np.quantile(sigma, 0.8):.1f} mm)")
 
 
+def added_pixels(set_name: str, base: RenderSettings, variant: RenderSettings, cache: Path) -> str:
+    """What a more complete renderer setting adds, judged pixel by pixel against the
+    truth (source poses): completeness of both, and the error of the GT pixels that only
+    ``variant`` has (mean, median, share beyond 5 cm) next to that of the shared ones,
+    and how often the variant's sigma covers the added pixels' error (|e| <= 2 sigma)."""
+    n_ref = n_base = 0
+    added, shared, sig = [], [], []
+    for group in SETS[set_name]:
+        for k in group["scenes"]:
+            for t in TARGETS:
+                data = load_cached(cache, group, k, t)["data"]
+                T = poses_from_source(data)
+                g0 = fuse(data, T, base).depth[0, 0].numpy()
+                out = fuse(data, T, variant)
+                g1 = out.depth[0, 0].numpy()
+                ref = data.truth_m[0, 0].numpy()
+                new = (g0 <= 0) & (g1 > 0) & (ref > 0)
+                n_ref += int((ref > 0).sum())
+                n_base += int(((g0 > 0) & (ref > 0)).sum())
+                added.append(np.abs(g1 - ref)[new])
+                shared.append(np.abs(g0 - ref)[(g0 > 0) & (ref > 0)])
+                sig.append(out.sigma[0, 0].numpy()[new])
+    e, e0, sg = np.concatenate(added), np.concatenate(shared), np.concatenate(sig)
+    if not e.size:
+        return f"{set_name}: the variant adds no GT pixel"
+    return (f"{set_name}: completeness {n_base / n_ref:.4f} -> {(n_base + e.size) / n_ref:.4f} ({e.size} pixels added); "
+            f"added pixels: MAE {1000 * e.mean():.1f} mm, median {1000 * np.median(e):.1f} mm, beyond 5 cm {np.mean(e > 0.05):.3f}, "
+            f"|e| <= 2 sigma {np.mean(e <= 2 * sg):.2f}; the defaults' pixels: MAE {1000 * e0.mean():.2f} mm, median "
+            f"{1000 * np.median(e0):.2f} mm, beyond 5 cm {np.mean(e0 > 0.05):.4f}")
+
+
 # -------------------------------------------------------------------------- 7-Scenes
 
 
@@ -390,6 +422,8 @@ def main(argv=None) -> None:
     ap.add_argument("--fixture-step", type=int, nargs="+", default=[9, 4])
     ap.add_argument("--set", nargs="*", default=[], help="RenderSettings overrides key=value (python literals)")
     ap.add_argument("--grid", default=None, help="key=v1;v2;... : one RenderSettings field over values (compact table)")
+    ap.add_argument("--added", nargs="*", default=[],
+                    help="RenderSettings overrides key=value of a more complete variant: the error of the GT pixels it adds")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/depthgt_protocol"))
     ap.add_argument("--png", type=Path, default=None, help="write input | GT | truth images here")
     ap.add_argument("--threads", type=int, default=1)
@@ -398,6 +432,11 @@ def main(argv=None) -> None:
     torch.set_num_threads(a.threads)
     settings = RenderSettings(**{k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in a.set)})
     print(f"command: python3 bench/bench_gt_protocol.py {' '.join(sys.argv[1:] if argv is None else argv)}")
+    if a.added:
+        variant = replace(settings, **{k: ast.literal_eval(v) for k, v in (x.split("=", 1) for x in a.added)})
+        for name in a.sets:
+            print(added_pixels(name, settings, variant, a.cache))
+        return
     if a.grid:
         key, _, values = a.grid.partition("=")
         compact = []
