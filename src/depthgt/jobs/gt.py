@@ -67,11 +67,10 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
     Returns:
         The frame-set records of ``batch.json``.
     """
-    import tempfile
-
     import pandas as pd
     from tqdm import tqdm
 
+    from depthgt.atomic import work_dir
     from depthgt.gt import store
     from depthgt.gt.cache import ResizedScene
     from depthgt.gt.frameset import FrameSetOutputs, process_frameset
@@ -92,7 +91,7 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
                              keep=2 * settings.frameset.reach + 2, need_pose=need_poses)
     records: list[dict[str, Any]] = []
     built: dict[int, Path] = {}
-    with tempfile.TemporaryDirectory(prefix=".batch-", dir=Path(out_shard).parent) as tmp:
+    with work_dir(out_shard) as tmp:
         for target in tqdm(planned, desc=f"frame sets {source['name']}/{scene} {first:06d}-{last:06d}", unit="set"):
             row = rows.get(target)
             if row is None:
