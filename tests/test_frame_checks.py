@@ -51,6 +51,28 @@ def test_the_index_reads_no_frame(tmp_path, monkeypatch):
     assert "n_valid_frames" not in meta and "valid" not in table.columns
 
 
+def test_a_batch_reads_each_frame_once(tmp_path, monkeypatch):
+    """Checking the members before building a frame set costs no extra read: every frame
+    a batch uses is read from the source once, and batch.json lists each with its outcome."""
+    from depthgt.jobs.gt import run_frameset_batch, run_scene_index
+
+    source = dict(SYN, scenes=["room_000"])
+    run_scene_index(source, "room_000", SMALL, str(tmp_path / "index.parquet"), str(tmp_path / "index.json"))
+    reads = []
+    real_read = synthetic.SyntheticScene.read
+
+    def counting_read(self, i):
+        reads.append(i)
+        return real_read(self, i)
+
+    monkeypatch.setattr(synthetic.SyntheticScene, "read", counting_read)
+    shard = tmp_path / "000003-000010.zip"
+    records = run_frameset_batch(source, "room_000", 3, 10, SMALL, str(tmp_path / "index.parquet"), str(shard))
+    assert [r["target"] for r in records] == list(range(3, 11)) and {r["status"] for r in records} == {"ok"}
+    assert sorted(reads) == list(range(2, 12))  # the members of targets 3..10, each once
+    assert [(f["position"], f["valid"]) for f in store.read_batch_frames(shard)] == [(i, True) for i in range(2, 12)]
+
+
 def _export_scannet(root, n_frames=12):
     """A ScanNet exported folder (color/N.jpg, depth/N.png in mm, pose/N.txt) holding
     the frames of a small synthetic room; returns the scene folder."""
