@@ -93,7 +93,6 @@ class ResizedScene:
         self._keep = int(keep)
         self._frames: OrderedDict[int, Frame] = OrderedDict()
         self._checks: dict[int, FrameCheck] = {}
-        self._errors: dict[int, FrameError] = {}
         self.need_pose = bool(need_pose)
         self.size_hw = (int(size_hw[0]), int(size_hw[1]))
         self.name = scene.name
@@ -113,8 +112,9 @@ class ResizedScene:
     def read(self, i: int) -> Frame:
         """Frame ``i`` resized (raises the source's FrameError for a bad frame)."""
         i = int(i)
-        if i in self._errors:
-            raise self._errors[i]
+        known = self._checks.get(i)
+        if known is not None and not known.valid:
+            raise FrameError(known.message, known.reason)
         if i in self._frames:
             self._frames.move_to_end(i)
             return self._frames[i]
@@ -127,7 +127,6 @@ class ResizedScene:
                 raise FrameError(f"{where}: {problem[1]}", problem[0])
         except FrameError as err:
             log.warning("unusable frame: %s", err)
-            self._errors[i] = err
             self._checks[i] = FrameCheck(i, self.frame_id(i), False, err.reason, str(err))
             raise
         self._checks[i] = FrameCheck(i, self.frame_id(i), True)
