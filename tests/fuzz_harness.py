@@ -4,7 +4,7 @@ Cases are mutants of valid inputs (a ``.sens`` file; the JPEG colour, PNG colour
 PNG depth files of a 7-Scenes sequence) plus crafted cases (absurd image headers, a
 zlib bomb, a lowered frame count, truncated and wrongly typed images, degenerate
 poses). Each case opens its scene through :func:`depthgt.sources.base.open_scene` and
-reads every frame, as the scene index does. An outcome is one of:
+reads every frame, as the frame-set batches do. An outcome is one of:
 
 * ``ok``: every frame read and valid;
 * ``frame_errors``: some frames raised :class:`~depthgt.errors.FrameError` (a recorded

@@ -51,14 +51,23 @@ def test_layout(built):
         assert (sdir / "index.parquet").exists() and (sdir / "index.json").exists()
         index = pd.read_parquet(sdir / "index.parquet")
         meta = json.loads((sdir / "index.json").read_text())
-        assert len(index) == meta["n_frames"]
+        assert len(index) == meta["n_frames"] and list(index["position"]) == list(range(meta["n_frames"]))
+        assert "valid" not in index.columns  # the index reads no frame: the batches check them
         shards = sorted((wd / "results/framesets" / dataset / scene).glob("*.zip"))
         # TINY: 1 or 2 frame sets per scene (13 or 14 frames), one batch (batch_size 32): one shard
         targets = [6, 7][: meta["n_frames"] - 12]
+        assert meta["framesets_planned"] == targets
         assert [p.name for p in shards] == [f"000006-{targets[-1]:06d}.zip"]
-        assert [r["target"] for r in store.read_batch(shards[0])] == targets
-        assert store.shard_targets(shards[0]) == meta["framesets_ok"]
-        for t in meta["framesets_ok"]:
+        batch = store.read_batch(shards[0])
+        assert [r["target"] for r in batch] == targets and all(r["status"] == "ok" for r in batch)
+        assert store.shard_targets(shards[0]) == targets
+        # every member frame was read once by the batch and found usable
+        frames = store.read_batch_frames(shards[0])
+        members = sorted({m for r in batch for m in r["members"]})
+        assert [f["position"] for f in frames] == members and all(f["valid"] and not f["reason"] for f in frames)
+        scene_frames = pd.read_parquet(sdir / "frames.parquet")
+        assert list(scene_frames["position"]) == members and scene_frames["valid"].all()
+        for t in targets:
             loc = store.find_frameset(wd / "results", dataset, scene, t)
             assert loc == store.location(shards[0], t)
             with store.frameset_files(loc) as fdir:
@@ -79,13 +88,17 @@ def test_layout(built):
         # the scene's manifest points into the shard
         fs = pd.read_parquet(sdir / "framesets.parquet")
         assert set(fs.loc[fs["status"] == "ok", "frameset"]) == {
-            store.location(f"results/framesets/{dataset}/{scene}/{shards[0].name}", t) for t in meta["framesets_ok"]}
+            store.location(f"results/framesets/{dataset}/{scene}/{shards[0].name}", t) for t in targets}
     for split in ("train", "val", "test"):
         m = pd.read_parquet(wd / f"results/dataset/{split}.parquet")
         assert len(m) > 0 and (m["split"] == split).all()
     summary = json.loads((wd / "results/dataset/summary.json").read_text())
     fs = pd.read_parquet(wd / "results/dataset/framesets.parquet")
     assert summary["patches_kept"] + summary["patches_rejected"] == summary["patches_drawn"] == 6 * (fs["status"] == "ok").sum()
+    # the members of targets 6 and 7 (14 frames: 0..13) in syn's rooms, of target 6 alone (0, 2, .., 12) in the
+    # others: every frame read once, none unusable
+    assert summary["frames_read"] == 14 + 14 + 7 + 7 and summary["frames_skipped"] == []
+    assert summary["framesets_skipped"] == []
     q = pd.read_csv(wd / "results/dataset/gt_quality.csv")
     assert {"gt", "input"} <= set(q["estimate"])
     # the frame cache is temporary: gone once every frame set is built
@@ -206,7 +219,7 @@ def test_store_reads_and_extracts_a_frameset(built, tmp_path):
     from depthgt.gt.store import extract_frameset, read_frameset
 
     meta = json.loads((built / "results/scenes/syn/room_000/index.json").read_text())
-    target = meta["framesets_ok"][0]
+    target = meta["framesets_planned"][0]
     rec = read_frameset(built / "results", "syn", "room_000", target)
     assert rec.gt_m.shape == rec.input_m.shape == rec.gt_sigma_m.shape == rec.rgb.shape[:2] == (128, 128)
     assert rec.truth_m is not None and rec.meta["target"] == target and rec.patches["kept"].dtype == bool

@@ -2,18 +2,22 @@
 
 Every output of the frame-set job, the RDE GT and the training is written with
 :func:`write_atomic`: the writer fills a temporary file beside the target, which is
-then renamed over it (``os.replace`` is atomic on POSIX file systems).
+then renamed over it (``os.replace`` is atomic on POSIX file systems). Files an output
+is assembled from (the frame sets of a shard) go to :func:`work_dir`, a scratch folder
+of a fixed name that the next run of the same job clears.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
-__all__ = ["write_atomic", "save_npz"]
+__all__ = ["write_atomic", "work_dir", "save_npz"]
 
 
 def write_atomic(path: str | Path, writer: Callable[..., Any], *args: Any) -> Path:
@@ -29,6 +33,32 @@ def write_atomic(path: str | Path, writer: Callable[..., Any], *args: Any) -> Pa
     writer(tmp, *args)
     os.replace(tmp, path)
     return path
+
+
+@contextlib.contextmanager
+def work_dir(path: str | Path) -> Iterator[Path]:
+    """A scratch folder beside output ``path`` while the context lasts: ``.{name}.work``,
+    emptied on entry (a killed run of the job that writes ``path`` leaves it behind;
+    only that job uses the name, so the next run clears it) and removed on exit.
+
+    >>> import tempfile
+    >>> out = Path(tempfile.mkdtemp()) / "000006-000037.zip"
+    >>> (out.parent / ".000006-000037.zip.work").mkdir()  # left by a killed run
+    >>> _ = (out.parent / ".000006-000037.zip.work" / "half.exr").write_bytes(b"EXR")
+    >>> with work_dir(out) as scratch:
+    ...     print(scratch.name, list(scratch.iterdir()))
+    .000006-000037.zip.work []
+    >>> sorted(p.name for p in out.parent.iterdir())
+    []
+    """
+    path = Path(path)
+    scratch = path.with_name(f".{path.name}.work")
+    shutil.rmtree(scratch, ignore_errors=True)
+    scratch.mkdir(parents=True)
+    try:
+        yield scratch
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
 
 
 def save_npz(path: str | Path, arrays: dict[str, np.ndarray]) -> None:

@@ -3,7 +3,8 @@
 Two levels of failure are distinguished so that nothing is silently lost:
 
 * :class:`FrameError`: one frame cannot be used (missing or corrupt file, non-finite
-  pose, empty depth). The scene index records it as a skip with ``reason`` and goes on.
+  pose, empty depth). The frame-set batch that reads it records it with ``reason`` and
+  skips the frame sets holding it, and goes on.
 * :class:`SourceError`: the scene as a whole cannot be read (unknown kind or scene,
   truncated ``.sens`` header, missing intrinsics). The run stops with this message.
 * :class:`ConfigError`: the configuration is invalid; the message names the key.

@@ -97,11 +97,10 @@ def scene_summaries(what="framesets", ext="parquet"):
 # changing one re-runs exactly the jobs it affects (Snakemake's params rerun trigger).
 # Jobs build their settings from the whole (validated) config, snakemake.config, with
 # depthgt.settings.settings_from_config, and use only these sections of it.
-# The index needs poses only with registration.method given: it reads that, not the
-# other registration keys; nor the batch size
-INDEX_CONFIG = {"seed": config.get("seed"), "split": config.get("split"), "resize": config.get("resize"),
-                "frameset": {k: v for k, v in config["frameset"].items() if k != "batch_size"},
-                "need_poses": SETTINGS.registration.method == "given"}
+# The index reads no frame: neither the registration (whether poses must be usable the
+# batches check), the working resolution nor the batch size decide it
+INDEX_CONFIG = {"seed": config.get("seed"), "split": config.get("split"),
+                "frameset": {k: v for k, v in config["frameset"].items() if k != "batch_size"}}
 FRAMESET_CONFIG = {k: config.get(k) for k in ("seed", "device", "frameset", "resize", "registration", "render", "patches")}
 
 

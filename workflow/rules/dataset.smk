@@ -3,6 +3,7 @@ rule dataset:
         scenes=scene_summaries("framesets"),
         patches=scene_summaries("patches"),
         quality=scene_summaries("quality"),
+        frames=scene_summaries("frames"),
         indices=scene_summaries("index", "json"),
     output:
         train="results/dataset/train.parquet",

@@ -33,6 +33,7 @@ rule scene_summary:
         framesets="results/scenes/{dataset}/{scene}/framesets.parquet",
         patches="results/scenes/{dataset}/{scene}/patches.parquet",
         quality="results/scenes/{dataset}/{scene}/quality.parquet",
+        frames="results/scenes/{dataset}/{scene}/frames.parquet",
     conda:
         ENV
     log:

@@ -1,5 +1,5 @@
-# The scene index: every frame checked once (validity and reason), the scene's frame
-# sets with their status.
+# The scene index: the scene's frames and frame sets from its metadata (no frame is read;
+# the frame-set batches check each frame as they read it), split tags and split guard.
 # A plain rule: the frame sets are planned from cheap metadata (common.smk), not from it.
 rule scene_index:
     input:

@@ -1,10 +1,6 @@
-import torch
-
 from depthgt.jobs.common import logging_to
 from depthgt.jobs.gt import run_scene_index
 
-# one job per core: torch would otherwise start a thread per core in every job
-torch.set_num_threads(snakemake.threads)
 with logging_to(snakemake.log[0]):
     run_scene_index(snakemake.params.source, snakemake.wildcards.scene, snakemake.config,
                     snakemake.output.table, snakemake.output.meta)

@@ -1,12 +1,13 @@
 """Per-scene summaries and the dataset manifests.
 
-* :func:`summarize_scene` turns a scene's index and its frame-set outputs into two
-  tidy tables: one row per frame set (skipped ones included, with reasons) and one
-  row per drawn patch (kept or rejected, with missing ratios).
+* :func:`summarize_scene` turns a scene's index and its frame-set shards into three
+  tidy tables: one row per frame set (skipped ones included, with reasons), one row
+  per drawn patch (kept or rejected, with missing ratios) and the GT quality; and a
+  fourth: one row per frame the batches read, whether it was usable and why not.
 * :func:`assemble` concatenates the scenes into ``{train,val,test}.parquet`` (one row
   per kept patch pair), ``framesets.parquet`` (one row per frame set, for full-frame
-  evaluation), a summary and the GT quality table (units from
-  :data:`depthgt.eval.metrics.METRIC_UNITS`).
+  evaluation), a summary (every skipped frame and frame set with its reason) and the
+  GT quality table (units from :data:`depthgt.eval.metrics.METRIC_UNITS`).
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ FRAMESET_COLUMNS = ["dataset", "scene", "target", "frame_id", "split", "status",
 # (estimate, frameset.json statistics key, reference) of the GT quality table
 QUALITY_KEYS = (("gt", "gt_vs_truth", "truth"), ("input", "input_vs_truth", "truth"),
                 ("gt", "gt_vs_truth_input_valid", "truth@input_valid"), ("leave_target_out", "leave_target_out", "target_raw"))
+# the frames the frame-set batches read (depthgt.gt.cache.FrameCheck): message names the file at fault
+FRAME_COLUMNS = ["dataset", "scene", "position", "frame_id", "valid", "reason", "message"]
 # frameset: the frame set's location (depthgt.gt.store); its patches are <frameset>/patches.npz
 PATCH_COLUMNS = ["dataset", "scene", "target", "split", "patch", "frameset", "y0", "x0", "size", "missing_input", "missing_gt",
                  "kept"]
@@ -38,15 +41,22 @@ def read_index(index_parquet: str | Path) -> tuple[pd.DataFrame, dict]:
     return table, meta
 
 
-def summarize_scene(index_parquet: str | Path, shards: list[str | Path]) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
-    """Tables of one scene: frame sets, patches, and GT quality (tidy long form).
+def summarize_scene(index_parquet: str | Path, shards: list[str | Path]
+                    ) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+    """Tables of one scene: frame sets, patches, GT quality (tidy long form) and frames.
 
     Args:
         shards: the scene's frame-set shards (:mod:`depthgt.gt.store`).
 
-    Frame sets skipped by the index, or by a batch job (targets beyond the frames the
-    scene holds), appear with their reason; built frame sets appear with the
-    statistics of their frameset.json and their location.
+    Every target of the index appears in the frame-set table with the outcome its batch
+    recorded: built (the statistics of its frameset.json and its location) or skipped
+    with the reason (the index's split guard, unusable member frames); targets a batch
+    planned beyond the frames the scene holds appear as recorded there. The frame table
+    holds every frame a batch read (:data:`FRAME_COLUMNS`), once: batches overlap by
+    the frame sets' reach and read the frames there each.
+
+    Raises:
+        FileNotFoundError: a target of the index that no shard given records.
     """
     from depthgt.gt import store
 
@@ -55,21 +65,25 @@ def summarize_scene(index_parquet: str | Path, shards: list[str | Path]) -> tupl
     rows, patch_rows, quality = [], [], []
     by_target: dict[int, str] = {}
     batch_records: dict[int, dict] = {}
+    frames: dict[int, dict] = {}
     for shard in shards:
         for rec in store.read_batch(shard):
             batch_records[int(rec["target"])] = rec
+        for fr in store.read_batch_frames(shard):
+            frames.setdefault(int(fr["position"]), fr)
         by_target.update({t: store.location(shard, t) for t in store.shard_targets(shard)})
     index_targets = set()
     for rec in table[table["is_target"]].itertuples():
         target = int(rec.position)
         index_targets.add(target)
+        batch = batch_records.get(target)
+        if batch is None:
+            raise FileNotFoundError(f"{dataset}/{scene}: frame set {target} is in the index but no shard given records it")
         row = {"dataset": dataset, "scene": scene, "target": target, "frame_id": rec.frame_id, "split": rec.frameset_split,
-               "status": rec.frameset_status, "reason": rec.frameset_reason, "frameset": "", "has_truth": False,
+               "status": batch["status"], "reason": batch["reason"], "frameset": "", "has_truth": False,
                "patches_drawn": 0, "patches_kept": 0, "input_missing": np.nan, "gt_missing": np.nan}
-        if rec.frameset_status == "ok":
-            loc = by_target.get(target)
-            if loc is None:
-                raise FileNotFoundError(f"{dataset}/{scene}: frame set {target} is in the index but no shard given holds it")
+        loc = by_target.get(target)
+        if loc is not None:
             doc = store.read_json(f"{loc}/frameset.json")
             st = doc["statistics"]
             row.update(status=doc["status"], reason=doc["reason"], frameset=loc, has_truth="gt_vs_truth" in st,
@@ -98,8 +112,12 @@ def summarize_scene(index_parquet: str | Path, shards: list[str | Path]) -> tupl
         rows.append({"dataset": dataset, "scene": scene, "target": target, "frame_id": "", "split": rec.get("split", ""),
                      "status": rec["status"], "reason": rec["reason"], "frameset": "", "has_truth": False,
                      "patches_drawn": 0, "patches_kept": 0, "input_missing": np.nan, "gt_missing": np.nan})
+    frame_rows = [{"dataset": dataset, "scene": scene, "position": p, "frame_id": str(frames[p]["frame_id"]),
+                   "valid": bool(frames[p]["valid"]), "reason": frames[p]["reason"], "message": frames[p]["message"]}
+                  for p in sorted(frames)]
     return (pd.DataFrame(rows, columns=FRAMESET_COLUMNS), pd.DataFrame(patch_rows, columns=PATCH_COLUMNS),
-            pd.DataFrame(quality, columns=["dataset", "scene", "target", "split", "estimate", "reference", "metric", "unit", "value"]))
+            pd.DataFrame(quality, columns=["dataset", "scene", "target", "split", "estimate", "reference", "metric", "unit", "value"]),
+            pd.DataFrame(frame_rows, columns=FRAME_COLUMNS))
 
 
 class DatasetOutputs(NamedTuple):
@@ -121,17 +139,21 @@ class DatasetOutputs(NamedTuple):
 
 
 def assemble(scene_framesets: list[str | Path], scene_patches: list[str | Path], scene_quality: list[str | Path],
-             index_jsons: list[str | Path], out: DatasetOutputs) -> dict:
+             scene_frames: list[str | Path], index_jsons: list[str | Path], out: DatasetOutputs) -> dict:
     """Write the dataset manifests from the per-scene summaries.
 
     Args:
-        scene_framesets, scene_patches, scene_quality: the per-scene tables of
-            :func:`summarize_scene` (parquet paths).
-        index_jsons: the scenes' ``index.json`` (frame counts and scene problems).
+        scene_framesets, scene_patches, scene_quality, scene_frames: the per-scene
+            tables of :func:`summarize_scene` (parquet paths).
+        index_jsons: the scenes' ``index.json`` (scene problems).
         out: the output paths (:class:`DatasetOutputs`).
 
     Returns:
-        The summary dict (also written as summary.json/.md).
+        The summary dict (also written as summary.json/.md): pairs and frame sets per
+        split, patch counts, every skipped frame set (``framesets_skipped``: dataset,
+        scene, target, reason), the frames the batches read (``frames_read``) and every
+        one of them found unusable (``frames_skipped``: dataset, scene, position,
+        frame_id, reason, message), scene problems.
     """
     out = DatasetOutputs(*(Path(p) for p in out))
     for p in out:
@@ -139,6 +161,7 @@ def assemble(scene_framesets: list[str | Path], scene_patches: list[str | Path],
     fs = _concat([Path(p) for p in scene_framesets], FRAMESET_COLUMNS)
     patches = _concat([Path(p) for p in scene_patches], PATCH_COLUMNS)
     quality = _concat([Path(p) for p in scene_quality], None)
+    frames = _concat([Path(p) for p in scene_frames], FRAME_COLUMNS)
     metas = [json.loads(Path(p).read_text()) for p in index_jsons]
 
     kept = patches[patches["kept"]].reset_index(drop=True)
@@ -164,7 +187,12 @@ def assemble(scene_framesets: list[str | Path], scene_patches: list[str | Path],
             for r in fs[fs["status"] != "ok"].itertuples()
         ],
         "scene_problems": [{"dataset": m["dataset"], "scene": m["scene"], "problem": p} for m in metas for p in m["problems"]],
-        "frames_skipped": int(sum(m["n_frames"] - m["n_valid_frames"] for m in metas)),
+        "frames_read": int(len(frames)),
+        "frames_skipped": [
+            {"dataset": r.dataset, "scene": r.scene, "position": int(r.position), "frame_id": str(r.frame_id),
+             "reason": r.reason, "message": r.message}
+            for r in frames[~frames["valid"].astype(bool)].itertuples()
+        ],
     }
     out.summary.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
     out.summary_md.write_text(_summary_md(summary, per_scene))
@@ -185,10 +213,16 @@ def _summary_md(summary: dict, quality: pd.DataFrame) -> str:
         lines.append(f"| {s} | {summary['framesets'][s]} | {summary['pairs'][s]} |")
     lines += ["", f"Patches drawn: {summary['patches_drawn']}, kept: {summary['patches_kept']}, "
                   f"rejected by the missing filter: {summary['patches_rejected']}.",
-              f"Frames skipped: {summary['frames_skipped']}. Frame sets skipped: {len(summary['framesets_skipped'])}.", ""]
+              f"Frames read by the frame-set batches: {summary['frames_read']}, unusable (skipped): "
+              f"{len(summary['frames_skipped'])}. Frame sets skipped: {len(summary['framesets_skipped'])}.", ""]
+    if summary["frames_skipped"]:
+        lines += ["| dataset | scene | frame | id | reason | message |", "|---|---|---:|---|---|---|"]
+        lines += [f"| {r['dataset']} | {r['scene']} | {r['position']} | {r['frame_id']} | {r['reason']} | "
+                  f"{_cell(r['message'])} |" for r in summary["frames_skipped"]]
+        lines.append("")
     if summary["framesets_skipped"]:
         lines += ["| dataset | scene | target | reason |", "|---|---|---:|---|"]
-        lines += [f"| {r['dataset']} | {r['scene']} | {r['target']} | {r['reason']} |" for r in summary["framesets_skipped"]]
+        lines += [f"| {r['dataset']} | {r['scene']} | {r['target']} | {_cell(r['reason'])} |" for r in summary["framesets_skipped"]]
         lines.append("")
     if summary["scene_problems"]:
         lines += ["Scene problems:", ""] + [f"- {p['dataset']}/{p['scene']}: {p['problem']}" for p in summary["scene_problems"]] + [""]
@@ -197,3 +231,8 @@ def _summary_md(summary: dict, quality: pd.DataFrame) -> str:
         wide = table.pivot_table(index=["dataset", "estimate", "reference"], columns="metric", values="value", aggfunc="mean")
         lines += ["## GT quality (mean over scenes; metres, completeness as a fraction)", "", wide.round(4).to_markdown(), ""]
     return "\n".join(lines)
+
+
+def _cell(text: str) -> str:
+    """``text`` fit for a markdown table cell (a ``|`` would end the cell)."""
+    return str(text).replace("|", "\\|").replace("\n", " ")

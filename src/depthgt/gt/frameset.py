@@ -87,8 +87,8 @@ def load_frameset(scene: Scene, members: list[int], size_hw: tuple[int, int], ne
     the images it was resized from by ``source_size``.
 
     Raises:
-        FrameError: a member frame is unusable (it was valid when the index was built
-            only if the data changed since; the job records it and fails loudly).
+        FrameError: a member frame is unusable (the batch job checks the members
+            before it builds a frame set, and records such a set as skipped).
     """
     frames = []
     for m in members:

@@ -1,19 +1,22 @@
 """Local frame sets: a target frame and its neighbours t +- k*stride (k = 1..n).
 
 Paper defaults: 3 neighbours each side at stride 2 (frames t-6, t-4, t-2, t+2, t+4,
-t+6). Frame sets are enumerated per scene from a per-frame validity table, and split
-tags are assigned without leakage (no frame is used by frame sets of two splits).
+t+6). Frame sets are enumerated per scene from its frame count and split tags, which
+are assigned without leakage (no frame is used by frame sets of two splits). Whether
+the member frames are usable is known only once they are read: the frame-set batch
+jobs decide it (:func:`member_problems` words the skip reason).
 """
 
 from __future__ import annotations
 
 import hashlib
+from typing import Mapping, Sequence
 
 import numpy as np
 
 from depthgt.settings import SPLITS, FrameSetSettings, SplitSettings
 
-__all__ = ["stable_seed", "block_splits", "enumerate_framesets"]
+__all__ = ["stable_seed", "block_splits", "enumerate_framesets", "member_problems"]
 
 
 def stable_seed(*parts: object) -> int:
@@ -39,32 +42,49 @@ def block_splits(n_frames: int, source_split: str, settings: SplitSettings, seed
     return tags
 
 
-def enumerate_framesets(valid: np.ndarray, reasons: list[str], splits: np.ndarray, settings: FrameSetSettings) -> list[dict]:
-    """Frame sets of a scene with their status.
+def enumerate_framesets(splits: np.ndarray, settings: FrameSetSettings) -> list[dict]:
+    """Frame sets of a scene with their status, before any frame is read.
 
     Args:
-        valid: (N,) bool, usable frames.
-        reasons: (N,) reason of each invalid frame ("" when valid).
-        splits: (N,) split tag of each frame (see :func:`block_splits`).
+        splits: (N,) split tag of each frame position (see :func:`block_splits`).
         settings: offsets and target step.
 
     Returns:
         One dict per candidate target (every ``target_step`` frames whose members all
         lie inside the scene): ``target``, ``members`` (positions, target first),
-        ``split``, ``status`` ("ok" | "skipped") and ``reason`` (why skipped, naming the
-        offending member frames).
+        ``split``, ``status`` and ``reason``. Status ``"planned"``: to be built once its
+        member frames read fine (the batch job checks them); ``"skipped"`` with reason
+        ``split_guard``: its members span two splits.
+
+    >>> sets = enumerate_framesets(np.array(["train"] * 13 + ["val"] * 2, dtype=object), FrameSetSettings(target_step=1))
+    >>> [(s["target"], s["status"]) for s in sets]
+    [(6, 'planned'), (7, 'skipped'), (8, 'skipped')]
     """
-    n = len(valid)
+    n = len(splits)
     offsets = np.asarray(settings.offsets)
     out = []
     for t in settings.targets(n):
         members = (t + offsets).tolist()
-        bad = [m for m in members if not valid[m]]
-        status, reason = "ok", ""
-        if bad:
-            status = "skipped"
-            reason = "; ".join(f"frame {m}: {reasons[m]}" for m in bad)
-        elif len({splits[m] for m in members}) > 1:
+        status, reason = "planned", ""
+        if len({splits[m] for m in members}) > 1:
             status, reason = "skipped", "split_guard: members span two splits"
         out.append({"target": t, "members": members, "split": splits[t], "status": status, "reason": reason})
     return out
+
+
+def member_problems(members: Sequence[int], problems: Mapping[int, str]) -> str:
+    """Why a frame set is skipped for its unusable member frames ("" when none is).
+
+    Args:
+        members: the frame set's member positions, target first.
+        problems: position -> what is wrong with that frame (``"<reason> (<message>)"``,
+            the message naming the file), for the frames found unusable.
+
+    Returns:
+        ``"frame <position>: <problem>"`` of each unusable member in member order,
+        joined by ``"; "``.
+
+    >>> member_problems([7, 1, 3, 5, 9, 11, 13], {9: "nonfinite_pose (frame 9: pose is not finite)", 2: "unreadable (x)"})
+    'frame 9: nonfinite_pose (frame 9: pose is not finite)'
+    """
+    return "; ".join(f"frame {m}: {problems[m]}" for m in members if m in problems)

@@ -405,15 +405,14 @@ def rde_scene(scene, framesets, settings: RDESettings, out_shard: str | Path, se
         Two tables: frame sets (:data:`RDE_FRAMESET_COLUMNS`) and kept patches
         (:data:`RDE_PATCH_COLUMNS`).
     """
-    import tempfile
-
     import pandas as pd
 
+    from depthgt.atomic import work_dir
     from depthgt.gt import store
 
     ok = framesets[(framesets["status"] == "ok") & (framesets["frameset"] != "")]
     rows, patch_rows = [], []
-    with tempfile.TemporaryDirectory(prefix=".rde-", dir=Path(out_shard).parent) as tmp:
+    with work_dir(out_shard) as tmp:
         built = _rde_targets(scene, ok, settings, Path(tmp), settings_doc, rows, patch_rows, str(out_shard))
         store.write_shard(out_shard, built, [{"target": r["target"], "status": r["status"], "reason": r["reason"]}
                                              for r in rows])

@@ -3,8 +3,10 @@
 A batch job builds a contiguous slice of one scene's frame sets and writes them as one
 **shard**, an uncompressed zip archive ``{first:06d}-{last:06d}.zip`` whose members are
 ``{target:06d}/gt.exr``, ``input.exr``, ``rgb.png``, ``poses.json``, ``patches.npz``,
-``frameset.json`` per built frame set, plus ``batch.json`` (every target of the slice
-with its status and, for a skipped one, the reason). One file per batch instead of six
+``frameset.json`` per built frame set, plus ``batch.json``: every target of the slice
+with its status and, for a skipped one, the reason (``framesets``), and every frame the
+batch read with whether it was usable and, if not, the reason and message naming the
+file (``frames``). One file per batch instead of six
 per frame set keeps a ScanNet-size build (250k frame sets) at a few thousand files and
 Snakemake metadata records; zip is a standard container every language and tool opens
 (``unzip -l``), and members are stored, not compressed (EXR and PNG already are).
@@ -32,7 +34,7 @@ from depthgt.atomic import write_atomic
 from depthgt.errors import DepthGTError
 
 __all__ = ["FRAMESET_FILES", "FrameSetRecord", "location", "shard_path", "write_shard", "shard_targets", "read_batch",
-           "member_bytes", "read_json", "read_npz", "frameset_files", "find_frameset", "read_frameset", "read_frameset_at",
+           "read_batch_frames", "member_bytes", "read_json", "read_npz", "frameset_files", "find_frameset", "read_frameset", "read_frameset_at",
            "extract_frameset"]
 
 FRAMESET_FILES = ("gt.exr", "input.exr", "rgb.png", "poses.json", "patches.npz", "frameset.json")
@@ -59,10 +61,12 @@ def _split(loc: str | Path) -> tuple[Path | None, str]:
     return Path(text[:cut + 4]), text[cut + len(marker):]
 
 
-def write_shard(path: str | Path, built: dict[int, Path], batch: list[dict[str, Any]]) -> Path:
+def write_shard(path: str | Path, built: dict[int, Path], batch: list[dict[str, Any]],
+                frames: list[dict[str, Any]] | None = None) -> Path:
     """Write a shard atomically: the files of each built frame set (``target -> folder``,
     e.g. holding :data:`FRAMESET_FILES`) as ``{target:06d}/<name>`` and ``batch.json``
-    (one record per target of the slice).
+    (one record per target of the slice; with ``frames``, one record per frame the
+    batch read, :meth:`depthgt.gt.cache.FrameCheck.to_dict`).
     """
     def member(name: str) -> zipfile.ZipInfo:
         # a fixed time stamp: the same frame sets give the same bytes (reruns compare equal)
@@ -75,7 +79,8 @@ def write_shard(path: str | Path, built: dict[int, Path], batch: list[dict[str, 
             for target in sorted(built):
                 for f in sorted(p for p in Path(built[target]).iterdir() if p.is_file()):
                     z.writestr(member(f"{int(target):06d}/{f.name}"), f.read_bytes())
-            z.writestr(member(BATCH_MEMBER), json.dumps({"framesets": batch}, indent=1, sort_keys=True))
+            doc = {"framesets": batch} if frames is None else {"framesets": batch, "frames": list(frames)}
+            z.writestr(member(BATCH_MEMBER), json.dumps(doc, indent=1, sort_keys=True))
 
     return write_atomic(path, _write)
 
@@ -89,10 +94,20 @@ def _zip(path: Path) -> zipfile.ZipFile:
         raise DepthGTError(f"frame-set shard {path} is not a readable zip archive ({exc}): rebuild it") from exc
 
 
+def _batch_doc(shard: str | Path) -> dict[str, Any]:
+    with _zip(Path(shard)) as z:
+        return json.loads(z.read(BATCH_MEMBER))
+
+
 def read_batch(shard: str | Path) -> list[dict[str, Any]]:
     """``batch.json`` of a shard: target, status, reason (and members, split) per target."""
-    with _zip(Path(shard)) as z:
-        return json.loads(z.read(BATCH_MEMBER))["framesets"]
+    return _batch_doc(shard)["framesets"]
+
+
+def read_batch_frames(shard: str | Path) -> list[dict[str, Any]]:
+    """The frames a shard's batch read: position, frame_id, valid, reason, message each
+    (none for an RDE shard)."""
+    return _batch_doc(shard).get("frames", [])
 
 
 def shard_targets(shard: str | Path) -> list[int]:

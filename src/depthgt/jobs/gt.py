@@ -23,23 +23,23 @@ log = logging.getLogger("depthgt")
 
 def run_scene_index(source: dict[str, Any], scene: str, config: Mapping[str, Any], out_parquet: str,
                     out_json: str) -> None:
-    """Check every frame of a scene and write its index (parquet + json)."""
+    """List a scene's frames and frame sets from its metadata (no frame is read) and
+    write its index (parquet + json)."""
     from depthgt.gt.index import build_index
     from depthgt.settings import settings_from_config
 
     settings = settings_from_config(config)
-    need_poses = settings.registration.method == "given"
-    sc = open_source_scene(source, scene, need_poses=need_poses)
-    index = build_index(sc, source["name"], source.get("split", "auto"), need_poses=need_poses,
-                        fs_settings=settings.frameset, split_settings=settings.split, seed=settings.seed, progress=True)
+    sc = open_source_scene(source, scene, need_poses=False)  # reads no frame: poses do not matter here
+    index = build_index(sc, source["name"], source.get("split", "auto"), fs_settings=settings.frameset,
+                        split_settings=settings.split, seed=settings.seed)
     meta = dict(index.meta)
-    meta["framesets_ok"] = [int(t) for t in index.framesets.loc[index.framesets["status"] == "ok", "target"]]
+    meta["framesets_planned"] = [int(t) for t in index.framesets.loc[index.framesets["status"] == "planned", "target"]]
     meta["source"] = source
     Path(out_parquet).parent.mkdir(parents=True, exist_ok=True)
     index.to_table().to_parquet(out_parquet, index=False)
     io.write_json(out_json, meta)
-    log.info("%s/%s: %d frames (%d valid), %d frame sets (%d skipped)", source["name"], scene, meta["n_frames"],
-             meta["n_valid_frames"], meta["n_framesets"], meta["n_framesets_skipped"])
+    log.info("%s/%s: %d frames, %d frame sets planned (%d skipped)", source["name"], scene, meta["n_frames"],
+             meta["n_framesets_planned"], meta["n_framesets_skipped"])
     for p in meta["problems"]:
         log.warning("%s/%s: %s", source["name"], scene, p)
 
@@ -50,25 +50,35 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
     them as one shard (:func:`depthgt.gt.store.write_shard`); the encoder and the scene
     are loaded once.
 
+    Frames are read from the source once per batch, at the working resolution
+    (:class:`depthgt.gt.cache.ResizedScene`), and checked as they are read (with
+    ``registration.method: given`` their poses too): before a planned target is built,
+    its member frames are read; a frame set with an unusable member is skipped, its
+    reason naming each such frame with its reason and message
+    (:func:`depthgt.gt.framesets.member_problems`).
+
     Every candidate target of the slice gets a record in the shard's ``batch.json``:
-    ``ok`` when built, else ``skipped`` with the index's reason (invalid member frames,
-    split guard) or ``not_in_scene`` when the scene holds fewer frames than planned (a
-    truncated file). Frames are read from the source once per batch, at the working
-    resolution (:class:`depthgt.gt.cache.ResizedScene`).
+    ``ok`` (or ``failed``: the registration) when built, else ``skipped`` with the
+    reason (unusable member frames, the index's split guard) or ``not_in_scene`` when
+    the scene holds fewer frames than planned (a truncated file). ``batch.json`` also
+    lists every frame the batch read with its outcome
+    (:class:`depthgt.gt.cache.FrameCheck`).
 
     Returns:
-        The records of ``batch.json``.
+        The frame-set records of ``batch.json``.
     """
-    import tempfile
-
     import pandas as pd
     from tqdm import tqdm
 
+    from depthgt.atomic import work_dir
     from depthgt.gt import store
+    from depthgt.gt.cache import ResizedScene
     from depthgt.gt.frameset import FrameSetOutputs, process_frameset
+    from depthgt.gt.framesets import member_problems
     from depthgt.settings import settings_from_config
 
     settings = settings_from_config(config)
+    need_poses = settings.registration.method == "given"
     planned = [t for t in settings.frameset.targets(last + settings.frameset.reach + 1) if first <= t <= last]
     table = pd.read_parquet(index_parquet)
     rows = {int(r.position): r for r in table[table["is_target"]].itertuples()}
@@ -77,13 +87,11 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
         import torch
 
         state = torch.load(encoder, map_location="cpu", weights_only=True) or None  # {}: no pretraining
-    from depthgt.gt.cache import ResizedScene
-
-    scene_obj = ResizedScene(open_source_scene(source, scene, need_poses=(settings.registration.method == "given")),
-                             settings.size_hw, keep=2 * settings.frameset.reach + 2)
+    scene_obj = ResizedScene(open_source_scene(source, scene, need_poses=need_poses), settings.size_hw,
+                             keep=2 * settings.frameset.reach + 2, need_pose=need_poses)
     records: list[dict[str, Any]] = []
     built: dict[int, Path] = {}
-    with tempfile.TemporaryDirectory(prefix=".batch-", dir=Path(out_shard).parent) as tmp:
+    with work_dir(out_shard) as tmp:
         for target in tqdm(planned, desc=f"frame sets {source['name']}/{scene} {first:06d}-{last:06d}", unit="set"):
             row = rows.get(target)
             if row is None:
@@ -93,9 +101,16 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
                             len(table))
                 continue
             members = [int(m) for m in row.members]
-            if row.frameset_status != "ok":
+            if row.frameset_status != "planned":
                 records.append({"target": target, "status": row.frameset_status, "reason": row.frameset_reason,
                                 "members": members, "split": row.frameset_split})
+                continue
+            checks = [scene_obj.check(m) for m in members]
+            bad = member_problems(members, {c.position: c.problem for c in checks if not c.valid})
+            if bad:
+                records.append({"target": target, "status": "skipped", "reason": bad, "members": members,
+                                "split": row.frameset_split})
+                log.warning("frame set %s/%s/%06d skipped: %s", source["name"], scene, target, bad)
                 continue
             out = FrameSetOutputs.in_dir(Path(tmp) / f"{target:06d}")
             doc = process_frameset(scene_obj, source["name"], target, members, row.frameset_split, out, settings,
@@ -107,24 +122,29 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
                      source["name"], scene, target, doc["status"], doc["statistics"]["patches_kept"],
                      doc["statistics"]["patches_drawn"], doc["statistics"]["gt_missing"],
                      doc["statistics"]["input_missing"])
-        store.write_shard(out_shard, built, records)
+        frames = [c.to_dict() for c in scene_obj.checks]
+        store.write_shard(out_shard, built, records, frames=frames)
+    n_bad = sum(not f["valid"] for f in frames)
+    log.info("%s/%s %06d-%06d: %d frames read, %d unusable", source["name"], scene, first, last, len(frames), n_bad)
     return records
 
 
 def run_scene_summary(index_parquet: str, shards: list[str], out_framesets: str, out_patches: str,
-                      out_quality: str) -> None:
-    """Summarise a scene's frame sets (from its shards), patches and GT quality into
-    three parquet tables."""
+                      out_quality: str, out_frames: str) -> None:
+    """Summarise a scene's frame sets (from its shards), patches, GT quality and the
+    frames its batches read into four parquet tables
+    (:func:`depthgt.gt.assemble.summarize_scene`)."""
     from depthgt.gt.assemble import summarize_scene
 
-    fs, patches, quality = summarize_scene(index_parquet, shards)
-    fs.to_parquet(out_framesets, index=False)
-    patches.to_parquet(out_patches, index=False)
-    quality.to_parquet(out_quality, index=False)
+    tables = summarize_scene(index_parquet, shards)
+    for table, path in zip(tables, (out_framesets, out_patches, out_quality, out_frames)):
+        table.to_parquet(path, index=False)
+    frames = tables[3]
+    log.info("%d frame sets, %d frames read (%d unusable)", len(tables[0]), len(frames), int((~frames["valid"]).sum()))
 
 
-def run_dataset(scene_framesets: list[str], scene_patches: list[str], scene_quality: list[str], index_jsons: list[str],
-                outputs: Mapping[str, str]) -> None:
+def run_dataset(scene_framesets: list[str], scene_patches: list[str], scene_quality: list[str], scene_frames: list[str],
+                index_jsons: list[str], outputs: Mapping[str, str]) -> None:
     """Assemble the dataset manifests from the per-scene summaries.
 
     Args:
@@ -134,18 +154,25 @@ def run_dataset(scene_framesets: list[str], scene_patches: list[str], scene_qual
     from depthgt.gt.assemble import DatasetOutputs, assemble
 
     out = DatasetOutputs(**{k: outputs[k] for k in DatasetOutputs._fields})
-    summary = assemble(scene_framesets, scene_patches, scene_quality, index_jsons, out)
-    log.info("dataset: %s pairs, %d frame sets skipped", summary["pairs"], len(summary["framesets_skipped"]))
+    summary = assemble(scene_framesets, scene_patches, scene_quality, scene_frames, index_jsons, out)
+    log.info("dataset: %s pairs, %d frame sets skipped, %d of %d frames read unusable", summary["pairs"],
+             len(summary["framesets_skipped"]), len(summary["frames_skipped"]), summary["frames_read"])
 
 
 def run_pretrain_registration(sources: Mapping[str, dict[str, Any]], index_jsons: list[str], config: Mapping[str, Any],
                               out_path: str) -> None:
     """Stream-only pretraining of the registration encoder on frame sets of the training
-    split (no poses used), written as a torch ``state_dict``."""
+    split (no poses used), written as a torch ``state_dict``.
+
+    The frame sets are drawn by :func:`depthgt.gt.index.select_pretraining_framesets`;
+    one with an unusable frame (the index reads none) is skipped with a warning and the
+    next spare of the draw takes its place.
+    """
     import torch
 
     from depthgt.atomic import write_atomic
     from depthgt.device import resolve_device
+    from depthgt.errors import FrameError
     from depthgt.gt.frameset import load_frameset
     from depthgt.gt.index import select_pretraining_framesets
     from depthgt.registration import pretrain_encoder
@@ -154,13 +181,24 @@ def run_pretrain_registration(sources: Mapping[str, dict[str, Any]], index_jsons
     settings = settings_from_config(config)
     pre = settings.registration.pretrain
     device = resolve_device(settings.device)
-    chosen = select_pretraining_framesets(index_jsons, pre.framesets, settings.seed)
-    framesets, scenes = [], {}
-    for dataset, scene, members in chosen:
+    candidates = select_pretraining_framesets(index_jsons, pre.framesets, settings.seed)
+    framesets, scenes, skipped = [], {}, 0
+    for dataset, scene, members in candidates:
+        if len(framesets) >= pre.framesets:
+            break
         if (dataset, scene) not in scenes:
             scenes[dataset, scene] = open_source_scene(sources[dataset], scene, need_poses=False)
-        data = load_frameset(scenes[dataset, scene], members, settings.size_hw, need_poses=False, device=device)
+        try:
+            data = load_frameset(scenes[dataset, scene], members, settings.size_hw, need_poses=False, device=device)
+        except FrameError as err:
+            skipped += 1
+            log.warning("pretraining: frame set %s/%s/%06d skipped, a frame is unusable: %s", dataset, scene, members[0],
+                        err)
+            continue
         framesets.append((data.rgb, data.depth_m, data.K, [m - members[0] for m in members]))
+    if len(framesets) < min(pre.framesets, len(candidates)):
+        log.warning("pretraining: only %d usable frame sets of the train split (%d asked for, %d skipped)",
+                    len(framesets), pre.framesets, skipped)
     log.info("pretraining the registration encoder on %d frame sets, %d epoch(s)", len(framesets), pre.epochs)
     state = pretrain_encoder(framesets, settings.registration, epochs=pre.epochs, seed=settings.seed) if framesets else {}
     write_atomic(out_path, lambda tmp: torch.save(state, tmp))

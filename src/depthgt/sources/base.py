@@ -134,8 +134,8 @@ def frame_count(kind: str, root: str | None, scene: str, **options: Any) -> int:
     ``frame_count(root, scene, **options)`` (the synthetic source: its ``n_frames``; a
     ``.sens`` file: its header); otherwise the scene is opened, which for folder sources
     lists files and parses text lists only. Frames that turn out unreadable are recorded
-    by the jobs (the scene index), and targets planned beyond the frames a job can read
-    are recorded as skipped there.
+    by the frame-set batch jobs that read them, and targets planned beyond the frames a
+    job can read are recorded as skipped there.
 
     Raises:
         SourceError: as :func:`open_scene`.

@@ -48,6 +48,7 @@ from __future__ import annotations
 import logging
 import re
 from dataclasses import fields
+from functools import cached_property
 from typing import Any, NamedTuple
 
 import cv2
@@ -184,7 +185,9 @@ class SyntheticScene:
     """One procedural scene and its camera path (see the module docstring).
 
     Attributes follow :class:`depthgt.sources.base.Scene`; in addition ``family``,
-    ``layout`` (the room), ``path`` (the camera path) and ``noise_settings``.
+    ``layout`` (the room), ``path`` (the camera path) and ``noise_settings``. The room
+    and the path are built on first use (the first frame read): the metadata (frame
+    count and ids, intrinsics, size) costs nothing, as a scene index needs only those.
     """
 
     has_poses = True
@@ -199,21 +202,33 @@ class SyntheticScene:
         self.n_frames = opts["n_frames"]
         self.image_size = (opts["height"], opts["width"])
         self.intrinsics = _intrinsics(opts, self.family, self._rng(_STREAM_INTRINSICS))
-        self.path: CameraPath | WalkPath
+
+    @cached_property
+    def layout(self) -> Layout:
+        """The room (its geometry and textures)."""
+        gen = generate_space_layout if self.family == "varied" else generate_layout
+        layout = gen(self._rng(_STREAM_LAYOUT))
+        log.debug("built synthetic %s (seed %d): room %s m, %d primitives", self.name, self.seed,
+                  layout.size.round(2).tolist(), len(layout.primitives))
+        return layout
+
+    @cached_property
+    def path(self) -> CameraPath | WalkPath:
+        """The camera path over the ``n_frames`` frames."""
+        step_m = self.options["step_mm"] / 1000.0
         if self.family == "varied":
-            self.layout: Layout = generate_space_layout(self._rng(_STREAM_LAYOUT))
-            self.path = make_walk_path(self.layout, self._rng(_STREAM_PATH), self.n_frames, self.intrinsics,
-                                       self.image_size, step_m=opts["step_mm"] / 1000.0)
-        else:
-            self.layout = generate_layout(self._rng(_STREAM_LAYOUT))
-            self.path = make_path(
-                self.layout, self._rng(_STREAM_PATH), self.n_frames, self.intrinsics, self.image_size,
-                step_m=opts["step_mm"] / 1000.0, sweep_m=opts["sweep_m"],
-            )
-        self._ir_return = np.array([m.ir_return for m in self.layout.materials], np.float32)
-        self._gloss = np.array([m.gloss for m in self.layout.materials], np.float32)
-        log.debug("opened synthetic %s (seed %d): room %s m, %d primitives", scene, self.seed,
-                  self.layout.size.round(2).tolist(), len(self.layout.primitives))
+            return make_walk_path(self.layout, self._rng(_STREAM_PATH), self.n_frames, self.intrinsics, self.image_size,
+                                  step_m=step_m)
+        return make_path(self.layout, self._rng(_STREAM_PATH), self.n_frames, self.intrinsics, self.image_size,
+                         step_m=step_m, sweep_m=self.options["sweep_m"])
+
+    @cached_property
+    def _ir_return(self) -> np.ndarray:
+        return np.array([m.ir_return for m in self.layout.materials], np.float32)
+
+    @cached_property
+    def _gloss(self) -> np.ndarray:
+        return np.array([m.gloss for m in self.layout.materials], np.float32)
 
     def _rng(self, stream: int, frame: int = 0) -> np.random.Generator:
         return np.random.default_rng([self.seed, self.room, stream, frame, *_FAMILY_TAG[self.family]])

@@ -24,7 +24,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from depthgt.geometry import scale_intrinsics
 from depthgt.synth.scene import Layout, raycast
 
 log = logging.getLogger(__name__)
@@ -188,6 +187,8 @@ def make_path(
     if n_frames < 1:
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
     # checks at a fixed 80-pixel width, so that the path does not depend on the resolution
+    from depthgt.geometry import scale_intrinsics  # torch: imported when a path is made, not with the module
+
     small_hw = (max(int(round(80 * hw[0] / hw[1])), 8), 80)
     K_small = scale_intrinsics(np.asarray(K, np.float64), hw, small_hw)
     frames_pos = np.linspace(0, n_frames - 1, 16)
@@ -321,6 +322,8 @@ def make_walk_path(
     """
     if n_frames < 1:
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
+    from depthgt.geometry import scale_intrinsics  # torch: imported when a path is made, not with the module
+
     small_hw = (max(int(round(80 * hw[0] / hw[1])), 8), 80)
     K_small = scale_intrinsics(np.asarray(K, np.float64), hw, small_hw)
     frames_pos = np.linspace(0, n_frames - 1, 16)
