@@ -3,6 +3,12 @@ how many LapDEN epochs, chosen on VALIDATION frames only, then reported once on 
 
     python3 bench/bench_enhance_protocol.py                        # rooms 3 5 8 x epochs 10 20 30 45
     python3 bench/bench_enhance_protocol.py --rooms 8 --train-only # fill one room count's cache (parallel runs)
+    python3 bench/bench_enhance_protocol.py --model ddrnet --rooms 8 --epochs 2 5 10 20 30
+    python3 bench/bench_enhance_protocol.py --model sdd --rooms 8 --epochs 3 5 10 20 30
+
+``--model`` picks the trained model whose epochs are chosen (LapDEN by default; DDRNet and
+SDD, the learned baselines, on the training rooms chosen for LapDEN, so that every learned
+method of Table 3 has its epochs chosen by the same rule on the same validation frames).
 
 Training runs sharing the cache of one room count must not run at the same time (one
 run folder per room count); different room counts may.
@@ -112,12 +118,14 @@ def manifests(dataset_dir: Path, rooms: list[str]) -> tuple[pd.DataFrame, pd.Dat
 # ---------------------------------------------------------------------------- training
 
 
-def train_stages(cfg: dict, dataset_dir: Path, n_rooms: int, epochs: list[int], work: Path, device: str) -> dict[int, Path]:
-    """``best.pt`` of a LapDEN run on the first ``n_rooms`` rooms after each epoch count
-    (cached: ``work/models/rooms{N}/e{E}/``)."""
-    base = settings_from_config(cfg).train("lapden")
+def train_stages(cfg: dict, dataset_dir: Path, n_rooms: int, epochs: list[int], work: Path, device: str,
+                 model: str = "lapden") -> dict[int, Path]:
+    """``best.pt`` of a ``model`` run on the first ``n_rooms`` rooms after each epoch count
+    (cached: ``work/models/rooms{N}/e{E}/`` for LapDEN, ``work/models/{model}/rooms{N}/...``
+    for the others)."""
+    base = settings_from_config(cfg).train(model)
     train_m, val_m = manifests(dataset_dir, ROOMS[:n_rooms])
-    root = work / "models" / f"rooms{n_rooms}"
+    root = work / "models" / (f"rooms{n_rooms}" if model == "lapden" else f"{model}/rooms{n_rooms}")
     run = TrainOutputs.in_dir(root / "run")
     snaps = {}
     for e in sorted(epochs):
@@ -132,7 +140,7 @@ def train_stages(cfg: dict, dataset_dir: Path, n_rooms: int, epochs: list[int], 
         snap.mkdir(parents=True, exist_ok=True)
         for p in run:
             shutil.copy2(p, snap / p.name)
-        print(f"trained rooms={n_rooms} to epoch {e}: {res['epochs_run']} epochs in {time.perf_counter() - t0:.0f} s, "
+        print(f"trained {model} rooms={n_rooms} to epoch {e}: {res['epochs_run']} epochs in {time.perf_counter() - t0:.0f} s, "
               f"{len(train_m)} train / {len(val_m)} val patches, best epoch {res['best_epoch'] + 1} "
               f"(val loss {res['best_val']:.5f})", flush=True)
         snaps[e] = snap / "best.pt"
@@ -146,16 +154,17 @@ def _digest(path: Path) -> str:
     return hashlib.sha1(path.read_bytes()).hexdigest()[:16]
 
 
-def score(frames: pd.DataFrame, split: str, checkpoint: Path | None, work: Path, device: str) -> pd.DataFrame:
-    """Long evaluation table of LapDEN's ``checkpoint`` (None: the raw input) on the
+def score(frames: pd.DataFrame, split: str, checkpoint: Path | None, work: Path, device: str,
+          model: str = "lapden") -> pd.DataFrame:
+    """Long evaluation table of ``model``'s ``checkpoint`` (None: the raw input) on the
     ``split`` frames of ``frames``, against the truth (cached by checkpoint content)."""
     tag = _digest(checkpoint) if checkpoint is not None else "input"
     keys = "-".join(sorted(frames["dataset"].unique()))
     cache = work / "scores" / f"{split}-{keys}-{tag}.parquet"
     if cache.is_file():
         return pd.read_parquet(cache)
-    name = "lapden" if checkpoint is not None else "input"
-    spec = method_spec("lapden", checkpoint, device=device) if checkpoint is not None else {"image": "input"}
+    name = model if checkpoint is not None else "input"
+    spec = method_spec(model, checkpoint, device=device) if checkpoint is not None else {"image": "input"}
     ev = evaluate_frames(frames, {name: spec}, references=("truth",), split=split)
     cache.parent.mkdir(parents=True, exist_ok=True)
     ev.to_parquet(cache, index=False)
@@ -174,13 +183,13 @@ def frame_means(ev: pd.DataFrame, by: list[str] | None = None) -> pd.DataFrame:
     return pd.DataFrame([{**wide[SCORES].mean().to_dict(), "frames": len(wide)}])
 
 
-def choose(table: pd.DataFrame, tolerance: float) -> pd.Series:
-    """The candidate with the lowest :data:`PRIMARY`; the cheapest (rooms x epochs)
+def choose(table: pd.DataFrame, tolerance: float, primary: str = PRIMARY) -> pd.Series:
+    """The candidate with the lowest ``primary`` score; the cheapest (rooms x epochs)
     within ``tolerance`` (relative) of it is preferred."""
-    best = table[PRIMARY].min()
-    near = table[table[PRIMARY] <= best * (1 + tolerance)].copy()
+    best = table[primary].min()
+    near = table[table[primary] <= best * (1 + tolerance)].copy()
     near["cost"] = near["rooms"] * near["epochs"]
-    return near.sort_values(["cost", PRIMARY]).iloc[0]
+    return near.sort_values(["cost", primary]).iloc[0]
 
 
 # ---------------------------------------------------------------------------- main
@@ -202,13 +211,20 @@ def _pair(text: str) -> tuple[int, int]:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--rooms", type=int, nargs="+", default=[3, 5, 8], help="training room counts (first N of room_000..007)")
-    ap.add_argument("--epochs", type=int, nargs="+", default=[10, 20, 30, 45], help="LapDEN epoch candidates")
+    ap.add_argument("--model", default="lapden", choices=["lapden", "ddrnet", "sdd"],
+                    help="the trained model whose epochs (and with --rooms, training rooms) are chosen")
+    ap.add_argument("--epochs", type=int, nargs="+", default=[10, 20, 30, 45], help="epoch candidates")
     ap.add_argument("--extra", nargs="*", default=[], metavar="ROOMS:EPOCHS",
                     help="candidates beyond the grid --rooms x --epochs (e.g. 8:45 when time allows one long run)")
+    ap.add_argument("--score", default=PRIMARY, choices=SCORES[:4],
+                    help="the validation score chosen on (lower is better). The default, RMSE with missing pixels "
+                         "counted, suits methods that fill holes; for one that keeps the input's holes (DDRNet) it "
+                         "equals the input's whatever the training, so use rmse_m, the RMSE where it has depth")
     ap.add_argument("--tolerance", type=float, default=0.01,
                     help="prefer the cheapest candidate within this relative margin of the best validation score")
-    ap.add_argument("--also-report", nargs="*", default=["8:30"], metavar="ROOMS:EPOCHS",
-                    help="settings reported on test next to the choice (not chosen on), default the previous default")
+    ap.add_argument("--also-report", nargs="*", default=None, metavar="ROOMS:EPOCHS",
+                    help="settings reported on test next to the choice (not chosen on); default: 8:30 for LapDEN "
+                         "(its previous default), none for the others (the config default is always reported)")
     ap.add_argument("--train-only", action="store_true", help="train and cache the checkpoints of --rooms, score nothing")
     ap.add_argument("--work", type=Path, default=Path("/tmp/depthgt_enhance_protocol"))
     ap.add_argument("--threads", type=int, default=2, help="torch threads (the train rule's 2)")
@@ -224,7 +240,9 @@ def main(argv=None) -> None:
     os.chdir(dataset_dir.parents[1])  # the manifests hold frame-set locations relative to the build folder
     default_cfg = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
     default_rooms = len(next(s for s in default_cfg["sources"] if s["name"] == SOURCE)["scenes"])
-    default_epochs = settings_from_config(default_cfg).train("lapden").epochs
+    default_epochs = settings_from_config(default_cfg).train(a.model).epochs
+    if a.also_report is None:
+        a.also_report = ["8:30"] if a.model == "lapden" else []
     reported = {(default_rooms, default_epochs)} | {_pair(r) for r in a.also_report}
     candidates = sorted({(n, e) for n in a.rooms for e in a.epochs} | {_pair(r) for r in a.extra})
     stages: dict[int, set[int]] = {}
@@ -232,10 +250,10 @@ def main(argv=None) -> None:
         stages.setdefault(n, set()).add(e)
     if a.train_only:
         for n in dict.fromkeys(a.rooms):
-            train_stages(cfg, dataset_dir, n, sorted(stages[n]), a.work, a.device)
+            train_stages(cfg, dataset_dir, n, sorted(stages[n]), a.work, a.device, a.model)
         return
     checkpoints = {(n, e): p for n in sorted(stages)
-                   for e, p in train_stages(cfg, dataset_dir, n, sorted(stages[n]), a.work, a.device).items()}
+                   for e, p in train_stages(cfg, dataset_dir, n, sorted(stages[n]), a.work, a.device, a.model).items()}
 
     # ---- validation: the val frame sets of every candidate room, nothing else
     fs = pd.read_parquet(dataset_dir / "framesets.parquet")
@@ -245,10 +263,10 @@ def main(argv=None) -> None:
     inp = frame_means(score(val_frames, "val", None, a.work, a.device))
     for n, e in candidates:
         ckpt = checkpoints[(n, e)]
-        ev = score(val_frames, "val", ckpt, a.work, a.device)
+        ev = score(val_frames, "val", ckpt, a.work, a.device, a.model)
         best_epoch = torch.load(ckpt, map_location="cpu", weights_only=False)["best_epoch"] + 1
         rows.append({"rooms": n, "epochs": e, "best_epoch": best_epoch, **frame_means(ev).iloc[0].to_dict()})
-        room = frame_means(ev, ["scene"]).set_index("scene")[PRIMARY]
+        room = frame_means(ev, ["scene"]).set_index("scene")[a.score]
         per_room.append({"rooms": n, "epochs": e, **{sc: f"{v:.4f}{'*' if sc in ROOMS[:n] else ''}" for sc, v in room.items()}})
     val = pd.DataFrame(rows).astype({"rooms": int, "epochs": int, "best_epoch": int, "frames": int})
     pd.set_option("display.width", 250)
@@ -259,13 +277,13 @@ def main(argv=None) -> None:
           f"{inp[PRIMARY].iloc[0]:.4f} m, MAE missing counted {inp['mae_missing_counted_m'].iloc[0]:.4f} m, "
           f"RMSE {inp['rmse_m'].iloc[0]:.4f} m")
     print(_markdown(val))
-    print("\nvalidation RMSE missing counted (m) per room (* = the candidate trained on that room's train blocks; "
+    print(f"\nvalidation {a.score} (m) per room (* = the candidate trained on that room's train blocks; "
           "rooms without a column have no val block):")
     print(_markdown(pd.DataFrame(per_room)))
-    pick = choose(val, a.tolerance)
+    pick = choose(val, a.tolerance, a.score)
     chosen = (int(pick["rooms"]), int(pick["epochs"]))
-    print(f"\nCHOICE (lowest validation {PRIMARY}, cheapest within {a.tolerance:.0%}): rooms={chosen[0]} "
-          f"(room_000..{ROOMS[chosen[0] - 1]}), LapDEN epochs={chosen[1]} ({pick[PRIMARY]:.4f} m)")
+    print(f"\nCHOICE (lowest validation {a.score}, cheapest within {a.tolerance:.0%}): rooms={chosen[0]} "
+          f"(room_000..{ROOMS[chosen[0] - 1]}), {a.model} epochs={chosen[1]} ({pick[a.score]:.4f} m)")
 
     # ---- test, reported once, after the choice
     tests = {d["name"]: d["kind"] for d in cfg["sources"] if d.get("split") == "test"}
@@ -276,8 +294,8 @@ def main(argv=None) -> None:
         for r in sorted(reported - {chosen})]
     out = []
     for (n, e), label in settings:
-        ev = score(test_frames, "test", checkpoints[(n, e)], a.work, a.device)
-        t3 = table3(ev.assign(method=f"lapden rooms={n} epochs={e}"), tests)
+        ev = score(test_frames, "test", checkpoints[(n, e)], a.work, a.device, a.model)
+        t3 = table3(ev.assign(method=f"{a.model} rooms={n} epochs={e}"), tests)
         out.append(t3.assign(setting=label))
     inp_t = table3(score(test_frames, "test", None, a.work, a.device).assign(method="input"), tests)
     out.append(inp_t.assign(setting="raw input"))
