@@ -279,7 +279,7 @@ def test_residual_check_adapts_to_the_sensor_noise():
     # deep): the correctly registered neighbours' median point-to-plane residual is above
     # the fixed 8 mm bound calibrated on Kinect noise, but within the noise the frame set
     # shows; a neighbour 2 deg off is still caught
-    from depthgt.registration.overfit import _check_neighbours
+    from depthgt.registration.overfit import check_neighbours
 
     offsets = [0, -2, 2, 4]
     rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64), noise_m=0.003)
@@ -295,9 +295,9 @@ def test_residual_check_adapts_to_the_sensor_noise():
     assert (refined.residual_m[1:] > s.max_residual_m).all(), refined.residual_m  # the fixed bound fails them all
     n_corr = torch.full((4,), 1000)
     fixed = dataclasses.replace(s, max_residual_sigmas=0.0)
-    statuses, reasons = _check_neighbours(refined.T_f_to_t, n_corr, refined, fixed)
+    statuses, reasons = check_neighbours(refined.T_f_to_t, n_corr, refined, fixed)
     assert statuses == ["failed", "failed", "failed"], reasons
-    statuses, reasons = _check_neighbours(refined.T_f_to_t, n_corr, refined, s)
+    statuses, reasons = check_neighbours(refined.T_f_to_t, n_corr, refined, s)
     assert statuses == ["ok", "ok", "failed"], (reasons, refined.residual_sigmas)
     assert "high_residual" in reasons[2] and "sigma" in reasons[2]
     assert refined.residual_sigmas[1:3].max() < 0.8 and refined.residual_sigmas[3] > 1.2, refined.residual_sigmas
