@@ -242,15 +242,17 @@ def verify(folder: str | Path) -> Verification:
             for rel, entry in card["files"].items():
                 _check_file(results / rel, entry["sha256"], entry.get("bytes"), f"card {card_path}", report)
             return report
-    sums = folder / "SHA256SUMS"
-    if (folder / "card.json").is_file() and sums.is_file():
-        return _verify_export(folder, sums)
+    if (folder / "card.json").is_file() and (folder / "export.json").is_file():
+        return _verify_export(folder, folder / "SHA256SUMS")
     raise DepthGTError(f"verify: {folder} holds no dataset card (results/dataset/card.json, dataset/card.json, "
-                       "or card.json with SHA256SUMS of an export)")
+                       "or the card.json and export.json of an export)")
 
 
 def _verify_export(folder: Path, sums: Path) -> Verification:
     report = Verification(folder, "export")
+    if not sums.is_file():
+        report.problems.append(f"{sums}: missing (the export did not finish: run it again to resume)")
+        return report
     for n, line in enumerate(sums.read_text().splitlines(), 1):
         digest, sep, rel = line.partition("  ")
         if not sep or len(digest) != 64:
