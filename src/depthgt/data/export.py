@@ -26,7 +26,6 @@ checksums are written last, so a folder with ``index.parquet`` is a finished exp
 
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 from pathlib import Path
@@ -42,6 +41,7 @@ from depthgt import io
 from depthgt.atomic import write_atomic
 from depthgt.data.dataset import KINDS, GTDataset
 from depthgt.errors import DepthGTError
+from depthgt.gt.card import CHECKSUMS, sha256_file
 from depthgt.settings import SPLITS
 
 __all__ = ["FORMATS", "DEPTH_UNITS_PER_M", "SIGMA_UNITS_PER_M", "CARD_FILES", "INDEX_COLUMNS", "export_dataset",
@@ -52,7 +52,6 @@ DEPTH_UNITS_PER_M = 1000  # millimetres, ScanNet's and NYU-v2's depth PNG unit
 SIGMA_UNITS_PER_M = 10000  # 0.1 mm: the GT's sigma is mostly a few millimetres
 DEPTH_MODALITIES = ("input", "gt", "sigma", "truth")
 CARD_FILES = ("card.json", "card.md")
-CHECKSUMS = "SHA256SUMS"
 INDEX_COLUMNS = ["split", "dataset", "scene", "target", "patch", "rgb", *DEPTH_MODALITIES]
 _PNG16_MAX = np.iinfo(np.uint16).max
 
@@ -110,14 +109,6 @@ def _write_sample(dest: Path, sample: dict[str, Any], files: dict[str, str], fmt
             write_atomic(path, io.write_exr, {"Y": np.ascontiguousarray(depth, dtype=np.float32)})
     rgb = np.clip(np.round(sample["rgb"].permute(1, 2, 0).numpy() * 255.0), 0, 255).astype(np.uint8)
     write_atomic(dest / files["rgb"], io.write_rgb_png, rgb)
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with path.open("rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _check_settings(dest: Path, settings: dict[str, Any]) -> None:
@@ -200,7 +191,7 @@ def export_dataset(results: str | Path, dest: str | Path, fmt: str = "png16", sp
 
     index = pd.DataFrame(rows, columns=INDEX_COLUMNS)
     listed = [*CARD_FILES, "export.json", *(f for m in ("rgb", *DEPTH_MODALITIES) for f in index[m] if f)]
-    sums = "".join(f"{_sha256(dest / f)}  {f}\n" for f in listed)
+    sums = "".join(f"{sha256_file(dest / f)}  {f}\n" for f in listed)
     write_atomic(dest / CHECKSUMS, Path.write_text, sums)
     write_atomic(dest / "index.csv", lambda tmp: index.to_csv(tmp, index=False))
     write_atomic(dest / "index.parquet", lambda tmp: index.to_parquet(tmp, index=False))

@@ -39,10 +39,11 @@ from depthgt.atomic import write_atomic
 from depthgt.errors import DepthGTError
 from depthgt.settings import SPLITS
 
-__all__ = ["CARD_VERSION", "code_version", "sha256_file", "build_card", "card_markdown", "write_card", "Verification",
-           "verify"]
+__all__ = ["CARD_VERSION", "CHECKSUMS", "code_version", "sha256_file", "build_card", "card_markdown", "write_card",
+           "Verification", "verify"]
 
 CARD_VERSION = 1
+CHECKSUMS = "SHA256SUMS"  # an export's checksum list, in the format of `sha256sum -c`
 _QUALITY_METRICS = ("completeness", "mae_m", "rmse_m", "mae_missing_counted_m")
 
 
@@ -228,7 +229,7 @@ def verify(folder: str | Path) -> Verification:
     """Check a built dataset or an export against its card.
 
     ``folder`` is a working directory (holding ``results/``), a results folder, or an
-    export (holding ``card.json`` and ``SHA256SUMS``).
+    export (holding ``card.json``, ``export.json`` and ``SHA256SUMS``).
 
     Raises:
         DepthGTError: ``folder`` holds no card.
@@ -243,7 +244,7 @@ def verify(folder: str | Path) -> Verification:
                 _check_file(results / rel, entry["sha256"], entry.get("bytes"), f"card {card_path}", report)
             return report
     if (folder / "card.json").is_file() and (folder / "export.json").is_file():
-        return _verify_export(folder, folder / "SHA256SUMS")
+        return _verify_export(folder, folder / CHECKSUMS)
     raise DepthGTError(f"verify: {folder} holds no dataset card (results/dataset/card.json, dataset/card.json, "
                        "or the card.json and export.json of an export)")
 
