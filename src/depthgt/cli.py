@@ -173,7 +173,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     report = verify(args.folder or args.directory)
     for problem in report.problems:
         print(f"FAILED {problem}")
-    print(f"{report.kind} {report.folder}: {report.checked} files checked, "
+    print(f"{report.folder} ({report.kind}): {report.checked} files checked, "
           + ("all match the card" if report.ok else f"{len(report.problems)} problem(s)"))
     return 0 if report.ok else 1
 

@@ -197,7 +197,8 @@ class ShardReader:
 
     def _archive(self, path: Path) -> zipfile.ZipFile:
         if self._pid != os.getpid():
-            # the parent's handles: dropped unused (never closed here: they are its)
+            # the parent's handles share its file offsets: never read through them here
+            # (dropping them closes only this process's copies of the descriptors)
             self._open = OrderedDict()
             self._pid = os.getpid()
         z = self._open.get(path)
@@ -220,6 +221,7 @@ class ShardReader:
         if archive is None:
             return member_bytes(member)
         return _read_member(self._archive(archive), archive, inner)
+
 
 def read_json(member: str | Path) -> Any:
     return json.loads(member_bytes(member))
