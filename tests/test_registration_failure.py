@@ -66,7 +66,7 @@ def test_failed_neighbours_are_dropped_or_the_set_excluded(scene_and_truth, tmp_
     expected = fuse(data, T_true, settings.render, members=keep).depth[0, 0].numpy()
     np.testing.assert_allclose(gt, expected, atol=1e-6)
     T_bad = _fake_registration(T_true, {-6, 6})(None, None, None, [0, -6, -4, -2, 2, 4, 6], None).T_j_to_t
-    no_check = replace(settings.render, min_frame_agreement=0.0)
+    no_check = replace(settings.render, min_frame_agreement=0.0, min_whole_frame_agreement=0.0)
     with_bad = fuse(data, T_bad, no_check).depth[0, 0].numpy()
     assert np.abs(with_bad - gt).max() > 0.1  # the moved neighbours would have shown in the GT
     # (the renderer's own frame-agreement check also leaves such neighbours out)

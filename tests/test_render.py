@@ -548,7 +548,7 @@ def test_render_gt_on_synthetic_room():
     assert _mae_mm(full, clean[3, 0]) > 1.5 * _mae_mm(gt, clean[3, 0])
 
 
-def _plane_frames(offsets_m, region_off, h=24, w=24, seed=7):
+def _plane_seen_with_offsets(offsets_m, region_off, h=24, w=24, seed=7):
     """A slanted plane seen by a target (frame 0, a sample at every pixel centre) and
     neighbours with random sample positions; neighbour j's depth is off by
     ``offsets_m[j-1]`` where ``region_off(u, v)`` holds (everywhere when it is None)."""
@@ -573,7 +573,7 @@ def test_render_gt_keeps_a_frame_where_it_agrees():
     the tolerance is about 5 cm). Judged per
     tile, frame 3 contributes where it agrees and nowhere else, frame 4 stays out whole;
     judged per frame, frame 3 is lost whole. Vectorised renderer vs the loop oracle."""
-    p, frame, K, truth = _plane_frames([0.0, 0.0, 0.15, 0.15], lambda u, v: u >= 16)
+    p, frame, K, truth = _plane_seen_with_offsets([0.0, 0.0, 0.15, 0.15], lambda u, v: u >= 16)
     h, w = truth.shape
     tiles = RenderSettings(noise_sigma_1m=0.0012, agreement_tile_px=8, min_whole_frame_agreement=0.5)
     whole = replace(tiles, agreement_tile_px=0)

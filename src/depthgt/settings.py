@@ -290,8 +290,8 @@ class RenderSettings:
     max_sigma_m: float | None = None
     min_frame_agreement: float = 0.95
     agreement_edge_px: int = 2
-    agreement_tile_px: int = 0
-    min_whole_frame_agreement: float = 0.0
+    agreement_tile_px: int = 32
+    min_whole_frame_agreement: float = 0.5
     min_depth_m: float = 1e-3
 
     def __post_init__(self) -> None:
