@@ -32,10 +32,11 @@ import numpy as np
 from depthgt import io
 from depthgt.atomic import write_atomic
 from depthgt.errors import DepthGTError
+from depthgt.status import Status
 
 __all__ = ["FRAMESET_FILES", "FrameSetRecord", "location", "shard_path", "write_shard", "shard_targets", "read_batch",
-           "read_batch_frames", "member_bytes", "read_json", "read_npz", "frameset_files", "find_frameset", "read_frameset", "read_frameset_at",
-           "extract_frameset"]
+           "read_batch_frames", "member_bytes", "read_json", "read_npz", "read_exr_member", "frameset_files",
+           "find_frameset", "read_frameset", "read_frameset_at", "read_frame_images", "extract_frameset"]
 
 FRAMESET_FILES = ("gt.exr", "input.exr", "rgb.png", "poses.json", "patches.npz", "frameset.json")
 BATCH_MEMBER = "batch.json"
@@ -204,6 +205,49 @@ def read_frameset_at(loc: str | Path) -> FrameSetRecord:
             patches=patches)
 
 
+def read_frame_images(loc: str | Path) -> dict[str, np.ndarray | None]:
+    """The images of the frame set at ``loc`` that a method runs on and is scored
+    against (what the evaluation, the figures and the RDE GT read).
+
+    Returns:
+        dict: ``input`` (input.exr Z), ``gt`` (gt.exr Z), ``truth`` (input.exr T, None
+        when absent) as (H, W) float32 metres (0 = invalid), ``rgb`` (H, W, 3) uint8.
+
+    Raises:
+        ValueError: a depth image without its Z channel, or images of different sizes.
+    """
+    with frameset_files(loc) as d:
+        inp = io.read_exr(d / "input.exr")
+        gt = io.read_exr(d / "gt.exr")
+        rgb = io.read_rgb(d / "rgb.png")
+    d = Path(str(loc))
+    for path, chans in ((d / "input.exr", inp), (d / "gt.exr", gt)):
+        if "Z" not in chans:
+            raise ValueError(f"{path}: no channel 'Z' (has {sorted(chans)})")
+    frame = {
+        "input": inp["Z"].astype(np.float32),
+        "gt": gt["Z"].astype(np.float32),
+        "truth": inp["T"].astype(np.float32) if "T" in inp else None,
+        "rgb": rgb,
+    }
+    if rgb.shape[:2] != frame["input"].shape or frame["gt"].shape != frame["input"].shape:
+        raise ValueError(f"{d}: image sizes differ: input {frame['input'].shape}, gt {frame['gt'].shape}, rgb {rgb.shape}")
+    return frame
+
+
+def read_exr_member(member: str | Path) -> dict[str, np.ndarray]:
+    """Every channel of an EXR member ``<location>/<name>`` (in a shard or a folder),
+    e.g. ``read_exr_member(f"{loc}/gt.exr")["Z"]``. OpenEXR reads files: a shard member
+    goes through a temporary copy."""
+    archive, inner = _split(member)
+    if archive is None:
+        return io.read_exr(inner)
+    with tempfile.TemporaryDirectory(prefix="depthgt-exr-") as tmp:
+        path = Path(tmp) / Path(inner).name
+        path.write_bytes(member_bytes(member))
+        return io.read_exr(path)
+
+
 def find_frameset(results: str | Path, dataset: str, scene: str, target: int) -> str:
     """The location of frame set ``target`` of a scene under the results folder.
 
@@ -218,7 +262,7 @@ def find_frameset(results: str | Path, dataset: str, scene: str, target: int) ->
         if first <= target <= last:
             for rec in read_batch(shard):
                 if int(rec["target"]) == target:
-                    if rec["status"] != "ok":
+                    if rec["status"] != Status.OK:
                         raise DepthGTError(f"frame set {dataset}/{scene}/{target:06d} was not built: "
                                            f"{rec['status']} ({rec.get('reason', '')}) [{shard}]")
                     return location(shard, target)

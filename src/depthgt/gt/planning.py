@@ -15,6 +15,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from depthgt.settings import SPLITS, FrameSetSettings, SplitSettings
+from depthgt.status import Status
 
 __all__ = ["stable_seed", "block_splits", "enumerate_framesets", "member_problems"]
 
@@ -65,9 +66,9 @@ def enumerate_framesets(splits: np.ndarray, settings: FrameSetSettings) -> list[
     out = []
     for t in settings.targets(n):
         members = (t + offsets).tolist()
-        status, reason = "planned", ""
+        status, reason = Status.PLANNED, ""
         if len({splits[m] for m in members}) > 1:
-            status, reason = "skipped", "split_guard: members span two splits"
+            status, reason = Status.SKIPPED, "split_guard: members span two splits"
         out.append({"target": t, "members": members, "split": splits[t], "status": status, "reason": reason})
     return out
 
