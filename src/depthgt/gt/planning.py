@@ -58,7 +58,7 @@ def enumerate_framesets(splits: np.ndarray, settings: FrameSetSettings) -> list[
         ``split_guard``: its members span two splits.
 
     >>> sets = enumerate_framesets(np.array(["train"] * 13 + ["val"] * 2, dtype=object), FrameSetSettings(target_step=1))
-    >>> [(s["target"], s["status"]) for s in sets]
+    >>> [(s["target"], str(s["status"])) for s in sets]
     [(6, 'planned'), (7, 'skipped'), (8, 'skipped')]
     """
     n = len(splits)
