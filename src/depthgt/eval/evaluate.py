@@ -36,16 +36,16 @@ log = logging.getLogger(__name__)
 EVAL_COLUMNS = ["dataset", "scene", "target", "method", "reference", "metric", "unit", "value"]
 
 
-def run_method(method: Mapping, frame: Mapping[str, np.ndarray | None]) -> np.ndarray:
+def run_method(method: Mapping, frame: store.FrameImages) -> np.ndarray:
     """Prediction (H, W) float32 metres of ``method`` on ``frame`` (see module docstring)."""
     if "image" in method:
-        img = frame.get(method["image"])
+        img = frame.depth(method["image"])
         if img is None:
             raise ValueError(f"method {dict(method)}: the frame has no image {method['image']!r}")
         return np.asarray(img, dtype=np.float32)
     if "baseline" not in method:
         raise ValueError(f"method {dict(method)} needs a 'baseline' or an 'image' key")
-    return run_baseline(method["baseline"], frame["input"], frame["rgb"], **dict(method.get("params", {})))
+    return run_baseline(method["baseline"], frame.input_m, frame.rgb, **dict(method.get("params", {})))
 
 
 def method_spec(name: str, checkpoint: str | Path | None = None, device: str | None = None) -> dict:
@@ -106,7 +106,7 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
     seconds = {name: 0.0 for name in methods}
     for rec in table.itertuples():
         frame = store.read_frame_images(rec.frameset)
-        refs = [r for r in references if frame[r] is not None]
+        refs = [r for r in references if frame.depth(r) is not None]
         if not refs:
             log.info("%s: none of the references %s, skipped", rec.frameset, list(references))
             continue
@@ -119,7 +119,7 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
                 out.parent.mkdir(parents=True, exist_ok=True)
                 np.save(out, pred.astype(np.float32))
             for reference in refs:
-                for metric, value in depth_metrics(pred, frame[reference]).items():
+                for metric, value in depth_metrics(pred, frame.depth(reference)).items():
                     rows.append({"dataset": rec.dataset, "scene": rec.scene, "target": int(rec.target), "method": name,
                                  "reference": reference, "metric": metric, "unit": unit_of(metric), "value": float(value)})
     for name, s in seconds.items():

@@ -434,7 +434,7 @@ def _rde_targets(scene, ok, settings: RDESettings, out: Path, settings_doc: dict
     depths, rgbs, K, poses, target_poses = stream_for_tsdf(scene, settings.frame_step, targets)
     frames = {int(r.target): store.read_frame_images(r.frameset) for r in ok.itertuples()}
     render_targets = [t for t in targets if target_poses.get(t) is not None]
-    hw = next(iter(frames.values()))["input"].shape
+    hw = next(iter(frames.values())).input_m.shape
     if not depths:
         raise ValueError(f"{scene.name}: no frame with depth and a finite pose for the TSDF")
     rendered, backend = reconstruct_and_render(
@@ -456,11 +456,11 @@ def _rde_targets(scene, ok, settings: RDESettings, out: Path, settings_doc: dict
         d = out / f"{t:06d}"
         gt, fr = by_target[t], frames[t]
         boxes = store.read_npz(f"{r.frameset}/patches.npz")["all_boxes"]
-        arrays = crop_pairs(fr["input"], gt, fr["rgb"], boxes, settings.max_missing, filter_on="gt")
+        arrays = crop_pairs(fr.input_m, gt, fr.rgb, boxes, settings.max_missing, filter_on="gt")
         keep = arrays["kept"]
         stats = {"rde_missing": float((gt <= 0).mean()), "patches_kept": int(keep.sum()), "patches_drawn": int(len(keep))}
-        if fr["truth"] is not None:
-            stats["rde_vs_truth"] = depth_errors(gt, fr["truth"])
+        if fr.truth_m is not None:
+            stats["rde_vs_truth"] = depth_errors(gt, fr.truth_m)
         units = {k: METRIC_UNITS[k] for k in sorted(set(stats) - {"rde_vs_truth"} | set(stats.get("rde_vs_truth", {})))}
         write_atomic(d / "gt.exr", io.write_exr, {"Z": gt})
         write_atomic(d / "patches.npz", save_npz, arrays)

@@ -25,7 +25,7 @@ import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, NamedTuple
 
 import numpy as np
 
@@ -36,7 +36,8 @@ from depthgt.status import Status
 
 __all__ = ["FRAMESET_FILES", "FrameSetRecord", "location", "shard_path", "write_shard", "shard_targets", "read_batch",
            "read_batch_frames", "member_bytes", "read_json", "read_npz", "read_exr_member", "frameset_files",
-           "find_frameset", "read_frameset", "read_frameset_at", "read_frame_images", "extract_frameset"]
+           "find_frameset", "read_frameset", "read_frameset_at", "FrameImages", "FRAME_DEPTHS", "read_frame_images",
+           "extract_frameset"]
 
 FRAMESET_FILES = ("gt.exr", "input.exr", "rgb.png", "poses.json", "patches.npz", "frameset.json")
 BATCH_MEMBER = "batch.json"
@@ -205,13 +206,35 @@ def read_frameset_at(loc: str | Path) -> FrameSetRecord:
             patches=patches)
 
 
-def read_frame_images(loc: str | Path) -> dict[str, np.ndarray | None]:
-    """The images of the frame set at ``loc`` that a method runs on and is scored
-    against (what the evaluation, the figures and the RDE GT read).
+class FrameImages(NamedTuple):
+    """The images of one frame set that a method runs on and is scored against.
 
-    Returns:
-        dict: ``input`` (input.exr Z), ``gt`` (gt.exr Z), ``truth`` (input.exr T, None
-        when absent) as (H, W) float32 metres (0 = invalid), ``rgb`` (H, W, 3) uint8.
+    Attributes:
+        input_m: (H, W) float32 resized raw target depth in metres (input.exr Z; 0 = none).
+        gt_m: (H, W) float32 GT depth in metres (gt.exr Z; 0 = none).
+        truth_m: (H, W) float32 clean depth of synthetic sources (input.exr T) or None.
+        rgb: (H, W, 3) uint8 target colour.
+    """
+
+    input_m: np.ndarray
+    gt_m: np.ndarray
+    truth_m: np.ndarray | None
+    rgb: np.ndarray
+
+    def depth(self, name: str) -> np.ndarray | None:
+        """The depth image that methods and references call ``name``: ``input``, ``gt``
+        or ``truth`` (None when the frame set has no truth)."""
+        if name not in FRAME_DEPTHS:
+            raise ValueError(f"no depth image {name!r} in a frame set; known: {', '.join(FRAME_DEPTHS)}")
+        return getattr(self, f"{name}_m")
+
+
+FRAME_DEPTHS = ("input", "gt", "truth")
+
+
+def read_frame_images(loc: str | Path) -> FrameImages:
+    """The images of the frame set at ``loc`` (what the evaluation, the figures and the
+    RDE GT read); see :class:`FrameImages`.
 
     Raises:
         ValueError: a depth image without its Z channel, or images of different sizes.
@@ -224,14 +247,10 @@ def read_frame_images(loc: str | Path) -> dict[str, np.ndarray | None]:
     for path, chans in ((d / "input.exr", inp), (d / "gt.exr", gt)):
         if "Z" not in chans:
             raise ValueError(f"{path}: no channel 'Z' (has {sorted(chans)})")
-    frame = {
-        "input": inp["Z"].astype(np.float32),
-        "gt": gt["Z"].astype(np.float32),
-        "truth": inp["T"].astype(np.float32) if "T" in inp else None,
-        "rgb": rgb,
-    }
-    if rgb.shape[:2] != frame["input"].shape or frame["gt"].shape != frame["input"].shape:
-        raise ValueError(f"{d}: image sizes differ: input {frame['input'].shape}, gt {frame['gt'].shape}, rgb {rgb.shape}")
+    frame = FrameImages(input_m=inp["Z"].astype(np.float32), gt_m=gt["Z"].astype(np.float32),
+                        truth_m=inp["T"].astype(np.float32) if "T" in inp else None, rgb=rgb)
+    if rgb.shape[:2] != frame.input_m.shape or frame.gt_m.shape != frame.input_m.shape:
+        raise ValueError(f"{d}: image sizes differ: input {frame.input_m.shape}, gt {frame.gt_m.shape}, rgb {rgb.shape}")
     return frame
 
 
