@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import hashlib
 import sys
 import time
 from pathlib import Path
@@ -69,6 +70,10 @@ MODES = {
 BANDS = ((0.0, 0.4, "centre"), (0.4, 0.7, "middle"), (0.7, 9.0, "border"))
 
 
+def _digest(*parts) -> str:
+    return hashlib.sha1(repr(parts).encode()).hexdigest()[:12]
+
+
 def _band_masks(hw: tuple[int, int]) -> list[torch.Tensor]:
     h, w = hw
     y, x = torch.meshgrid(torch.arange(h) + 0.5 - h / 2, torch.arange(w) + 0.5 - w / 2, indexing="ij")
@@ -76,7 +81,8 @@ def _band_masks(hw: tuple[int, int]) -> list[torch.Tensor]:
     return [(r >= lo) & (r < hi) for lo, hi, _ in BANDS]
 
 
-def run(data: str, mode: str, step: int, render: RenderSettings, options: dict, reg_over: dict, limit: int | None) -> list[dict]:
+def run(data: str, mode: str, step: int, render: RenderSettings, options: dict, reg_over: dict, limit: int | None,
+        cache: Path) -> list[dict]:
     spec = DATA[data]
     source = {"name": data, "kind": spec["kind"], "root": spec["root"], "options": options}
     scene = open_source_scene(source, spec["scene"])
@@ -91,9 +97,14 @@ def run(data: str, mode: str, step: int, render: RenderSettings, options: dict, 
         except FrameError as err:
             print(f"{data} target {t}: skipped: {err}")
             continue
-        t0 = time.perf_counter()
-        al = align(data_fs, fs.offsets, reg, seed=t)
-        sec = time.perf_counter() - t0
+        key = cache / f"{data}-{mode}-{t}-{_digest(options, reg_over, step)}.pt"
+        if key.is_file():
+            al, sec = torch.load(key, weights_only=False)
+        else:
+            t0 = time.perf_counter()
+            al = align(data_fs, fs.offsets, reg, seed=t)
+            sec = time.perf_counter() - t0
+            torch.save((al, sec), key)
         gt = fuse(data_fs, al.T_j_to_t, render, members=al.fused)
         agree = gt.agreement[0].numpy() if gt.agreement.numel() else np.full(len(al.fused), np.nan)
         dropped = np.zeros(len(fs.offsets), bool)
@@ -164,9 +175,12 @@ def main(argv=None) -> None:
     ap.add_argument("--reg", nargs="*", default=[], help="registration overrides key=value")
     ap.add_argument("--tum-option", nargs="*", default=[], help="tum source options key=value")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/depthgt_real"),
+                    help="registrations are cached here (by recording, mode, target, options); delete it after code changes")
     ap.add_argument("--out", type=Path, default=Path("/tmp/bench_real.csv"))
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
+    a.cache.mkdir(parents=True, exist_ok=True)
     render = RenderSettings(**_literal(a.set))
     print(f"command: python3 bench/bench_real.py {' '.join(sys.argv[1:] if argv is None else argv)}")
     rows = []
@@ -177,7 +191,7 @@ def main(argv=None) -> None:
         options = _literal(a.tum_option) if data == "tum" else {}
         step = a.tum_step if data == "tum" else a.sevenscenes_step
         for mode in a.modes:
-            rows += run(data, mode, step, render, options, _literal(a.reg), a.limit)
+            rows += run(data, mode, step, render, options, _literal(a.reg), a.limit, a.cache)
     df = pd.DataFrame(rows)
     df.to_pickle(a.out.with_suffix(".pkl"))
     s = summarise(df)

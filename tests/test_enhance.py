@@ -186,16 +186,16 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from depthgt.enhance.train import (  # noqa: E402
-    PatchDataset,
     TrainOutputs,
     collate,
     flip_batch,
     load_model,
+    patch_dataset,
     predict,
     predict_depth,
     train,
 )
-from depthgt.errors import ConfigError  # noqa: E402
+from depthgt.errors import ConfigError, DepthGTError  # noqa: E402
 from depthgt.settings import TrainSettings  # noqa: E402
 
 
@@ -232,17 +232,17 @@ def _settings(epochs):
 
 
 def test_patch_dataset_shifts_intrinsics_by_crop(manifests):
-    ds = PatchDataset(manifests[0])
+    ds = patch_dataset(manifests[0])
     assert len(ds) == 8
     item = ds[1]  # box (y0, x0) = (4, 2)
     assert item["input"].shape == (1, 16, 16) and item["rgb"].shape == (3, 16, 16)
     assert item["K"][0, 2].item() == pytest.approx(127.5 - 2) and item["K"][1, 2].item() == pytest.approx(127.5 - 4)
-    with pytest.raises(ValueError, match="missing columns"):
-        PatchDataset(pd.DataFrame({"path": [], "patch": []}))
+    with pytest.raises(DepthGTError, match="missing columns"):
+        patch_dataset(pd.DataFrame({"path": [], "patch": []}))
 
 
 def test_flip_batch_flips_images_and_intrinsics(manifests):
-    ds = PatchDataset(manifests[0])
+    ds = patch_dataset(manifests[0])
     b = collate([ds[0], ds[1]])
     f = flip_batch(b, torch.tensor([True, False]), torch.tensor([False, True]))
     assert torch.equal(f["gt"][0], b["gt"][0].flip(-1)) and torch.equal(f["gt"][1], b["gt"][1].flip(-2))

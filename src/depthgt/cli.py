@@ -4,6 +4,8 @@
     depthgt rebuild DATASET SCENE     build one scene's frame sets again
     depthgt show DATASET SCENE TARGET statistics of one frame set and a PNG panel
     depthgt extract DATASET SCENE TARGET DEST   one frame set's files into a folder
+    depthgt export DEST [--format png16|exr]    the dataset as plain files (PNG/EXR + index)
+    depthgt verify [DIR]              check a built dataset or an export against its card
     depthgt report [--out FILE]       Snakemake's HTML report (tables and figures)
     depthgt bench NAME [ARGS ...]     one of the benchmarks in bench/
 
@@ -147,6 +149,27 @@ def _cmd_extract(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_export(args: argparse.Namespace) -> int:
+    from depthgt.data import export_dataset  # torch: only for this command
+
+    results = Path(args.directory) / "results"
+    index = export_dataset(results, args.dest, fmt=args.format, splits=args.split, kind=args.kind,
+                           workers=args.workers)
+    print(f"{len(index)} {args.kind} exported to {args.dest} (index.parquet, index.csv, SHA256SUMS, card.json)")
+    return 0
+
+
+def _cmd_verify(args: argparse.Namespace) -> int:
+    from depthgt.gt.card import verify
+
+    report = verify(args.folder or args.directory)
+    for problem in report.problems:
+        print(f"FAILED {problem}")
+    print(f"{report.folder} ({report.kind}): {report.checked} files checked, "
+          + ("all match the card" if report.ok else f"{len(report.problems)} problem(s)"))
+    return 0 if report.ok else 1
+
+
 def _cmd_report(args: argparse.Namespace) -> int:
     # Snakemake's report needs every file marked for it: say what to run instead of
     # Snakemake's "marked for report but does not exist"
@@ -208,6 +231,26 @@ def _parser() -> argparse.ArgumentParser:
                        description="Write one built frame set's files (EXR, PNG, JSON, NPZ) into DEST.")
     e.add_argument("dest")
     e.set_defaults(func=_cmd_extract)
+
+    x = sub.add_parser("export", parents=[common], help="the dataset as plain files (PNG/EXR + index)",
+                       description="Write the built dataset to DEST as plain files: 16-bit PNG depth in millimetres "
+                                   "(or float32 EXR in metres), RGB PNG, index.parquet/index.csv listing every "
+                                   "sample, SHA256SUMS and the dataset card. Resumes an unfinished export.")
+    x.add_argument("dest", help="the export folder")
+    x.add_argument("--format", choices=["png16", "exr"], default="png16", help="depth files (default: png16)")
+    x.add_argument("--split", nargs="+", choices=["train", "val", "test"], default=["train", "val", "test"],
+                   help="splits to export (default: all)")
+    x.add_argument("--kind", choices=["patches", "frames"], default="patches",
+                   help="patch pairs or whole frames (default: patches)")
+    x.add_argument("--workers", type=int, default=0, help="processes reading the shards (default: 0, this one)")
+    x.set_defaults(func=_cmd_export)
+
+    v = sub.add_parser("verify", parents=[common], help="check a dataset or an export against its card",
+                       description="Check every shard and manifest of a built dataset (or every file of an export) "
+                                   "against the checksums of its dataset card; exit status 1 naming each file "
+                                   "that differs.")
+    v.add_argument("folder", nargs="?", help="working directory, results folder or export (default: -d)")
+    v.set_defaults(func=_cmd_verify)
 
     rep = sub.add_parser("report", parents=[common], help="Snakemake's HTML report",
                          description="Write Snakemake's report (tables, figures) of a finished build.")

@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import struct
+import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +49,7 @@ __all__ = [
     "write_rgb_png",
     "write_exr",
     "read_exr",
+    "decode_exr",
     "write_json",
     "read_pose_txt",
     "fit_rgb_to_depth",
@@ -338,6 +341,25 @@ def read_exr(path: str | Path) -> dict[str, np.ndarray]:
             return {name: np.array(ch.pixels) for name, ch in f.channels().items()}
     except (RuntimeError, OSError, ValueError) as exc:
         raise FrameError(f"{path}: cannot read EXR ({exc})", "unreadable") from exc
+
+
+def decode_exr(data: bytes, where: str) -> dict[str, np.ndarray]:
+    """:func:`read_exr` of an EXR held in memory (a shard member): OpenEXR's Python
+    binding reads only from a path, so the bytes go through a temporary file.
+
+    Raises:
+        FrameError: ("unreadable") naming ``where`` when the bytes are not a readable EXR.
+    """
+    fd, tmp = tempfile.mkstemp(prefix="depthgt-", suffix=".exr")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        try:
+            return read_exr(tmp)
+        except FrameError as exc:
+            raise FrameError(f"{where}: cannot read EXR ({exc.__cause__ or exc})", "unreadable") from exc
+    finally:
+        os.unlink(tmp)
 
 
 def write_json(path: str | Path, obj: Any) -> None:

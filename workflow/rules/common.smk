@@ -89,6 +89,11 @@ def scene_shards(wildcards):
             for a, b in BATCHES[wildcards.dataset, wildcards.scene]]
 
 
+def all_shards():
+    """Every frame-set shard of the build (checksummed in the dataset card)."""
+    return [f"results/framesets/{d}/{s}/{a:06d}-{b:06d}.zip" for d, s in SCENES for a, b in BATCHES[d, s]]
+
+
 def scene_summaries(what="framesets", ext="parquet"):
     return [f"results/scenes/{d}/{s}/{what}.{ext}" for d, s in SCENES]
 
@@ -102,6 +107,8 @@ def scene_summaries(what="framesets", ext="parquet"):
 INDEX_CONFIG = {"seed": config.get("seed"), "split": config.get("split"),
                 "frameset": {k: v for k, v in config["frameset"].items() if k != "batch_size"}}
 FRAMESET_CONFIG = {k: config.get(k) for k in ("seed", "device", "frameset", "resize", "registration", "render", "patches")}
+# what the dataset card records as the settings that decided the GT
+GT_CONFIG = {**FRAMESET_CONFIG, "split": config.get("split")}
 
 
 # Per-job resources. The rules declare them so that every executor sees one request:

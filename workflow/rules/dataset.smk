@@ -5,6 +5,7 @@ rule dataset:
         quality=scene_summaries("quality"),
         frames=scene_summaries("frames"),
         indices=scene_summaries("index", "json"),
+        shards=all_shards(),
     output:
         train="results/dataset/train.parquet",
         val="results/dataset/val.parquet",
@@ -13,6 +14,10 @@ rule dataset:
         summary="results/dataset/summary.json",
         summary_md="results/dataset/summary.md",
         quality="results/dataset/gt_quality.csv",
+        card="results/dataset/card.json",
+        card_md="results/dataset/card.md",
+    params:
+        config=GT_CONFIG,
     conda:
         ENV
     log:

@@ -39,6 +39,7 @@ import torch.nn as nn
 from torch.utils.data import Dataset
 
 from depthgt.atomic import write_atomic
+from depthgt.data import GTDataset, training_fields
 from depthgt.device import resolve_device
 from depthgt.errors import ConfigError
 from depthgt.settings import TrainSettings
@@ -48,7 +49,7 @@ __all__ = [
     "TrainOutputs",
     "build_model",
     "build_loss",
-    "PatchDataset",
+    "patch_dataset",
     "collate",
     "flip_batch",
     "train_epoch",
@@ -145,68 +146,20 @@ class TrainOutputs(NamedTuple):
 # --------------------------------------------------------------------------- data
 
 
-class PatchDataset(Dataset):
-    """Patch pairs listed in a manifest, read from their ``patches.npz`` (cached).
-
-    Items are dicts of tensors: ``input`` (1, h, w) raw depth m, ``gt`` (1, h, w) GT
-    depth m, ``rgb`` (3, h, w) float in [0, 1], ``K`` (3, 3) intrinsics of the crop
-    (the frame set's 256x256 ``K`` from ``frameset.json`` shifted by the crop box).
-    The arrays of each npz are kept in memory after the first read (~11 bytes per
-    pixel: ~360 MB for 2000 pairs of 128x128).
+def patch_dataset(manifest: str | Path | pd.DataFrame) -> GTDataset:
+    """The patch pairs listed in a manifest, as the trainer reads them: items are dicts of
+    tensors ``input`` (1, h, w) raw depth m, ``gt`` (1, h, w) GT depth m, ``rgb`` (3, h, w)
+    float in [0, 1], ``K`` (3, 3) intrinsics of the crop (the frame set's ``K`` shifted
+    by the crop box). Read through :class:`depthgt.data.GTDataset` (the one reader of
+    patches), every frame set's arrays kept in memory after the first read (~11 bytes
+    per pixel: ~360 MB for 2000 pairs of 128x128).
 
     Args:
         manifest: parquet path or DataFrame with columns ``frameset`` (the frame set's
-            location, :mod:`depthgt.gt.store`) and ``patch``.
+            location, :mod:`depthgt.gt.store`, relative to the working directory) and
+            ``patch``: the split manifests of the GT or of the RDE.
     """
-
-    REQUIRED = ("input", "gt", "rgb", "boxes")
-
-    def __init__(self, manifest: str | Path | pd.DataFrame):
-        table = manifest if isinstance(manifest, pd.DataFrame) else pd.read_parquet(manifest)
-        missing = {"frameset", "patch"} - set(table.columns)
-        if missing:
-            raise ValueError(f"manifest {manifest if not isinstance(manifest, pd.DataFrame) else '<DataFrame>'}: "
-                             f"missing columns {sorted(missing)}")
-        self.paths = [str(p) for p in table["frameset"]]
-        self.index = table["patch"].astype(int).to_numpy()
-        self._cache: dict[str, dict[str, np.ndarray]] = {}
-
-    def __len__(self) -> int:
-        return len(self.paths)
-
-    def _load(self, loc: str) -> dict[str, np.ndarray]:
-        """patches.npz and the intrinsics of the frame set at ``loc`` (depthgt.gt.store)."""
-        from depthgt.gt import store
-
-        if loc not in self._cache:
-            npz = store.read_npz(f"{loc}/patches.npz")
-            missing = [k for k in self.REQUIRED if k not in npz]
-            if missing:
-                raise ValueError(f"{loc}/patches.npz: missing arrays {missing}")
-            arrays = {k: npz[k] for k in self.REQUIRED}
-            K = np.asarray(store.read_json(f"{loc}/frameset.json")["K"], dtype=np.float32)
-            if K.shape != (3, 3):
-                raise ValueError(f"{loc}/frameset.json: key 'K' must be 3x3, got {K.shape}")
-            arrays["K"] = K
-            self._cache[loc] = arrays
-        return self._cache[loc]
-
-    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        a = self._load(self.paths[i])
-        j = int(self.index[i])
-        if not 0 <= j < len(a["input"]):
-            raise IndexError(f"{self.paths[i]}: patch {j} out of range ({len(a['input'])} patches)")
-        y0, x0 = int(a["boxes"][j][0]), int(a["boxes"][j][1])
-        K = a["K"].copy()
-        K[0, 2] -= x0
-        K[1, 2] -= y0
-        inp = torch.from_numpy(np.ascontiguousarray(a["input"][j], dtype=np.float32))[None]
-        return {
-            "input": inp,
-            "gt": torch.from_numpy(np.ascontiguousarray(a["gt"][j], dtype=np.float32))[None],
-            "rgb": torch.from_numpy(np.ascontiguousarray(a["rgb"][j])).permute(2, 0, 1).float() / 255.0,
-            "K": torch.from_numpy(K),
-        }
+    return GTDataset.from_manifest(manifest, kind="patches", transform=training_fields, cache=True)
 
 
 def collate(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
@@ -363,10 +316,10 @@ def train(manifest_train: str | Path | pd.DataFrame, manifest_val: str | Path | 
     for p in out:
         p.parent.mkdir(parents=True, exist_ok=True)
     device = resolve_device(settings.device)
-    train_set = PatchDataset(manifest_train)
+    train_set = patch_dataset(manifest_train)
     if len(train_set) == 0:
         raise ValueError(f"training manifest {manifest_train}: no patch pairs")
-    val_set = PatchDataset(manifest_val) if manifest_val is not None else None
+    val_set = patch_dataset(manifest_val) if manifest_val is not None else None
     if val_set is not None and len(val_set) == 0:
         val_set = None
 

@@ -25,7 +25,7 @@ from depthgt.settings import SPLITS
 from depthgt.status import Status
 
 FRAMESET_COLUMNS = ["dataset", "scene", "target", "frame_id", "split", "status", "reason", "frameset", "has_truth",
-                    "patches_drawn", "patches_kept", "input_missing", "gt_missing"]
+                    "patches_drawn", "patches_kept", "input_missing", "gt_missing", "gt_median_sigma_m"]
 # (estimate, frameset.json statistics key, reference) of the GT quality table
 QUALITY_KEYS = (("gt", "gt_vs_truth", "truth"), ("input", "input_vs_truth", "truth"),
                 ("gt", "gt_vs_truth_input_valid", "truth@input_valid"), ("leave_target_out", "leave_target_out", "target_raw"))
@@ -81,14 +81,16 @@ def summarize_scene(index_parquet: str | Path, shards: list[str | Path]
             raise FileNotFoundError(f"{dataset}/{scene}: frame set {target} is in the index but no shard given records it")
         row = {"dataset": dataset, "scene": scene, "target": target, "frame_id": rec.frame_id, "split": rec.frameset_split,
                "status": batch["status"], "reason": batch["reason"], "frameset": "", "has_truth": False,
-               "patches_drawn": 0, "patches_kept": 0, "input_missing": np.nan, "gt_missing": np.nan}
+               "patches_drawn": 0, "patches_kept": 0, "input_missing": np.nan, "gt_missing": np.nan,
+               "gt_median_sigma_m": np.nan}
         loc = by_target.get(target)
         if loc is not None:
             doc = store.read_json(f"{loc}/frameset.json")
             st = doc["statistics"]
             row.update(status=doc["status"], reason=doc["reason"], frameset=loc, has_truth="gt_vs_truth" in st,
                        patches_drawn=st["patches_drawn"], patches_kept=st["patches_kept"],
-                       input_missing=st["input_missing"], gt_missing=st["gt_missing"])
+                       input_missing=st["input_missing"], gt_missing=st["gt_missing"],
+                       gt_median_sigma_m=st.get("gt_median_sigma_m", np.nan))
             npz = store.read_npz(f"{loc}/patches.npz")
             kept, boxes = npz["kept"], npz["all_boxes"]
             miss_in, miss_gt = npz["all_missing_input"], npz["all_missing_gt"]
@@ -111,7 +113,8 @@ def summarize_scene(index_parquet: str | Path, shards: list[str | Path]
         rec = batch_records[target]
         rows.append({"dataset": dataset, "scene": scene, "target": target, "frame_id": "", "split": rec.get("split", ""),
                      "status": rec["status"], "reason": rec["reason"], "frameset": "", "has_truth": False,
-                     "patches_drawn": 0, "patches_kept": 0, "input_missing": np.nan, "gt_missing": np.nan})
+                     "patches_drawn": 0, "patches_kept": 0, "input_missing": np.nan, "gt_missing": np.nan,
+                     "gt_median_sigma_m": np.nan})
     frame_rows = [{"dataset": dataset, "scene": scene, "position": p, "frame_id": str(frames[p]["frame_id"]),
                    "valid": bool(frames[p]["valid"]), "reason": frames[p]["reason"], "message": frames[p]["message"]}
                   for p in sorted(frames)]

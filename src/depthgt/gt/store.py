@@ -14,6 +14,10 @@ Snakemake metadata records; zip is a standard container every language and tool 
 A frame set is addressed by its **location** ``<shard path>/<target:06d>`` (the
 ``frameset`` column of the manifests); a member by ``<location>/<name>``. A location may
 also be a plain folder holding the six files (what :func:`extract_frameset` writes).
+
+Random access to many frame sets (a torch Dataset, an export) goes through a
+:class:`ShardReader`, which keeps the shards it read open in the process that opened
+them.
 """
 
 from __future__ import annotations
@@ -21,8 +25,11 @@ from __future__ import annotations
 import contextlib
 import io as _io
 import json
+import os
 import tempfile
 import zipfile
+import zlib
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator, NamedTuple
@@ -35,8 +42,9 @@ from depthgt.errors import DepthGTError
 from depthgt.status import Status
 
 __all__ = ["FRAMESET_FILES", "FrameSetRecord", "location", "shard_path", "write_shard", "shard_targets", "read_batch",
-           "read_batch_frames", "member_bytes", "read_json", "read_npz", "read_exr_member", "frameset_files",
-           "find_frameset", "read_frameset", "read_frameset_at", "FrameImages", "FRAME_DEPTHS", "read_frame_images",
+           "read_batch_frames", "ShardReader", "member_bytes", "read_json", "read_npz", "read_exr_member",
+           "frameset_files", "find_frameset", "read_frameset", "read_frameset_at", "FrameImages", "FRAME_DEPTHS",
+           "read_frame_images",
            "extract_frameset"]
 
 FRAMESET_FILES = ("gt.exr", "input.exr", "rgb.png", "poses.json", "patches.npz", "frameset.json")
@@ -118,6 +126,17 @@ def shard_targets(shard: str | Path) -> list[int]:
         return sorted({int(n.split("/")[0]) for n in z.namelist() if n.endswith("/frameset.json")})
 
 
+def _read_member(z: zipfile.ZipFile, archive: Path, inner: str) -> bytes:
+    try:
+        return z.read(inner)
+    except KeyError:
+        raise DepthGTError(f"{archive} has no member {inner} (frame set not built in this shard)") from None
+    except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as exc:
+        # a stored member whose bytes changed fails its CRC-32 check here
+        raise DepthGTError(f"frame-set shard {archive} is corrupt: member {inner} does not read back ({exc}); "
+                           "rebuild the shard (`depthgt verify` lists every damaged one)") from exc
+
+
 def member_bytes(member: str | Path) -> bytes:
     """The bytes of ``<location>/<name>`` (inside a shard or in a folder)."""
     archive, inner = _split(member)
@@ -127,10 +146,84 @@ def member_bytes(member: str | Path) -> bytes:
             raise DepthGTError(f"{path} does not exist")
         return path.read_bytes()
     with _zip(archive) as z:
-        try:
-            return z.read(inner)
-        except KeyError:
-            raise DepthGTError(f"{archive} has no member {inner} (frame set not built in this shard)") from None
+        return _read_member(z, archive, inner)
+
+
+class ShardReader:
+    """Reads members of frame-set shards (and of plain frame-set folders), keeping the
+    shards open between reads: random access to frame sets spread over thousands of
+    shards without opening and parsing a zip directory per read.
+
+    Handles belong to the process that opened them. A forked process (a DataLoader
+    worker) shares its parent's file offsets, so reading through the parent's handles
+    would interleave seeks; the reader notices the new process id and opens its own.
+    Pickling (spawn) carries no handle. At most ``max_open`` shards stay open, the least
+    recently read closed first (file-descriptor limits).
+
+    >>> reader = ShardReader()
+    >>> reader.read("/nonexistent/000006-000007.zip/000006/frameset.json")
+    Traceback (most recent call last):
+    ...
+    depthgt.errors.DepthGTError: frame-set shard /nonexistent/000006-000007.zip does not exist (not built yet?)
+    """
+
+    def __init__(self, max_open: int = 64):
+        if max_open < 1:
+            raise ValueError(f"ShardReader: max_open must be >= 1, got {max_open}")
+        self.max_open = int(max_open)
+        self._pid = os.getpid()
+        self._open: OrderedDict[Path, zipfile.ZipFile] = OrderedDict()
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {"max_open": self.max_open}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__init__(state["max_open"])
+
+    def __enter__(self) -> "ShardReader":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the shards this process opened."""
+        if self._pid == os.getpid():
+            for z in self._open.values():
+                z.close()
+        self._open.clear()
+
+    @property
+    def open_shards(self) -> list[Path]:
+        """The shards this process holds open, least recently read first."""
+        return list(self._open) if self._pid == os.getpid() else []
+
+    def _archive(self, path: Path) -> zipfile.ZipFile:
+        if self._pid != os.getpid():
+            # the parent's handles share its file offsets: never read through them here
+            # (dropping them closes only this process's copies of the descriptors)
+            self._open = OrderedDict()
+            self._pid = os.getpid()
+        z = self._open.get(path)
+        if z is None:
+            z = self._open[path] = _zip(path)
+            while len(self._open) > self.max_open:
+                self._open.popitem(last=False)[1].close()
+        else:
+            self._open.move_to_end(path)
+        return z
+
+    def read(self, member: str | Path) -> bytes:
+        """The bytes of ``<location>/<name>`` (:func:`member_bytes`, with open shards kept).
+
+        Raises:
+            DepthGTError: naming the shard when it is missing, not a zip archive, lacks
+                the member or the member fails its checksum; naming the file for a folder.
+        """
+        archive, inner = _split(member)
+        if archive is None:
+            return member_bytes(member)
+        return _read_member(self._archive(archive), archive, inner)
 
 
 def read_json(member: str | Path) -> Any:
@@ -192,18 +285,28 @@ class FrameSetRecord:
     patches: dict[str, np.ndarray]
 
 
-def read_frameset_at(loc: str | Path) -> FrameSetRecord:
-    """Read the frame set at a location (``<shard>/<target>`` or a folder)."""
-    with frameset_files(loc) as d:
-        gt = io.read_exr(d / "gt.exr")
-        inp = io.read_exr(d / "input.exr")
-        with np.load(d / "patches.npz") as z:
-            patches = {k: z[k] for k in z.files}
-        return FrameSetRecord(
-            gt_m=gt["Z"], gt_sigma_m=gt.get("S", np.zeros_like(gt["Z"])), gt_weight=gt["W"], gt_count=gt["N"],
-            input_m=inp["Z"], truth_m=inp.get("T"), rgb=io.read_rgb(d / "rgb.png"),
-            poses=json.loads((d / "poses.json").read_text()), meta=json.loads((d / "frameset.json").read_text()),
-            patches=patches)
+def read_frameset_at(loc: str | Path, reader: ShardReader | None = None) -> FrameSetRecord:
+    """Read the frame set at a location (``<shard>/<target>`` or a folder).
+
+    Args:
+        reader: keeps the shard open for later reads (default: opened for this read).
+    """
+    if reader is None:
+        with ShardReader(max_open=1) as own:
+            return read_frameset_at(loc, own)
+
+    def member(name: str) -> tuple[bytes, str]:
+        return reader.read(f"{loc}/{name}"), f"{loc}/{name}"
+
+    gt = io.decode_exr(*member("gt.exr"))
+    inp = io.decode_exr(*member("input.exr"))
+    with np.load(_io.BytesIO(member("patches.npz")[0])) as z:
+        patches = {k: z[k] for k in z.files}
+    return FrameSetRecord(
+        gt_m=gt["Z"], gt_sigma_m=gt.get("S", np.zeros_like(gt["Z"])), gt_weight=gt["W"], gt_count=gt["N"],
+        input_m=inp["Z"], truth_m=inp.get("T"), rgb=io.decode_color(*member("rgb.png"), formats=("PNG",)),
+        poses=json.loads(member("poses.json")[0]), meta=json.loads(member("frameset.json")[0]),
+        patches=patches)
 
 
 class FrameImages(NamedTuple):
@@ -256,15 +359,11 @@ def read_frame_images(loc: str | Path) -> FrameImages:
 
 def read_exr_member(member: str | Path) -> dict[str, np.ndarray]:
     """Every channel of an EXR member ``<location>/<name>`` (in a shard or a folder),
-    e.g. ``read_exr_member(f"{loc}/gt.exr")["Z"]``. OpenEXR reads files: a shard member
-    goes through a temporary copy."""
+    e.g. ``read_exr_member(f"{loc}/gt.exr")["Z"]``."""
     archive, inner = _split(member)
     if archive is None:
         return io.read_exr(inner)
-    with tempfile.TemporaryDirectory(prefix="depthgt-exr-") as tmp:
-        path = Path(tmp) / Path(inner).name
-        path.write_bytes(member_bytes(member))
-        return io.read_exr(path)
+    return io.decode_exr(member_bytes(member), str(member))
 
 
 def find_frameset(results: str | Path, dataset: str, scene: str, target: int) -> str:

@@ -9,6 +9,7 @@ the outputs. Every job also runs and is tested without Snakemake.
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 from typing import Any, Mapping
@@ -22,6 +23,7 @@ from depthgt.device import resolve_device
 from depthgt.errors import FrameError
 from depthgt.gt import store
 from depthgt.gt.assemble import DatasetOutputs, assemble, summarize_scene
+from depthgt.gt.card import build_card, write_card
 from depthgt.gt.index import build_index, select_pretraining_framesets
 from depthgt.gt.planning import member_problems
 from depthgt.jobs.common import open_source_scene
@@ -31,6 +33,9 @@ from depthgt.status import Status
 __all__ = ["run_scene_index", "run_frameset_batch", "run_scene_summary", "run_dataset", "run_pretrain_registration"]
 
 log = logging.getLogger("depthgt")
+
+# the settings sections that decide the GT (recorded in the dataset card)
+GT_SECTIONS = ("seed", "device", "resize", "frameset", "split", "patches", "render", "registration")
 
 
 def run_scene_index(source: dict[str, Any], scene: str, config: Mapping[str, Any], out_parquet: str,
@@ -145,17 +150,31 @@ def run_scene_summary(index_parquet: str, shards: list[str], out_framesets: str,
 
 
 def run_dataset(scene_framesets: list[str], scene_patches: list[str], scene_quality: list[str], scene_frames: list[str],
-                index_jsons: list[str], outputs: Mapping[str, str]) -> None:
-    """Assemble the dataset manifests from the per-scene summaries.
+                index_jsons: list[str], outputs: Mapping[str, str], shards: list[str] | None = None,
+                config: Mapping[str, Any] | None = None) -> None:
+    """Assemble the dataset manifests from the per-scene summaries and write the dataset
+    card (:mod:`depthgt.gt.card`).
 
     Args:
         outputs: the paths ``train``, ``val``, ``test``, ``framesets``, ``summary``,
-            ``summary_md``, ``quality`` (:class:`depthgt.gt.assemble.DatasetOutputs`).
+            ``summary_md``, ``quality`` (:class:`depthgt.gt.assemble.DatasetOutputs`) and
+            ``card``, ``card_md``.
+        shards: every frame-set shard of the build (checksummed in the card).
+        config: the config sections that decide the GT (their resolved settings, defaults
+            filled in, are recorded in the card).
     """
     out = DatasetOutputs(**{k: outputs[k] for k in DatasetOutputs._fields})
     summary = assemble(scene_framesets, scene_patches, scene_quality, scene_frames, index_jsons, out)
     log.info("dataset: %s pairs, %d frame sets skipped, %d of %d frames read unusable", summary["pairs"],
              len(summary["framesets_skipped"]), len(summary["frames_skipped"]), summary["frames_read"])
+    results = Path(outputs["card"]).parent.parent
+    card = build_card(results, summary, pd.read_parquet(out.framesets), pd.read_csv(out.quality),
+                      [json.loads(Path(p).read_text()) for p in index_jsons],
+                      settings_from_config(config or {}).doc(*GT_SECTIONS),
+                      [*(shards or []), *out])
+    write_card(card, outputs["card"], outputs["card_md"])
+    log.info("dataset card: %d files checksummed (depthgt %s, commit %s)", len(card["files"]),
+             card["depthgt"]["version"], card["depthgt"]["commit"])
 
 
 def run_pretrain_registration(sources: Mapping[str, dict[str, Any]], index_jsons: list[str], config: Mapping[str, Any],
