@@ -2,7 +2,7 @@
 EVALUATION set to report on, scored per pixel category against the synthetic truth.
 
 Sets (frame sets of targets 8, 20, 32 of 40-frame sequences, 640x480 frames resized to
-256x256 as the workflow does, the pipeline's own code path ``depthgt.gt.frameset.fuse``):
+256x256 as the workflow does, the pipeline's own code path ``depthgt.gt.build.fuse``):
 
 * ``tuning``: ``room`` family seed 0 (room_000-002) and ``varied`` family seed 0
   (varied_000-003), Kinect v1 profile. Every renderer default is chosen on these.
@@ -59,8 +59,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from depthgt.gt.framesets import stable_seed
-from depthgt.gt.frameset import FrameSetData, fuse, load_frameset, poses_from_source
+from depthgt.gt.planning import stable_seed
+from depthgt.gt.build import FrameSetData, fuse, load_frameset, poses_from_source
 from depthgt.settings import FrameSetSettings, RenderSettings
 
 REPO = Path(__file__).resolve().parents[1]

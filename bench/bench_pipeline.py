@@ -4,7 +4,7 @@
 
 As the workflow does it: the scene index job reads and checks every frame of the first
 default synthetic scene (config/config.yaml) and writes the frame cache (timed per
-frame); then ``depthgt.gt.frameset.process_frameset`` with ``registration.method: given``
+frame); then ``depthgt.gt.build.process_frameset`` with ``registration.method: given``
 runs on frame sets from that cache. Prints the per-stage mean time, the total per frame
 set, and the peak resident memory of the process. Target (issue 2): <= 2 s per frame
 set on 2 CPU cores.
@@ -25,7 +25,7 @@ import torch
 import yaml
 
 from depthgt.gt.cache import CachedScene, FrameCacheWriter
-from depthgt.gt.frameset import FrameSetOutputs, process_frameset
+from depthgt.gt.build import FrameSetOutputs, process_frameset
 from depthgt.gt.index import build_index
 from depthgt.jobs.common import open_source_scene
 from depthgt.settings import settings_from_config

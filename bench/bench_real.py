@@ -49,7 +49,7 @@ import torch
 
 from depthgt.errors import FrameError
 from depthgt.eval.metrics import depth_errors, pose_errors
-from depthgt.gt.frameset import align, fuse, load_frameset, poses_from_source, quality_statistics
+from depthgt.gt.build import align, fuse, load_frameset, poses_from_source, quality_statistics
 from depthgt.jobs.common import open_source_scene
 from depthgt.settings import FrameSetSettings, RenderSettings, registration_settings
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from depthgt.enhance.baselines import BASELINES, fill_holes, run_baseline
+from depthgt.enhance.baselines import BASELINES, box_fill, run_baseline
 from depthgt.enhance.learned import DDRNetDenoise, PartialConv2d, SDDUNet, ddrnet_loss, sdd_loss
 from depthgt.eval.metrics import depth_errors
 
@@ -57,10 +57,10 @@ def test_rgf_keeps_a_depth_edge():
     assert np.abs(out - truth).max() < 1e-3
 
 
-def test_fill_holes_grows_from_valid_pixels():
+def test_box_fill_grows_from_valid_pixels():
     d = torch.zeros(1, 1, 9, 9)
     d[0, 0, 4, 4] = 2.0
-    out = fill_holes(d, d > 0, kernel=3)
+    out = box_fill(d, d > 0, kernel=3)
     assert torch.allclose(out, torch.full_like(out, 2.0))
 
 

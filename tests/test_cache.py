@@ -9,7 +9,7 @@ import torch
 
 from depthgt.errors import FrameError
 from depthgt.gt.cache import ResizedScene
-from depthgt.gt.frameset import load_frameset
+from depthgt.gt.build import load_frameset
 from depthgt.jobs.common import open_source_scene
 from depthgt.sources.base import Scene
 

@@ -5,14 +5,14 @@ import math
 import pytest
 import torch
 
-from depthgt.enhance.lapden import PRESETS, LapDEN, LapDENConfig, count_parameters, lapden_from_preset, masked_avg_pool, fill_holes
+from depthgt.depth_ops import masked_avg_pool, structure_loss
+from depthgt.enhance.lapden import PRESETS, LapDEN, LapDENConfig, count_parameters, lapden_from_preset, push_pull_fill
 from depthgt.enhance.losses import (
     LossConfig,
     depth_l1,
     gradient_l1,
     lapden_loss,
     normal_l1,
-    structure_loss,
 )
 
 torch.set_num_threads(1)  # shared test machine: one thread is faster here
@@ -71,18 +71,18 @@ def test_lapden_starts_at_the_input_and_fills_holes_smoothly():
     assert all(h.weight.abs().sum() == 0 and h.bias.abs().sum() == 0 for h in model.heads)
 
 
-def test_fill_holes_keeps_valid_pixels_and_odd_sizes():
+def test_push_pull_fill_keeps_valid_pixels_and_odd_sizes():
     d = torch.full((1, 1, 37, 51), 2.0)
     d[..., :20, :] = 0.0
-    f = fill_holes(d, d > 0)
+    f = push_pull_fill(d, d > 0)
     assert torch.allclose(f, torch.full_like(d, 2.0))
     d2 = torch.rand(2, 1, 9, 7) + 1.0
     holes = torch.rand(d2.shape) < 0.3
     d2[holes] = 0.0
-    f2 = fill_holes(d2, d2 > 0)
+    f2 = push_pull_fill(d2, d2 > 0)
     assert torch.equal(f2[~holes], d2[~holes]) and (f2[holes] >= 1.0).all() and (f2[holes] <= 2.0).all()
     with pytest.raises(ValueError, match="valid shape"):
-        fill_holes(d2, holes[:1])
+        push_pull_fill(d2, holes[:1])
 
 
 def test_lapden_config_rejects_odd_blocks():

@@ -144,7 +144,7 @@ def test_pretraining_skips_a_frame_set_with_an_unusable_frame(tmp_path, monkeypa
     """A drawn frame set holding an unreadable frame is skipped with a warning and the
     first spare of the draw replaces it; pretraining gets the usable sets it asked for."""
     from depthgt import registration
-    from depthgt.gt.frameset import load_frameset
+    from depthgt.gt.build import load_frameset
     from depthgt.gt.index import select_pretraining_framesets
     from depthgt.jobs.gt import run_pretrain_registration, run_scene_index
 

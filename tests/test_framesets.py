@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from depthgt.errors import ConfigError
-from depthgt.gt.framesets import block_splits, enumerate_framesets, member_problems, stable_seed
+from depthgt.gt.planning import block_splits, enumerate_framesets, member_problems, stable_seed
 from depthgt.settings import FrameSetSettings, SplitSettings
 
 

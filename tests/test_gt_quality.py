@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from depthgt.jobs.common import open_source_scene
-from depthgt.gt.frameset import fuse, load_frameset, poses_from_source
+from depthgt.gt.build import fuse, load_frameset, poses_from_source
 from depthgt.eval.metrics import depth_errors
 from depthgt.settings import FrameSetSettings, RenderSettings
 

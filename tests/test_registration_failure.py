@@ -12,7 +12,7 @@ import torch
 
 import depthgt.registration as registration
 from depthgt.errors import ConfigError
-from depthgt.gt.frameset import FrameSetOutputs, fuse, load_frameset, poses_from_source, process_frameset
+from depthgt.gt.build import FrameSetOutputs, fuse, load_frameset, poses_from_source, process_frameset
 from depthgt.io import read_exr
 from depthgt.jobs.common import open_source_scene
 from depthgt.settings import FrameSetSettings, settings_from_config

@@ -65,7 +65,7 @@ def slurm(tmp_path_factory) -> dict[str, str]:
 
 
 def snakemake_on_slurm(workdir: Path, env: dict[str, str], target: str, *args: str) -> subprocess.CompletedProcess:
-    """The README's cluster command, plus what this accounting-free test cluster needs:
+    """The cluster command of README.md and docs/cluster.md, plus what this accounting-free test cluster needs:
     job states from squeue, no account, and a short first status check."""
     cmd = [sys.executable, "-m", "snakemake", target, "-s", str(REPO / "Snakefile"), "-d", str(workdir),
            "--profile", str(REPO / "profiles" / "slurm"), "--executor", "slurm",

@@ -23,9 +23,10 @@ import os
 import subprocess
 import sys
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 from depthgt.errors import DepthGTError
+from depthgt.gt import store
 
 __all__ = ["main", "repo_root", "snakemake_command", "scene_outputs"]
 
@@ -108,40 +109,33 @@ def _cmd_rebuild(args: argparse.Namespace) -> int:
     return 0
 
 
-def _read(args: argparse.Namespace):
-    from depthgt.gt import store
-
+def _read(args: argparse.Namespace) -> store.FrameSetRecord:
     results = Path(args.directory) / "results"
     return store.read_frameset(results, args.dataset, args.scene, args.target)
 
 
-def frameset_statistics(rec) -> dict[str, float | str]:
-    """Numbers of one frame set for a person: completeness of input and GT, the GT's
-    median expected std and, when the truth is known, the MAE of both against it."""
-    import numpy as np
-
-    stats: dict[str, float | str] = {"status": str(rec.meta.get("status", "?")),
-                                     "split": str(rec.meta.get("split", "?"))}
-    n = rec.gt_m.size
-    stats["input_completeness"] = float((rec.input_m > 0).sum() / n)
-    stats["gt_completeness"] = float((rec.gt_m > 0).sum() / n)
-    valid = rec.gt_m > 0
-    stats["gt_sigma_median_m"] = float(np.median(rec.gt_sigma_m[valid])) if valid.any() else float("nan")
-    if rec.truth_m is not None:
-        t = rec.truth_m > 0
-        for name, d in (("input", rec.input_m), ("gt", rec.gt_m)):
-            both = t & (d > 0)
-            stats[f"{name}_mae_vs_truth_m"] = (float(np.abs(d[both] - rec.truth_m[both]).mean())
-                                              if both.any() else float("nan"))
+def frameset_statistics(rec: store.FrameSetRecord) -> dict[str, Any]:
+    """The numbers of one frame set for a person: its status and split, then every
+    statistic its ``frameset.json`` records, under the same names (units in the names
+    and in the record's ``units``); nested tables are flattened, e.g.
+    ``gt_vs_truth.mae_m`` (the GT against the truth, where the truth is known)."""
+    stats: dict[str, Any] = {"status": str(rec.meta.get("status", "?")), "split": str(rec.meta.get("split", "?"))}
+    for key, value in rec.meta.get("statistics", {}).items():
+        if isinstance(value, dict):
+            stats.update({f"{key}.{name}": v for name, v in value.items()})
+        else:
+            stats[key] = value
     return stats
 
 
 def _cmd_show(args: argparse.Namespace) -> int:
-    from depthgt.eval.figures import frameset_panel
+    from depthgt.eval.figures import frameset_panel  # pandas, matplotlib: only for the panel
 
     rec = _read(args)
-    for key, value in frameset_statistics(rec).items():
-        print(f"{key:24s} {value:.4f}" if isinstance(value, float) else f"{key:24s} {value}")
+    stats = frameset_statistics(rec)
+    width = max(map(len, stats))
+    for key, value in stats.items():
+        print(f"{key:{width}s} {value:.4f}" if isinstance(value, float) else f"{key:{width}s} {value}")
     out = Path(args.out or f"{args.dataset}_{args.scene}_{args.target:06d}.png")
     frameset_panel(rec, out, title=f"{args.dataset}/{args.scene}/{args.target:06d}")
     print(f"panel: {out}")
@@ -149,8 +143,6 @@ def _cmd_show(args: argparse.Namespace) -> int:
 
 
 def _cmd_extract(args: argparse.Namespace) -> int:
-    from depthgt.gt import store
-
     for p in store.extract_frameset(Path(args.directory) / "results", args.dataset, args.scene, args.target,
                                     args.dest):
         print(p)

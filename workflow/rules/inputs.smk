@@ -2,7 +2,7 @@
 # rules). Nothing heavy is imported here.
 from depthgt import registry
 
-# every rule's software environment (README "Development": --software-deployment-method conda)
+# every rule's software environment (docs/development.md: --software-deployment-method conda)
 ENV = "../envs/depthgt.yaml"
 
 

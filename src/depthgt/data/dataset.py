@@ -40,6 +40,7 @@ from torch.utils.data import Dataset
 from depthgt.errors import DepthGTError
 from depthgt.gt import store
 from depthgt.settings import SPLITS
+from depthgt.status import Status
 
 __all__ = ["KINDS", "GTDataset", "manifest_path", "training_fields"]
 
@@ -95,7 +96,7 @@ class GTDataset(Dataset):
         table = pd.read_parquet(path)
         if kind == "frames":
             _require_columns(table, ("split", "status", "frameset"), path)
-            table = table[(table["split"] == split) & (table["status"] == "ok") & (table["frameset"] != "")]
+            table = table[(table["split"] == split) & (table["status"] == Status.OK) & (table["frameset"] != "")]
         if datasets is not None:
             _require_columns(table, ("dataset",), path)
             unknown = sorted(set(datasets) - set(table["dataset"]))

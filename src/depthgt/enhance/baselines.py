@@ -26,11 +26,13 @@ from typing import Callable
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from kornia.color import rgb_to_grayscale
 from kornia.filters import box_blur, gaussian_blur2d, joint_bilateral_blur
 
-__all__ = ["BASELINES", "register_baseline", "run_baseline", "identity", "rgf", "jf", "learned", "fill_holes"]
+from depthgt.depth_ops import valid_avg_pool
+from depthgt.enhance.train import load_model, predict_depth
+
+__all__ = ["BASELINES", "register_baseline", "run_baseline", "identity", "rgf", "jf", "learned", "box_fill"]
 
 BASELINES: dict[str, Callable[..., np.ndarray]] = {}
 
@@ -82,8 +84,9 @@ def identity(depth_m: np.ndarray, rgb: np.ndarray | None = None) -> np.ndarray:
     return np.asarray(depth_m, dtype=np.float32).copy()
 
 
-def fill_holes(depth: torch.Tensor, valid: torch.Tensor, kernel: int = 5, max_iter: int = 1000) -> torch.Tensor:
-    """Fill holes by repeated normalised box filtering (each pass grows the filled
+def box_fill(depth: torch.Tensor, valid: torch.Tensor, kernel: int = 5, max_iter: int = 1000) -> torch.Tensor:
+    """Fill holes by repeated normalised box filtering (:func:`depthgt.depth_ops.valid_avg_pool`
+    with stride 1; each pass grows the filled
     region by ``kernel // 2`` pixels; valid pixels are kept).
 
     Args:
@@ -97,10 +100,9 @@ def fill_holes(depth: torch.Tensor, valid: torch.Tensor, kernel: int = 5, max_it
     for _ in range(max_iter):
         if bool((w > 0).all()):
             break
-        num = F.avg_pool2d(d * w, kernel, stride=1, padding=kernel // 2, count_include_pad=False)
-        den = F.avg_pool2d(w, kernel, stride=1, padding=kernel // 2, count_include_pad=False)
-        new = (w == 0) & (den > 0)
-        d = torch.where(new, num / den.clamp_min(1e-12), d)
+        mean, ok = valid_avg_pool(d, w, kernel, stride=1, padding=kernel // 2, count_include_pad=False)
+        new = (w == 0) & ok
+        d = torch.where(new, mean, d)
         w = torch.where(new, torch.ones_like(w), w)
     return d
 
@@ -172,7 +174,7 @@ def jf(depth_m: np.ndarray, rgb: np.ndarray, r: int = 3, eps_I: float = 1e-4, ep
     if not valid.any():
         return np.zeros_like(depth_m, dtype=np.float32)
     scale = float(d[valid].max())
-    I0 = fill_holes(d / scale, valid)
+    I0 = box_fill(d / scale, valid)
     G0 = rgb_to_grayscale(torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None].float() / 255.0)
     lam_I = lambda_I * valid.to(I0.dtype)
     k = 2 * r + 1
@@ -207,8 +209,6 @@ def jf(depth_m: np.ndarray, rgb: np.ndarray, r: int = 3, eps_I: float = 1e-4, ep
 
 @lru_cache(maxsize=8)
 def _cached_model(checkpoint: str, device: str):
-    from depthgt.enhance.train import load_model
-
     return load_model(checkpoint, device)
 
 
@@ -224,7 +224,5 @@ def learned(depth_m: np.ndarray, rgb: np.ndarray | None = None, checkpoint: str 
     """
     if checkpoint is None:
         raise ValueError("learned baseline needs checkpoint=<path to best.pt>")
-    from depthgt.enhance.train import predict_depth
-
     model = _cached_model(str(Path(checkpoint).resolve()), device)
     return predict_depth(model, depth_m)

@@ -14,8 +14,9 @@ remove pixel-level noise from the input it starts from).
 The bases are anchored on the input (our choice, for fast convergence on small
 datasets; the paper does not pin them):
 
-* 1/4 level: the valid-aware 4x4 average of the input (:func:`masked_avg_pool`)
-  with its holes filled smoothly (:func:`fill_holes`);
+* 1/4 level: the valid-aware 4x4 average of the input
+  (:func:`depthgt.depth_ops.masked_avg_pool`) with its holes filled smoothly
+  (:func:`push_pull_fill`);
 * 1/2 and full level: the valid-aware average of the input at that level where it
   has valid pixels, else the bilinearly upsampled output of the coarser level.
 
@@ -41,8 +42,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-__all__ = ["LapDENConfig", "LapDEN", "PRESETS", "lapden_from_preset", "masked_avg_pool", "fill_holes",
-           "count_parameters"]
+from depthgt.depth_ops import masked_avg_pool, valid_avg_pool
+
+__all__ = ["LapDENConfig", "LapDEN", "PRESETS", "lapden_from_preset", "push_pull_fill", "count_parameters"]
 
 
 @dataclass(frozen=True)
@@ -100,37 +102,11 @@ def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters() if p.requires_grad)
 
 
-def masked_avg_pool(depth_m: torch.Tensor, valid: torch.Tensor, factor: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Valid-aware average pooling of depth by an integer factor.
-
-    Args:
-        depth_m: (B, 1, H, W) metres, 0 = invalid.
-        valid: (B, 1, H, W) bool or {0, 1} float.
-        factor: pooling factor; H and W must be divisible by it.
-
-    Returns:
-        depth (B, 1, H/f, W/f), mean of the valid pixels of each block (0 where none),
-        and its validity (B, 1, H/f, W/f) bool.
-    """
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
-        raise ValueError(f"depth_m must be (B, 1, H, W), got {tuple(depth_m.shape)}")
-    if depth_m.shape[-1] % factor or depth_m.shape[-2] % factor:
-        raise ValueError(f"depth shape {tuple(depth_m.shape)} not divisible by pooling factor {factor}")
-    if factor == 1:
-        v = valid.bool()
-        return depth_m * v, v
-    w = valid.to(depth_m.dtype)
-    num = F.avg_pool2d(depth_m * w, factor)
-    den = F.avg_pool2d(w, factor)
-    out_valid = den > 0
-    return torch.where(out_valid, num / den.clamp_min(1e-12), torch.zeros_like(num)), out_valid
-
-
-def fill_holes(depth_m: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+def push_pull_fill(depth_m: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """Smooth hole filling by a pyramid of valid-aware 2x2 averages (push-pull).
 
-    The image is averaged down (valid pixels only, :func:`masked_avg_pool`'s rule,
-    odd sizes rounded up) until the coarsest level is one pixel or has no holes; then,
+    The image is averaged down (valid pixels only, :func:`depthgt.depth_ops.valid_avg_pool`
+    over 2x2 blocks, odd sizes rounded up) until the coarsest level is one pixel or has no holes; then,
     coarse to fine, each level's holes take the bilinearly upsampled filled coarser
     level. Valid pixels are returned unchanged. Written by hand: OpenCV's inpainting
     is per-image numpy (no batch, no device), and this is ~log2(H) tensor ops.
@@ -150,11 +126,8 @@ def fill_holes(depth_m: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     levels = [(depth_m * w, w)]
     while min(levels[-1][0].shape[-2:]) > 1 and bool((levels[-1][1] <= 0).any()):
         d, w = levels[-1]
-        # the ratio of two equal-divisor pools is the valid-pixel mean, also at ceil-mode borders
-        num = F.avg_pool2d(d * w, 2, ceil_mode=True)
-        den = F.avg_pool2d(w, 2, ceil_mode=True)
-        w_c = (den > 0).to(d.dtype)
-        levels.append((torch.where(den > 0, num / den.clamp_min(1e-12), torch.zeros_like(num)), w_c))
+        d_c, ok = valid_avg_pool(d, w, 2, ceil_mode=True)
+        levels.append((d_c, ok.to(d.dtype)))
     filled = levels[-1][0]
     for d, w in reversed(levels[:-1]):
         up = F.interpolate(filled, size=tuple(d.shape[-2:]), mode="bilinear", align_corners=False)
@@ -219,7 +192,7 @@ class LapDEN(nn.Module):
         for level in range(3):
             d_l, v_l = masked_avg_pool(depth_m, valid, 4 >> level)
             if level == 0:
-                base = fill_holes(d_l, v_l)
+                base = push_pull_fill(d_l, v_l)
             else:
                 x = F.leaky_relu(self.up[level - 1](x), s) + skips[2 - level]
                 up = F.interpolate(outputs[-1], scale_factor=2.0, mode="bilinear", align_corners=False)

@@ -4,7 +4,7 @@ L = L_D(y_hat, y) + lambda_s * L_S(y_hat, y), summed over the pyramid levels:
 
 * L_D: L1 on depth + L1 on the depth gradient + L1 on the surface normal (normals
   from depth and intrinsics with kornia's ``depth_to_normals``);
-* L_S (paper eq. 6): mean over pixels p of
+* L_S (paper eq. 6, :func:`depthgt.depth_ops.structure_loss`): mean over pixels p of
   ``(max_{q in W(p)} |grad y_hat_q| - max_{q in W(p)} |grad y_q|)^2``, W a 5x5
   window; the paper's change: the GT y replaces the raw input x; lambda_s = 5.
 
@@ -29,18 +29,14 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.depth import depth_to_normals
 
-from depthgt.enhance.lapden import masked_avg_pool
+from depthgt.depth_ops import check_depth, forward_gradients, masked_avg_pool, masked_mean, structure_loss
 from depthgt.geometry import scale_intrinsics
 
 __all__ = [
     "LossConfig",
-    "masked_mean",
-    "forward_gradients",
     "depth_l1",
     "gradient_l1",
     "normal_l1",
-    "max_gradient_magnitude",
-    "structure_loss",
     "lapden_loss",
 ]
 
@@ -62,41 +58,6 @@ class LossConfig:
     lambda_s: float = 5.0
     window: int = 5
     scale_weights: tuple[float, ...] = (1.0, 1.0, 1.0)
-
-
-def _check_depth(name: str, t: torch.Tensor) -> None:
-    if t.ndim != 4 or t.shape[1] != 1:
-        raise ValueError(f"{name} must be (B, 1, H, W), got {tuple(t.shape)}")
-
-
-def masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean of ``x`` over ``mask`` (broadcast); 0 when the mask is empty (no NaN)."""
-    m = mask.to(x.dtype).expand_as(x)
-    return (x * m).sum() / m.sum().clamp_min(1.0)
-
-
-def forward_gradients(depth_m: torch.Tensor, valid: torch.Tensor):
-    """Forward-difference depth gradients with their validity.
-
-    Hand-written rather than kornia's ``spatial_gradient``: a 2-pixel forward
-    difference lets the validity be exact (both pixels valid) where a Sobel kernel
-    would mix in holes from a 3x3 support.
-
-    Args:
-        depth_m: (B, 1, H, W) metres.
-        valid: (B, 1, H, W) bool.
-
-    Returns:
-        gx, gy (B, 1, H, W) metres per pixel (last column / row 0) and their
-        validity vx, vy (B, 1, H, W) bool.
-    """
-    _check_depth("depth_m", depth_m)
-    gx = F.pad(depth_m[..., :, 1:] - depth_m[..., :, :-1], (0, 1, 0, 0))
-    gy = F.pad(depth_m[..., 1:, :] - depth_m[..., :-1, :], (0, 0, 0, 1))
-    v = valid.bool()
-    vx = F.pad(v[..., :, 1:] & v[..., :, :-1], (0, 1, 0, 0))
-    vy = F.pad(v[..., 1:, :] & v[..., :-1, :], (0, 0, 0, 1))
-    return gx, gy, vx, vy
 
 
 def depth_l1(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -129,43 +90,6 @@ def normal_l1(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor, K: torc
     return masked_mean((n_pred - n_gt).abs().sum(dim=1, keepdim=True), v3 > 0.5)
 
 
-def max_gradient_magnitude(depth_m: torch.Tensor, valid: torch.Tensor, window: int = 5, eps: float = 1e-12):
-    """max_{q in W(p)} |grad d_q| of eq. 6 over a ``window`` x ``window`` neighbourhood.
-
-    |grad d| uses forward differences; pixels whose gradient is undefined (a hole
-    among p, its right or lower neighbour) contribute 0 to the max.
-
-    Args:
-        depth_m: (B, 1, H, W) metres; valid: (B, 1, H, W) bool; window: odd int.
-
-    Returns:
-        (B, 1, H, W) metres per pixel.
-    """
-    if window < 1 or window % 2 == 0:
-        raise ValueError(f"window must be a positive odd int, got {window}")
-    gx, gy, vx, vy = forward_gradients(depth_m, valid)
-    vg = vx & vy
-    mag = torch.sqrt(gx * gx + gy * gy + eps) * vg.to(depth_m.dtype)
-    return F.max_pool2d(mag, window, stride=1, padding=window // 2)
-
-
-def structure_loss(pred: torch.Tensor, target: torch.Tensor, valid: torch.Tensor, window: int = 5) -> torch.Tensor:
-    """L_S (paper eq. 6): mean over valid pixels of the squared difference of the
-    windowed max gradient magnitudes of ``pred`` and ``target`` (units m^2/px^2).
-
-    Args:
-        pred, target: (B, 1, H, W) metres; valid: (B, 1, H, W) bool, where the
-            target's gradients are trusted (both images are masked with it).
-    """
-    _check_depth("pred", pred)
-    _check_depth("target", target)
-    if pred.shape != target.shape:
-        raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} differ in shape")
-    mp = max_gradient_magnitude(pred, valid, window)
-    mt = max_gradient_magnitude(target, valid, window)
-    return masked_mean((mp - mt) ** 2, valid)
-
-
 def _level_targets(gt: torch.Tensor, K: torch.Tensor, shape_hw: tuple[int, int]):
     H, W = gt.shape[-2:]
     factor = H // shape_hw[0]
@@ -190,7 +114,7 @@ def lapden_loss(outputs: list[torch.Tensor], batch: dict, config: LossConfig = L
     if isinstance(outputs, torch.Tensor):
         outputs = [outputs]
     gt, K = batch["gt"], batch["K"]
-    _check_depth("batch['gt']", gt)
+    check_depth("batch['gt']", gt)
     weights = config.scale_weights[-len(outputs):]
     if len(weights) != len(outputs):
         raise ValueError(f"{len(outputs)} outputs but only {len(config.scale_weights)} scale_weights")

@@ -1,7 +1,7 @@
 """Full-frame evaluation of enhancement methods on frame sets (paper Tables 1-3).
 
-A frame set folder (``results/framesets/{dataset}/{scene}/{target:06d}/``) gives the
-images of one test frame (:func:`load_frame`): ``input`` (input.exr Z, the resized
+A frame set's location gives the images of one test frame
+(:func:`depthgt.gt.store.read_frame_images`): ``input`` (input.exr Z, the resized
 raw depth), ``gt`` (gt.exr Z, depthgt's GT), ``truth`` (input.exr T, the clean depth
 of synthetic sources, when present) and ``rgb`` (rgb.png).
 
@@ -23,63 +23,34 @@ from typing import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
+from depthgt import registry
 from depthgt.enhance.baselines import run_baseline
 from depthgt.eval.metrics import depth_metrics, unit_of
+from depthgt.gt import store
+from depthgt.status import Status
 
-__all__ = ["load_frame", "run_method", "method_spec", "evaluate_frames", "EVAL_COLUMNS"]
+__all__ = ["run_method", "method_spec", "evaluate_frames", "EVAL_COLUMNS"]
 
 log = logging.getLogger(__name__)
 
 EVAL_COLUMNS = ["dataset", "scene", "target", "method", "reference", "metric", "unit", "value"]
 
 
-def load_frame(frameset: str | Path) -> dict[str, np.ndarray | None]:
-    """The images of one frame set at its location (:mod:`depthgt.gt.store`): input, gt,
-    truth (or None), rgb.
-
-    Returns:
-        dict: ``input``, ``gt``, ``truth`` (H, W) float32 metres (0 = invalid;
-        ``truth`` None when input.exr has no T channel), ``rgb`` (H, W, 3) uint8.
-    """
-    from depthgt import io
-    from depthgt.gt import store
-
-    with store.frameset_files(frameset) as d:
-        inp = io.read_exr(d / "input.exr")
-        gt = io.read_exr(d / "gt.exr")
-        rgb = io.read_rgb(d / "rgb.png")
-    d = Path(str(frameset))
-    for path, chans in ((d / "input.exr", inp), (d / "gt.exr", gt)):
-        if "Z" not in chans:
-            raise ValueError(f"{path}: no channel 'Z' (has {sorted(chans)})")
-    frame = {
-        "input": inp["Z"].astype(np.float32),
-        "gt": gt["Z"].astype(np.float32),
-        "truth": inp["T"].astype(np.float32) if "T" in inp else None,
-        "rgb": rgb,
-    }
-    if rgb.shape[:2] != frame["input"].shape or frame["gt"].shape != frame["input"].shape:
-        raise ValueError(f"{d}: image sizes differ: input {frame['input'].shape}, gt {frame['gt'].shape}, rgb {rgb.shape}")
-    return frame
-
-
-def run_method(method: Mapping, frame: Mapping[str, np.ndarray | None]) -> np.ndarray:
+def run_method(method: Mapping, frame: store.FrameImages) -> np.ndarray:
     """Prediction (H, W) float32 metres of ``method`` on ``frame`` (see module docstring)."""
     if "image" in method:
-        img = frame.get(method["image"])
+        img = frame.depth(method["image"])
         if img is None:
             raise ValueError(f"method {dict(method)}: the frame has no image {method['image']!r}")
         return np.asarray(img, dtype=np.float32)
     if "baseline" not in method:
         raise ValueError(f"method {dict(method)} needs a 'baseline' or an 'image' key")
-    return run_baseline(method["baseline"], frame["input"], frame["rgb"], **dict(method.get("params", {})))
+    return run_baseline(method["baseline"], frame.input_m, frame.rgb, **dict(method.get("params", {})))
 
 
 def method_spec(name: str, checkpoint: str | Path | None = None, device: str | None = None) -> dict:
     """The method mapping of a registry method (:mod:`depthgt.registry`): its baseline,
     and for a learned one the trained ``checkpoint`` and the ``device`` to run it on."""
-    from depthgt import registry
-
     if name not in registry.METHODS:
         raise ValueError(f"unknown method {name!r}; known: {', '.join(registry.METHODS)}")
     m = registry.METHODS[name]
@@ -116,7 +87,7 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
     Returns:
         Long table with columns :data:`EVAL_COLUMNS` (metrics of
         :func:`depthgt.eval.metrics.depth_metrics`, units of
-        :data:`depthgt.eval.metrics.METRIC_UNITS`), rows by frame, method, reference.
+        :data:`depthgt.metric_vocabulary.METRIC_UNITS`), rows by frame, method, reference.
     """
     table = frames if isinstance(frames, pd.DataFrame) else pd.read_parquet(frames)
     missing = {"dataset", "scene", "target", "frameset"} - set(table.columns)
@@ -128,14 +99,14 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
     if split is not None and "split" in table.columns:
         table = table[table["split"] == split]
     if "status" in table.columns:
-        table = table[table["status"] == "ok"]
+        table = table[table["status"] == Status.OK]
     table = table[table["frameset"] != ""]
     pred_dirs = dict(pred_dirs or {})
     rows = []
     seconds = {name: 0.0 for name in methods}
     for rec in table.itertuples():
-        frame = load_frame(rec.frameset)
-        refs = [r for r in references if frame[r] is not None]
+        frame = store.read_frame_images(rec.frameset)
+        refs = [r for r in references if frame.depth(r) is not None]
         if not refs:
             log.info("%s: none of the references %s, skipped", rec.frameset, list(references))
             continue
@@ -148,7 +119,7 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
                 out.parent.mkdir(parents=True, exist_ok=True)
                 np.save(out, pred.astype(np.float32))
             for reference in refs:
-                for metric, value in depth_metrics(pred, frame[reference]).items():
+                for metric, value in depth_metrics(pred, frame.depth(reference)).items():
                     rows.append({"dataset": rec.dataset, "scene": rec.scene, "target": int(rec.target), "method": name,
                                  "reference": reference, "metric": metric, "unit": unit_of(metric), "value": float(value)})
     for name, s in seconds.items():

@@ -11,11 +11,13 @@ from typing import Mapping
 import numpy as np
 import pandas as pd
 
+from depthgt.gt import store
+
 __all__ = ["shared_depth_range", "comparison_figure", "training_curve", "frameset_panel"]
 
 
 def _plt():
-    import matplotlib
+    import matplotlib  # heavy (and its backend must be chosen before pyplot): only for drawing
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -55,8 +57,6 @@ def comparison_figure(frames: pd.DataFrame, pred_dirs: Mapping[str, str | Path],
         frames: frame-set rows (dataset, scene, target, frameset) to choose from;
             up to ``frames_per_scene`` evenly spaced frames of each scene are shown.
     """
-    from depthgt.eval.evaluate import load_frame
-
     plt = _plt()
     out = Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -72,7 +72,7 @@ def comparison_figure(frames: pd.DataFrame, pred_dirs: Mapping[str, str | Path],
         fig.savefig(out, dpi=80)
         plt.close(fig)
         return out
-    has_truth = any(load_frame(r.frameset)["truth"] is not None for r in picked)
+    has_truth = any(store.read_frame_images(r.frameset).truth_m is not None for r in picked)
     titles = ["RGB", "input"] + methods + ["depthgt GT"] + (["truth"] if has_truth else [])
     n_cols = len(titles)
     fig, axes = plt.subplots(len(picked), n_cols, figsize=(1.9 * n_cols, 2.0 * len(picked) + 0.4), squeeze=False)
@@ -80,15 +80,15 @@ def comparison_figure(frames: pd.DataFrame, pred_dirs: Mapping[str, str | Path],
     cmap.set_bad("black")
     image = None
     for row, rec in enumerate(picked):
-        fr = load_frame(rec.frameset)
+        fr = store.read_frame_images(rec.frameset)
         preds = []
         for m in methods:
             p = Path(pred_dirs[m]) / str(rec.dataset) / str(rec.scene) / f"{int(rec.target):06d}.npy"
-            preds.append(np.load(p) if p.is_file() else np.zeros_like(fr["input"]))
-        depths = [fr["input"], *preds, fr["gt"]] + ([fr["truth"] if fr["truth"] is not None else np.zeros_like(fr["gt"])]
+            preds.append(np.load(p) if p.is_file() else np.zeros_like(fr.input_m))
+        depths = [fr.input_m, *preds, fr.gt_m] + ([fr.truth_m if fr.truth_m is not None else np.zeros_like(fr.gt_m)]
                                                     if has_truth else [])
         vmin, vmax = shared_depth_range(depths)
-        axes[row, 0].imshow(fr["rgb"])
+        axes[row, 0].imshow(fr.rgb)
         for col, d in enumerate(depths, start=1):
             image = axes[row, col].imshow(np.ma.masked_less_equal(d, 0), cmap=cmap, vmin=vmin, vmax=vmax)
         axes[row, 0].set_ylabel(f"{rec.dataset}/{rec.scene}\n{int(rec.target):06d}", fontsize=7)

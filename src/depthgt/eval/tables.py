@@ -24,7 +24,9 @@ import numpy as np
 import pandas as pd
 
 from depthgt import registry
-from depthgt.eval.metrics import unit_of
+from depthgt.eval.metrics import ls_distance, ssim_depth, unit_of
+from depthgt.gt import store
+from depthgt.status import Status
 
 __all__ = [
     "COLUMN_LABELS",
@@ -94,22 +96,16 @@ def gt_vs_input_long(framesets: pd.DataFrame, rde_framesets: pd.DataFrame | None
     Returns:
         columns dataset, scene, target, gt (``gt`` | ``rde``), metric, unit, value.
     """
-    from depthgt import io
-    from depthgt.eval.metrics import ls_distance, ssim_depth
-    from depthgt.gt import store
-
     jobs = []
-    for rec in framesets[(framesets["status"] == "ok") & (framesets["frameset"] != "")].itertuples():
+    for rec in framesets[(framesets["status"] == Status.OK) & (framesets["frameset"] != "")].itertuples():
         jobs.append((rec.dataset, rec.scene, int(rec.target), "gt", rec.frameset, rec.frameset))
     if rde_framesets is not None and len(rde_framesets):
-        for rec in rde_framesets[(rde_framesets["status"] == "ok") & (rde_framesets["rde"] != "")].itertuples():
+        for rec in rde_framesets[(rde_framesets["status"] == Status.OK) & (rde_framesets["rde"] != "")].itertuples():
             jobs.append((rec.dataset, rec.scene, int(rec.target), "rde", rec.rde, rec.frameset))
     rows = []
     for dataset, scene, target, which, gt_loc, fs_loc in jobs:
-        with store.frameset_files(gt_loc) as d:
-            gt = io.read_exr(d / "gt.exr")["Z"]
-        with store.frameset_files(fs_loc) as d:
-            inp = io.read_exr(d / "input.exr")["Z"]
+        gt = store.read_exr_member(f"{gt_loc}/gt.exr")["Z"]
+        inp = store.read_exr_member(f"{fs_loc}/input.exr")["Z"]
         for metric, value in (("ssim", ssim_depth(gt, inp)), ("ls", ls_distance(gt, inp))):
             rows.append({"dataset": dataset, "scene": scene, "target": target, "gt": which, "metric": metric,
                          "unit": unit_of(metric), "value": float(value)})
@@ -119,10 +115,8 @@ def gt_vs_input_long(framesets: pd.DataFrame, rde_framesets: pd.DataFrame | None
 def rde_quality_long(rde_framesets: pd.DataFrame) -> pd.DataFrame:
     """Per-scene mean error of the RDE GT against the truth, in gt_quality.csv's form
     (dataset, scene, estimate='rde', reference='truth', metric, unit, value)."""
-    from depthgt.gt import store
-
     rows = []
-    ok = rde_framesets[(rde_framesets["status"] == "ok") & (rde_framesets["rde"] != "")] if len(rde_framesets) else rde_framesets
+    ok = rde_framesets[(rde_framesets["status"] == Status.OK) & (rde_framesets["rde"] != "")] if len(rde_framesets) else rde_framesets
     for rec in ok.itertuples():
         st = store.read_json(f"{rec.rde}/frameset.json")["statistics"]
         for metric, value in st.get("rde_vs_truth", {}).items():

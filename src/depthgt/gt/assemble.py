@@ -7,7 +7,7 @@
 * :func:`assemble` concatenates the scenes into ``{train,val,test}.parquet`` (one row
   per kept patch pair), ``framesets.parquet`` (one row per frame set, for full-frame
   evaluation), a summary (every skipped frame and frame set with its reason) and the
-  GT quality table (units from :data:`depthgt.eval.metrics.METRIC_UNITS`).
+  GT quality table (units from :data:`depthgt.metric_vocabulary.METRIC_UNITS`).
 """
 
 from __future__ import annotations
@@ -19,8 +19,10 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 
-from depthgt.eval.metrics import unit_of
+from depthgt.gt import store
+from depthgt.metric_vocabulary import unit_of
 from depthgt.settings import SPLITS
+from depthgt.status import Status
 
 FRAMESET_COLUMNS = ["dataset", "scene", "target", "frame_id", "split", "status", "reason", "frameset", "has_truth",
                     "patches_drawn", "patches_kept", "input_missing", "gt_missing", "gt_median_sigma_m"]
@@ -58,8 +60,6 @@ def summarize_scene(index_parquet: str | Path, shards: list[str | Path]
     Raises:
         FileNotFoundError: a target of the index that no shard given records.
     """
-    from depthgt.gt import store
-
     table, meta = read_index(index_parquet)
     dataset, scene = meta["dataset"], meta["scene"]
     rows, patch_rows, quality = [], [], []
@@ -184,10 +184,10 @@ def assemble(scene_framesets: list[str | Path], scene_patches: list[str | Path],
         "patches_drawn": int(len(patches)),
         "patches_kept": int(len(kept)),
         "patches_rejected": int(len(patches) - len(kept)),
-        "framesets": {s: int(((fs["split"] == s) & (fs["status"] == "ok")).sum()) for s in SPLITS},
+        "framesets": {s: int(((fs["split"] == s) & (fs["status"] == Status.OK)).sum()) for s in SPLITS},
         "framesets_skipped": [
             {"dataset": r.dataset, "scene": r.scene, "target": int(r.target), "reason": r.reason}
-            for r in fs[fs["status"] != "ok"].itertuples()
+            for r in fs[fs["status"] != Status.OK].itertuples()
         ],
         "scene_problems": [{"dataset": m["dataset"], "scene": m["scene"], "problem": p} for m in metas for p in m["problems"]],
         "frames_read": int(len(frames)),

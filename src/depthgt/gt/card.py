@@ -38,6 +38,7 @@ from depthgt import io
 from depthgt.atomic import write_atomic
 from depthgt.errors import DepthGTError
 from depthgt.settings import SPLITS
+from depthgt.status import Status
 
 __all__ = ["CARD_VERSION", "CHECKSUMS", "code_version", "sha256_file", "build_card", "card_markdown", "write_card",
            "Verification", "verify"]
@@ -102,7 +103,7 @@ def build_card(results: str | Path, summary: Mapping[str, Any], framesets: pd.Da
         src = dict(meta.get("source") or {"name": meta["dataset"]})
         entry = sources.setdefault(src["name"], {k: v for k, v in src.items() if k != "scenes"} | {"scenes": []})
         entry["scenes"].append(meta["scene"])
-    ok = framesets[framesets["status"] == "ok"]
+    ok = framesets[framesets["status"] == Status.OK]
     splits = {}
     for s in SPLITS:
         in_split = framesets[framesets["split"] == s]

@@ -12,14 +12,17 @@ unusable member frames.
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from depthgt.gt.framesets import FrameSetSettings, SplitSettings, block_splits, enumerate_framesets
+from depthgt.gt.planning import FrameSetSettings, SplitSettings, block_splits, enumerate_framesets, stable_seed
 from depthgt.sources.base import Scene
+from depthgt.status import Status
 
 log = logging.getLogger(__name__)
 
@@ -82,8 +85,8 @@ def build_index(scene: Scene, dataset: str, source_split: str, fs_settings: Fram
         "intrinsics": np.asarray(scene.intrinsics, dtype=float).tolist(),
         "has_poses": bool(scene.has_poses),
         "has_clean_depth": bool(scene.has_clean_depth),
-        "n_framesets_planned": int((framesets["status"] == "planned").sum()) if len(framesets) else 0,
-        "n_framesets_skipped": int((framesets["status"] != "planned").sum()) if len(framesets) else 0,
+        "n_framesets_planned": int((framesets["status"] == Status.PLANNED).sum()) if len(framesets) else 0,
+        "n_framesets_skipped": int((framesets["status"] != Status.PLANNED).sum()) if len(framesets) else 0,
         "problems": problems,
     }
     return SceneIndex(frames=frames, framesets=framesets, meta=meta)
@@ -108,16 +111,11 @@ def select_pretraining_framesets(index_jsons: list[str], n: int, seed: int) -> l
     Raises:
         ValueError: no frame set of the train split exists.
     """
-    import json
-    from pathlib import Path
-
-    from depthgt.gt.framesets import stable_seed
-
     candidates = []
     for path in index_jsons:
         meta = json.loads(Path(path).read_text())
         table = pd.read_parquet(Path(path).with_name("index.parquet"))
-        ok = table[table["is_target"] & (table["frameset_status"] == "planned") & (table["frameset_split"] == "train")]
+        ok = table[table["is_target"] & (table["frameset_status"] == Status.PLANNED) & (table["frameset_split"] == "train")]
         candidates += [(meta["dataset"], meta["scene"], [int(m) for m in r.members]) for r in ok.itertuples()]
     if not candidates:
         raise ValueError("pretrain_registration: no frame set of the train split to pretrain on "

@@ -31,16 +31,23 @@ Conventions: depth float32 metres (0 = invalid), poses float64 4x4 camera-to-wor
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+import pandas as pd
 import torch
 import torch.nn.functional as F
 
+from depthgt import io
+from depthgt.atomic import save_npz, work_dir, write_atomic
 from depthgt.errors import ConfigError, FrameError
-from depthgt.settings import RDESettings
+from depthgt.gt import store
+from depthgt.gt.patches import crop_pairs
+from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
+from depthgt.settings import SPLITS, RDESettings
+from depthgt.status import Status
 
 __all__ = [
     "RDE_FRAMESET_COLUMNS",
@@ -405,12 +412,7 @@ def rde_scene(scene, framesets, settings: RDESettings, out_shard: str | Path, se
         Two tables: frame sets (:data:`RDE_FRAMESET_COLUMNS`) and kept patches
         (:data:`RDE_PATCH_COLUMNS`).
     """
-    import pandas as pd
-
-    from depthgt.atomic import work_dir
-    from depthgt.gt import store
-
-    ok = framesets[(framesets["status"] == "ok") & (framesets["frameset"] != "")]
+    ok = framesets[(framesets["status"] == Status.OK) & (framesets["frameset"] != "")]
     rows, patch_rows = [], []
     with work_dir(out_shard) as tmp:
         built = _rde_targets(scene, ok, settings, Path(tmp), settings_doc, rows, patch_rows, str(out_shard))
@@ -423,15 +425,6 @@ def _rde_targets(scene, ok, settings: RDESettings, out: Path, settings_doc: dict
                  shard: str) -> dict[int, Path]:
     """The RDE GT of every frame set of ``ok`` into ``out/{target:06d}/``; rows of the two
     tables appended; returns target -> folder of those rendered."""
-    from dataclasses import asdict
-
-    from depthgt import io
-    from depthgt.atomic import save_npz, write_atomic
-    from depthgt.eval.evaluate import load_frame
-    from depthgt.eval.metrics import METRIC_UNITS, depth_errors
-    from depthgt.gt import store
-    from depthgt.gt.patches import crop_pairs
-
     built: dict[int, Path] = {}
     if ok.empty:
         log.info("%s: no runnable frame set, no RDE GT", scene.name)
@@ -439,9 +432,9 @@ def _rde_targets(scene, ok, settings: RDESettings, out: Path, settings_doc: dict
     targets = [int(t) for t in ok["target"]]
     docs = {int(r.target): store.read_json(f"{r.frameset}/frameset.json") for r in ok.itertuples()}
     depths, rgbs, K, poses, target_poses = stream_for_tsdf(scene, settings.frame_step, targets)
-    frames = {int(r.target): load_frame(r.frameset) for r in ok.itertuples()}
+    frames = {int(r.target): store.read_frame_images(r.frameset) for r in ok.itertuples()}
     render_targets = [t for t in targets if target_poses.get(t) is not None]
-    hw = next(iter(frames.values()))["input"].shape
+    hw = next(iter(frames.values())).input_m.shape
     if not depths:
         raise ValueError(f"{scene.name}: no frame with depth and a finite pose for the TSDF")
     rendered, backend = reconstruct_and_render(
@@ -453,21 +446,21 @@ def _rde_targets(scene, ok, settings: RDESettings, out: Path, settings_doc: dict
     doc_settings = settings_doc if settings_doc is not None else asdict(settings)
     for r in ok.itertuples():
         t = int(r.target)
-        row = {"dataset": r.dataset, "scene": r.scene, "target": t, "split": r.split, "status": "ok", "reason": "",
+        row = {"dataset": r.dataset, "scene": r.scene, "target": t, "split": r.split, "status": Status.OK, "reason": "",
                "frameset": r.frameset, "rde": "", "has_truth": bool(r.has_truth), "patches_kept": 0,
                "rde_missing": np.nan, "backend": backend}
         if t not in by_target:
-            row.update(status="skipped", reason="no finite global pose for the target")
+            row.update(status=Status.SKIPPED, reason="no finite global pose for the target")
             rows.append(row)
             continue
         d = out / f"{t:06d}"
         gt, fr = by_target[t], frames[t]
         boxes = store.read_npz(f"{r.frameset}/patches.npz")["all_boxes"]
-        arrays = crop_pairs(fr["input"], gt, fr["rgb"], boxes, settings.max_missing, filter_on="gt")
+        arrays = crop_pairs(fr.input_m, gt, fr.rgb, boxes, settings.max_missing, filter_on="gt")
         keep = arrays["kept"]
         stats = {"rde_missing": float((gt <= 0).mean()), "patches_kept": int(keep.sum()), "patches_drawn": int(len(keep))}
-        if fr["truth"] is not None:
-            stats["rde_vs_truth"] = depth_errors(gt, fr["truth"])
+        if fr.truth_m is not None:
+            stats["rde_vs_truth"] = depth_errors(gt, fr.truth_m)
         units = {k: METRIC_UNITS[k] for k in sorted(set(stats) - {"rde_vs_truth"} | set(stats.get("rde_vs_truth", {})))}
         write_atomic(d / "gt.exr", io.write_exr, {"Z": gt})
         write_atomic(d / "patches.npz", save_npz, arrays)
@@ -490,10 +483,6 @@ def rde_dataset(scene_framesets: Sequence, scene_patches: Sequence):
     Args:
         scene_framesets, scene_patches: DataFrames of :func:`rde_scene`, one per scene.
     """
-    import pandas as pd
-
-    from depthgt.settings import SPLITS
-
     fs = pd.concat(scene_framesets, ignore_index=True) if len(scene_framesets) else pd.DataFrame(columns=RDE_FRAMESET_COLUMNS)
     pt = pd.concat(scene_patches, ignore_index=True) if len(scene_patches) else pd.DataFrame(columns=RDE_PATCH_COLUMNS)
     return fs, {split: pt[pt["split"] == split].reset_index(drop=True) for split in SPLITS}

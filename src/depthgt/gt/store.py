@@ -32,16 +32,19 @@ import zlib
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, NamedTuple
 
 import numpy as np
 
 from depthgt import io
 from depthgt.atomic import write_atomic
 from depthgt.errors import DepthGTError
+from depthgt.status import Status
 
 __all__ = ["FRAMESET_FILES", "FrameSetRecord", "location", "shard_path", "write_shard", "shard_targets", "read_batch",
-           "read_batch_frames", "ShardReader", "member_bytes", "read_json", "read_npz", "frameset_files", "find_frameset", "read_frameset", "read_frameset_at",
+           "read_batch_frames", "ShardReader", "member_bytes", "read_json", "read_npz", "read_exr_member",
+           "frameset_files", "find_frameset", "read_frameset", "read_frameset_at", "FrameImages", "FRAME_DEPTHS",
+           "read_frame_images",
            "extract_frameset"]
 
 FRAMESET_FILES = ("gt.exr", "input.exr", "rgb.png", "poses.json", "patches.npz", "frameset.json")
@@ -306,6 +309,63 @@ def read_frameset_at(loc: str | Path, reader: ShardReader | None = None) -> Fram
         patches=patches)
 
 
+class FrameImages(NamedTuple):
+    """The images of one frame set that a method runs on and is scored against.
+
+    Attributes:
+        input_m: (H, W) float32 resized raw target depth in metres (input.exr Z; 0 = none).
+        gt_m: (H, W) float32 GT depth in metres (gt.exr Z; 0 = none).
+        truth_m: (H, W) float32 clean depth of synthetic sources (input.exr T) or None.
+        rgb: (H, W, 3) uint8 target colour.
+    """
+
+    input_m: np.ndarray
+    gt_m: np.ndarray
+    truth_m: np.ndarray | None
+    rgb: np.ndarray
+
+    def depth(self, name: str) -> np.ndarray | None:
+        """The depth image that methods and references call ``name``: ``input``, ``gt``
+        or ``truth`` (None when the frame set has no truth)."""
+        if name not in FRAME_DEPTHS:
+            raise ValueError(f"no depth image {name!r} in a frame set; known: {', '.join(FRAME_DEPTHS)}")
+        return getattr(self, f"{name}_m")
+
+
+FRAME_DEPTHS = ("input", "gt", "truth")
+
+
+def read_frame_images(loc: str | Path) -> FrameImages:
+    """The images of the frame set at ``loc`` (what the evaluation, the figures and the
+    RDE GT read); see :class:`FrameImages`.
+
+    Raises:
+        ValueError: a depth image without its Z channel, or images of different sizes.
+    """
+    with frameset_files(loc) as d:
+        inp = io.read_exr(d / "input.exr")
+        gt = io.read_exr(d / "gt.exr")
+        rgb = io.read_rgb(d / "rgb.png")
+    d = Path(str(loc))
+    for path, chans in ((d / "input.exr", inp), (d / "gt.exr", gt)):
+        if "Z" not in chans:
+            raise ValueError(f"{path}: no channel 'Z' (has {sorted(chans)})")
+    frame = FrameImages(input_m=inp["Z"].astype(np.float32), gt_m=gt["Z"].astype(np.float32),
+                        truth_m=inp["T"].astype(np.float32) if "T" in inp else None, rgb=rgb)
+    if rgb.shape[:2] != frame.input_m.shape or frame.gt_m.shape != frame.input_m.shape:
+        raise ValueError(f"{d}: image sizes differ: input {frame.input_m.shape}, gt {frame.gt_m.shape}, rgb {rgb.shape}")
+    return frame
+
+
+def read_exr_member(member: str | Path) -> dict[str, np.ndarray]:
+    """Every channel of an EXR member ``<location>/<name>`` (in a shard or a folder),
+    e.g. ``read_exr_member(f"{loc}/gt.exr")["Z"]``."""
+    archive, inner = _split(member)
+    if archive is None:
+        return io.read_exr(inner)
+    return io.decode_exr(member_bytes(member), str(member))
+
+
 def find_frameset(results: str | Path, dataset: str, scene: str, target: int) -> str:
     """The location of frame set ``target`` of a scene under the results folder.
 
@@ -320,7 +380,7 @@ def find_frameset(results: str | Path, dataset: str, scene: str, target: int) ->
         if first <= target <= last:
             for rec in read_batch(shard):
                 if int(rec["target"]) == target:
-                    if rec["status"] != "ok":
+                    if rec["status"] != Status.OK:
                         raise DepthGTError(f"frame set {dataset}/{scene}/{target:06d} was not built: "
                                            f"{rec['status']} ({rec.get('reason', '')}) [{shard}]")
                     return location(shard, target)

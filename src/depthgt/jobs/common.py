@@ -7,6 +7,9 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
 
+from depthgt.errors import ConfigError
+from depthgt.sources.base import open_scene
+
 __all__ = ["logging_to", "open_source_scene"]
 
 log = logging.getLogger("depthgt")
@@ -47,9 +50,6 @@ def open_source_scene(source: dict[str, Any], scene: str, need_poses: bool = Tru
     with ``require_pose=False`` so that frames with non-finite poses (ScanNet has them)
     stay usable.
     """
-    from depthgt.errors import ConfigError
-    from depthgt.sources.base import open_scene
-
     options = dict(source.get("options") or {})
     if not need_poses and source["kind"] in POSE_OPTIONAL_KINDS:
         options.setdefault("require_pose", False)

@@ -2,7 +2,7 @@
 (global-reconstruction) GT of a scene and of the dataset.
 
 Each Snakemake script calls one of these with its rule's paths (every output path
-explicitly) and config sections; nothing heavy is imported at module level.
+explicitly) and config sections; nothing heavy (torch) is imported at module level.
 """
 
 from __future__ import annotations
@@ -11,7 +11,10 @@ import logging
 from pathlib import Path
 from typing import Any, Mapping
 
+import pandas as pd
+
 from depthgt.jobs.common import open_source_scene
+from depthgt.settings import settings_from_config
 
 __all__ = ["run_train", "run_rde_scene", "run_rde_dataset"]
 
@@ -27,10 +30,10 @@ def run_train(model: str, config: Mapping[str, Any], train_manifest: str, val_ma
         outputs: the paths ``best``, ``last``, ``log``, ``meta``
             (:class:`depthgt.enhance.train.TrainOutputs`).
     """
+    # heavy (torch): only this job needs them
     import torch
 
     from depthgt.enhance.train import TrainOutputs, train
-    from depthgt.settings import settings_from_config
 
     torch.set_num_threads(max(1, int(threads)))
     st = settings_from_config(config).train(model)
@@ -47,11 +50,9 @@ def run_rde_scene(source: dict[str, Any], scene: str, scene_framesets: str, conf
     shard ``out_shard``, and its two tables. Frames come from the source at the working
     resolution (:class:`depthgt.gt.cache.ResizedScene`), the frames the frame sets saw.
     """
-    import pandas as pd
-
+    # heavy (torch): only this job needs them
     from depthgt.gt.cache import ResizedScene
     from depthgt.gt.rde import rde_scene
-    from depthgt.settings import settings_from_config
 
     all_settings = settings_from_config(config)
     sc = ResizedScene(open_source_scene(source, scene, need_poses=True), all_settings.size_hw)
@@ -68,9 +69,7 @@ def run_rde_dataset(scene_framesets: list[str], scene_patches: list[str], output
         outputs: the paths ``train``, ``val``, ``test`` (kept patches per split) and
             ``framesets``.
     """
-    import pandas as pd
-
-    from depthgt.gt.rde import rde_dataset
+    from depthgt.gt.rde import rde_dataset  # heavy: the module imports torch
 
     fs, splits = rde_dataset([pd.read_parquet(p) for p in scene_framesets], [pd.read_parquet(p) for p in scene_patches])
     for path in outputs.values():

@@ -14,8 +14,21 @@ import logging
 from pathlib import Path
 from typing import Any, Mapping
 
+import pandas as pd
+from tqdm import tqdm
+
 from depthgt import io
+from depthgt.atomic import work_dir, write_atomic
+from depthgt.device import resolve_device
+from depthgt.errors import FrameError
+from depthgt.gt import store
+from depthgt.gt.assemble import DatasetOutputs, assemble, summarize_scene
+from depthgt.gt.card import build_card, write_card
+from depthgt.gt.index import build_index, select_pretraining_framesets
+from depthgt.gt.planning import member_problems
 from depthgt.jobs.common import open_source_scene
+from depthgt.settings import settings_from_config
+from depthgt.status import Status
 
 __all__ = ["run_scene_index", "run_frameset_batch", "run_scene_summary", "run_dataset", "run_pretrain_registration"]
 
@@ -29,15 +42,12 @@ def run_scene_index(source: dict[str, Any], scene: str, config: Mapping[str, Any
                     out_json: str) -> None:
     """List a scene's frames and frame sets from its metadata (no frame is read) and
     write its index (parquet + json)."""
-    from depthgt.gt.index import build_index
-    from depthgt.settings import settings_from_config
-
     settings = settings_from_config(config)
     sc = open_source_scene(source, scene, need_poses=False)  # reads no frame: poses do not matter here
     index = build_index(sc, source["name"], source.get("split", "auto"), fs_settings=settings.frameset,
                         split_settings=settings.split, seed=settings.seed)
     meta = dict(index.meta)
-    meta["framesets_planned"] = [int(t) for t in index.framesets.loc[index.framesets["status"] == "planned", "target"]]
+    meta["framesets_planned"] = [int(t) for t in index.framesets.loc[index.framesets["status"] == Status.PLANNED, "target"]]
     meta["source"] = source
     Path(out_parquet).parent.mkdir(parents=True, exist_ok=True)
     index.to_table().to_parquet(out_parquet, index=False)
@@ -59,7 +69,7 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
     ``registration.method: given`` their poses too): before a planned target is built,
     its member frames are read; a frame set with an unusable member is skipped, its
     reason naming each such frame with its reason and message
-    (:func:`depthgt.gt.framesets.member_problems`).
+    (:func:`depthgt.gt.planning.member_problems`).
 
     Every candidate target of the slice gets a record in the shard's ``batch.json``:
     ``ok`` (or ``failed``: the registration) when built, else ``skipped`` with the
@@ -71,15 +81,9 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
     Returns:
         The frame-set records of ``batch.json``.
     """
-    import pandas as pd
-    from tqdm import tqdm
-
-    from depthgt.atomic import work_dir
-    from depthgt.gt import store
+    # heavy (torch): only the jobs that build frame sets need them
+    from depthgt.gt.build import FrameSetOutputs, process_frameset
     from depthgt.gt.cache import ResizedScene
-    from depthgt.gt.frameset import FrameSetOutputs, process_frameset
-    from depthgt.gt.framesets import member_problems
-    from depthgt.settings import settings_from_config
 
     settings = settings_from_config(config)
     need_poses = settings.registration.uses_source_poses
@@ -88,7 +92,7 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
     rows = {int(r.position): r for r in table[table["is_target"]].itertuples()}
     state = None
     if encoder:
-        import torch
+        import torch  # heavy: only with a pretrained encoder
 
         state = torch.load(encoder, map_location="cpu", weights_only=True) or None  # {}: no pretraining
     scene_obj = ResizedScene(open_source_scene(source, scene, need_poses=need_poses), settings.size_hw,
@@ -99,20 +103,20 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
         for target in tqdm(planned, desc=f"frame sets {source['name']}/{scene} {first:06d}-{last:06d}", unit="set"):
             row = rows.get(target)
             if row is None:
-                records.append({"target": target, "status": "skipped", "reason": "not_in_scene: the scene holds "
+                records.append({"target": target, "status": Status.SKIPPED, "reason": "not_in_scene: the scene holds "
                                 f"{len(table)} frames, fewer than planned for this target", "members": [], "split": ""})
                 log.warning("%s/%s: target %d skipped: not in the scene (%d frames)", source["name"], scene, target,
                             len(table))
                 continue
             members = [int(m) for m in row.members]
-            if row.frameset_status != "planned":
+            if row.frameset_status != Status.PLANNED:
                 records.append({"target": target, "status": row.frameset_status, "reason": row.frameset_reason,
                                 "members": members, "split": row.frameset_split})
                 continue
             checks = [scene_obj.check(m) for m in members]
             bad = member_problems(members, {c.position: c.problem for c in checks if not c.valid})
             if bad:
-                records.append({"target": target, "status": "skipped", "reason": bad, "members": members,
+                records.append({"target": target, "status": Status.SKIPPED, "reason": bad, "members": members,
                                 "split": row.frameset_split})
                 log.warning("frame set %s/%s/%06d skipped: %s", source["name"], scene, target, bad)
                 continue
@@ -138,8 +142,6 @@ def run_scene_summary(index_parquet: str, shards: list[str], out_framesets: str,
     """Summarise a scene's frame sets (from its shards), patches, GT quality and the
     frames its batches read into four parquet tables
     (:func:`depthgt.gt.assemble.summarize_scene`)."""
-    from depthgt.gt.assemble import summarize_scene
-
     tables = summarize_scene(index_parquet, shards)
     for table, path in zip(tables, (out_framesets, out_patches, out_quality, out_frames)):
         table.to_parquet(path, index=False)
@@ -161,12 +163,6 @@ def run_dataset(scene_framesets: list[str], scene_patches: list[str], scene_qual
         config: the config sections that decide the GT (their resolved settings, defaults
             filled in, are recorded in the card).
     """
-    import pandas as pd
-
-    from depthgt.gt.assemble import DatasetOutputs, assemble
-    from depthgt.gt.card import build_card, write_card
-    from depthgt.settings import settings_from_config
-
     out = DatasetOutputs(**{k: outputs[k] for k in DatasetOutputs._fields})
     summary = assemble(scene_framesets, scene_patches, scene_quality, scene_frames, index_jsons, out)
     log.info("dataset: %s pairs, %d frame sets skipped, %d of %d frames read unusable", summary["pairs"],
@@ -190,15 +186,11 @@ def run_pretrain_registration(sources: Mapping[str, dict[str, Any]], index_jsons
     one with an unusable frame (the index reads none) is skipped with a warning and the
     next spare of the draw takes its place.
     """
+    # heavy (torch): only this job needs them
     import torch
 
-    from depthgt.atomic import write_atomic
-    from depthgt.device import resolve_device
-    from depthgt.errors import FrameError
-    from depthgt.gt.frameset import load_frameset
-    from depthgt.gt.index import select_pretraining_framesets
+    from depthgt.gt.build import load_frameset
     from depthgt.registration import pretrain_encoder
-    from depthgt.settings import settings_from_config
 
     settings = settings_from_config(config)
     pre = settings.registration.pretrain

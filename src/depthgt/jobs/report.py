@@ -1,7 +1,7 @@
 """Entry points of the report jobs: evaluation of one method, the tables, the figures.
 
 Each Snakemake script calls one of these with its rule's paths (every output path
-explicitly) and config sections; nothing heavy is imported at module level.
+explicitly) and config sections; nothing heavy (torch) is imported at module level.
 """
 
 from __future__ import annotations
@@ -9,6 +9,13 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 from typing import Any, Mapping
+
+import pandas as pd
+
+from depthgt.device import resolve_device
+from depthgt.eval import figures
+from depthgt.settings import settings_from_config
+from depthgt.status import Status
 
 __all__ = ["run_evaluate", "run_tables", "run_figures"]
 
@@ -25,11 +32,10 @@ def run_evaluate(method: str, config: Mapping[str, Any], framesets: str, out_tab
     Args:
         checkpoint: the trained model of a learned method.
     """
+    # heavy (torch): only this job needs them
     import torch
 
-    from depthgt.device import resolve_device
     from depthgt.eval.evaluate import evaluate_frames, method_spec
-    from depthgt.settings import settings_from_config
 
     torch.set_num_threads(max(1, int(threads)))
     settings = settings_from_config(config)
@@ -55,9 +61,7 @@ def run_tables(eval_tables: list[str], framesets: str, rde_framesets: str, gt_qu
         outputs: for each of ``table1``, ``table2``, ``table3``, ``quality`` the Markdown
             path under that key and the CSV path under ``{key}_csv``.
     """
-    import pandas as pd
-
-    from depthgt.eval import tables
+    from depthgt.eval import tables  # heavy: the structure metrics import torch
 
     evals = [pd.read_parquet(p) for p in eval_tables]
     ev = pd.concat(evals, ignore_index=True) if evals else pd.DataFrame()
@@ -77,12 +81,8 @@ def run_figures(framesets: str, pred_dirs: Mapping[str, str], loss_logs: Mapping
     """The comparison figure (rows: up to ``frames_per_scene`` frames of each scene of
     ``split``; predictions read from ``pred_dirs``: method -> folder) and one
     training-curve plot per model (``out_curves``: model -> png)."""
-    import pandas as pd
-
-    from depthgt.eval import figures
-
     table = pd.read_parquet(framesets)
-    table = table[(table["split"] == split) & (table["status"] == "ok") & (table["frameset"] != "")]
+    table = table[(table["split"] == split) & (table["status"] == Status.OK) & (table["frameset"] != "")]
     figures.comparison_figure(table, pred_dirs, out_comparison, frames_per_scene)
     for name, path in loss_logs.items():
         figures.training_curve(path, out_curves[name], title=name)

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from depthgt.eval.metrics import pose_delta
+from depthgt.metric_vocabulary import pose_delta
 from depthgt.registration.correspondences import find_correspondences, sample_candidates
 from depthgt.registration.encoder import build_encoder, lift_points
 from depthgt.registration.losses import correspondence_loss, default_render_fn, render_losses

@@ -44,6 +44,7 @@ from depthgt.errors import SourceError
 from depthgt.io import fit_rgb_to_depth, read_pose_txt, read_rgb
 from depthgt.sources._files import NumberedFrames, require_root
 from depthgt.sources.base import Frame, check_frame, usable_pose
+from depthgt.sources.sens import SensFile, read_header
 
 __all__ = ["ScanNetExportedScene", "ScanNetSensScene", "open_scene", "list_scenes"]
 
@@ -142,8 +143,6 @@ class ScanNetSensScene:
     has_poses = True
 
     def __init__(self, path: str | Path, name: str, require_pose: bool = True, intrinsics: np.ndarray | None = None):
-        from depthgt.sources.sens import SensFile  # the reader only when a .sens is opened
-
         self.path = Path(path)
         self.name = name
         self.require_pose = bool(require_pose)
@@ -194,8 +193,6 @@ def list_scenes(root: str | Path | None, **options) -> list[str]:
 def frame_count(root: str | Path | None, scene: str, **options) -> int:
     """Frames of a scene: the ``.sens`` header's count (no frame record is read), or
     the exported folder's frames (a directory listing)."""
-    from depthgt.sources.sens import read_header
-
     path = _root(root)
     folder = path / scene
     if not (folder.is_dir() and _is_exported(folder)):

@@ -21,12 +21,13 @@ from depthgt import geometry, io
 from depthgt.atomic import save_npz, write_atomic
 from depthgt.device import resolve_device
 from depthgt.errors import FrameError
-from depthgt.eval.metrics import METRIC_UNITS, depth_errors
-from depthgt.gt.framesets import stable_seed
 from depthgt.gt.patches import make_patches
+from depthgt.gt.planning import stable_seed
 from depthgt.gt.render import GTRender, cloud_in_target, render_gt
+from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
 from depthgt.settings import RegistrationSettings, RenderSettings, Settings
 from depthgt.sources.base import Scene, check_frame
+from depthgt.status import Status
 
 __all__ = ["FrameSetData", "FrameSetOutputs", "Alignment", "load_frameset", "poses_from_source", "align", "photometric_for",
            "fuse",
@@ -149,7 +150,7 @@ class Alignment:
 
     T_j_to_t: torch.Tensor
     fused: list[int]
-    status: str = "ok"
+    status: str = Status.OK
     reason: str = ""
     info: dict | None = None
 
@@ -181,10 +182,10 @@ def align(data: FrameSetData, offsets: list[int], settings: RegistrationSettings
     T_j_to_t = torch.as_tensor(result.T_j_to_t, dtype=torch.float64, device=data.depth_m.device)
     info.update(result.to_dict())
     status, reason = result.status, result.reason
-    failed = [o for o, st in zip(offsets[1:], result.neighbour_status) if st != "ok"]
-    if failed and status == "ok" and settings.on_failure == "exclude":
-        status, reason = "failed", f"neighbours_not_registered(offsets {','.join(f'{o:+d}' for o in failed)})"
-    fused = [0] + [i + 1 for i, st in enumerate(result.neighbour_status) if st == "ok"]
+    failed = [o for o, st in zip(offsets[1:], result.neighbour_status) if st != Status.OK]
+    if failed and status == Status.OK and settings.on_failure == "exclude":
+        status, reason = Status.FAILED, f"neighbours_not_registered(offsets {','.join(f'{o:+d}' for o in failed)})"
+    fused = [0] + [i + 1 for i, st in enumerate(result.neighbour_status) if st == Status.OK]
     info["fused_offsets"] = [offsets[i] for i in fused]
     return Alignment(T_j_to_t, fused, status, reason, info)
 
@@ -224,7 +225,7 @@ def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, d
 
 
 def quality_statistics(data: FrameSetData, alignment: Alignment, gt_m: np.ndarray, settings: RenderSettings) -> dict:
-    """Depth errors of the GT (:func:`depthgt.eval.metrics.depth_errors`).
+    """Depth errors of the GT (:func:`depthgt.metric_vocabulary.depth_errors`).
 
     With a clean truth: ``gt_vs_truth``, ``input_vs_truth`` and
     ``gt_vs_truth_input_valid`` (the fair accuracy comparison: only where the sensor has

@@ -15,6 +15,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from depthgt.settings import SPLITS, FrameSetSettings, SplitSettings
+from depthgt.status import Status
 
 __all__ = ["stable_seed", "block_splits", "enumerate_framesets", "member_problems"]
 
@@ -57,7 +58,7 @@ def enumerate_framesets(splits: np.ndarray, settings: FrameSetSettings) -> list[
         ``split_guard``: its members span two splits.
 
     >>> sets = enumerate_framesets(np.array(["train"] * 13 + ["val"] * 2, dtype=object), FrameSetSettings(target_step=1))
-    >>> [(s["target"], s["status"]) for s in sets]
+    >>> [(s["target"], str(s["status"])) for s in sets]
     [(6, 'planned'), (7, 'skipped'), (8, 'skipped')]
     """
     n = len(splits)
@@ -65,9 +66,9 @@ def enumerate_framesets(splits: np.ndarray, settings: FrameSetSettings) -> list[
     out = []
     for t in settings.targets(n):
         members = (t + offsets).tolist()
-        status, reason = "planned", ""
+        status, reason = Status.PLANNED, ""
         if len({splits[m] for m in members}) > 1:
-            status, reason = "skipped", "split_guard: members span two splits"
+            status, reason = Status.SKIPPED, "split_guard: members span two splits"
         out.append({"target": t, "members": members, "split": splits[t], "status": status, "reason": reason})
     return out
 
