@@ -1,27 +1,18 @@
-"""Point rendering: the differentiable soft splat (registration losses) and the GT
-renderer of paper eq. 5 (the merged frame-set cloud fused into the target view).
+"""The GT renderer of paper eq. 5: the merged frame-set cloud fused into the target view.
 
-Both renderers share one rasteriser written with tensor ops: every point is paired
-with the pixels whose sample positions lie strictly within ``radius_px`` of its
-sub-pixel projection (pixel-centre convention of :mod:`depthgt.geometry`: pixel (u, v)
-covers [u - 0.5, u + 0.5] x [v - 0.5, v + 0.5]; the GT renderer can sample each pixel
-at the source pixel its nearest-resized input came from instead, see
-:func:`resampled_positions`). The (point, pixel) pairs are "candidates". The soft
-splat selects per pixel with ``scatter_reduce`` / ``index_add`` and sorts restricted
-to the candidates whose rank matters. The GT renderer sorts the candidates once (one
-int64 key: pixel, then inverse depth), groups them into surfaces by gaps in inverse
-depth scaled to the sensor's noise, picks the visible surface by its support and its
-sampled footprint, and fits a weighted plane in inverse depth per pixel (closed-form
-2x2 solves); it also returns a per-pixel confidence. No Python loop runs over points
-or pixels; ``tests/render_reference.py`` holds the plain loop versions (test oracles).
-
-Written here rather than taken from PyTorch3D's point rasteriser because PyTorch3D is
-not among the project's dependencies and because the GT needs a selection rule
-(surfaces by geometry and support, visibility by footprint, a plane at the sample
-position) that its rasteriser (K nearest by depth) does not implement.
+It composes the shared rasteriser (:mod:`depthgt.rasterise`: every point paired with
+the pixels whose sample positions lie within ``radius_px`` of its projection; the soft
+splat of the registration, :mod:`depthgt.splatting`, uses it too) with its own
+compositor: the candidates sorted once (one int64 key: pixel, then inverse depth),
+grouped into surfaces by gaps in inverse depth scaled to the sensor's noise
+(:mod:`depthgt.noise_law`), the visible surface picked by its support and its sampled
+footprint, frames (or regions of them) that disagree with the target left out, and a
+weighted plane fitted in inverse depth per pixel (closed-form 2x2 solves), with a
+per-pixel confidence. No Python loop runs over points or pixels;
+``tests/render_reference.py`` holds the plain loop versions (test oracles).
 
 Measured (bench/bench_gt_protocol.py, evaluation set of 45 synthetic frame sets never
-used for tuning, see README "GT renderer"): from the clean depth of the 6 neighbours
+used for tuning, see bench/README.md): from the clean depth of the 6 neighbours
 with exact poses the GT is within 0.95 mm MAE of the truth (grazing pixels 1.4 mm,
 beyond 4 m 1.9 mm); from Kinect-noised depth its MAE is 0.26x the input's where both
 have depth.
@@ -39,311 +30,20 @@ import torch.nn.functional as F
 from kornia.geometry.depth import depth_to_normals
 from kornia.geometry.linalg import transform_points
 
-from depthgt.geometry import backproject, project
+from depthgt.geometry import backproject
+from depthgt.noise_law import KINECT_SIGMA_1M, depth_sigma_m, estimate_noise_sigma_1m, second_differences
+from depthgt.rasterise import candidates, check_points, rank_in_pixel, resampled_positions, sort_in_pixel
 from depthgt.settings import RenderSettings
+from depthgt.splatting import SoftSplat, splat_soft  # re-exported: the renderer's public names
 
 __all__ = ["SoftSplat", "splat_soft", "GTRender", "render_gt", "TargetCloud", "cloud_in_target",
            "depth_sigma_m", "estimate_noise_sigma_1m", "resampled_positions", "KINECT_SIGMA_1M"]
 
 
-# --------------------------------------------------------------------------- helpers
-
-
-def _check_points(points_cam: torch.Tensor, K: torch.Tensor, valid: torch.Tensor | None, size_hw) -> torch.Tensor:
-    if points_cam.ndim != 3 or points_cam.shape[-1] != 3:
-        raise ValueError(f"points_cam must be (B, N, 3), got {tuple(points_cam.shape)}")
-    b, n, _ = points_cam.shape
-    if K.shape != (b, 3, 3):
-        raise ValueError(f"K must be ({b}, 3, 3) to match points_cam {tuple(points_cam.shape)}, got {tuple(K.shape)}")
-    if len(size_hw) != 2 or int(size_hw[0]) <= 0 or int(size_hw[1]) <= 0:
-        raise ValueError(f"size_hw must be (H, W) with positive sizes, got {size_hw}")
-    if valid is None:
-        return torch.ones(b, n, dtype=torch.bool, device=points_cam.device)
-    if valid.shape != (b, n) or valid.dtype != torch.bool:
-        raise ValueError(f"valid must be a ({b}, {n}) bool tensor, got {tuple(valid.shape)} {valid.dtype}")
-    return valid
-
-
-class _Candidates(NamedTuple):
-    """Flat (point, pixel) pairs; C = number of candidates.
-
-    point: (C,) long index into the flattened (B*N) points.
-    pixel: (C,) long index into the flattened (B*H*W) output pixels.
-    d2: (C,) squared distance in pixels between the projection and the pixel centre.
-    dx, dy: (C,) pixel centre minus projection, d2 = dx^2 + dy^2.
-    d2, dx and dy are differentiable w.r.t. the points.
-    """
-
-    point: torch.Tensor
-    pixel: torch.Tensor
-    d2: torch.Tensor
-    dx: torch.Tensor
-    dy: torch.Tensor
-
-
-def _candidates(
-    points_cam: torch.Tensor,
-    K: torch.Tensor,
-    valid: torch.Tensor,
-    size_hw: tuple[int, int],
-    radius_px: float,
-    min_depth: float,
-    grid_uv: tuple[torch.Tensor, torch.Tensor] | None = None,
-) -> tuple[_Candidates, torch.Tensor]:
-    """Pair every valid point with the pixel sample positions strictly inside ``radius_px``.
-
-    The sample position of pixel (u, v) is its centre, or with ``grid_uv`` = (gu (W,),
-    gv (H,)) the position (gu[u], gv[v]) (each within 0.5 px of the centre, see
-    :func:`resampled_positions`). Returns the candidates and the (B*N,) depth of every
-    point (differentiable).
-    """
-    b, n, _ = points_cam.shape
-    h, w = int(size_hw[0]), int(size_hw[1])
-    uv, z = project(points_cam, K, eps=min_depth)
-    uv_f = uv.reshape(-1, 2)
-    z_f = z.reshape(-1)
-    r = float(radius_px)
-    if grid_uv is not None:
-        return _candidates_on_grid(uv_f, z_f, valid, b, n, h, w, r, min_depth, grid_uv)
-    with torch.no_grad():
-        u, v = uv_f[:, 0], uv_f[:, 1]
-        ok = valid.reshape(-1) & (z_f > min_depth) & torch.isfinite(u) & torch.isfinite(v)
-        ok &= (u > -r) & (u < w - 1 + r) & (v > -r) & (v < h - 1 + r)
-        pid = ok.nonzero().squeeze(1)
-        u, v = u[pid], v[pid]
-        # Every pixel centre within r of (u, v) lies in [ceil(u - r), floor(u + r)]:
-        # at most floor(2r) + 1 columns (and rows) starting at ceil(u - r).
-        span = int(math.floor(2 * r)) + 1
-        off = torch.arange(span, device=points_cam.device, dtype=u.dtype)
-        x0 = torch.ceil(u - r)
-        y0 = torch.ceil(v - r)
-        cols = x0[:, None] + off[None, :]  # (P, span) candidate pixel columns
-        rows = y0[:, None] + off[None, :]
-        inf = torch.tensor(float("inf"), dtype=u.dtype, device=u.device)
-        # per-axis squared distances; out-of-image columns/rows get +inf so that the
-        # (P, span, span) sum below needs a single comparison
-        dx2 = torch.where((cols >= 0) & (cols < w), (cols - u[:, None]) ** 2, inf)
-        dy2 = torch.where((rows >= 0) & (rows < h), (rows - v[:, None]) ** 2, inf)
-        inside = (dy2[:, :, None] + dx2[:, None, :]) < r * r  # (P, span, span)
-        del dx2, dy2, cols, rows  # free the temporaries early
-        sel = inside.nonzero()  # (C, 3): point slot, row offset, column offset
-        del inside
-        slot, oy, ox = sel.unbind(1)
-        point = pid[slot]
-        batch = torch.div(pid, n, rounding_mode="floor")
-        base = (batch * h + y0.long()) * w + x0.long()  # pixel index of the window corner
-        pixel = base[slot] + oy * w + ox
-    # differentiable offsets (pixel centre - projection), gathered per candidate
-    dx = (x0 - uv_f[pid, 0])[slot] + ox.to(uv_f.dtype)
-    dy = (y0 - uv_f[pid, 1])[slot] + oy.to(uv_f.dtype)
-    d2 = dx * dx + dy * dy
-    return _Candidates(point, pixel, d2, dx, dy), z_f
-
-
-def _candidates_on_grid(uv_f, z_f, valid, b, n, h, w, r, min_depth, grid_uv):
-    """:func:`_candidates` for sample positions ``grid_uv`` off the pixel centres."""
-    gu, gv = (g.to(uv_f.dtype) for g in grid_uv)
-    if gu.shape != (w,) or gv.shape != (h,):
-        raise ValueError(f"grid_uv must hold ({w},) and ({h},) sample positions, got {tuple(gu.shape)}, {tuple(gv.shape)}")
-    with torch.no_grad():
-        shift = float(max((gu - torch.arange(w, dtype=gu.dtype, device=gu.device)).abs().max(),
-                          (gv - torch.arange(h, dtype=gv.dtype, device=gv.device)).abs().max()))
-        if shift >= 0.5:
-            raise ValueError(f"grid_uv positions must lie within 0.5 px of the pixel centres, got up to {shift:.3f}")
-        u, v = uv_f[:, 0], uv_f[:, 1]
-        ok = valid.reshape(-1) & (z_f > min_depth) & torch.isfinite(u) & torch.isfinite(v)
-        ok &= (u > float(gu[0]) - r) & (u < float(gu[-1]) + r) & (v > float(gv[0]) - r) & (v < float(gv[-1]) + r)
-        pid = ok.nonzero().squeeze(1)
-        u, v = u[pid], v[pid]
-        # sample positions within r of u lie in columns [ceil(u - r - shift), floor(u + r + shift)]
-        span = int(math.floor(2 * (r + shift))) + 1
-        off = torch.arange(span, device=u.device)
-        x0 = torch.ceil(u - r - shift).long()
-        y0 = torch.ceil(v - r - shift).long()
-        cols = x0[:, None] + off[None, :]
-        rows = y0[:, None] + off[None, :]
-        inf = torch.tensor(float("inf"), dtype=u.dtype, device=u.device)
-        dx2 = torch.where((cols >= 0) & (cols < w), (gu[cols.clamp(0, w - 1)] - u[:, None]) ** 2, inf)
-        dy2 = torch.where((rows >= 0) & (rows < h), (gv[rows.clamp(0, h - 1)] - v[:, None]) ** 2, inf)
-        inside = (dy2[:, :, None] + dx2[:, None, :]) < r * r
-        del dx2, dy2
-        slot, oy, ox = inside.nonzero().unbind(1)
-        del inside
-        point = pid[slot]
-        col = x0[slot] + ox
-        row = y0[slot] + oy
-        base = torch.div(pid, n, rounding_mode="floor") * (h * w)  # (P,) first pixel of each point's batch element
-        pixel = base[slot] + row * w + col
-    dx = gu[col] - uv_f[point, 0]
-    dy = gv[row] - uv_f[point, 1]
-    return _Candidates(point, pixel, dx * dx + dy * dy, dx, dy), z_f
-
-
-def resampled_positions(n_src: int, n_dst: int, device=None, dtype=torch.float32) -> torch.Tensor:
-    """(n_dst,) position, in output pixel units, of the source pixel centre that
-    :func:`depthgt.geometry.resize_depth_nearest` takes each output pixel from (the
-    same index rule): where the resized input and the resized truth were sampled.
-    Within 0.5 px of the output pixel centres."""
-    i = ((torch.arange(n_dst, device=device, dtype=torch.float64) + 0.5) * (n_src / n_dst)).floor().clamp_(0, n_src - 1)
-    return ((i + 0.5) * (n_dst / n_src) - 0.5).to(dtype)
-
-
-def _sort_in_pixel(pixel: torch.Tensor, key: torch.Tensor) -> torch.Tensor:
-    """Permutation sorting candidates by pixel, then by ascending ``key`` within a pixel.
-
-    One radix-friendly int64 sort of pixel * 2^32 + the key quantised to 31 bits of
-    its global range (ties and keys closer than range / 2^31 keep candidate order).
-    """
-    k = key.detach().to(torch.float64)
-    lo, hi = k.min(), k.max()
-    q = ((k - lo) / (hi - lo).clamp_min(1e-300) * (2**31 - 1)).long()
-    return torch.sort(pixel * (2**32) + q, stable=True).indices
-
-
-def _segment_rank_keep(pixel: torch.Tensor, key: torch.Tensor, active: torch.Tensor, limit: int, n_pixels: int) -> torch.Tensor:
-    """Restrict ``active`` (C,) bool to the ``limit`` active candidates of smallest ``key``
-    in every pixel.
-
-    Only candidates of pixels holding more than ``limit`` active candidates are sorted
-    (by the composite key pixel + normalised key, in float64), so the common case
-    costs one ``bincount``. Ties keep candidate order (stable sort): deterministic.
-    """
-    if pixel.numel() == 0:
-        return active
-    counts = torch.bincount(pixel, weights=active.to(torch.float32), minlength=n_pixels)
-    over = (active & (counts[pixel] > limit)).nonzero().squeeze(1)
-    if over.numel() == 0:
-        return active
-    out = active.clone()
-    out[over[_rank_in_pixel(pixel[over], key.detach()[over]) >= limit]] = False
-    return out
-
-
-def _rank_in_pixel(pixel: torch.Tensor, key: torch.Tensor) -> torch.Tensor:
-    """(C,) rank of every candidate among the candidates of its pixel by ascending key
-    (0 = smallest). One stable sort on the composite key pixel + normalised key in
-    float64, so ties keep candidate order (deterministic)."""
-    k = key.to(torch.float64)
-    lo, hi = k.min(), k.max()
-    kn = (k - lo) / (hi - lo).clamp_min(1e-30) * 0.5  # in [0, 0.5]: stays inside its pixel's unit interval
-    order = torch.sort(pixel.to(torch.float64) + kn, stable=True).indices
-    pix_sorted = pixel[order]
-    pos = torch.arange(order.numel(), device=pixel.device)
-    starts = torch.ones_like(pix_sorted, dtype=torch.bool)
-    starts[1:] = pix_sorted[1:] != pix_sorted[:-1]
-    first = torch.cummax(torch.where(starts, pos, torch.zeros_like(pos)), dim=0).values
-    rank = torch.empty_like(pos)
-    rank[order] = pos - first
-    return rank
-
-
-# --------------------------------------------------------------------------- soft splat
-
-
-class SoftSplat(NamedTuple):
-    """Output of :func:`splat_soft`.
-
-    features: (B, C, H, W) normalised weighted sum of the point features (0 where
-        nothing was rendered).
-    depth: (B, 1, H, W) normalised weighted sum of the point depths in metres (0 =
-        nothing rendered).
-    weight: (B, 1, H, W) sum of the splat weights of the kept points (0 = nothing).
-    """
-
-    features: torch.Tensor
-    depth: torch.Tensor
-    weight: torch.Tensor
-
-
-def splat_soft(
-    points_cam: torch.Tensor,
-    features: torch.Tensor,
-    K: torch.Tensor,
-    size_hw: tuple[int, int],
-    valid: torch.Tensor | None = None,
-    radius_px: float = 2.0,
-    max_points: int = 16,
-    depth_band_rel: float | None = 0.05,
-    min_depth: float = 1e-3,
-) -> SoftSplat:
-    """Differentiable point rendering with soft splats (SynSin / UnsupervisedR&R style).
-
-    Each point touches the pixels whose centres lie within ``radius_px`` of its
-    sub-pixel projection, with weight ``w = (1 - d^2 / r^2)^2`` (``d`` the distance
-    in pixels): smooth, 1 at the centre, falling to zero with zero slope at the radius,
-    so the output is continuous in the point positions.
-
-    Compositing (a soft z-buffer with a normalised weighted sum): per pixel, the
-    candidates farther than ``z_front * (1 + depth_band_rel)`` are dropped (``z_front``
-    the nearest candidate depth at that pixel; a hard occlusion test so that surfaces
-    seen through gaps of the front surface do not bleed in), then the ``max_points``
-    nearest in depth are kept, and the pixel receives ``sum(w f) / sum(w)`` for the
-    features and ``sum(w z) / sum(w)`` for the depth. We chose the normalised sum over
-    alpha compositing because the registration losses compare depth and colour
-    values, which a normalised sum reproduces without a fall-off at splat borders.
-
-    Gradients flow to ``points_cam`` (through the projection, the weights and the
-    depth) and to ``features``; the selection itself (radius, occlusion, cap) is
-    piecewise constant.
-
-    Args:
-        points_cam: (B, N, 3) points in metres in the camera to render into.
-        features: (B, N, C) per-point features (e.g. RGB in [0, 1]).
-        K: (B, 3, 3) intrinsics at ``size_hw``.
-        size_hw: output (H, W).
-        valid: (B, N) bool, points to render; None = all. Points behind the camera
-            (z <= ``min_depth``) or projecting outside the image are ignored.
-        radius_px: splat radius in output pixels.
-        max_points: at most this many points per pixel (nearest in depth).
-        depth_band_rel: relative depth band behind the front candidate; None keeps
-            all candidates (only the ``max_points`` cap applies).
-        min_depth: points with z at or below this (metres) are ignored.
-
-    Returns:
-        :class:`SoftSplat` with features (B, C, H, W), depth and weight (B, 1, H, W).
-    """
-    valid = _check_points(points_cam, K, valid, size_hw)
-    b, n, _ = points_cam.shape
-    if features.ndim != 3 or features.shape[:2] != (b, n):
-        raise ValueError(f"features must be ({b}, {n}, C) to match points_cam, got {tuple(features.shape)}")
-    if radius_px <= 0 or max_points < 1:
-        raise ValueError(f"radius_px must be > 0 and max_points >= 1, got {radius_px}, {max_points}")
-    h, w = int(size_hw[0]), int(size_hw[1])
-    c = features.shape[-1]
-    n_pix = b * h * w
-    cand, z_all = _candidates(points_cam, K, valid, (h, w), radius_px, min_depth)
-    z = z_all[cand.point]
-    pixel = cand.pixel
-    if depth_band_rel is not None:
-        with torch.no_grad():
-            z_front = torch.full((n_pix,), float("inf"), dtype=z.dtype, device=z.device)
-            z_front.scatter_reduce_(0, pixel, z.detach(), reduce="amin")
-            keep = z.detach() <= z_front[pixel] * (1.0 + depth_band_rel)
-    else:
-        keep = torch.ones_like(pixel, dtype=torch.bool)
-    keep = _segment_rank_keep(pixel, z, keep, max_points, n_pix)
-    wgt = (1.0 - cand.d2 / (radius_px * radius_px)).clamp_min(0.0) ** 2 * keep
-    feats = features.reshape(b * n, c)[cand.point]
-    dtype = torch.promote_types(features.dtype, points_cam.dtype)
-    wsum = torch.zeros(n_pix, dtype=wgt.dtype, device=wgt.device).index_add(0, pixel, wgt)
-    zsum = torch.zeros(n_pix, dtype=wgt.dtype, device=wgt.device).index_add(0, pixel, wgt * z)
-    fsum = torch.zeros(n_pix, c, dtype=dtype, device=wgt.device).index_add(0, pixel, wgt[:, None].to(dtype) * feats.to(dtype))
-    has = wsum > 0
-    denom = torch.where(has, wsum, torch.ones_like(wsum))
-    depth = torch.where(has, zsum / denom, torch.zeros_like(zsum))
-    fout = torch.where(has[:, None], fsum / denom[:, None].to(dtype), torch.zeros_like(fsum))
-    return SoftSplat(
-        features=fout.reshape(b, h, w, c).permute(0, 3, 1, 2),
-        depth=depth.reshape(b, 1, h, w),
-        weight=wsum.reshape(b, 1, h, w),
-    )
 
 
 # --------------------------------------------------------------------------- GT renderer (eq. 5)
 
-#: sigma of one depth sample at 1 m (metres) used when neither the settings nor the
-#: caller give one: Kinect v1 (1/8-px disparity steps and noise, bench/calibrate_noise.py)
-KINECT_SIGMA_1M = 0.0012
 #: a surface with a sample this close to a pixel's sample position covers it (px)
 _HIT_PX = 0.05
 #: scale of the error model in the confidence, calibrated on the tuning set of
@@ -385,68 +85,6 @@ class GTRender(NamedTuple):
     disagreement: torch.Tensor | None = None
 
 
-def depth_sigma_m(z_m: torch.Tensor, sigma_1m: float, sigma_abs_m: float) -> torch.Tensor:
-    """Expected std (metres) of a disparity sensor's depth sample at depth ``z_m``:
-    ``sqrt(sigma_abs_m^2 + (sigma_1m z^2)^2)``."""
-    return torch.sqrt(sigma_abs_m**2 + (sigma_1m * z_m * z_m) ** 2)
-
-
-def _second_differences(iz: torch.Tensor, ok: torch.Tensor, dim: int, pos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Residual of each pixel's inverse depth from the line through its two neighbours
-    along ``dim`` (3: x, 2: y) at their sample positions ``pos``, scaled to the std of
-    one sample (zero on any plane), and where all three are valid. Shapes: the input's,
-    zero-padded at the two ends of ``dim``."""
-    n = iz.shape[dim]
-    f0, f1, f2 = iz.narrow(dim, 0, n - 2), iz.narrow(dim, 1, n - 2), iz.narrow(dim, 2, n - 2)
-    both = ok.narrow(dim, 0, n - 2) & ok.narrow(dim, 1, n - 2) & ok.narrow(dim, 2, n - 2)
-    shape = [1] * iz.ndim
-    shape[dim] = n - 2
-    a = ((pos[2:] - pos[1:-1]) / (pos[2:] - pos[:-2])).view(shape)
-    r = (f1 - a * f0 - (1 - a) * f2) / torch.sqrt(1 + a * a + (1 - a) ** 2)
-    pad = [0, 0] * (iz.ndim - dim - 1) + [1, 1]
-    return F.pad(r, pad), F.pad(both, pad)
-
-
-def estimate_noise_sigma_1m(depth_m: torch.Tensor, src_hw: tuple[int, int] | None = None, min_pixels: int = 2000) -> float:
-    """Sigma of one depth sample at 1 m (metres, the z^2 law) estimated from noisy depth alone.
-
-    In inverse depth a disparity sensor's noise is about constant and every plane is
-    affine in screen space, so the residual of a pixel from the line through its two
-    neighbours (along x and along y, at the true sample positions when the depth was
-    nearest-resized from ``src_hw``) is pure noise on any plane, at any slant or
-    range. Its 68th percentile of |residual| (sigma for Gaussian noise; robust to the
-    depth edges and to the zero residuals of quantised fronto-parallel surfaces) is
-    the sigma in 1/m, i.e. the depth sigma at 1 m. Measured: 1.17e-3 on the 7-Scenes
-    fixture and on the synthetic Kinect v1 model, 3.2e-3 on the coarse_stereo
-    profile, ~0 on clean depth.
-
-    Args:
-        depth_m: (J, 1, H, W) depth in metres, 0 = invalid.
-        src_hw: size the depth was nearest-resized from, or None (pixel centres).
-
-    Returns:
-        sigma at 1 m in metres; :data:`KINECT_SIGMA_1M` when fewer than ``min_pixels``
-        residuals exist.
-    """
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
-        raise ValueError(f"depth_m must be (J, 1, H, W), got {tuple(depth_m.shape)}")
-    d = depth_m.detach().to(torch.float64)
-    h, w = d.shape[-2:]
-    if h < 3 or w < 3:
-        return KINECT_SIGMA_1M
-    ok = d > 0
-    iz = torch.where(ok, 1.0 / d.clamp_min(1e-9), torch.zeros_like(d))
-    src = (h, w) if src_hw is None else src_hw
-    rs = []
-    for dim, n_src, n in ((3, src[1], w), (2, src[0], h)):
-        r, both = _second_differences(iz, ok, dim, resampled_positions(n_src, n, d.device, torch.float64))
-        rs.append(r[both].abs())
-    r = torch.cat(rs)
-    if r.numel() < min_pixels:
-        return KINECT_SIGMA_1M
-    return float(r.kthvalue(max(1, int(round(0.6827 * r.numel())))).values)
-
-
 def _inverse_depth_planes(points_cam, normals_cam, K, st: RenderSettings) -> torch.Tensor:
     """(B*N, 2) screen-space gradient (d(1/z)/du, d(1/z)/dv) of each point's tangent plane.
 
@@ -473,7 +111,7 @@ def _keep_m_nearest(pixel: torch.Tensor, d2: torch.Tensor, keep: torch.Tensor, m
 
     Avoids sorting all candidates: a per-pixel histogram of d2 in ``nb`` bins finds the
     bin where the count reaches m; bins before it are kept whole and only the
-    candidates of that boundary bin are ranked exactly (by :func:`_segment_rank_keep`).
+    candidates of that boundary bin are ranked exactly (by :func:`segment_rank_keep`).
     """
     if pixel.numel() == 0 or int(torch.bincount(pixel, weights=keep.to(torch.float32), minlength=n_pix).max()) <= m:
         return keep  # no pixel holds more than m: nothing to cap
@@ -491,7 +129,7 @@ def _keep_m_nearest(pixel: torch.Tensor, d2: torch.Tensor, keep: torch.Tensor, m
     out = keep & (bins <= bnd)
     at_bnd = (out & (bins == bnd)).nonzero().squeeze(1)
     if at_bnd.numel():
-        rank = _rank_in_pixel(pixel[at_bnd], dd[at_bnd])
+        rank = rank_in_pixel(pixel[at_bnd], dd[at_bnd])
         out[at_bnd[rank >= (m - before)[pixel[at_bnd]]]] = False
     return out
 
@@ -644,7 +282,7 @@ def render_gt(
     Returns:
         :class:`GTRender` (depth, weight_sum, count, sigma), each (B, 1, H, W).
     """
-    valid = _check_points(points_cam, K, valid, size_hw)
+    valid = check_points(points_cam, K, valid, size_hw)
     b, n = points_cam.shape[:2]
     for name, t, shape in (("normals_cam", normals_cam, (b, n, 3)), ("sigma_m", sigma_m, (b, n)), ("frame", frame, (b, n))):
         if t is not None and tuple(t.shape) != shape:
@@ -657,7 +295,7 @@ def render_gt(
     grid = None
     if src_hw is not None:
         grid = (resampled_positions(int(src_hw[1]), w, dev, dt), resampled_positions(int(src_hw[0]), h, dev, dt))
-    cand, z_all = _candidates(points_cam, K, valid, (h, w), st.radius_px, st.min_depth_m, grid)
+    cand, z_all = candidates(points_cam, K, valid, (h, w), st.radius_px, st.min_depth_m, grid)
     pixel, d2 = cand.pixel, cand.d2
     zeros_img = torch.zeros(b, 1, h, w, dtype=dt, device=dev)
     if pixel.numel() == 0:
@@ -675,7 +313,7 @@ def render_gt(
     grad = None if normals_cam is None else _inverse_depth_planes(points_cam, normals_cam, K, st)
     ox, oy = -cand.dx, -cand.dy  # projection minus sample position, px
     with torch.no_grad():
-        order = _sort_in_pixel(pixel, -iz_all.detach()[cand.point])  # by pixel, front first
+        order = sort_in_pixel(pixel, -iz_all.detach()[cand.point])  # by pixel, front first
     point = cand.point[order]
     pixel, d2, ox, oy = pixel[order], d2[order], ox[order], oy[order]
     iz, s = iz_all[point], s_all[point]
@@ -898,7 +536,7 @@ def _smooth_3x3(depth_m: torch.Tensor, src_hw, max_rel: float, sigma_1m: float, 
     for dim, n_src, n in ((3, src[1], w), (2, src[0], h)):
         if n < 3:
             continue
-        r, both = _second_differences(iz, ok, dim, resampled_positions(n_src, n, d.device, torch.float64))
+        r, both = second_differences(iz, ok, dim, resampled_positions(n_src, n, d.device, torch.float64))
         bad |= both & (r.abs() > max_rel * iz + noise_sigmas * sigma_1m)
     return F.max_pool2d(bad.to(torch.float32), 3, stride=1, padding=1) == 0
 

@@ -8,7 +8,7 @@
 * correspondence loss: weighted mean squared 3D residual of the matches.
 
 The renderer is passed in (``render_fn``, signature of
-:func:`depthgt.gt.render.splat_soft`) so that the losses do not depend on one splatting
+:func:`depthgt.splatting.splat_soft`) so that the losses do not depend on one splatting
 implementation.
 """
 
@@ -19,6 +19,7 @@ from typing import Callable
 import torch
 
 from depthgt.geometry import transform_points
+from depthgt.splatting import splat_soft
 
 __all__ = ["default_render_fn", "render_losses", "correspondence_loss"]
 
@@ -26,10 +27,7 @@ RenderFn = Callable[..., object]
 
 
 def default_render_fn() -> RenderFn:
-    """The project's differentiable soft splatting, :func:`depthgt.gt.render.splat_soft`
-    (imported lazily: it lives in another module)."""
-    from depthgt.gt.render import splat_soft
-
+    """The project's differentiable soft splatting, :func:`depthgt.splatting.splat_soft`."""
     return splat_soft
 
 

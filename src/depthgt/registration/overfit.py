@@ -473,7 +473,7 @@ def register_frameset(
         init_T_j_to_t: (F-1, 4, 4) optional initial guess, used as one more candidate
             of the chaining step.
         seed: seed of the initialisation, candidate draw and random subsets.
-        render_fn: differentiable splatting (default :func:`depthgt.gt.render.splat_soft`).
+        render_fn: differentiable splatting (default :func:`depthgt.splatting.splat_soft`).
 
     Returns:
         :class:`RegistrationResult`; the device of the computation is that of ``rgb``.

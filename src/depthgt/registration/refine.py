@@ -28,7 +28,7 @@ from kornia.geometry.depth import depth_to_normals
 from kornia.geometry.liegroup import Se3
 
 from depthgt.geometry import backproject, resize_depth_nearest, resize_rgb, scale_intrinsics
-from depthgt.gt.render import estimate_noise_sigma_1m
+from depthgt.noise_law import estimate_noise_sigma_1m
 from depthgt.settings import RefineSettings
 
 __all__ = ["RefineResult", "Level", "LevelSettings", "frame_pairs", "refine_poses", "adjoint", "normal_system",
@@ -59,7 +59,7 @@ class RefineResult:
             target surface but beyond it counts as off): 0.4-0.8 when aligned on both
             synthetic sensor profiles, up to 1.06 on 7-Scenes, whatever the noise.
         noise_sigma_1m: the frame set's depth sigma at 1 m (metres), estimated from its
-            depth (:func:`depthgt.gt.render.estimate_noise_sigma_1m`).
+            depth (:func:`depthgt.noise_law.estimate_noise_sigma_1m`).
     """
 
     T_f_to_t: torch.Tensor
@@ -457,7 +457,7 @@ def target_residual_stats(level: Level, T: torch.Tensor, pairs: torch.Tensor, s:
     """Per frame (F,): the median |point-to-plane residual| (metres) of the associated
     points of the pairs (0, b), b's points in the target, and the median of the same
     residuals in units of the depth noise at each point's depth, ``sigma_1m * z^2``
-    (the z^2 law of :func:`depthgt.gt.render.estimate_noise_sigma_1m`; NaN without
+    (the z^2 law of :func:`depthgt.noise_law.estimate_noise_sigma_1m`; NaN without
     ``sigma_1m``), associated within max(``gate``, 4 sigma) and taken over every point
     seen on a surface of the target (one beyond the gate counts as infinitely off). 0 for
     the target, NaN where nothing is associated / seen."""

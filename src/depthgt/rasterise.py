@@ -1,0 +1,215 @@
+"""The point rasteriser shared by the soft splat (:mod:`depthgt.splatting`) and the GT
+renderer (:mod:`depthgt.gt.render`): every point is paired with the pixels whose sample
+positions lie strictly within ``radius_px`` of its sub-pixel projection (pixel-centre
+convention of :mod:`depthgt.geometry`; the GT renderer can sample each pixel at the
+source pixel its nearest-resized input came from instead, see
+:func:`resampled_positions`). The (point, pixel) pairs are "candidates"; the sorts and
+ranks within a pixel are the compositors' building blocks. A leaf module (torch only).
+
+Written here rather than taken from PyTorch3D's point rasteriser because PyTorch3D is
+not among the project's dependencies and its rasteriser keeps the K nearest points by
+depth, not every point within the radius that the GT's surface choice needs.
+
+Layouts: points (B, N, 3) metres in the camera frame, intrinsics (B, 3, 3) at the
+output resolution."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+
+from depthgt.geometry import project
+
+__all__ = ["Candidates", "candidates", "check_points", "resampled_positions", "sort_in_pixel", "segment_rank_keep",
+           "rank_in_pixel"]
+
+def check_points(points_cam: torch.Tensor, K: torch.Tensor, valid: torch.Tensor | None, size_hw) -> torch.Tensor:
+    if points_cam.ndim != 3 or points_cam.shape[-1] != 3:
+        raise ValueError(f"points_cam must be (B, N, 3), got {tuple(points_cam.shape)}")
+    b, n, _ = points_cam.shape
+    if K.shape != (b, 3, 3):
+        raise ValueError(f"K must be ({b}, 3, 3) to match points_cam {tuple(points_cam.shape)}, got {tuple(K.shape)}")
+    if len(size_hw) != 2 or int(size_hw[0]) <= 0 or int(size_hw[1]) <= 0:
+        raise ValueError(f"size_hw must be (H, W) with positive sizes, got {size_hw}")
+    if valid is None:
+        return torch.ones(b, n, dtype=torch.bool, device=points_cam.device)
+    if valid.shape != (b, n) or valid.dtype != torch.bool:
+        raise ValueError(f"valid must be a ({b}, {n}) bool tensor, got {tuple(valid.shape)} {valid.dtype}")
+    return valid
+
+
+class Candidates(NamedTuple):
+    """Flat (point, pixel) pairs; C = number of candidates.
+
+    point: (C,) long index into the flattened (B*N) points.
+    pixel: (C,) long index into the flattened (B*H*W) output pixels.
+    d2: (C,) squared distance in pixels between the projection and the pixel centre.
+    dx, dy: (C,) pixel centre minus projection, d2 = dx^2 + dy^2.
+    d2, dx and dy are differentiable w.r.t. the points.
+    """
+
+    point: torch.Tensor
+    pixel: torch.Tensor
+    d2: torch.Tensor
+    dx: torch.Tensor
+    dy: torch.Tensor
+
+
+def candidates(
+    points_cam: torch.Tensor,
+    K: torch.Tensor,
+    valid: torch.Tensor,
+    size_hw: tuple[int, int],
+    radius_px: float,
+    min_depth: float,
+    grid_uv: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> tuple[Candidates, torch.Tensor]:
+    """Pair every valid point with the pixel sample positions strictly inside ``radius_px``.
+
+    The sample position of pixel (u, v) is its centre, or with ``grid_uv`` = (gu (W,),
+    gv (H,)) the position (gu[u], gv[v]) (each within 0.5 px of the centre, see
+    :func:`resampled_positions`). Returns the candidates and the (B*N,) depth of every
+    point (differentiable).
+    """
+    b, n, _ = points_cam.shape
+    h, w = int(size_hw[0]), int(size_hw[1])
+    uv, z = project(points_cam, K, eps=min_depth)
+    uv_f = uv.reshape(-1, 2)
+    z_f = z.reshape(-1)
+    r = float(radius_px)
+    if grid_uv is not None:
+        return candidates_on_grid(uv_f, z_f, valid, b, n, h, w, r, min_depth, grid_uv)
+    with torch.no_grad():
+        u, v = uv_f[:, 0], uv_f[:, 1]
+        ok = valid.reshape(-1) & (z_f > min_depth) & torch.isfinite(u) & torch.isfinite(v)
+        ok &= (u > -r) & (u < w - 1 + r) & (v > -r) & (v < h - 1 + r)
+        pid = ok.nonzero().squeeze(1)
+        u, v = u[pid], v[pid]
+        # Every pixel centre within r of (u, v) lies in [ceil(u - r), floor(u + r)]:
+        # at most floor(2r) + 1 columns (and rows) starting at ceil(u - r).
+        span = int(math.floor(2 * r)) + 1
+        off = torch.arange(span, device=points_cam.device, dtype=u.dtype)
+        x0 = torch.ceil(u - r)
+        y0 = torch.ceil(v - r)
+        cols = x0[:, None] + off[None, :]  # (P, span) candidate pixel columns
+        rows = y0[:, None] + off[None, :]
+        inf = torch.tensor(float("inf"), dtype=u.dtype, device=u.device)
+        # per-axis squared distances; out-of-image columns/rows get +inf so that the
+        # (P, span, span) sum below needs a single comparison
+        dx2 = torch.where((cols >= 0) & (cols < w), (cols - u[:, None]) ** 2, inf)
+        dy2 = torch.where((rows >= 0) & (rows < h), (rows - v[:, None]) ** 2, inf)
+        inside = (dy2[:, :, None] + dx2[:, None, :]) < r * r  # (P, span, span)
+        del dx2, dy2, cols, rows  # free the temporaries early
+        sel = inside.nonzero()  # (C, 3): point slot, row offset, column offset
+        del inside
+        slot, oy, ox = sel.unbind(1)
+        point = pid[slot]
+        batch = torch.div(pid, n, rounding_mode="floor")
+        base = (batch * h + y0.long()) * w + x0.long()  # pixel index of the window corner
+        pixel = base[slot] + oy * w + ox
+    # differentiable offsets (pixel centre - projection), gathered per candidate
+    dx = (x0 - uv_f[pid, 0])[slot] + ox.to(uv_f.dtype)
+    dy = (y0 - uv_f[pid, 1])[slot] + oy.to(uv_f.dtype)
+    d2 = dx * dx + dy * dy
+    return Candidates(point, pixel, d2, dx, dy), z_f
+
+
+def candidates_on_grid(uv_f, z_f, valid, b, n, h, w, r, min_depth, grid_uv):
+    """:func:`candidates` for sample positions ``grid_uv`` off the pixel centres."""
+    gu, gv = (g.to(uv_f.dtype) for g in grid_uv)
+    if gu.shape != (w,) or gv.shape != (h,):
+        raise ValueError(f"grid_uv must hold ({w},) and ({h},) sample positions, got {tuple(gu.shape)}, {tuple(gv.shape)}")
+    with torch.no_grad():
+        shift = float(max((gu - torch.arange(w, dtype=gu.dtype, device=gu.device)).abs().max(),
+                          (gv - torch.arange(h, dtype=gv.dtype, device=gv.device)).abs().max()))
+        if shift >= 0.5:
+            raise ValueError(f"grid_uv positions must lie within 0.5 px of the pixel centres, got up to {shift:.3f}")
+        u, v = uv_f[:, 0], uv_f[:, 1]
+        ok = valid.reshape(-1) & (z_f > min_depth) & torch.isfinite(u) & torch.isfinite(v)
+        ok &= (u > float(gu[0]) - r) & (u < float(gu[-1]) + r) & (v > float(gv[0]) - r) & (v < float(gv[-1]) + r)
+        pid = ok.nonzero().squeeze(1)
+        u, v = u[pid], v[pid]
+        # sample positions within r of u lie in columns [ceil(u - r - shift), floor(u + r + shift)]
+        span = int(math.floor(2 * (r + shift))) + 1
+        off = torch.arange(span, device=u.device)
+        x0 = torch.ceil(u - r - shift).long()
+        y0 = torch.ceil(v - r - shift).long()
+        cols = x0[:, None] + off[None, :]
+        rows = y0[:, None] + off[None, :]
+        inf = torch.tensor(float("inf"), dtype=u.dtype, device=u.device)
+        dx2 = torch.where((cols >= 0) & (cols < w), (gu[cols.clamp(0, w - 1)] - u[:, None]) ** 2, inf)
+        dy2 = torch.where((rows >= 0) & (rows < h), (gv[rows.clamp(0, h - 1)] - v[:, None]) ** 2, inf)
+        inside = (dy2[:, :, None] + dx2[:, None, :]) < r * r
+        del dx2, dy2
+        slot, oy, ox = inside.nonzero().unbind(1)
+        del inside
+        point = pid[slot]
+        col = x0[slot] + ox
+        row = y0[slot] + oy
+        base = torch.div(pid, n, rounding_mode="floor") * (h * w)  # (P,) first pixel of each point's batch element
+        pixel = base[slot] + row * w + col
+    dx = gu[col] - uv_f[point, 0]
+    dy = gv[row] - uv_f[point, 1]
+    return Candidates(point, pixel, dx * dx + dy * dy, dx, dy), z_f
+
+
+def resampled_positions(n_src: int, n_dst: int, device=None, dtype=torch.float32) -> torch.Tensor:
+    """(n_dst,) position, in output pixel units, of the source pixel centre that
+    :func:`depthgt.geometry.resize_depth_nearest` takes each output pixel from (the
+    same index rule): where the resized input and the resized truth were sampled.
+    Within 0.5 px of the output pixel centres."""
+    i = ((torch.arange(n_dst, device=device, dtype=torch.float64) + 0.5) * (n_src / n_dst)).floor().clamp_(0, n_src - 1)
+    return ((i + 0.5) * (n_dst / n_src) - 0.5).to(dtype)
+
+
+def sort_in_pixel(pixel: torch.Tensor, key: torch.Tensor) -> torch.Tensor:
+    """Permutation sorting candidates by pixel, then by ascending ``key`` within a pixel.
+
+    One radix-friendly int64 sort of pixel * 2^32 + the key quantised to 31 bits of
+    its global range (ties and keys closer than range / 2^31 keep candidate order).
+    """
+    k = key.detach().to(torch.float64)
+    lo, hi = k.min(), k.max()
+    q = ((k - lo) / (hi - lo).clamp_min(1e-300) * (2**31 - 1)).long()
+    return torch.sort(pixel * (2**32) + q, stable=True).indices
+
+
+def segment_rank_keep(pixel: torch.Tensor, key: torch.Tensor, active: torch.Tensor, limit: int, n_pixels: int) -> torch.Tensor:
+    """Restrict ``active`` (C,) bool to the ``limit`` active candidates of smallest ``key``
+    in every pixel.
+
+    Only candidates of pixels holding more than ``limit`` active candidates are sorted
+    (by the composite key pixel + normalised key, in float64), so the common case
+    costs one ``bincount``. Ties keep candidate order (stable sort): deterministic.
+    """
+    if pixel.numel() == 0:
+        return active
+    counts = torch.bincount(pixel, weights=active.to(torch.float32), minlength=n_pixels)
+    over = (active & (counts[pixel] > limit)).nonzero().squeeze(1)
+    if over.numel() == 0:
+        return active
+    out = active.clone()
+    out[over[rank_in_pixel(pixel[over], key.detach()[over]) >= limit]] = False
+    return out
+
+
+def rank_in_pixel(pixel: torch.Tensor, key: torch.Tensor) -> torch.Tensor:
+    """(C,) rank of every candidate among the candidates of its pixel by ascending key
+    (0 = smallest). One stable sort on the composite key pixel + normalised key in
+    float64, so ties keep candidate order (deterministic)."""
+    k = key.to(torch.float64)
+    lo, hi = k.min(), k.max()
+    kn = (k - lo) / (hi - lo).clamp_min(1e-30) * 0.5  # in [0, 0.5]: stays inside its pixel's unit interval
+    order = torch.sort(pixel.to(torch.float64) + kn, stable=True).indices
+    pix_sorted = pixel[order]
+    pos = torch.arange(order.numel(), device=pixel.device)
+    starts = torch.ones_like(pix_sorted, dtype=torch.bool)
+    starts[1:] = pix_sorted[1:] != pix_sorted[:-1]
+    first = torch.cummax(torch.where(starts, pos, torch.zeros_like(pos)), dim=0).values
+    rank = torch.empty_like(pos)
+    rank[order] = pos - first
+    return rank
+
+
