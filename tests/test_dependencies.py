@@ -5,6 +5,7 @@ README's command has it), and the lock file pins what the README installs."""
 from __future__ import annotations
 
 import ast
+import functools
 import re
 import sys
 import tomllib
@@ -27,11 +28,14 @@ DISTRIBUTION_OF = {
     "attr": "attrs",
     "dateutil": "python-dateutil",
 }
-# libraries that pandas (and others) import on demand for a call, with the code that needs them
+# libraries that pandas imports on demand, by the method called: (method, its `method=`
+# argument or None for any) -> the module
 USED_THROUGH = {
-    "pyarrow": re.compile(r"\.(to|read)_parquet\("),
-    "tabulate": re.compile(r"\.to_markdown\("),
-    "scipy": re.compile(r"method\s*=\s*[\"'](spearman|kendall)[\"']"),
+    ("to_parquet", None): "pyarrow",
+    ("read_parquet", None): "pyarrow",
+    ("to_markdown", None): "tabulate",
+    ("corr", "spearman"): "scipy",
+    ("corr", "kendall"): "scipy",
 }
 # where the code lives -> which requirement sets may provide its imports
 SCOPES = {
@@ -60,31 +64,41 @@ def declared() -> dict[str, set[str]]:
 
 
 def imported_modules(path: Path) -> set[str]:
-    """Top-level names of every absolute import in a file, also inside functions."""
+    """Top-level names of every absolute import in a file, also inside functions, and
+    the modules its calls need through pandas (:data:`USED_THROUGH`)."""
     names = set()
     for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
         if isinstance(node, ast.Import):
             names.update(a.name.split(".")[0] for a in node.names)
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
             names.add(node.module.split(".")[0])
+        elif isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+            method = next((k.value.value for k in node.keywords
+                           if k.arg == "method" and isinstance(k.value, ast.Constant)), None)
+            for key in ((node.func.attr, None), (node.func.attr, method)):
+                if key in USED_THROUGH:
+                    names.add(USED_THROUGH[key])
     return names
 
 
 def third_party(path: Path) -> set[str]:
     """The imports of ``path`` that are neither the standard library, depthgt, nor a
-    module beside it (the tests' helpers, bench's own modules); plus the libraries its
-    code needs through another one (:data:`USED_THROUGH`)."""
-    local = {p.stem for p in path.parent.glob("*.py")} | {"depthgt"}
-    mods = {m for m in imported_modules(path) if m not in sys.stdlib_module_names and m not in local}
-    text = path.read_text()
-    mods |= {m for m, pattern in USED_THROUGH.items() if pattern.search(text)}
-    return mods
+    module of its folder or of tests/ (the tests' helpers, bench's own modules)."""
+    local = {p.stem for p in (*path.parent.glob("*.py"), *(REPO / "tests").glob("*.py"))} | {"depthgt"}
+    return {m for m in imported_modules(path) if m not in sys.stdlib_module_names and m not in local}
+
+
+@functools.cache
+def _installed() -> dict[str, list[str]]:
+    return metadata.packages_distributions()
 
 
 def distribution(module: str) -> str:
+    """The distribution that provides ``module``: the table above, the installed
+    packages' metadata, else the module's own name."""
     if module in DISTRIBUTION_OF:
         return _norm(DISTRIBUTION_OF[module])
-    installed = metadata.packages_distributions().get(module)
+    installed = _installed().get(module)
     return _norm(installed[0]) if installed else _norm(module)
 
 
@@ -94,7 +108,7 @@ def undeclared(root: Path, scope: tuple[str, ...], requirements: dict[str, set[s
     for path in sorted(root.rglob("*.py")):
         for module in sorted(third_party(path)):
             if distribution(module) not in allowed:
-                missing.append(f"{path.relative_to(REPO)}: {module} (distribution {distribution(module)}) "
+                missing.append(f"{path.relative_to(root.parent)}: {module} (distribution {distribution(module)}) "
                                f"is in none of {', '.join(scope)} of pyproject.toml")
     return missing
 
