@@ -173,3 +173,28 @@ def test_schema_defaults_equal_the_dataclass_defaults():
     assert schema["properties"]["frameset"]["properties"]["batch_size"]["maximum"] == MAX_FRAMESET_BATCH
     with pytest.raises(ConfigError, match="frameset.batch_size"):
         FrameSetSettings(batch_size=MAX_FRAMESET_BATCH + 1)
+
+
+def test_overfit_without_a_train_split_fails_when_the_workflow_starts(tmp_path):
+    """Issue 18 item 5: the encoder's pretraining needs frame sets of the train split;
+    without a source that gives any, the run stops before its first job (a dry run
+    shows it) with the keys to change, not in the pretraining job."""
+    from conftest import make_workdir, snakemake
+    from depthgt.settings import check_workflow
+
+    test_only = {"registration": {"method": "overfit", "preset": "fast"},
+                 "sources": [{"name": "t", "kind": "synthetic", "scenes": ["room_000"], "split": "test",
+                              "options": {"n_frames": 8, "width": 80, "height": 60}}]}
+    with pytest.raises(ConfigError, match=r"registration.pretrain.framesets: 16 .*sources\[0\].split: test"):
+        check_workflow(settings_from_config(test_only))
+    # fine: pretraining off, a train or auto source, or the given poses
+    check_workflow(settings_from_config({**test_only, "registration": {"method": "overfit", "pretrain": {"framesets": 0}}}))
+    check_workflow(settings_from_config({**test_only, "sources": [dict(test_only["sources"][0], split="auto")]}))
+    check_workflow(settings_from_config({**test_only, "registration": {"method": "given"}}))
+
+    wd = make_workdir(tmp_path / "wd", test_only)
+    proc = snakemake(wd, "-n", check=False)
+    assert proc.returncode != 0
+    text = proc.stdout + proc.stderr
+    assert "registration.pretrain.framesets" in text and "sources[0].split: test" in text, text[-2000:]
+    assert not (wd / "results").exists()

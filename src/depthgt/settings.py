@@ -42,7 +42,7 @@ __all__ = [
     "FrameSetSettings", "SplitSettings", "PatchSettings", "RenderSettings", "RefineSettings", "PretrainSettings",
     "RegistrationSettings", "TrainSettings", "RDESettings", "EnhanceSettings", "EvaluationSettings", "SourceSettings",
     "Settings", "settings_from_config", "registration_settings", "check_keys", "build", "check_config",
-    "check_scene_name",
+    "check_scene_name", "check_workflow",
 ]
 
 T = TypeVar("T")
@@ -810,6 +810,32 @@ def settings_from_config(config: Mapping[str, Any]) -> Settings:
         enhance=_enhance_settings(config.get("enhance"), seed, device),
         evaluation=build(EvaluationSettings, config.get("evaluation"), "evaluation"),
     )
+
+
+def check_workflow(settings: Settings) -> None:
+    """Checks of a whole workflow's settings that no single section decides (run when
+    the workflow starts, before any job; a job gets only its sections).
+
+    * ``registration.method: overfit`` pretrains the encoder on frame sets of the
+      ``train`` split (``registration.pretrain.framesets`` > 0): some source must put
+      frame sets there (``split: train`` or ``auto``), or the pretraining job would
+      fail after the run started.
+
+    >>> check_workflow(settings_from_config({"registration": {"method": "overfit"},
+    ...     "sources": [{"name": "t", "kind": "synthetic", "split": "test"}]}))
+    Traceback (most recent call last):
+    ...
+    depthgt.errors.ConfigError: config key registration.pretrain.framesets: ...
+    """
+    reg = settings.registration
+    if reg.method == "overfit" and reg.pretrain.framesets > 0 and settings.sources:
+        if not any(s.split in ("train", "auto") for s in settings.sources):
+            splits = ", ".join(f"sources[{i}].split: {s.split}" for i, s in enumerate(settings.sources))
+            _fail("registration.pretrain.framesets",
+                  f"{reg.pretrain.framesets} frame sets of the train split pretrain the overfit registration's encoder "
+                  f"(registration.method: overfit), but no source puts frame sets in the train split ({splits}); "
+                  "give a source split: train or auto, or set registration.pretrain.framesets: 0 (random initial "
+                  "weights)")
 
 
 # --------------------------------------------------------------------------- the builder

@@ -6,7 +6,7 @@ from snakemake.utils import validate
 
 from depthgt import runlock  # standard library only
 from depthgt.device import check_device_available  # torch-free
-from depthgt.settings import check_config, check_scene_name, settings_from_config
+from depthgt.settings import check_config, check_scene_name, check_workflow, settings_from_config
 from depthgt.sources.base import check_scene_identity  # numpy only
 
 check_config(config, workflow.source_path("../schemas/config.schema.yaml"))
@@ -15,6 +15,7 @@ validate(config, schema="../schemas/config.schema.yaml", set_default=True)
 # patches.size <= resize, registration keys whatever the method); jobs rebuild theirs
 # from the config sections their rule passes (depthgt.settings.settings_from_config).
 SETTINGS = settings_from_config(config)
+check_workflow(SETTINGS)  # what no single section decides (overfit pretraining needs a train split)
 
 SOURCES = {src["name"]: src for src in config["sources"]}  # names checked unique by the settings
 
