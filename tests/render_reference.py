@@ -120,23 +120,63 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
     n_fr = 0 if frame is None else int(np.max(frame)) + 1
     agreement = np.full(n_fr, np.nan)
     if target_frame is not None and frame is not None:
-        n_cmp, n_ok = np.zeros(n_fr), np.zeros(n_fr)
+        # the target's own sample at each position
+        t_iz, t_s = np.full((h, w), np.nan), np.zeros((h, w))
+        cands_at = {}
         for y in range(h):
             for x in range(w):
-                cands = pixel_candidates(y, x, valid)
-                tgt = [c for c in cands if c["f"] == target_frame and c["d2"] <= 0.05**2]
-                if not tgt:
+                cands_at[y, x] = pixel_candidates(y, x, valid)
+                tgt = [c for c in cands_at[y, x] if c["f"] == target_frame and c["d2"] <= 0.05**2]
+                if tgt:
+                    t_iz[y, x], t_s[y, x] = tgt[-1]["iz"], tgt[-1]["s"]  # (one target sample per position)
+        # positions judged: a target sample, and (agreement_edge_px) no edge or hole of the
+        # target within that many px (max - min of its inverse depth beyond the tolerance)
+        e = st.agreement_edge_px
+        judged_at = np.isfinite(t_iz)
+        if e > 0:
+            for y in range(h):
+                for x in range(w):
+                    if not judged_at[y, x]:
+                        continue
+                    win = t_iz[max(0, y - e):y + e + 1, max(0, x - e):x + e + 1]
+                    tol = st.gap_sigmas * math.sqrt(2.0) * t_s[y, x] + st.gap_slope_rel * t_iz[y, x] * 2 * e
+                    judged_at[y, x] = bool(np.isfinite(win).all()) and win.max() - win.min() <= tol
+        tile = st.agreement_tile_px
+        ty, tx = (-(-h // tile), -(-w // tile)) if tile > 0 else (1, 1)
+        n_cmp_t, n_ok_t = np.zeros((n_fr, ty, tx)), np.zeros((n_fr, ty, tx))
+        for y in range(h):
+            for x in range(w):
+                if not judged_at[y, x]:
                     continue
-                t = tgt[-1]  # (one target sample per position)
-                for c in cands:
+                for c in cands_at[y, x]:
                     if c["f"] != target_frame and c["d2"] <= 0.5**2:
-                        tol = st.gap_sigmas * np.hypot(c["s"], t["s"]) + st.gap_slope_rel * c["iz"] * math.sqrt(c["d2"])
-                        n_cmp[c["f"]] += 1
-                        n_ok[c["f"]] += abs(c["iz"] - t["iz"]) <= tol
+                        tol = st.gap_sigmas * np.hypot(c["s"], t_s[y, x]) + st.gap_slope_rel * c["iz"] * math.sqrt(c["d2"])
+                        k = (c["f"], y // tile, x // tile) if tile > 0 else (c["f"], 0, 0)
+                        n_cmp_t[k] += 1
+                        n_ok_t[k] += abs(c["iz"] - t_iz[y, x]) <= tol
+        n_cmp, n_ok = n_cmp_t.sum((1, 2)), n_ok_t.sum((1, 2))
         with np.errstate(invalid="ignore", divide="ignore"):
             agreement = np.where(n_cmp >= 200, n_ok / np.maximum(n_cmp, 1), np.nan)  # judged on >= 200 samples
         bad = agreement < st.min_frame_agreement
-        valid = valid & ~bad[np.asarray(frame)]
+        if tile > 0:
+            # each tile judged on its 3x3 tile neighbourhood (>= 50 comparisons, else the
+            # frame's decision); a frame below min_whole_frame_agreement is out everywhere
+            bad_t = np.zeros((n_fr, ty, tx), bool)
+            for f in range(n_fr):
+                for i in range(ty):
+                    for j in range(tx):
+                        nc = n_cmp_t[f, max(0, i - 1):i + 2, max(0, j - 1):j + 2].sum()
+                        no = n_ok_t[f, max(0, i - 1):i + 2, max(0, j - 1):j + 2].sum()
+                        bad_t[f, i, j] = no < st.min_frame_agreement * nc if nc >= 50 else bad[f]
+                bad_t[f] |= agreement[f] < st.min_whole_frame_agreement
+        else:
+            bad_t = bad[:, None, None]
+
+        def dropped(i, y, x):  # a sample of a frame whose tile at this pixel disagrees
+            return bool(bad_t[int(frame[i]), y // tile, x // tile] if tile > 0 else bad_t[int(frame[i]), 0, 0])
+    else:
+        def dropped(i, y, x):
+            return False
     depth = np.zeros((h, w))
     wsum = np.zeros((h, w))
     count = np.zeros((h, w), int)
@@ -145,7 +185,7 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
         for x in range(w):
             cands = []
             for i in range(n):
-                if not valid[i] or not z[i] > st.min_depth_m:
+                if not valid[i] or not z[i] > st.min_depth_m or dropped(i, y, x):
                     continue
                 o = np.array([u[i] - gu[x], v[i] - gv[y]])  # projection minus sample position
                 d2 = o @ o

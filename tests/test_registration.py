@@ -279,7 +279,7 @@ def test_residual_check_adapts_to_the_sensor_noise():
     # deep): the correctly registered neighbours' median point-to-plane residual is above
     # the fixed 8 mm bound calibrated on Kinect noise, but within the noise the frame set
     # shows; a neighbour 2 deg off is still caught
-    from depthgt.registration.overfit import _check_neighbours
+    from depthgt.registration.overfit import check_neighbours
 
     offsets = [0, -2, 2, 4]
     rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64), noise_m=0.003)
@@ -295,9 +295,9 @@ def test_residual_check_adapts_to_the_sensor_noise():
     assert (refined.residual_m[1:] > s.max_residual_m).all(), refined.residual_m  # the fixed bound fails them all
     n_corr = torch.full((4,), 1000)
     fixed = dataclasses.replace(s, max_residual_sigmas=0.0)
-    statuses, reasons = _check_neighbours(refined.T_f_to_t, n_corr, refined, fixed)
+    statuses, reasons = check_neighbours(refined.T_f_to_t, n_corr, refined, fixed)
     assert statuses == ["failed", "failed", "failed"], reasons
-    statuses, reasons = _check_neighbours(refined.T_f_to_t, n_corr, refined, s)
+    statuses, reasons = check_neighbours(refined.T_f_to_t, n_corr, refined, s)
     assert statuses == ["ok", "ok", "failed"], (reasons, refined.residual_sigmas)
     assert "high_residual" in reasons[2] and "sigma" in reasons[2]
     assert refined.residual_sigmas[1:3].max() < 0.8 and refined.residual_sigmas[3] > 1.2, refined.residual_sigmas
@@ -422,3 +422,56 @@ def test_real_kinect_frameset_matches_reference_poses():
     r, t = pose_errors(res.T_j_to_t, T_ref)
     # the reference (KinectFusion) itself is good to about 0.1-0.2 deg / 0.3-0.5 cm here
     assert res.status == "ok" and r.max() < 0.5 and t.max() < 1.0, (r, t)
+
+
+# ----------------------------------------------------------------------------- source poses refined (method refine)
+
+
+def test_refine_source_poses_ends_closer_to_the_truth():
+    """Given poses 1 deg / 1.5 cm off (a tracker's local error): refined on the frame set
+    they end far closer to the truth, every neighbour passes its checks, and a
+    correction beyond the bound fails the neighbour instead of being kept."""
+    from depthgt.registration.local import refine_source_poses
+
+    offsets = [0, -4, -2, 2, 4]
+    rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64), noise_m=0.001, seed=2)
+    gen = torch.Generator().manual_seed(11)
+    T_given = torch.from_numpy(T_true).clone()
+    for j in range(len(T_given)):
+        T_given[j] = _random_T(gen, 1.0, 0.015) @ T_given[j]
+    s = registration_settings({"method": "refine", "refine_settings": {
+        "scales": (2, 1), "iters": (10, 10), "point_stride": (1, 1), "max_dist_m": (0.1, 0.05), "geo_scale_m": (0.02, 0.005)}})
+    res = refine_source_poses(rgb, depth, K, offsets, T_given, s)
+    r0, t0 = pose_errors(T_given, T_true)
+    r1, t1 = pose_errors(res.T_j_to_t, T_true)
+    assert res.status == "ok" and res.neighbour_status == ["ok"] * 4, res.neighbour_reasons
+    # every neighbour ends closer, rotation to a twentieth; translation to the few mm that
+    # are this 64x64 scene's floor (see test_refinement_recovers_poses_from_a_perturbed_start)
+    assert (r1 < 0.1 * r0).all() and (t1 < 0.5 * t0).all() and t1.max() < 0.5, (r0, r1, t0, t1)
+    tight = dataclasses.replace(s, max_correction_m=0.002)
+    res = refine_source_poses(rgb, depth, K, offsets, T_given, tight)
+    assert all(st == "failed" for st in res.neighbour_status)
+    assert all("large_correction" in why for why in res.neighbour_reasons)
+    with pytest.raises(ValueError, match="T_j_to_t"):
+        refine_source_poses(rgb, depth, K, offsets, T_given[:2], s)
+
+
+def test_align_refine_uses_source_poses_and_photometric_rule():
+    """``align`` with method refine starts from the source's poses; the photometric term
+    is left out for a source whose colour is not the depth's camera at its instant."""
+    from depthgt.gt.frameset import FrameSetData, align, photometric_for
+
+    offsets = [0, -2, 2]
+    rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64), seed=4)
+    poses = torch.cat([torch.eye(4, dtype=torch.float64)[None], torch.from_numpy(T_true)])  # world = target camera
+    data = FrameSetData(rgb=rgb, depth_m=depth, K=K.double(), T_world_cam=poses, truth_m=None, frame_ids=["a", "b", "c"],
+                        colour_matches_depth=False)
+    s = registration_settings({"method": "refine", "refine_settings": {
+        "scales": (2, 1), "iters": (6, 6), "point_stride": (1, 1), "max_dist_m": (0.1, 0.05), "geo_scale_m": (0.02, 0.005)}})
+    al = align(data, offsets, s, seed=0)
+    assert al.status == "ok" and al.fused == [0, 1, 2] and al.info["photometric_weight"] == 0.0
+    r, t = pose_errors(al.T_j_to_t, T_true)
+    assert r.max() < 0.1 and t.max() < 0.2, (r, t)
+    assert photometric_for(s, True).refine_settings.photo_weight == s.refine_settings.photo_weight > 0
+    assert photometric_for(dataclasses.replace(s, photometric="on"), False).refine_settings.photo_weight > 0
+    assert photometric_for(dataclasses.replace(s, photometric="off"), True).refine_settings.photo_weight == 0

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -544,3 +546,79 @@ def test_render_gt_on_synthetic_room():
     full = render(RenderSettings(drop_ambiguous=False))
     assert float((full > 0).float().mean()) > float((gt > 0).float().mean())
     assert _mae_mm(full, clean[3, 0]) > 1.5 * _mae_mm(gt, clean[3, 0])
+
+
+def _plane_frames(offsets_m, region_off, h=24, w=24, seed=7):
+    """A slanted plane seen by a target (frame 0, a sample at every pixel centre) and
+    neighbours with random sample positions; neighbour j's depth is off by
+    ``offsets_m[j-1]`` where ``region_off(u, v)`` holds (everywhere when it is None)."""
+    g = torch.Generator().manual_seed(seed)
+    K = _K(1, 24.0, (w - 1) / 2, (h - 1) / 2)
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    plane = lambda uv: 2.0 + 0.01 * uv[:, 0] + 0.02 * uv[:, 1]  # noqa: E731
+    uv_t = torch.stack([u.flatten(), v.flatten()], 1)
+    pts, frames = [_unproject(uv_t, plane(uv_t), K[0])], [torch.zeros(h * w, dtype=torch.long)]
+    for j, off in enumerate(offsets_m, 1):
+        uv = torch.rand(2 * h * w, 2, generator=g, dtype=torch.float64) * torch.tensor([w - 1.0, h - 1.0], dtype=torch.float64)
+        where = torch.ones(len(uv), dtype=torch.bool) if region_off is None or j != 3 else region_off(uv[:, 0], uv[:, 1])
+        z = plane(uv) + off * where + 0.002 * torch.randn(len(uv), generator=g, dtype=torch.float64)
+        pts.append(_unproject(uv, z, K[0]))
+        frames.append(torch.full((len(uv),), j))
+    return torch.cat(pts)[None], torch.cat(frames)[None], K, plane(uv_t).reshape(h, w)
+
+
+def test_render_gt_keeps_a_frame_where_it_agrees():
+    """Frame 3 is right on the left two thirds of the image and 15 cm off on the right (a
+    moving object, distortion at the border); frame 4 is 15 cm off everywhere (at 2-2.7 m
+    the tolerance is about 5 cm). Judged per
+    tile, frame 3 contributes where it agrees and nowhere else, frame 4 stays out whole;
+    judged per frame, frame 3 is lost whole. Vectorised renderer vs the loop oracle."""
+    p, frame, K, truth = _plane_frames([0.0, 0.0, 0.15, 0.15], lambda u, v: u >= 16)
+    h, w = truth.shape
+    tiles = RenderSettings(noise_sigma_1m=0.0012, agreement_tile_px=8, min_whole_frame_agreement=0.5)
+    whole = replace(tiles, agreement_tile_px=0)
+    out = render_gt(p, K, (h, w), settings=tiles, frame=frame, target_frame=0)
+    rd, rw, rc, rs, ra = render_gt_reference(p[0].numpy(), K[0].numpy(), (h, w), None, tiles, frame=frame[0].numpy(),
+                                             target_frame=0)
+    np.testing.assert_allclose(out.agreement[0].numpy(), ra, atol=1e-6)
+    np.testing.assert_array_equal(out.count[0, 0].numpy(), rc)
+    np.testing.assert_allclose(out.depth[0, 0].numpy(), rd, atol=1e-5)
+    assert 0.5 < ra[3] < 0.9 and ra[4] < 0.1
+    err = (out.depth[0, 0] - truth).abs()
+    assert float(err.max()) < 0.01  # neither the off region of frame 3 nor frame 4 reached the GT
+    per_frame = render_gt(p, K, (h, w), settings=whole, frame=frame, target_frame=0)
+    assert int(out.count.sum()) > int(per_frame.count.sum())  # frame 3's good part is kept
+    kept = out.disagreement[0, 2].sum() / out.disagreement[0, 0].sum()
+    kept_whole = per_frame.disagreement[0, 2].sum() / per_frame.disagreement[0, 0].sum()
+    assert kept > kept_whole
+    # the check is still a check: with tiles but no whole-frame floor frame 4 stays out too
+    floorless = render_gt(p, K, (h, w), settings=replace(tiles, min_whole_frame_agreement=0.0), frame=frame, target_frame=0)
+    assert float((floorless.depth[0, 0] - truth).abs().max()) < 0.01
+
+
+def test_render_gt_agreement_ignores_target_edges():
+    """Next to a depth step of the target, neighbours' samples of the other side are not
+    compared (a real sensor's edges move between frames); away from it they are."""
+    h = w = 24
+    K = _K(1, 24.0, 11.5, 11.5)
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    step = lambda uv: torch.where(uv[:, 0] < 12, 1.5, 2.5)  # noqa: E731
+    uv_t = torch.stack([u.flatten(), v.flatten()], 1)
+    g = torch.Generator().manual_seed(3)
+    pts, frames = [_unproject(uv_t, step(uv_t), K[0])], [torch.zeros(h * w, dtype=torch.long)]
+    for j in (1, 2):
+        uv = torch.rand(2 * h * w, 2, generator=g, dtype=torch.float64) * (w - 1)
+        pts.append(_unproject(uv, step(uv - torch.tensor([1.5, 0.0], dtype=torch.float64)), K[0]))  # edge 1.5 px off
+        frames.append(torch.full((len(uv),), j))
+    p, frame = torch.cat(pts)[None], torch.cat(frames)[None]
+    for e in (0, 2):
+        st = RenderSettings(noise_sigma_1m=0.0012, agreement_edge_px=e)
+        out = render_gt(p, K, (h, w), settings=st, frame=frame, target_frame=0)
+        _, _, rc, _, ra = render_gt_reference(p[0].numpy(), K[0].numpy(), (h, w), None, st, frame=frame[0].numpy(),
+                                              target_frame=0)
+        np.testing.assert_allclose(out.agreement[0].numpy(), ra, atol=1e-6)
+        np.testing.assert_array_equal(out.count[0, 0].numpy(), rc)
+        if e == 0:
+            assert (ra[1:] < 0.95).all()  # the shifted edge outvotes the flat parts
+        else:
+            assert (ra[1:] > 0.99).all()

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from depthgt.errors import FrameError, SourceError
-from depthgt.sources import base
+from depthgt.sources import base, tum
 from depthgt.sources.sens import SensFile
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -408,7 +408,8 @@ def test_tum_association_and_poses(tmp_path):
     t_depth = make_tum(tmp_path / "rgbd_dataset_freiburg2_xyz")
     make_tum(tmp_path / "rgbd_dataset_freiburg3_office")
     assert base.list_scenes("tum", tmp_path) == ["rgbd_dataset_freiburg2_xyz", "rgbd_dataset_freiburg3_office"]
-    s = base.open_scene("tum", tmp_path, "rgbd_dataset_freiburg2_xyz")
+    # the raw images and the nearest pose (undistortion and interpolation: tests below)
+    s = base.open_scene("tum", tmp_path, "rgbd_dataset_freiburg2_xyz", undistort=False, interpolate_poses=False)
     assert len(s) == 5 and s.image_size == (HD, WD) and s.has_poses
     assert s.frame_id(2) == f"{t_depth[2]:.6f}"
     np.testing.assert_allclose(s.intrinsics, [[520.9, 0, 325.1], [0, 521.0, 249.7], [0, 0, 1]])
@@ -434,6 +435,56 @@ def test_tum_association_and_poses(tmp_path):
     loose = base.open_scene("tum", tmp_path, "rgbd_dataset_freiburg2_xyz", max_dt=0.06)
     assert loose.read(3).rgb.shape == (HD, WD, 3)  # within the looser max_dt
     assert loose.read(4).T_world_cam is not None
+
+
+def test_tum_pose_interpolated_at_depth_time(tmp_path):
+    """The trajectory turns at 0.5 rad/s and moves at 1 m/s: the pose at the depth
+    timestamp, interpolated between the 100 Hz rows, is exact (the nearest row is up to
+    5 ms = 5 mm off); a depth frame in a gap of the trajectory keeps failing."""
+    t_depth = make_tum(tmp_path / "rgbd_dataset_freiburg2_xyz")
+    s = base.open_scene("tum", tmp_path, "rgbd_dataset_freiburg2_xyz")
+    for i in (0, 1, 2):
+        dt = t_depth[i] - t_depth[0]
+        a = 0.5 * dt
+        T = s.read(i).T_world_cam
+        np.testing.assert_allclose(T[:3, :3], [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]], atol=1e-6)
+        np.testing.assert_allclose(T[:3, 3], [dt, 0.5, 1.5], atol=2e-5)  # rows are written to 0.1 mm
+    nearest = base.open_scene("tum", tmp_path, "rgbd_dataset_freiburg2_xyz", interpolate_poses=False)
+    assert abs(nearest.read(1).T_world_cam[0, 3] - (t_depth[1] - t_depth[0])) > 1e-3
+    with pytest.raises(FrameError, match="no ground-truth pose"):
+        s.read(4)
+
+
+def test_tum_undistortion_known_truth(tmp_path):
+    """Depth whose value is a known function of the undistorted (pinhole) direction,
+    written through fr1's lens distortion: undistorted, every pixel holds the value of
+    its pinhole direction (within the nearest-pixel step); colour likewise."""
+    seq = tmp_path / "rgbd_dataset_freiburg1_xyz"
+    make_tum(seq, n=3)
+    fx, fy, cx, cy = tum.CAMERAS["fr1"]
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    D = np.array(tum.DISTORTION["fr1"])
+    h, w = 480, 640  # the camera's own size (the small colour images are scaled up to it)
+    vd, ud = np.mgrid[0:h, 0:w].astype(np.float64)
+    und = cv2.undistortPoints(np.stack([ud, vd], -1).reshape(-1, 1, 2), K, D).reshape(h, w, 2)
+    value = lambda x, y: 1.0 + 0.5 * x + 0.25 * y  # metres, of the pinhole direction (x, y)
+    raw = np.round(value(und[..., 0], und[..., 1]) * 5000).astype(np.uint16)
+    for name in sorted((seq / "depth").iterdir()):
+        cv2.imwrite(str(name), raw)
+    s = base.open_scene("tum", tmp_path, seq.name)
+    assert s.camera == "fr1" and s.distortion is not None
+    d = s.read(0).depth_m
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    want = value((u - cx) / fx, (v - cy) / fy)
+    ok = d > 0
+    assert ok.mean() > 0.8  # the border that the lens did not see stays empty
+    step = 0.5 * (0.5 / fx + 0.25 / fy) + 1.0 / 5000  # half a pixel of the value's gradient + the PNG step
+    assert np.abs(d[ok] - want[ok]).max() <= step * 1.01
+    raw_scene = base.open_scene("tum", tmp_path, seq.name, undistort=False)
+    assert np.abs(raw_scene.read(0).depth_m - want).max() > 20 * step  # the distortion is real
+    assert base.open_scene("tum", tmp_path, seq.name, camera="ros_default").distortion is None
+    with pytest.raises(SourceError, match="option distortion"):
+        base.open_scene("tum", tmp_path, seq.name, distortion=[0.1, 0.2])
 
 
 def test_tum_bad_inputs(tmp_path):

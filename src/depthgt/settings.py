@@ -53,7 +53,7 @@ DEVICES = ("auto", "cpu", "cuda")
 # from the neighbours that did register, or excluded from the dataset. A set where
 # fewer than min_ok_fraction of the neighbours registered is excluded either way.
 ON_FAILURE = ("drop_neighbours", "exclude")
-REGISTRATION_METHODS = ("given", "overfit")
+REGISTRATION_METHODS = ("given", "refine", "overfit")
 RENDER_PLANES = ("fit", "normals", "none")  # render.plane
 
 # Upper bounds on values that size memory (a typo such as patches.count: 60000 or
@@ -264,7 +264,16 @@ class RenderSettings:
         min_frame_agreement: with the target's own depth fused (``target_frame``), a
             frame is left out when fewer than this share of its samples next to the
             target's samples agree with them (gap rule above): a misregistered
-            neighbour. 0 disables the check.
+            neighbour. 0 disables the check. With ``agreement_tile_px`` the share is
+            judged per tile of each frame (pooled over its 3x3 tile neighbourhood), so a
+            frame that agrees on most of the image contributes where it agrees.
+        agreement_edge_px: samples within this many px of a depth edge or a hole of
+            the target are not compared (real sensors' edges move between frames by more
+            than their noise); 0 compares them all.
+        agreement_tile_px: size (px at the working resolution) of the square tiles the
+            agreement is judged on; 0 judges whole frames.
+        min_whole_frame_agreement: with tiles, a frame whose share over the whole image
+            is below this is left out everywhere (a misregistered neighbour).
         min_depth_m: points at or nearer than this (metres) are ignored.
     """
 
@@ -286,6 +295,9 @@ class RenderSettings:
     max_correction_rel: float = 0.05
     max_sigma_m: float | None = None
     min_frame_agreement: float = 0.95
+    agreement_edge_px: int = 2
+    agreement_tile_px: int = 0
+    min_whole_frame_agreement: float = 0.0
     min_depth_m: float = 1e-3
 
     def __post_init__(self) -> None:
@@ -303,6 +315,12 @@ class RenderSettings:
         _require(self.plane in RENDER_PLANES, "render.plane", f"must be one of {', '.join(RENDER_PLANES)}, got {self.plane!r}")
         _require(0.0 <= self.min_frame_agreement <= 1.0, "render.min_frame_agreement",
                  f"must be in [0, 1], got {self.min_frame_agreement}")
+        _require(0.0 <= self.min_whole_frame_agreement <= 1.0, "render.min_whole_frame_agreement",
+                 f"must be in [0, 1], got {self.min_whole_frame_agreement}")
+        _require(isinstance(self.agreement_edge_px, int) and self.agreement_edge_px >= 0, "render.agreement_edge_px",
+                 f"must be an integer >= 0, got {self.agreement_edge_px!r}")
+        _require(isinstance(self.agreement_tile_px, int) and self.agreement_tile_px >= 0, "render.agreement_tile_px",
+                 f"must be an integer >= 0, got {self.agreement_tile_px!r}")
         _require(self.max_sigma_m is None or self.max_sigma_m > 0, "render.max_sigma_m",
                  f"must be null or > 0, got {self.max_sigma_m}")
         _require(0 < self.min_cos_incidence < 1, "render.min_cos_incidence", f"must be in (0, 1), got {self.min_cos_incidence}")
@@ -382,8 +400,12 @@ class RegistrationSettings:
     overfit registration (defaults: the paper / R&R values; presets in
     :data:`REGISTRATION_PRESETS`).
 
-    Workflow: ``method`` "given" (the source's poses) or "overfit" (the paper's
-    registration); ``on_failure`` (:data:`ON_FAILURE`); ``preset`` the preset the
+    Workflow: ``method`` "given" (the source's poses), "refine" (the source's poses
+    refined on the frame set by the joint SE(3) refinement, ``refine_settings``; a
+    correction beyond ``max_correction_m`` / ``max_correction_deg`` fails the
+    neighbour) or "overfit" (the paper's registration); ``photometric``: the
+    refinement's photometric term "on", "off" or "auto" (on only where the source's
+    colour is the depth's camera at the depth's instant, ``Scene.colour_matches_depth``); ``on_failure`` (:data:`ON_FAILURE`); ``preset`` the preset the
     values came from (None: the field defaults); ``pretrain`` (:class:`PretrainSettings`).
     Every other field is checked whatever the method.
 
@@ -449,9 +471,17 @@ class RegistrationSettings:
     max_condition: float = 1e5
     max_residual_m: float = 0.008
     max_residual_sigmas: float = 1.0
+    max_correction_m: float = 0.05
+    photometric: str = "auto"
+    max_correction_deg: float = 3.0
     min_ok_fraction: float = 0.5
     num_threads: int | None = None
     precision: str = "fp32"
+
+    @property
+    def uses_source_poses(self) -> bool:
+        """Whether the frame sets need the source's poses (``given``, ``refine``)."""
+        return self.method in ("given", "refine")
 
     def __post_init__(self):
         _require(self.method in REGISTRATION_METHODS, "registration.method",
@@ -464,6 +494,11 @@ class RegistrationSettings:
         _require(self.pose_from in ("last", "best"), "registration.pose_from", f"must be 'last' or 'best', got {self.pose_from!r}")
         _require(self.precision in ("auto", "fp32", "bf16"), "registration.precision",
                  f"must be auto, fp32 or bf16, got {self.precision!r}")
+        _require(self.photometric in ("auto", "on", "off"), "registration.photometric",
+                 f"must be auto, on or off, got {self.photometric!r}")
+        _require(self.max_correction_m > 0, "registration.max_correction_m", f"must be > 0, got {self.max_correction_m}")
+        _require(self.max_correction_deg > 0, "registration.max_correction_deg",
+                 f"must be > 0, got {self.max_correction_deg}")
         _require(self.max_residual_sigmas >= 0, "registration.max_residual_sigmas",
                  f"must be >= 0, got {self.max_residual_sigmas}")
         _require(self.iterations >= 0 and self.top_k >= 3 and self.n_candidates >= 3, "registration",

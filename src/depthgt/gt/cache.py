@@ -102,6 +102,7 @@ class ResizedScene:
                                                     self.size_hw)
         self.has_poses = bool(scene.has_poses)
         self.has_clean_depth = bool(scene.has_clean_depth)
+        self.colour_matches_depth = bool(getattr(scene, "colour_matches_depth", True))
 
     def __len__(self) -> int:
         return len(self._scene)

@@ -354,6 +354,9 @@ _SIGMA_SCALE = 0.53
 #: a frame is judged on at least this many comparisons
 _NEAR_PX = 0.5
 _MIN_COMPARED = 200
+#: per-region agreement (``agreement_tile_px``): a tile is judged on the comparisons of
+#: its 3x3 tile neighbourhood, when there are at least this many
+_MIN_TILE_COMPARED = 50
 
 
 class GTRender(NamedTuple):
@@ -367,7 +370,11 @@ class GTRender(NamedTuple):
     agreement: (B, J) share of each frame's samples that agree with the target's own
         depth (NaN where not judged: no ``target_frame``, the target itself, fewer than
         200 samples compared); frames
-        below ``min_frame_agreement`` were left out. (B, 0) without frame ids.
+        below ``min_frame_agreement`` were left out (with ``agreement_tile_px``: their
+        regions below it). (B, 0) without frame ids.
+    disagreement: (B, 3, H, W) float per pixel, over the other frames' samples compared
+        with the target's: compared, disagreeing, and kept by the agreement check (a
+        diagnostic of where frames disagree); None when nothing was judged.
     """
 
     depth: torch.Tensor
@@ -375,6 +382,7 @@ class GTRender(NamedTuple):
     count: torch.Tensor
     sigma: torch.Tensor
     agreement: torch.Tensor
+    disagreement: torch.Tensor | None = None
 
 
 def depth_sigma_m(z_m: torch.Tensor, sigma_1m: float, sigma_abs_m: float) -> torch.Tensor:
@@ -673,19 +681,21 @@ def render_gt(
     iz, s = iz_all[point], s_all[point]
     fr = None if frame is None else frame.reshape(-1)[point]
     agreement = torch.zeros(b, 0, device=dev)
+    disagreement = None
     if fr is not None:
         n_fr = int(frame.max()) + 1
         agreement = torch.full((b, n_fr), float("nan"), device=dev)
         if target_frame is not None:
             with torch.no_grad():
-                bad, agreement = _frame_agreement(pixel, iz.detach(), s, fr, d2.detach(), b, n_fr, n_pix, st, target_frame)
-                if bad.any():  # a frame that disagrees with the target (misregistered) stays out
-                    ok = ~bad.reshape(-1)[torch.div(pixel, h * w, rounding_mode="floor") * n_fr + fr]
+                bad, agreement, disagreement = _frame_agreement(pixel, iz.detach(), s, fr, d2.detach(), b, n_fr, (h, w), st,
+                                                                target_frame)
+                if bad.any():  # a frame (or a region of it) that disagrees with the target stays out
+                    ok = ~bad[_agreement_slot(pixel, fr, n_fr, (h, w), st.agreement_tile_px)]
                     sel = ok.nonzero().squeeze(1)
                     pixel, d2, ox, oy, point, iz, s, fr = (x[sel] for x in (pixel, d2, ox, oy, point, iz, s, fr))
     if pixel.numel() == 0:
         return GTRender(zeros_img, zeros_img.clone(), torch.zeros(b, 1, h, w, dtype=torch.int64, device=dev), zeros_img.clone(),
-                        agreement)
+                        agreement, disagreement)
     with torch.no_grad():
         surf = _choose_surfaces(pixel, iz.detach(), s, fr, ox.detach(), oy.detach(), d2.detach(), n_pix, st, target_frame)
         keep = _keep_m_nearest(pixel, d2, surf.keep, st.m, r2, n_pix)
@@ -739,28 +749,73 @@ def render_gt(
             good = good & (sigma <= st.max_sigma_m)
     depth = torch.where(good, depth, torch.zeros_like(depth))
     return GTRender(depth.reshape(b, 1, h, w), wsum.reshape(b, 1, h, w), count.reshape(b, 1, h, w), sigma.reshape(b, 1, h, w),
-                    agreement)
+                    agreement, disagreement)
 
 
-def _frame_agreement(pixel, iz, s, fr, d2, b, n_fr, n_pix, st, target_frame):
-    """Which frames disagree with the target's own depth (a misregistered neighbour).
+def _tile_grid(hw: tuple[int, int], tile_px: int) -> tuple[int, int]:
+    """(rows, columns) of the agreement tiles; (1, 1) when ``tile_px`` is 0 (whole frames)."""
+    if tile_px <= 0:
+        return 1, 1
+    return -(-hw[0] // tile_px), -(-hw[1] // tile_px)
+
+
+def _agreement_slot(pixel: torch.Tensor, fr: torch.Tensor, n_fr: int, hw: tuple[int, int], tile_px: int) -> torch.Tensor:
+    """Index of each sample's (image, frame, tile) in the flat decisions of
+    :func:`_frame_agreement`."""
+    h, w = hw
+    ty, tx = _tile_grid(hw, tile_px)
+    img, pix = torch.div(pixel, h * w, rounding_mode="floor"), pixel % (h * w)
+    slot = img * n_fr + fr
+    if tile_px <= 0:
+        return slot
+    tile = torch.div(torch.div(pix, w, rounding_mode="floor"), tile_px, rounding_mode="floor") * tx \
+        + torch.div(pix % w, tile_px, rounding_mode="floor")
+    return slot * (ty * tx) + tile
+
+
+def _frame_agreement(pixel, iz, s, fr, d2, b, n_fr, hw, st, target_frame):
+    """Which frames, or regions of frames, disagree with the target's own depth (a
+    misregistered neighbour; a region that a rigid pose does not explain: lens
+    distortion at the border, a moving object).
 
     Samples of the other frames within ``_NEAR_PX`` of a pixel where the target has its
     own sample are compared with it in inverse depth, with the gap tolerance of
-    :func:`_choose_surfaces`; a frame whose share of agreeing samples is below
-    ``min_frame_agreement`` (with at least ``_MIN_COMPARED`` samples compared) is bad.
+    :func:`_choose_surfaces`, except within ``agreement_edge_px`` of a depth edge or a
+    hole of the target (max - min of its inverse depth there beyond the tolerance of
+    two samples plus the slope allowance). Whole frames (``agreement_tile_px`` 0): a frame whose share
+    of agreeing samples is below ``min_frame_agreement`` (with at least
+    ``_MIN_COMPARED`` samples compared) is bad. Tiles of ``agreement_tile_px``: each
+    tile of each frame is judged on the comparisons of its 3x3 tile neighbourhood (at
+    least ``_MIN_TILE_COMPARED``; fewer: the whole frame's decision), bad below
+    ``min_frame_agreement``; a frame whose whole share is below
+    ``min_whole_frame_agreement`` is bad everywhere (misregistered).
 
     Returns:
-        (B, J) bool bad frames and (B, J) float share of agreeing samples (NaN: fewer
-        than ``_MIN_COMPARED`` comparisons, e.g. the target itself).
+        (B * J * tiles,) bool bad (frame, tile) slots (:func:`_agreement_slot`), (B, J)
+        float share of agreeing samples per frame (NaN: fewer than ``_MIN_COMPARED``
+        comparisons, e.g. the target itself) and the (B, 3, H, W) diagnostic counts of
+        :class:`GTRender`.
     """
-    h_w = n_pix // b
+    h, w = hw
+    h_w = h * w
+    n_pix = b * h_w
     tgt = (fr == target_frame) & (d2 <= _HIT_PX**2)
     iz_t = torch.full((n_pix,), float("nan"), dtype=iz.dtype, device=iz.device)
     s_t = torch.zeros(n_pix, dtype=iz.dtype, device=iz.device)
     iz_t[pixel[tgt]] = iz[tgt]
     s_t[pixel[tgt]] = s[tgt]
-    near = (fr != target_frame) & (d2 <= _NEAR_PX**2) & torch.isfinite(iz_t[pixel])
+    judge = torch.isfinite(iz_t)
+    if st.agreement_edge_px > 0:
+        # Not judged next to a depth edge or a hole of the target: a real sensor's edges
+        # are fattened and shift between frames by more than its noise law says, and
+        # they would outvote the flat surfaces on which a misregistration shows.
+        k, r = 2 * st.agreement_edge_px + 1, st.agreement_edge_px
+        img = iz_t.reshape(b, 1, h, w)
+        hi = F.max_pool2d(torch.nan_to_num(img, nan=float("inf")), k, stride=1, padding=r)
+        lo = -F.max_pool2d(-torch.nan_to_num(img, nan=-float("inf")), k, stride=1, padding=r)
+        tol = st.gap_sigmas * math.sqrt(2.0) * s_t.reshape(b, 1, h, w) + st.gap_slope_rel * img * (2 * r)
+        judge &= ((hi - lo) <= tol).reshape(-1)
+    near = (fr != target_frame) & (d2 <= _NEAR_PX**2) & judge[pixel]
     p, f = pixel[near], fr[near]
     tol = st.gap_sigmas * torch.hypot(s[near], s_t[p]) + st.gap_slope_rel * iz[near] * torch.sqrt(d2[near])
     agree = (iz[near] - iz_t[p]).abs() <= tol
@@ -769,7 +824,21 @@ def _frame_agreement(pixel, iz, s, fr, d2, b, n_fr, n_pix, st, target_frame):
     n_ok = torch.bincount(slot[agree], minlength=b * n_fr).reshape(b, n_fr)
     share = torch.where(n_cmp >= _MIN_COMPARED, n_ok / n_cmp.clamp_min(1), torch.full_like(n_cmp, float("nan"), dtype=torch.float32))
     bad = share < st.min_frame_agreement  # (NaN: not judged)
-    return bad, share.to(torch.float32)
+    if st.agreement_tile_px > 0:
+        ty, tx = _tile_grid(hw, st.agreement_tile_px)
+        tslot = _agreement_slot(p, f, n_fr, hw, st.agreement_tile_px)
+        counts = torch.stack([torch.bincount(tslot, minlength=b * n_fr * ty * tx),
+                              torch.bincount(tslot[agree], minlength=b * n_fr * ty * tx)]).to(torch.float32)
+        # comparisons pooled over each tile's 3x3 neighbourhood (sums: average x 9)
+        pooled = F.avg_pool2d(counts.reshape(2 * b * n_fr, 1, ty, tx), 3, stride=1, padding=1, count_include_pad=True) * 9
+        n_cmp_t, n_ok_t = pooled.reshape(2, b, n_fr, ty, tx).round()
+        judged = n_cmp_t >= _MIN_TILE_COMPARED
+        bad_t = torch.where(judged, n_ok_t < st.min_frame_agreement * n_cmp_t, bad[..., None, None])
+        bad = bad_t | (share < st.min_whole_frame_agreement)[..., None, None]
+    kept = ~bad.reshape(-1)[_agreement_slot(p, f, n_fr, hw, st.agreement_tile_px)]
+    diag = torch.stack([torch.bincount(p, minlength=n_pix), torch.bincount(p[~agree], minlength=n_pix),
+                        torch.bincount(p[kept], minlength=n_pix)]).to(torch.float32)
+    return bad.reshape(-1), share.to(torch.float32), diag.reshape(3, b, h, w).transpose(0, 1)
 
 
 def _confidence(pixel, wt, s, resid, fr, depth, sw, surf: _Surfaces, n_pix, moments, st) -> torch.Tensor:

@@ -78,7 +78,7 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
     from depthgt.settings import settings_from_config
 
     settings = settings_from_config(config)
-    need_poses = settings.registration.method == "given"
+    need_poses = settings.registration.uses_source_poses
     planned = [t for t in settings.frameset.targets(last + settings.frameset.reach + 1) if first <= t <= last]
     table = pd.read_parquet(index_parquet)
     rows = {int(r.position): r for r in table[table["is_target"]].itertuples()}

@@ -30,7 +30,7 @@ from depthgt.registration.procrustes import procrustes_random_subsets
 from depthgt.registration.refine import Level, LevelSettings, pair_mean_cost, refine_poses
 from depthgt.settings import RegistrationSettings
 
-__all__ = ["RegistrationResult", "register_frameset", "pretrain_encoder", "frameset_loss"]
+__all__ = ["RegistrationResult", "register_frameset", "pretrain_encoder", "frameset_loss", "check_neighbours", "set_status"]
 
 log = logging.getLogger(__name__)
 
@@ -385,17 +385,31 @@ def _final_estimate(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSett
     return T_ba, T_paper, n_corr
 
 
-def _check_neighbours(T: torch.Tensor, n_corr: torch.Tensor, refined, s: RegistrationSettings) -> tuple[list[str], list[str]]:
+def check_neighbours(T: torch.Tensor, n_corr: torch.Tensor | None, refined, s: RegistrationSettings,
+                     T_start: torch.Tensor | None = None) -> tuple[list[str], list[str]]:
     """Status ("ok" | "failed") and reasons of every neighbour (see the failure checks of
-    :class:`~depthgt.settings.RegistrationSettings`)."""
+    :class:`~depthgt.settings.RegistrationSettings`).
+
+    Args:
+        T: (F, 4, 4) final poses in the target camera; n_corr: (F,) confident matches
+            (None: no correspondence step, e.g. refined source poses); refined: the
+            :class:`~depthgt.registration.refine.RefineResult` or None.
+        T_start: (F, 4, 4) poses the refinement started from when they are a source's
+            (method ``refine``): the correction T_start^-1 T must stay within
+            ``max_correction_m`` / ``max_correction_deg``, else the refinement diverged.
+    """
     statuses, reasons = [], []
     dt, dr = pose_delta(T[1:])
+    if T_start is not None:
+        ct, cr = pose_delta(torch.linalg.inv(T_start[1:].to(T.dtype)) @ T[1:])
     for i in range(T.shape[0] - 1):
         why = []
-        if int(n_corr[i + 1]) < s.min_confident:
+        if n_corr is not None and int(n_corr[i + 1]) < s.min_confident:
             why.append(f"too_few_confident_correspondences({int(n_corr[i + 1])}<{s.min_confident})")
         if dt[i] > s.max_translation_m or dr[i] > s.max_rotation_deg:
             why.append(f"pose_jump({dt[i]:.3f}m,{dr[i]:.1f}deg)")
+        if T_start is not None and not (ct[i] <= s.max_correction_m and cr[i] <= s.max_correction_deg):
+            why.append(f"large_correction({ct[i] * 100:.2f}cm,{cr[i]:.2f}deg)")
         if refined is not None:
             fr = float(refined.inlier_fraction[i + 1])
             cond = float(refined.condition[i + 1])
@@ -415,7 +429,7 @@ def _check_neighbours(T: torch.Tensor, n_corr: torch.Tensor, refined, s: Registr
     return statuses, reasons
 
 
-def _set_status(statuses: list[str], loss_curve: list[float], s: RegistrationSettings) -> tuple[str, str]:
+def set_status(statuses: list[str], loss_curve: list[float], s: RegistrationSettings) -> tuple[str, str]:
     """Status of the whole set: failed when too few neighbours registered or (without
     refinement) when the training loss did not decrease."""
     n_ok, n = statuses.count("ok"), len(statuses)
@@ -509,8 +523,8 @@ def register_frameset(
         diagnostics["noise_sigma_1m"] = refined.noise_sigma_1m
         timings["refine"] = time.perf_counter() - t0
 
-    statuses, reasons = _check_neighbours(T, n_corr, refined, s)
-    status, reason = _set_status(statuses, trace.loss_curve, s)
+    statuses, reasons = check_neighbours(T, n_corr, refined, s)
+    status, reason = set_status(statuses, trace.loss_curve, s)
     timings["total"] = time.perf_counter() - t_start
     return RegistrationResult(
         T_j_to_t=T[1:].detach().cpu().to(torch.float64),

@@ -7,6 +7,11 @@ Every adapter opens one *scene* (a single continuous RGB-D stream) and exposes:
   ``scene.image_size``;
 * ``scene.image_size``: ``(H, W)`` of the depth image (colour is brought to it);
 * ``scene.has_poses``: whether ``read`` returns camera-to-world poses;
+* ``scene.colour_matches_depth``: whether colour is taken by the depth's camera at the
+  depth's instant (synthetic), so that a photometric residual is exact to the sub-pixel;
+  real sensors' colour comes from another camera (7-Scenes, ScanNet) or another instant
+  (TUM: 10-20 ms apart), and the registration leaves its photometric refinement term
+  out there (``registration.photometric: auto``);
 * ``scene.has_clean_depth``: whether ``read`` returns noise-free depth (synthetic);
 * ``scene.frame_id(i)``: the source's own id for position ``i`` (file number,
   timestamp, ...), used in manifests;
@@ -65,6 +70,7 @@ class Scene(Protocol):
     image_size: tuple[int, int]
     has_poses: bool
     has_clean_depth: bool
+    colour_matches_depth: bool
 
     def __len__(self) -> int: ...
 
@@ -233,6 +239,10 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_)) and bool(np.isfinite(v))
 
 
+def _is_seq_of_numbers(v: Any, n: int) -> bool:
+    return isinstance(v, (list, tuple)) and len(v) == n and all(_is_number(x) for x in v)
+
+
 def _is_int(v: Any) -> bool:
     return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
 
@@ -291,6 +301,9 @@ _OPTIONS: dict[str, dict[str, OptionCheck]] = {
         "intrinsics": _K33,
         "depth_scale": _DEPTH_SCALE,
         "require_pose": _BOOL,
+        "undistort": _BOOL,
+        "distortion": OptionCheck("5 finite numbers k1, k2, p1, p2, k3", lambda v: _is_seq_of_numbers(v, 5)),
+        "interpolate_poses": _BOOL,
     },
     "synthetic": {
         "seed": _int_in(0, 2**63 - 1),

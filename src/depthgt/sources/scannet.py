@@ -86,6 +86,7 @@ class ScanNetExportedScene(NumberedFrames):
     """One scene in ScanNet's exported folder layout (see the module docstring)."""
 
     has_clean_depth = False
+    colour_matches_depth = False  # colour from another camera / instant: no sub-pixel photometric term
 
     def __init__(
         self,
@@ -137,6 +138,7 @@ class ScanNetSensScene:
     """One scene stored as a raw ScanNet ``.sens`` file, read lazily."""
 
     has_clean_depth = False
+    colour_matches_depth = False  # colour from another camera / instant: no sub-pixel photometric term
     has_poses = True
 
     def __init__(self, path: str | Path, name: str, require_pose: bool = True, intrinsics: np.ndarray | None = None):

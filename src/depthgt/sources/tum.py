@@ -20,10 +20,21 @@ seconds (default 0.02) makes the frame fail with ``FrameError("no_association")`
 (the pose one only when ``require_pose``; otherwise the pose is None).
 
 Intrinsics (TUM's published calibration of each Kinect's colour camera, to which the
-depth is registered; lens distortion, small for fr1/fr2 and already removed for fr3, is
-ignored): chosen by the sequence name (``freiburg1``/``fr1`` ...), overridable with the
-option ``camera`` (one of :data:`CAMERAS`) or ``intrinsics`` (3x3). A name without a
-camera falls back to fr1 with a warning.
+depth is registered): chosen by the sequence name (``freiburg1``/``fr1`` ...),
+overridable with the option ``camera`` (one of :data:`CAMERAS`) or ``intrinsics``
+(3x3). A name without a camera falls back to fr1 with a warning.
+
+Lens distortion: fr1 and fr2 images keep their lens's radial distortion (fr3's was
+removed by TUM). With ``undistort`` (default True) depth and colour are undistorted
+with the camera's published coefficients (:data:`DISTORTION`, or the option
+``distortion``: k1, k2, p1, p2, k3 in OpenCV's order) onto the same intrinsics:
+colour bilinearly, depth by its nearest source pixel so that no two depths mix. The
+``ros_default`` camera (TUM's suggestion for the pre-registered depth) has none.
+
+Poses: the motion-capture pose at each depth frame's timestamp, interpolated between
+the two trajectory rows around it (linear translation, normalised linear quaternion
+blend; the rows are 10 ms apart) when both are within ``max_dt``; else the nearest row
+within ``max_dt``. ``interpolate_poses: false`` takes the nearest row.
 """
 
 from __future__ import annotations
@@ -32,6 +43,7 @@ import logging
 import re
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from depthgt.errors import FrameError, SourceError
@@ -39,7 +51,7 @@ from depthgt.io import fit_rgb_to_depth, read_rgb
 from depthgt.sources._files import FileScene, list_sequences, probe_depth_size, require_root
 from depthgt.sources.base import Frame, check_frame, usable_pose
 
-__all__ = ["CAMERAS", "DEPTH_SCALE", "TumScene", "associate", "poses_from_tum", "open_scene", "list_scenes"]
+__all__ = ["CAMERAS", "DISTORTION", "DEPTH_SCALE", "TumScene", "associate", "poses_from_tum", "open_scene", "list_scenes"]
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +61,14 @@ CAMERAS: dict[str, tuple[float, float, float, float]] = {
     "fr2": (520.9, 521.0, 325.1, 249.7),
     "fr3": (535.4, 539.2, 320.1, 247.6),
     "ros_default": (525.0, 525.0, 319.5, 239.5),
+}
+#: k1, k2, p1, p2, k3 (OpenCV order) of each camera (TUM's published d0..d4); fr3's
+#: images were undistorted by TUM, the ROS default set describes undistorted images.
+DISTORTION: dict[str, tuple[float, float, float, float, float]] = {
+    "fr1": (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),
+    "fr2": (0.2312, -0.7849, -0.0033, -0.0001, 0.9172),
+    "fr3": (0.0, 0.0, 0.0, 0.0, 0.0),
+    "ros_default": (0.0, 0.0, 0.0, 0.0, 0.0),
 }
 DEPTH_SCALE = 5000.0  # raw units per metre in TUM depth PNGs
 
@@ -152,6 +172,43 @@ def associate(t_query: np.ndarray, t_ref: np.ndarray) -> tuple[np.ndarray, np.nd
     return order[nearest].astype(np.int64), np.abs(ts[nearest] - t_query)
 
 
+def interpolate_rows(t_query: np.ndarray, t_ref: np.ndarray, rows: np.ndarray, max_dt: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Trajectory rows ``tx ty tz qx qy qz qw`` at the query times.
+
+    Between the two reference rows around a query time, when both are within ``max_dt``
+    of it: linear translation and a normalised linear blend of the quaternions (signs
+    aligned first; for rows 10 ms apart it differs from slerp by far less than the
+    motion capture's noise). Elsewhere the nearest row.
+
+    Args:
+        t_query: (N,) seconds; t_ref: (M,) seconds, any order; rows: (M, 7).
+
+    Returns:
+        (N, 7) rows and (N,) the time to the farthest row used (seconds; inf when
+        ``t_ref`` is empty).
+    """
+    nearest, dt = associate(t_query, t_ref)
+    if t_ref.size < 2:
+        return (rows[nearest] if t_ref.size else np.full((t_query.size, 7), np.nan)), dt
+    order = np.argsort(t_ref, kind="stable")
+    ts, rs = t_ref[order], rows[order]
+    hi = np.clip(np.searchsorted(ts, t_query, side="right"), 1, ts.size - 1)
+    lo = hi - 1
+    span = ts[hi] - ts[lo]
+    inside = (ts[lo] <= t_query) & (t_query <= ts[hi]) & (span > 0)
+    far = np.maximum(t_query - ts[lo], ts[hi] - t_query)
+    use = inside & (far <= max_dt)
+    a = np.where(use, (t_query - ts[lo]) / np.where(span > 0, span, 1.0), 0.0)[:, None]
+    q0, q1 = rs[lo, 3:], rs[hi, 3:]
+    q1 = np.where((q0 * q1).sum(1, keepdims=True) < 0, -q1, q1)
+    q = (1 - a) * q0 + a * q1
+    q /= np.linalg.norm(q, axis=1, keepdims=True).clip(1e-12)
+    blended = np.concatenate([(1 - a) * rs[lo, :3] + a * rs[hi, :3], q], axis=1)
+    out = np.where(use[:, None], blended, rows[nearest])
+    return out, np.where(use, far, dt)
+
+
 def poses_from_tum(rows: np.ndarray) -> np.ndarray:
     """TUM trajectory rows ``tx ty tz qx qy qz qw`` -> camera-to-world matrices.
 
@@ -183,6 +240,7 @@ class TumScene(FileScene):
     """One TUM RGB-D sequence (see the module docstring)."""
 
     has_clean_depth = False
+    colour_matches_depth = False  # colour from another camera / instant: no sub-pixel photometric term
 
     def __init__(
         self,
@@ -193,12 +251,17 @@ class TumScene(FileScene):
         intrinsics: np.ndarray | None = None,
         depth_scale: float = DEPTH_SCALE,
         require_pose: bool = True,
+        undistort: bool = True,
+        distortion: tuple[float, ...] | None = None,
+        interpolate_poses: bool = True,
     ):
         self._init_files(folder, name, depth_scale, require_pose)
         if not max_dt >= 0:
             raise SourceError(f"{self.path}: max_dt must be >= 0 seconds, got {max_dt}")
         self.max_dt = float(max_dt)
         self.intrinsics = self._intrinsics(camera, intrinsics)
+        self.distortion = self._distortion(undistort, distortion)
+        self._maps: tuple[np.ndarray, np.ndarray] | None = None
 
         depth_rows, t_depth = self._list("depth.txt", clean=True)
         rgb_rows, t_rgb = self._list("rgb.txt", clean=False)  # any order: colour is associated by nearest time
@@ -215,8 +278,13 @@ class TumScene(FileScene):
             gt, gt_lines = _read_list(gt_path, 8)
             t_gt = _numbers(gt[:, 0], gt_lines, gt_path)
             values = np.stack([_numbers(gt[:, c], gt_lines, gt_path, "pose value", finite=False) for c in range(1, 8)], axis=1)
-            self._poses = poses_from_tum(values)
-            self._pose_index, self._pose_dt = associate(t_depth, t_gt)
+            if interpolate_poses:
+                rows, self._pose_dt = interpolate_rows(t_depth, t_gt, values, self.max_dt)
+                self._poses = poses_from_tum(rows)
+                self._pose_index = np.arange(t_depth.size)
+            else:
+                self._poses = poses_from_tum(values)
+                self._pose_index, self._pose_dt = associate(t_depth, t_gt)
         n_rgb = int((self._rgb_dt > self.max_dt).sum())
         if n_rgb:
             log.info("%s: %d of %d depth frames have no colour within %.3f s", self.path, n_rgb, t_depth.size, self.max_dt)
@@ -241,6 +309,32 @@ class TumScene(FileScene):
         self.camera = camera
         fx, fy, cx, cy = CAMERAS[camera]
         return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    def _distortion(self, undistort: bool, distortion) -> np.ndarray | None:
+        """(5,) float64 coefficients to remove, or None (nothing to undistort)."""
+        if not undistort:
+            return None
+        if distortion is None:
+            if self.camera is None:  # explicit intrinsics: no published coefficients apply
+                return None
+            distortion = DISTORTION[self.camera]
+        d = np.asarray(distortion, dtype=np.float64).reshape(-1)
+        if d.shape != (5,) or not np.isfinite(d).all():
+            raise SourceError(f"{self.path} (option distortion): need 5 finite numbers k1, k2, p1, p2, k3, got {distortion!r}")
+        return None if not d.any() else d
+
+    def _undistort(self, image: np.ndarray, nearest: bool) -> np.ndarray:
+        """``image`` (H, W[, 3]) resampled onto the undistorted pinhole camera of the same
+        intrinsics (OpenCV's undistortion maps, built once per scene); depth by the
+        nearest source pixel so that valid and invalid depths never mix."""
+        if self.distortion is None:
+            return image
+        if self._maps is None:
+            h, w = self.image_size
+            self._maps = cv2.initUndistortRectifyMap(self.intrinsics, self.distortion, None, self.intrinsics, (w, h),
+                                                     cv2.CV_32FC1)
+        interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+        return cv2.remap(image, self._maps[0], self._maps[1], interp, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
     def _list(self, name: str, clean: bool) -> tuple[np.ndarray, np.ndarray]:
         """Rows of ``rgb.txt`` / ``depth.txt`` and their (N,) finite timestamps; with
@@ -288,9 +382,9 @@ class TumScene(FileScene):
                     f"{depth_path}: no ground-truth pose within {self.max_dt} s (nearest {self._pose_dt[i]:.4f} s)",
                     "no_association",
                 )
-        depth_m = self._read_depth(depth_path)
+        depth_m = self._undistort(self._read_depth(depth_path), nearest=True)
         color_path = self.path / str(self._rgb_files[self._rgb_index[i]])
-        rgb = fit_rgb_to_depth(read_rgb(color_path), self.image_size, str(color_path))
+        rgb = self._undistort(fit_rgb_to_depth(read_rgb(color_path), self.image_size, str(color_path)), nearest=False)
         return check_frame(Frame(rgb, depth_m, T), self.image_size, where, need_pose)
 
 
@@ -315,6 +409,9 @@ def open_scene(
     intrinsics: np.ndarray | None = None,
     depth_scale: float = DEPTH_SCALE,
     require_pose: bool = True,
+    undistort: bool = True,
+    distortion: tuple[float, ...] | None = None,
+    interpolate_poses: bool = True,
 ) -> TumScene:
     """Open TUM sequence ``scene`` under ``root``.
 
@@ -323,7 +420,8 @@ def open_scene(
             malformed lists, unknown camera.
     """
     path = _root(root)
-    opts = dict(max_dt=max_dt, camera=camera, intrinsics=intrinsics, depth_scale=depth_scale, require_pose=require_pose)
+    opts = dict(max_dt=max_dt, camera=camera, intrinsics=intrinsics, depth_scale=depth_scale, require_pose=require_pose,
+                undistort=undistort, distortion=distortion, interpolate_poses=interpolate_poses)
     if _is_sequence(path) and scene in (".", path.resolve().name):
         return TumScene(path, path.resolve().name, **opts)
     folder = path / scene

@@ -1,0 +1,204 @@
+"""The GT on real Kinect recordings: the real-data tuning protocol.
+
+Real recordings have no clean depth; what they can measure (per pose mode):
+
+* ``kept``: neighbours the renderer fuses (of 6 per frame set): not failed by the
+  registration's checks and not left out whole by the frame-agreement check;
+* ``kept_px``: share of the neighbours' samples next to the target's own that the
+  renderer keeps (a neighbour may be kept in part: ``render.agreement_tiles``);
+* ``gt_completeness`` against the input's (``input_completeness``), 256x256;
+* ``lto_mae_mm``: leave-target-out MAE, the neighbours fused alone against the target's
+  raw valid depth (where both have depth), as the workflow's ``leave_target_out``;
+* ``reg_rot_deg`` / ``reg_trans_cm``: the mode's poses against the reference poses (the
+  recording's own: motion capture for TUM, KinectFusion for 7-Scenes), median and 90th
+  percentile over the neighbours;
+* where frames disagree: the share of compared samples that disagree with the target, in
+  the image's centre, middle ring and border (by distance from the image centre, as a
+  fraction of the half-diagonal: < 0.4, 0.4-0.7, > 0.7).
+
+Data (tests and tuning only; never copied into the repository):
+
+* ``tum``: ``../shared/data/tum-fr1-xyz-0-239`` (240 frames of TUM fr1/xyz, motion-capture
+  poses, colour and depth not synchronised), targets every ``--tum-step`` frames;
+* ``7scenes``: ``../shared/data/7scenes-kitchen`` (60 frames, KinectFusion poses), targets
+  every ``--7scenes-step`` frames.
+
+Both are TUNING data: defaults chosen by looking at these numbers are reported on other
+recordings (later frames of fr1/xyz, other sequences) and on the synthetic evaluation set
+of ``bench_gt_protocol.py``.
+
+Usage::
+
+    python3 bench/bench_real.py                              # both recordings, modes given, refine, fast
+    python3 bench/bench_real.py --data tum --modes given --tum-option camera=ros_default
+    python3 bench/bench_real.py --data tum --set min_frame_agreement=0.9 --modes given
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import hashlib
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from depthgt.errors import FrameError
+from depthgt.eval.metrics import depth_errors, pose_errors
+from depthgt.gt.frameset import align, fuse, load_frameset, poses_from_source, quality_statistics
+from depthgt.jobs.common import open_source_scene
+from depthgt.settings import FrameSetSettings, RenderSettings, registration_settings
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = next((p for p in (REPO.parent / "shared", REPO.parents[1] / "shared", Path("/work/shared")) if p.is_dir()),
+              REPO.parent / "shared")
+SIZE = (256, 256)
+DATA = {
+    "tum": {"kind": "tum", "root": str(SHARED / "data/tum-fr1-xyz-0-239"), "scene": "."},
+    "7scenes": {"kind": "sevenscenes", "root": str(SHARED / "data/7scenes-kitchen"), "scene": "7scenes-kitchen"},
+}
+#: pose modes: registration config sections
+MODES = {
+    "given": {"method": "given"},
+    "refine": {"method": "refine"},
+    "fast": {"method": "overfit", "preset": "fast"},
+}
+BANDS = ((0.0, 0.4, "centre"), (0.4, 0.7, "middle"), (0.7, 9.0, "border"))
+
+
+def _digest(*parts) -> str:
+    return hashlib.sha1(repr(parts).encode()).hexdigest()[:12]
+
+
+def _band_masks(hw: tuple[int, int]) -> list[torch.Tensor]:
+    h, w = hw
+    y, x = torch.meshgrid(torch.arange(h) + 0.5 - h / 2, torch.arange(w) + 0.5 - w / 2, indexing="ij")
+    r = torch.sqrt(x * x + y * y) / (0.5 * (h * h + w * w) ** 0.5)
+    return [(r >= lo) & (r < hi) for lo, hi, _ in BANDS]
+
+
+def run(data: str, mode: str, step: int, render: RenderSettings, options: dict, reg_over: dict, limit: int | None,
+        cache: Path) -> list[dict]:
+    spec = DATA[data]
+    source = {"name": data, "kind": spec["kind"], "root": spec["root"], "options": options}
+    scene = open_source_scene(source, spec["scene"])
+    fs = FrameSetSettings()
+    reg = registration_settings({**MODES[mode], **reg_over})
+    targets = list(range(fs.reach, len(scene) - fs.reach, step))[:limit]
+    bands = _band_masks(SIZE)
+    rows = []
+    for t in targets:
+        try:
+            data_fs = load_frameset(scene, [t + o for o in fs.offsets], SIZE, True, torch.device("cpu"))
+        except FrameError as err:
+            print(f"{data} target {t}: skipped: {err}")
+            continue
+        key = cache / f"{data}-{mode}-{t}-{_digest(options, reg_over, step)}.pt"
+        if key.is_file():
+            al, sec = torch.load(key, weights_only=False)
+        else:
+            t0 = time.perf_counter()
+            al = align(data_fs, fs.offsets, reg, seed=t)
+            sec = time.perf_counter() - t0
+            torch.save((al, sec), key)
+        gt = fuse(data_fs, al.T_j_to_t, render, members=al.fused)
+        agree = gt.agreement[0].numpy() if gt.agreement.numel() else np.full(len(al.fused), np.nan)
+        dropped = np.zeros(len(fs.offsets), bool)
+        for k, m in enumerate(al.fused):
+            if m > 0 and np.isfinite(agree[k]) and agree[k] < render.min_frame_agreement:
+                dropped[m] = True
+        kept = sum(1 for m in al.fused if m > 0 and not dropped[m])
+        stats = quality_statistics(data_fs, al, gt.depth[0, 0].numpy(), render)
+        lto = stats.get("leave_target_out", {})
+        inp = data_fs.depth_m[0, 0]
+        ref = poses_from_source(data_fs)
+        err = pose_errors(al.T_j_to_t.numpy(), ref.numpy())
+        row = dict(data=data, mode=mode, target=t, kept=kept, sec=sec,
+                   gt_completeness=float((gt.depth[0, 0] > 0).float().mean()),
+                   input_completeness=float((inp > 0).float().mean()),
+                   lto_mae_mm=1000 * float(lto.get("mae_m", np.nan)),
+                   agreement_median=float(np.nanmedian(agree[1:])) if np.isfinite(agree[1:]).any() else np.nan,
+                   rot=err.rot_err_deg.tolist(), trans=np.asarray(err.trans_err_cm).tolist())
+        if getattr(gt, "disagreement", None) is not None:
+            dis = gt.disagreement[0]  # (2, H, W): compared, disagreeing samples of the neighbours
+            for mask, (_, _, name) in zip(bands, BANDS):
+                n = float(dis[0][mask].sum())
+                row[f"disagree_{name}"] = float(dis[1][mask].sum()) / n if n else np.nan
+            n = float(dis[0].sum())
+            row["kept_px"] = float(dis[2].sum()) / n if n else np.nan
+        rows.append(row)
+    return rows
+
+
+def summarise(df: pd.DataFrame) -> pd.DataFrame:
+    out = []
+    for (data, mode), g in df.groupby(["data", "mode"], sort=False):
+        rot = np.concatenate(g.rot.tolist())
+        trans = np.concatenate(g.trans.tolist())
+        r = dict(data=data, mode=mode, framesets=len(g), kept=g.kept.mean(),
+                 kept_px=g.kept_px.mean() if "kept_px" in g else np.nan,
+                 gt_completeness=g.gt_completeness.mean(), input_completeness=g.input_completeness.mean(),
+                 lto_mae_mm=g.lto_mae_mm.mean(), agreement_median=g.agreement_median.median(),
+                 reg_rot_deg_med=np.median(rot), reg_rot_deg_p90=np.percentile(rot, 90),
+                 reg_trans_cm_med=np.median(trans), reg_trans_cm_p90=np.percentile(trans, 90),
+                 sec_per_set=g.sec.mean())
+        for _, _, name in BANDS:
+            if f"disagree_{name}" in g:
+                r[f"disagree_{name}"] = g[f"disagree_{name}"].mean()
+        out.append(r)
+    return pd.DataFrame(out)
+
+
+def _literal(pairs: list[str]) -> dict:
+    out = {}
+    for kv in pairs:
+        k, _, v = kv.partition("=")
+        try:
+            out[k] = ast.literal_eval(v)
+        except (ValueError, SyntaxError):
+            out[k] = v
+    return out
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", nargs="+", default=list(DATA), choices=list(DATA))
+    ap.add_argument("--modes", nargs="+", default=list(MODES), choices=list(MODES))
+    ap.add_argument("--tum-step", type=int, default=6)
+    ap.add_argument("--7scenes-step", dest="sevenscenes_step", type=int, default=4)
+    ap.add_argument("--limit", type=int, default=None, help="only the first N frame sets of each recording")
+    ap.add_argument("--set", nargs="*", default=[], help="RenderSettings overrides key=value")
+    ap.add_argument("--reg", nargs="*", default=[], help="registration overrides key=value")
+    ap.add_argument("--tum-option", nargs="*", default=[], help="tum source options key=value")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/depthgt_real"),
+                    help="registrations are cached here (by recording, mode, target, options); delete it after code changes")
+    ap.add_argument("--out", type=Path, default=Path("/tmp/bench_real.csv"))
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    a.cache.mkdir(parents=True, exist_ok=True)
+    render = RenderSettings(**_literal(a.set))
+    print(f"command: python3 bench/bench_real.py {' '.join(sys.argv[1:] if argv is None else argv)}")
+    rows = []
+    for data in a.data:
+        if not Path(DATA[data]["root"]).is_dir():
+            print(f"{data}: {DATA[data]['root']} not found, skipped")
+            continue
+        options = _literal(a.tum_option) if data == "tum" else {}
+        step = a.tum_step if data == "tum" else a.sevenscenes_step
+        for mode in a.modes:
+            rows += run(data, mode, step, render, options, _literal(a.reg), a.limit, a.cache)
+    df = pd.DataFrame(rows)
+    df.to_pickle(a.out.with_suffix(".pkl"))
+    s = summarise(df)
+    s.to_csv(a.out, index=False)
+    pd.set_option("display.width", 250)
+    print(s.to_markdown(index=False, floatfmt=".4g"))
+
+
+if __name__ == "__main__":
+    main()

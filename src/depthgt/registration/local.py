@@ -1,0 +1,84 @@
+"""Local refinement of a source's poses on the frame set (``registration.method: refine``).
+
+Poses from another system -- a global reconstruction (ScanNet, 7-Scenes) or motion
+capture (TUM) -- are right globally and misaligned locally: a small error of the
+calibration between the tracker and the camera, the time between the pose and the
+depth image, drift that a global optimisation spread over the scene. The joint SE(3)
+refinement of :mod:`depthgt.registration.refine` (the consistency terms of every pair
+of the set, paper eq. 4) starts from them; the paper's thesis in its cheapest form, with
+no encoder and no correspondence search. Every neighbour goes through the checks of the
+overfit registration (inliers, condition, residual against the frame set's own noise)
+and a bound on the correction: one that moved further than ``max_correction_m`` /
+``max_correction_deg`` from its source pose diverged and is left out.
+"""
+
+from __future__ import annotations
+
+import time
+
+import torch
+
+from depthgt.registration.overfit import RegistrationResult, check_neighbours, set_status
+from depthgt.registration.refine import refine_poses
+from depthgt.settings import RegistrationSettings
+
+__all__ = ["refine_source_poses"]
+
+
+def refine_source_poses(
+    rgb: torch.Tensor,
+    depth_m: torch.Tensor,
+    K: torch.Tensor,
+    offsets: list[int],
+    T_j_to_t: torch.Tensor,
+    settings: RegistrationSettings = RegistrationSettings(method="refine"),
+) -> RegistrationResult:
+    """Refine the source's poses of the neighbours of one frame set.
+
+    Args:
+        rgb: (F, 3, H, W) colour in [0, 1]; depth_m: (F, 1, H, W) metres, 0 = invalid;
+            K: (3, 3) intrinsics at (H, W) (the target first in each).
+        offsets: frame offsets, ``offsets[0] == 0``.
+        T_j_to_t: (F-1, 4, 4) the source's poses of the neighbours in the target camera.
+        settings: ``refine_settings`` and the neighbour checks.
+
+    Returns:
+        :class:`~depthgt.registration.overfit.RegistrationResult` (no correspondences,
+        no loss curve); ``diagnostics`` holds the correction per neighbour.
+    """
+    t_start = time.perf_counter()
+    Fn = depth_m.shape[0]
+    if depth_m.ndim != 4 or depth_m.shape[1] != 1 or Fn < 2:
+        raise ValueError(f"depth_m must be (F >= 2, 1, H, W), got {tuple(depth_m.shape)}")
+    if len(offsets) != Fn or offsets[0] != 0:
+        raise ValueError(f"offsets must list {Fn} offsets with the target's 0 first, got {offsets}")
+    if T_j_to_t.shape != (Fn - 1, 4, 4) or not torch.isfinite(T_j_to_t).all():
+        raise ValueError(f"T_j_to_t must be finite ({Fn - 1}, 4, 4), got {tuple(T_j_to_t.shape)}")
+    dev = depth_m.device
+    eye = torch.eye(4, dtype=torch.float64, device=dev)[None]
+    T_start = torch.cat([eye, T_j_to_t.to(dev, torch.float64)])
+    refined = refine_poses(rgb, depth_m, K.to(depth_m.dtype), T_start, settings.refine_settings, offsets)
+    T = refined.T_f_to_t
+    statuses, reasons = check_neighbours(T, None, refined, settings, T_start=T_start)
+    status, reason = set_status(statuses, [], settings)
+    correction = torch.linalg.inv(T_start[1:]) @ T[1:]
+    diagnostics = {
+        "refine_cost_curve": refined.cost_curve,
+        "inlier_fraction": refined.inlier_fraction[1:].cpu().tolist(),
+        "condition": refined.condition[1:].cpu().tolist(),
+        "residual_m": refined.residual_m[1:].cpu().tolist(),
+        "residual_sigmas": refined.residual_sigmas[1:].cpu().tolist(),
+        "noise_sigma_1m": refined.noise_sigma_1m,
+        "correction_translation_m": correction[:, :3, 3].norm(dim=1).cpu().tolist(),
+    }
+    return RegistrationResult(
+        T_j_to_t=T[1:].detach().cpu().to(torch.float64),
+        offsets=list(offsets),
+        neighbour_status=statuses,
+        neighbour_reasons=reasons,
+        status=status,
+        reason=reason,
+        n_correspondences=[0] * (Fn - 1),
+        timings={"refine": time.perf_counter() - t_start, "total": time.perf_counter() - t_start},
+        diagnostics=diagnostics,
+    )
