@@ -280,6 +280,30 @@ def test_train_resume_equals_uninterrupted(manifests, tmp_path):
     assert predict_depth(model, depth[0, 0].numpy()).shape == (30, 34)
 
 
+def test_train_resumes_from_its_resume_folder_when_the_outputs_are_gone(manifests, tmp_path):
+    """The workflow's case: the resume state lies in its own folder, and Snakemake has
+    deleted the outputs (best, last, loss log) of the killed job before running it again."""
+    full = train(*manifests, TrainOutputs.in_dir(tmp_path / "full"), _settings(3))
+    out = TrainOutputs.in_dir(tmp_path / "wf", resume=True)
+    assert out.resume == tmp_path / "wf" / "resume"
+    train(*manifests, out, _settings(2))
+    assert (out.resume / "last.pt").is_file() and (out.resume / "best.pt").is_file()
+    for p in out[:4]:
+        p.unlink()
+    resumed = train(*manifests, out, _settings(3))
+    assert resumed["epochs_run"] == 1 and resumed["last"] == str(out.last)
+    a = torch.load(full["last"], weights_only=False)["model_state"]
+    b = torch.load(out.last, weights_only=False)["model_state"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert torch.load(out.best, weights_only=False)["best_epoch"] == full["best_epoch"]
+    # the loss log of the epochs before the kill came back from the resume state
+    pd.testing.assert_frame_equal(pd.read_csv(out.log).drop(columns="seconds"),
+                                  pd.read_csv(full["log"]).drop(columns="seconds"))
+    # resume state of other settings is not an error here: training starts anew
+    other = train(*manifests, out, TrainSettings(**{**_settings(1).__dict__, "lr": 5e-4}))
+    assert other["epochs_run"] == 1
+
+
 def test_train_settings_are_checked():
     with pytest.raises(ConfigError, match="train.model"):
         TrainSettings(model="unet3000")

@@ -73,7 +73,9 @@ def test_confidence_tracks_actual_error(framesets, rendered):
         errs.append(np.abs(gt - truth)[m])
         sigmas.append(sigma[m])
     e, s = np.concatenate(errs), np.concatenate(sigmas)
-    assert pd.Series(s).corr(pd.Series(e), method="spearman") > 0.4
+    # Spearman's rank correlation: Pearson's of the (average) ranks; pandas' own
+    # method="spearman" needs scipy, which the package does not depend on
+    assert pd.Series(s).rank().corr(pd.Series(e).rank()) > 0.4
     assert 0.5 < (e <= s).mean() < 0.9 and (e <= 3 * s).mean() > 0.9
     confident = s <= np.quantile(s, 0.8)
     assert e[confident].mean() < 0.5 * e.mean()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -104,7 +106,7 @@ def test_registration_presets_and_types():
 
 def test_train_settings_identity_ignores_epochs():
     a, b = TrainSettings(epochs=3), TrainSettings(epochs=5)
-    assert a.identity() == b.identity() and TrainSettings(lr=1e-3).identity() != a.identity()
+    assert a.identity() == b.identity() and TrainSettings(lr=1e-4).identity() != a.identity()
 
 
 def test_schema_and_settings_agree_on_the_default_config():
@@ -118,3 +120,81 @@ def test_settings_doc_is_json_ready():
     doc = settings_from_config({}).doc("frameset", "registration")
     assert doc["frameset"] == {"neighbours": 3, "stride": 2, "target_step": 1, "batch_size": 32}
     assert doc["registration"]["refine_settings"]["scales"] == [4, 2, 1]
+
+
+def _schema_defaults(node: dict, path: tuple = ()):
+    """(path, default) of every ``default`` in the schema, items of arrays as ``[]``."""
+    if "default" in node:
+        yield path, node["default"]
+    for key, child in (node.get("properties") or {}).items():
+        yield from _schema_defaults(child, (*path, key))
+    if isinstance(node.get("items"), dict):
+        yield from _schema_defaults(node["items"], (*path, "[]"))
+
+
+def _lookup(doc, path: tuple):
+    for key in path:
+        doc = doc[0] if key == "[]" else doc[key]
+    return doc
+
+
+def test_schema_defaults_equal_the_dataclass_defaults():
+    """One set of defaults: every ``default`` of the schema (which Snakemake's validation
+    writes into a workflow's config) equals the value the settings dataclasses give when
+    the key is absent, and a config with the schema's defaults filled in builds the same
+    settings as the bare config (a workflow run and a library call agree)."""
+    from snakemake.utils import validate
+
+    schema_path = REPO / "workflow/schemas/config.schema.yaml"
+    schema = yaml.safe_load(schema_path.read_text())
+    bare = {"sources": [{"name": "s", "kind": "synthetic"}]}
+    doc = json.loads(json.dumps(dataclasses.asdict(settings_from_config(bare))))
+    checked = []
+    for path, default in _schema_defaults(schema):
+        if isinstance(default, dict):
+            # a section's default: empty, so that its keys take the dataclass defaults
+            assert default == {}, f"schema default of {'.'.join(path)} sets values {default}: leave them to the dataclass"
+            continue
+        value = _lookup(doc, path)
+        assert value == default, f"config key {'.'.join(path)}: schema default {default!r}, settings default {value!r}"
+        checked.append(".".join(path))
+    # the keys the two disagreed on (issue 22) are among those compared
+    assert {"enhance.rde.backend", "registration.preset", "frameset.batch_size", "seed"} <= set(checked)
+    filled = json.loads(json.dumps(bare))
+    validate(filled, schema=str(schema_path), set_default=True)
+    assert filled != bare  # the schema did fill defaults in
+    assert settings_from_config(filled) == settings_from_config(bare)
+    for model, st in settings_from_config(filled).enhance.models.items():
+        assert (st.epochs, st.batch_size, st.lr) == (TrainSettings.epochs, TrainSettings.batch_size, TrainSettings.lr)
+    assert TrainSettings().lr == 1e-3 and TrainSettings().epochs == 6 and TrainSettings().batch_size == 8
+    # the schema's bound on frameset.batch_size is the settings' own
+    from depthgt.settings import MAX_FRAMESET_BATCH
+
+    assert schema["properties"]["frameset"]["properties"]["batch_size"]["maximum"] == MAX_FRAMESET_BATCH
+    with pytest.raises(ConfigError, match="frameset.batch_size"):
+        FrameSetSettings(batch_size=MAX_FRAMESET_BATCH + 1)
+
+
+def test_overfit_without_a_train_split_fails_when_the_workflow_starts(tmp_path):
+    """Issue 18 item 5: the encoder's pretraining needs frame sets of the train split;
+    without a source that gives any, the run stops before its first job (a dry run
+    shows it) with the keys to change, not in the pretraining job."""
+    from conftest import make_workdir, snakemake
+    from depthgt.settings import check_workflow
+
+    test_only = {"registration": {"method": "overfit", "preset": "fast"},
+                 "sources": [{"name": "t", "kind": "synthetic", "scenes": ["room_000"], "split": "test",
+                              "options": {"n_frames": 8, "width": 80, "height": 60}}]}
+    with pytest.raises(ConfigError, match=r"registration.pretrain.framesets: 16 .*sources\[0\].split: test"):
+        check_workflow(settings_from_config(test_only))
+    # fine: pretraining off, a train or auto source, or the given poses
+    check_workflow(settings_from_config({**test_only, "registration": {"method": "overfit", "pretrain": {"framesets": 0}}}))
+    check_workflow(settings_from_config({**test_only, "sources": [dict(test_only["sources"][0], split="auto")]}))
+    check_workflow(settings_from_config({**test_only, "registration": {"method": "given"}}))
+
+    wd = make_workdir(tmp_path / "wd", test_only)
+    proc = snakemake(wd, "-n", check=False)
+    assert proc.returncode != 0
+    text = proc.stdout + proc.stderr
+    assert "registration.pretrain.framesets" in text and "sources[0].split: test" in text, text[-2000:]
+    assert not (wd / "results").exists()

@@ -145,7 +145,7 @@ def test_cuda_config_requests_a_gpu_per_torch_job(slurm, tmp_path):
     wd = make_workdir(tmp_path / "cuda", cfg)
     proc = snakemake_on_slurm(wd, slurm, "framesets")
     jobs = [j for j in submitted_jobs(proc.stderr) if j["slurm_id"]]
-    assert any(j["resources"].get("gpu") == "1" for j in jobs), jobs
+    assert any(j["resources"].get("gpu") == "1" for j in jobs), (jobs, proc.stderr[-4000:])
     for job in jobs:
         per_job = slurm_job(job["slurm_id"], slurm).get("TresPerJob", "")
         assert (per_job == "gres:gpu:1") == (job["resources"].get("gpu", "0") == "1"), (job, per_job)

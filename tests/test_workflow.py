@@ -123,17 +123,22 @@ def test_rerun_is_noop_and_deterministic(built, tmp_path):
 
 
 def test_kill9_resume_gives_identical_outputs(built, tmp_path):
+    """Killed while a scene's summary job runs (its frame sets are built; the job waits at
+    its start, depthgt.testhook, until the kill), then the same command again."""
     wd = make_workdir(tmp_path / "killed", TINY)
+    hold = tmp_path / "hold"
     cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "-d", str(wd), "--cores", "2", "dataset"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    env = dict(os.environ, DEPTHGT_TEST_HOLD_DIR=str(hold), DEPTHGT_TEST_HOLD_AT="job:logs/scenes/*/summary.log")
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True, env=env)
     deadline = time.time() + 300
-    while time.time() < deadline and not list((wd / "results").rglob("*.zip")):
-        time.sleep(0.2)
+    while time.time() < deadline and proc.poll() is None and not list(hold.glob("*.held")):
+        time.sleep(0.05)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
+    assert list(hold.glob("*.held")), "no summary job was running when the build was killed"
+    assert list((wd / "results").rglob("*.zip"))
     assert not (wd / "results/dataset/summary.json").exists(), "the build finished before it could be killed"
-    snakemake(wd, "--unlock")  # a kill -9 leaves Snakemake's lock behind (README: resuming)
-    snakemake(wd, "dataset")
+    snakemake(wd, "dataset")  # no --unlock: the killed run's lock is stale (README: resuming)
     assert digest_outputs(wd) == digest_outputs(built)
 
 

@@ -25,6 +25,7 @@ import sys
 from pathlib import Path
 from typing import Any, Sequence
 
+from depthgt import runlock
 from depthgt.errors import DepthGTError
 from depthgt.gt import store
 
@@ -84,7 +85,15 @@ def scene_outputs(summary: str, dataset: str, scene: str) -> list[str]:
     return out
 
 
+def _check_not_running(args: argparse.Namespace) -> None:
+    """Refuse at once when a live run holds the working directory (depthgt.runlock; the
+    workflow itself takes the lock when its jobs start)."""
+    if not args.dry_run:
+        runlock.check(args.directory)
+
+
 def _cmd_build(args: argparse.Namespace) -> int:
+    _check_not_running(args)
     extra = list(args.targets)
     if args.dry_run:
         extra.append("-n")
@@ -93,6 +102,7 @@ def _cmd_build(args: argparse.Namespace) -> int:
 
 
 def _cmd_rebuild(args: argparse.Namespace) -> int:
+    _check_not_running(args)
     target = f"results/scenes/{args.dataset}/{args.scene}/framesets.parquet"
     # the scene's own jobs, read from the plan of all frame sets rather than hard-coded,
     # so that this follows the layout of the frame-set stage and accepts only scenes the

@@ -7,6 +7,12 @@ starts, so that every section is checked before any job runs, and every job call
 same builder on the config sections its rule passes to get its settings. Components
 never see the config dict: they take the dataclass of their stage.
 
+The field defaults of these dataclasses are the defaults of the config: a workflow run
+and a library call with the same (empty) section get the same settings. The config
+schema (``workflow/schemas/config.schema.yaml``) repeats some of them as ``default``
+for Snakemake's validation; ``tests/test_settings.py`` checks that every one of those
+equals the dataclass default.
+
 Checks raise :class:`~depthgt.errors.ConfigError` naming the config key at fault
 (``patches.size``, ``registration.refine_settings.iters``). Unknown keys are found by
 :func:`check_keys`, the one place that does it.
@@ -36,7 +42,7 @@ __all__ = [
     "FrameSetSettings", "SplitSettings", "PatchSettings", "RenderSettings", "RefineSettings", "PretrainSettings",
     "RegistrationSettings", "TrainSettings", "RDESettings", "EnhanceSettings", "EvaluationSettings", "SourceSettings",
     "Settings", "settings_from_config", "registration_settings", "check_keys", "build", "check_config",
-    "check_scene_name",
+    "check_scene_name", "check_workflow",
 ]
 
 T = TypeVar("T")
@@ -56,7 +62,11 @@ MAX_RESIZE = 4096
 MAX_PATCH_COUNT = 1000
 MAX_NEIGHBOURS = 32
 MAX_CANDIDATES = 1 << 16
-MAX_BATCH_SIZE = 4096
+# frame sets one batch job builds (frameset.batch_size): a job holds one frame set at a
+# time, but its time limit grows with the batch (the schema states the same maximum)
+MAX_FRAMESET_BATCH = 1024
+# patch pairs per training step (enhance.train.batch_size)
+MAX_TRAIN_BATCH = 4096
 
 
 def _fail(key: str, message: str) -> None:
@@ -69,10 +79,6 @@ def _require(ok: bool, key: str, message: str) -> None:
 
 
 # --------------------------------------------------------------------------- frame sets and splits
-
-
-# a batch job holds one frame set at a time; its time limit grows with the batch
-MAX_BATCH_SIZE = 1024
 
 
 @dataclass(frozen=True)
@@ -94,8 +100,8 @@ class FrameSetSettings:
     batch_size: int = 32
 
     def __post_init__(self):
-        _require(1 <= self.batch_size <= MAX_BATCH_SIZE, "frameset.batch_size",
-                 f"must be in 1..{MAX_BATCH_SIZE}, got {self.batch_size}")
+        _require(1 <= self.batch_size <= MAX_FRAMESET_BATCH, "frameset.batch_size",
+                 f"must be in 1..{MAX_FRAMESET_BATCH}, got {self.batch_size}")
         for key in ("neighbours", "stride", "target_step"):
             _require(getattr(self, key) >= 1, f"frameset.{key}", f"must be >= 1, got {getattr(self, key)}")
         _require(self.neighbours <= MAX_NEIGHBOURS, "frameset.neighbours",
@@ -563,7 +569,8 @@ class TrainSettings:
         model_params: keyword arguments of the builder (``lapden``: ``preset`` and
             LapDENConfig overrides).
         loss_params: keyword arguments of the model's loss (``lapden``: LossConfig fields).
-        epochs: number of epochs; batch_size: patches per step; lr: Adam learning rate.
+        epochs: number of epochs; batch_size: patches per step; lr: Adam learning rate
+            (defaults 6, 8, 1e-3: the config's ``enhance.train``, README "Configuration").
         weight_decay: Adam weight decay.
         seed: seeds the initial weights, the shuffling and the flips.
         flips: random horizontal and vertical flips (intrinsics flipped too).
@@ -575,9 +582,9 @@ class TrainSettings:
     model: str = "lapden"
     model_params: dict = field(default_factory=lambda: {"preset": "default"})
     loss_params: dict = field(default_factory=dict)
-    epochs: int = 10
-    batch_size: int = 16
-    lr: float = 1e-4
+    epochs: int = 6
+    batch_size: int = 8
+    lr: float = 1e-3
     weight_decay: float = 0.0
     seed: int = 0
     flips: bool = True
@@ -590,7 +597,7 @@ class TrainSettings:
         _require(self.model in builders, "train.model", f"unknown model {self.model!r}; known: {sorted(builders)}")
         for key in ("epochs", "batch_size"):
             _require(int(getattr(self, key)) >= 1, f"train.{key}", f"must be >= 1, got {getattr(self, key)}")
-        _require(self.batch_size <= MAX_BATCH_SIZE, "train.batch_size", f"must be <= {MAX_BATCH_SIZE}, got {self.batch_size}")
+        _require(self.batch_size <= MAX_TRAIN_BATCH, "train.batch_size", f"must be <= {MAX_TRAIN_BATCH}, got {self.batch_size}")
         _require(self.lr > 0, "train.lr", f"must be > 0, got {self.lr}")
         _require(self.device in DEVICES, "train.device", f"must be auto, cpu or cuda, got {self.device!r}")
         _require(self.max_batches_per_epoch is None or self.max_batches_per_epoch >= 1, "train.max_batches_per_epoch",
@@ -616,7 +623,7 @@ class RDESettings:
         frame_step: fuse every N-th frame of the stream (1: all).
         max_depth_m: depth beyond this is ignored (fusion and ray range).
         max_voxels: refuse volumes larger than this (memory guard: two float32 grids).
-        backend: ``auto`` (Open3D when importable, else torch), ``open3d`` or ``torch``.
+        backend: ``torch`` (built in), ``open3d`` or ``auto`` (Open3D when importable, else torch).
         max_missing: RDE patch pairs are kept when the RDE GT crop misses less than this.
     """
 
@@ -625,7 +632,7 @@ class RDESettings:
     frame_step: int = 2
     max_depth_m: float = 8.0
     max_voxels: int = 48_000_000
-    backend: str = "auto"
+    backend: str = "torch"
     max_missing: float = 0.05
 
     def __post_init__(self):
@@ -838,6 +845,32 @@ def settings_from_config(config: Mapping[str, Any]) -> Settings:
         enhance=_enhance_settings(config.get("enhance"), seed, device),
         evaluation=build(EvaluationSettings, config.get("evaluation"), "evaluation"),
     )
+
+
+def check_workflow(settings: Settings) -> None:
+    """Checks of a whole workflow's settings that no single section decides (run when
+    the workflow starts, before any job; a job gets only its sections).
+
+    * ``registration.method: overfit`` pretrains the encoder on frame sets of the
+      ``train`` split (``registration.pretrain.framesets`` > 0): some source must put
+      frame sets there (``split: train`` or ``auto``), or the pretraining job would
+      fail after the run started.
+
+    >>> check_workflow(settings_from_config({"registration": {"method": "overfit"},
+    ...     "sources": [{"name": "t", "kind": "synthetic", "split": "test"}]}))
+    Traceback (most recent call last):
+    ...
+    depthgt.errors.ConfigError: config key registration.pretrain.framesets: ...
+    """
+    reg = settings.registration
+    if reg.method == "overfit" and reg.pretrain.framesets > 0 and settings.sources:
+        if not any(s.split in ("train", "auto") for s in settings.sources):
+            splits = ", ".join(f"sources[{i}].split: {s.split}" for i, s in enumerate(settings.sources))
+            _fail("registration.pretrain.framesets",
+                  f"{reg.pretrain.framesets} frame sets of the train split pretrain the overfit registration's encoder "
+                  f"(registration.method: overfit), but no source puts frame sets in the train split ({splits}); "
+                  "give a source split: train or auto, or set registration.pretrain.framesets: 0 (random initial "
+                  "weights)")
 
 
 # --------------------------------------------------------------------------- the builder

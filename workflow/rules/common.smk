@@ -4,8 +4,9 @@ from pathlib import Path
 
 from snakemake.utils import validate
 
+from depthgt import runlock  # standard library only
 from depthgt.device import check_device_available  # torch-free
-from depthgt.settings import check_config, check_scene_name, settings_from_config
+from depthgt.settings import check_config, check_scene_name, check_workflow, settings_from_config
 from depthgt.sources.base import check_scene_identity  # numpy only
 
 check_config(config, workflow.source_path("../schemas/config.schema.yaml"))
@@ -14,6 +15,7 @@ validate(config, schema="../schemas/config.schema.yaml", set_default=True)
 # patches.size <= resize, registration keys whatever the method); jobs rebuild theirs
 # from the config sections their rule passes (depthgt.settings.settings_from_config).
 SETTINGS = settings_from_config(config)
+check_workflow(SETTINGS)  # what no single section decides (overfit pretraining needs a train split)
 
 SOURCES = {src["name"]: src for src in config["sources"]}  # names checked unique by the settings
 
@@ -133,10 +135,29 @@ def frameset_runtime_min(n_framesets=1):
     return 10 + -(-n_framesets * FRAMESET_CPU_S // 60)
 
 
+# One run per working directory (depthgt.runlock): the main process of a real run takes
+# .snakemake/depthgt-run.lock before its first job and gives it back at the end; a second
+# live run stops here with a message naming the first, a lock left by a killed run is
+# taken over. Snakemake calls these handlers only in the main process of a run that
+# executes jobs: not for --dry-run, --list or --summary, and not in the jobs it spawns
+# (--no-hooks), which therefore neither take nor wait for the lock.
 # device: cuda on a machine without CUDA stops a local run before its first job
 # (torch-free check). It runs in `onstart` because the executor is known only there
 # (while this file is parsed a SLURM run still looks local); on a cluster the submitting
 # node may have no GPU, there each job checks before any work (depthgt.device).
 onstart:
+    runlock.acquire()
     if workflow.local_exec:
-        check_device_available(SETTINGS.device)
+        try:
+            check_device_available(SETTINGS.device)
+        except Exception:
+            runlock.release()
+            raise
+
+
+onsuccess:
+    runlock.release()
+
+
+onerror:
+    runlock.release()

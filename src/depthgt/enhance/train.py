@@ -15,10 +15,14 @@ of :class:`TrainOutputs` (in the workflow: ``results/models/{model}/``)::
     best           the checkpoint with the lowest validation loss
     log            loss_log.csv: epoch, split, loss terms, batches, seconds
     meta           train.json: resolved settings, parameter count, best epoch, versions
+    resume         optional folder of the resume state (``last.pt``, ``best.pt``, written
+                   every epoch; ``last`` and ``best`` are then written when training ends)
 
-An interrupted run resumes from ``last``; with the same seed it ends with the same
-weights as an uninterrupted one (the shuffling and flips of epoch e depend only on
-``(seed, e)``).
+An interrupted run resumes from ``resume`` (or, without one, from ``last``); with the
+same seed it ends with the same weights as an uninterrupted one (the shuffling and flips
+of epoch e depend only on ``(seed, e)``). The workflow keeps the resume state in
+``results/models/{model}/resume/``, which is not an output of the rule, because
+Snakemake deletes the outputs of a killed job before it runs the job again.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
+import shutil
 import time
 from dataclasses import asdict
 from functools import partial
@@ -43,6 +48,7 @@ from depthgt.data import GTDataset, training_fields
 from depthgt.device import resolve_device
 from depthgt.errors import ConfigError
 from depthgt.settings import TrainSettings
+from depthgt.testhook import hold
 
 __all__ = [
     "MODELS",
@@ -129,18 +135,21 @@ def build_loss(name: str, params: dict | None = None) -> Callable:
 
 
 class TrainOutputs(NamedTuple):
-    """The files a training run writes (every path given by the caller)."""
+    """The files a training run writes (every path given by the caller); ``resume``
+    (optional) is the folder of the per-epoch resume state."""
 
     best: Path
     last: Path
     log: Path
     meta: Path
+    resume: Path | None = None
 
     @classmethod
-    def in_dir(cls, out_dir: str | Path) -> "TrainOutputs":
-        """``best.pt``, ``last.pt``, ``loss_log.csv`` and ``train.json`` in ``out_dir``."""
+    def in_dir(cls, out_dir: str | Path, resume: bool = False) -> "TrainOutputs":
+        """``best.pt``, ``last.pt``, ``loss_log.csv`` and ``train.json`` in ``out_dir``
+        (and the resume folder ``resume/`` there, when ``resume``)."""
         d = Path(out_dir)
-        return cls(d / "best.pt", d / "last.pt", d / "loss_log.csv", d / "train.json")
+        return cls(d / "best.pt", d / "last.pt", d / "loss_log.csv", d / "train.json", d / "resume" if resume else None)
 
 
 # --------------------------------------------------------------------------- data
@@ -275,6 +284,10 @@ def _read_log(path: Path, upto_epoch: int) -> list[dict]:
         return [r for r in csv.DictReader(f) if int(r["epoch"]) <= upto_epoch]
 
 
+def _copy_atomic(src: Path, dst: Path) -> None:
+    write_atomic(dst, lambda tmp: shutil.copyfile(src, tmp))
+
+
 def _write_log(path: Path, rows: list[dict]) -> None:
     def write(tmp: Path) -> None:
         with tmp.open("w", newline="") as f:
@@ -312,8 +325,8 @@ def train(manifest_train: str | Path | pd.DataFrame, manifest_val: str | Path | 
         dict with ``best`` and ``last`` checkpoint paths, ``best_epoch``,
         ``best_val`` (validation total), ``log`` (CSV path), ``epochs_run``.
     """
-    out = TrainOutputs(*(Path(p) for p in out))
-    for p in out:
+    out = TrainOutputs(*(None if p is None else Path(p) for p in out))
+    for p in out[:4]:
         p.parent.mkdir(parents=True, exist_ok=True)
     device = resolve_device(settings.device)
     train_set = patch_dataset(manifest_train)
@@ -331,19 +344,30 @@ def train(manifest_train: str | Path | pd.DataFrame, manifest_val: str | Path | 
         loss_fn = build_loss(settings.model, settings.loss_params)
     optimizer = torch.optim.Adam(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
 
-    last_path, best_path, log_path = out.last, out.best, out.log
-    start, best_val, best_epoch = 0, float("inf"), -1
+    # the resume state: in its own folder when given (the workflow's), else last/best
+    if out.resume is not None:
+        out.resume.mkdir(parents=True, exist_ok=True)
+        last_path, best_path = out.resume / "last.pt", out.resume / "best.pt"
+    else:
+        last_path, best_path = out.last, out.best
+    log_path = out.log
+    start, best_val, best_epoch, rows = 0, float("inf"), -1, []
     if last_path.is_file():
         ckpt = torch.load(last_path, map_location=device, weights_only=False)
         if ckpt["identity"] != settings.identity():
             diff = sorted(k for k in settings.identity() if ckpt["identity"].get(k) != settings.identity()[k])
-            raise ConfigError(f"{last_path}: checkpoint was trained with other settings ({diff}); "
-                              f"remove {out.last} (and {out.best}) or restore the settings")
-        model.load_state_dict(ckpt["model_state"])
-        optimizer.load_state_dict(ckpt["optimizer_state"])
-        start, best_val, best_epoch = ckpt["epoch"] + 1, ckpt["best_val"], ckpt["best_epoch"]
-        log.info("resuming %s from epoch %d", out, start)
-    rows = _read_log(log_path, start - 1)
+            if out.resume is None:
+                raise ConfigError(f"{last_path}: checkpoint was trained with other settings ({diff}); "
+                                  f"remove {out.last} (and {out.best}) or restore the settings")
+            log.warning("%s: resume state of other settings (%s): training starts anew", last_path, diff)
+            ckpt = None
+        if ckpt is not None:
+            model.load_state_dict(ckpt["model_state"])
+            optimizer.load_state_dict(ckpt["optimizer_state"])
+            start, best_val, best_epoch = ckpt["epoch"] + 1, ckpt["best_val"], ckpt["best_epoch"]
+            # the loss log of the finished epochs travels in the checkpoint (older ones: the CSV)
+            rows = ckpt["log_rows"] if "log_rows" in ckpt else _read_log(log_path, start - 1)
+            log.info("resuming %s from epoch %d (epochs 0-%d done, best %d)", last_path, start, start - 1, best_epoch)
 
     n_params = sum(p.numel() for p in model.parameters() if p.requires_grad)
     for epoch in range(start, settings.epochs):
@@ -365,6 +389,7 @@ def train(manifest_train: str | Path | pd.DataFrame, manifest_val: str | Path | 
             "optimizer_state": optimizer.state_dict(),
             "best_val": best_val,
             "best_epoch": best_epoch,
+            "log_rows": list(rows),
         }
         if score < best_val or val_set is None:
             best_val, best_epoch = score, epoch
@@ -372,8 +397,15 @@ def train(manifest_train: str | Path | pd.DataFrame, manifest_val: str | Path | 
             _save_atomic(ckpt, best_path)
         _write_log(log_path, rows)
         _save_atomic(ckpt, last_path)
+        hold(f"train:{last_path}:epoch={epoch}")  # a pause point for tests that kill training (depthgt.testhook)
 
-    result = {"best": str(best_path), "last": str(last_path), "best_epoch": best_epoch, "best_val": best_val,
+    if out.resume is not None:
+        if start >= settings.epochs:
+            _write_log(log_path, rows)  # every epoch was done before: the outputs from the state
+        _copy_atomic(best_path, out.best)
+        _copy_atomic(last_path, out.last)
+
+    result = {"best": str(out.best), "last": str(out.last), "best_epoch": best_epoch, "best_val": best_val,
               "log": str(log_path), "epochs_run": settings.epochs - start}
     meta = {"settings": {**asdict(settings)}, "parameters": n_params, "best_epoch": best_epoch, "best_val": best_val,
             "train_pairs": len(train_set), "val_pairs": len(val_set) if val_set is not None else 0,

@@ -156,7 +156,9 @@ def assemble(scene_framesets: list[str | Path], scene_patches: list[str | Path],
         split, patch counts, every skipped frame set (``framesets_skipped``: dataset,
         scene, target, reason), the frames the batches read (``frames_read``) and every
         one of them found unusable (``frames_skipped``: dataset, scene, position,
-        frame_id, reason, message), scene problems.
+        frame_id, reason, message), scene problems, and every scene that contributes
+        no frame set with the reason (``scenes_without_framesets``: an empty scene, one
+        too short, or one whose every frame set was skipped).
     """
     out = DatasetOutputs(*(Path(p) for p in out))
     for p in out:
@@ -190,6 +192,7 @@ def assemble(scene_framesets: list[str | Path], scene_patches: list[str | Path],
             for r in fs[fs["status"] != Status.OK].itertuples()
         ],
         "scene_problems": [{"dataset": m["dataset"], "scene": m["scene"], "problem": p} for m in metas for p in m["problems"]],
+        "scenes_without_framesets": scenes_without_framesets(fs, metas),
         "frames_read": int(len(frames)),
         "frames_skipped": [
             {"dataset": r.dataset, "scene": r.scene, "position": int(r.position), "frame_id": str(r.frame_id),
@@ -200,6 +203,29 @@ def assemble(scene_framesets: list[str | Path], scene_patches: list[str | Path],
     out.summary.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
     out.summary_md.write_text(_summary_md(summary, per_scene))
     return summary
+
+
+def scenes_without_framesets(fs: pd.DataFrame, metas: list[dict]) -> list[dict]:
+    """Every scene of ``metas`` (index.json) with no built frame set in ``fs``, with the
+    reason: ``empty_scene`` (the source yields no frame), the scene's problems (too
+    short, ...), or the reasons its frame sets were skipped (counted)."""
+    out = []
+    for m in metas:
+        rows = fs[(fs["dataset"] == m["dataset"]) & (fs["scene"] == m["scene"])]
+        if (rows["status"] == "ok").any():
+            continue
+        if int(m["n_frames"]) == 0:
+            root = (m.get("source") or {}).get("root")
+            reason = "empty_scene: the source yields no frame" + (f" (root {root})" if root else "")
+        elif m["problems"]:
+            reason = "; ".join(m["problems"])
+        elif len(rows):
+            counts = rows["reason"].astype(str).str.split(":").str[0].value_counts()
+            reason = "every frame set skipped: " + ", ".join(f"{k} ({v})" for k, v in counts.items())
+        else:
+            reason = "no frame set planned"
+        out.append({"dataset": m["dataset"], "scene": m["scene"], "n_frames": int(m["n_frames"]), "reason": reason})
+    return out
 
 
 def _concat(paths: list[Path], columns: list[str] | None) -> pd.DataFrame:
@@ -226,6 +252,11 @@ def _summary_md(summary: dict, quality: pd.DataFrame) -> str:
     if summary["framesets_skipped"]:
         lines += ["| dataset | scene | target | reason |", "|---|---|---:|---|"]
         lines += [f"| {r['dataset']} | {r['scene']} | {r['target']} | {_cell(r['reason'])} |" for r in summary["framesets_skipped"]]
+        lines.append("")
+    if summary["scenes_without_framesets"]:
+        lines += ["Scenes without a frame set:", "", "| dataset | scene | frames | reason |", "|---|---|---:|---|"]
+        lines += [f"| {r['dataset']} | {r['scene']} | {r['n_frames']} | {_cell(r['reason'])} |"
+                  for r in summary["scenes_without_framesets"]]
         lines.append("")
     if summary["scene_problems"]:
         lines += ["Scene problems:", ""] + [f"- {p['dataset']}/{p['scene']}: {p['problem']}" for p in summary["scene_problems"]] + [""]

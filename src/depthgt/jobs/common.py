@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import logging
+import shutil
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
 
 from depthgt.errors import ConfigError
 from depthgt.sources.base import open_scene
+from depthgt.testhook import hold
 
 __all__ = ["logging_to", "open_source_scene"]
 
@@ -16,28 +18,45 @@ log = logging.getLogger("depthgt")
 
 
 @contextmanager
-def logging_to(path: str | Path | None, level: int = logging.INFO) -> Iterator[None]:
-    """Send depthgt's log records (and warnings) to ``path`` for the duration."""
+def logging_to(path: str | Path | None, level: int = logging.INFO, keep: str | Path | None = None) -> Iterator[None]:
+    """Send depthgt's log records (and warnings) to ``path`` for the duration.
+
+    Args:
+        keep: a second copy of the log, appended to, where Snakemake does not delete it
+            (Snakemake removes a job's log before running the job again): the records
+            of earlier attempts found there are copied into ``path`` first, so that a
+            resumed job's log shows what the killed one did.
+    """
     if path is None:
         yield
         return
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    handler = logging.FileHandler(path, mode="w")
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    mode = "w"
+    if keep is not None and Path(keep).is_file():
+        shutil.copyfile(keep, path)
+        mode = "a"
+    handlers = [logging.FileHandler(path, mode=mode)]
+    if keep is not None:
+        Path(keep).parent.mkdir(parents=True, exist_ok=True)
+        handlers.append(logging.FileHandler(keep, mode="a"))
     root = logging.getLogger()
-    root.addHandler(handler)
+    for handler in handlers:
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        root.addHandler(handler)
     old = root.level
     root.setLevel(level)
     logging.captureWarnings(True)
     try:
+        hold(f"job:{path}")  # a pause point for tests that kill a running job (depthgt.testhook)
         yield
     except Exception:
         log.exception("job failed")
         raise
     finally:
-        root.removeHandler(handler)
+        for handler in handlers:
+            root.removeHandler(handler)
+            handler.close()
         root.setLevel(old)
-        handler.close()
 
 
 POSE_OPTIONAL_KINDS = ("scannet", "sevenscenes", "tum")

@@ -8,6 +8,7 @@ explicitly) and config sections; nothing heavy (torch) is imported at module lev
 from __future__ import annotations
 
 import logging
+import shutil
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -27,20 +28,23 @@ def run_train(model: str, config: Mapping[str, Any], train_manifest: str, val_ma
     from the config's ``enhance`` section).
 
     Args:
-        outputs: the paths ``best``, ``last``, ``log``, ``meta``
-            (:class:`depthgt.enhance.train.TrainOutputs`).
+        outputs: the paths ``best``, ``last``, ``log``, ``meta`` and optionally
+            ``resume`` (:class:`depthgt.enhance.train.TrainOutputs`): a killed training
+            continues from the last finished epoch kept in ``resume``, which is removed
+            once the training has finished.
     """
-    # heavy (torch): only this job needs them
-    import torch
+    import torch  # heavy: imported by the job, not by the workflow
 
     from depthgt.enhance.train import TrainOutputs, train
 
     torch.set_num_threads(max(1, int(threads)))
     st = settings_from_config(config).train(model)
-    out = TrainOutputs(**{k: Path(outputs[k]) for k in TrainOutputs._fields})
+    out = TrainOutputs(**{k: Path(outputs[k]) for k in TrainOutputs._fields if outputs.get(k) is not None})
     result = train(train_manifest, val_manifest, out, st)
     log.info("trained %s (%s) -> %s: best epoch %d (val %.5f), %d epochs run", model, st.model, out.best,
              result["best_epoch"], result["best_val"], result["epochs_run"])
+    if out.resume is not None:
+        shutil.rmtree(out.resume, ignore_errors=True)
     return result
 
 
