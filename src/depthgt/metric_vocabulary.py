@@ -69,7 +69,8 @@ METRIC_UNITS = {
     "neighbours_fused": "frames",
     "gt_median_sigma_m": "m",
     "render_agreement": "fraction",  # per neighbour (keyed by frame offset): share of samples agreeing with the target
-    "render_left_out": "frame offsets",  # neighbours the renderer left out (too little agreement)
+    "render_left_out": "frame offsets",  # neighbours the renderer left out whole (too little agreement)
+    "render_kept_share": "fraction",  # share of the neighbours' compared samples the agreement check kept
     "patches_drawn": "patches",
     "patches_kept": "patches",
 }

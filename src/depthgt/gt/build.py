@@ -300,8 +300,12 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     offsets_fused = [members[i] - target for i in fused]
     share = gt.agreement[0].cpu().numpy()
     stats["render_agreement"] = {f"{o:+d}": round(float(a), 4) for o, a in zip(offsets_fused, share) if np.isfinite(a)}
-    stats["render_left_out"] = [o for o, a in zip(offsets_fused, share)
-                                if np.isfinite(a) and a < settings.render.min_frame_agreement and o != 0]
+    whole = settings.render.min_whole_frame_agreement if settings.render.agreement_tile_px > 0 else \
+        settings.render.min_frame_agreement  # with tiles a frame is left out whole only below this
+    stats["render_left_out"] = [o for o, a in zip(offsets_fused, share) if np.isfinite(a) and a < whole and o != 0]
+    if gt.disagreement is not None and float(gt.disagreement[0, 0].sum()) > 0:
+        # share of the neighbours' compared samples that the agreement check kept
+        stats["render_kept_share"] = round(float(gt.disagreement[0, 2].sum() / gt.disagreement[0, 0].sum()), 4)
     stats.update(quality_statistics(data, alignment, gt_depth, settings.render))
     lap("quality")
 
