@@ -62,15 +62,7 @@ def refine_source_poses(
     statuses, reasons = check_neighbours(T, None, refined, settings, T_start=T_start)
     status, reason = set_status(statuses, [], settings)
     correction = torch.linalg.inv(T_start[1:]) @ T[1:]
-    diagnostics = {
-        "refine_cost_curve": refined.cost_curve,
-        "inlier_fraction": refined.inlier_fraction[1:].cpu().tolist(),
-        "condition": refined.condition[1:].cpu().tolist(),
-        "residual_m": refined.residual_m[1:].cpu().tolist(),
-        "residual_sigmas": refined.residual_sigmas[1:].cpu().tolist(),
-        "noise_sigma_1m": refined.noise_sigma_1m,
-        "correction_translation_m": correction[:, :3, 3].norm(dim=1).cpu().tolist(),
-    }
+    diagnostics = {**refined.diagnostics(), "correction_translation_m": correction[:, :3, 3].norm(dim=1).cpu().tolist()}
     return RegistrationResult(
         T_j_to_t=T[1:].detach().cpu().to(torch.float64),
         offsets=list(offsets),

@@ -515,12 +515,7 @@ def register_frameset(
         with torch.no_grad():
             refined = refine_poses(fs.rgb, fs.depth, fs.K, T, s.refine_settings, offsets)
         T = refined.T_f_to_t
-        diagnostics["refine_cost_curve"] = refined.cost_curve
-        diagnostics["inlier_fraction"] = refined.inlier_fraction[1:].cpu().tolist()
-        diagnostics["condition"] = refined.condition[1:].cpu().tolist()
-        diagnostics["residual_m"] = refined.residual_m[1:].cpu().tolist()
-        diagnostics["residual_sigmas"] = refined.residual_sigmas[1:].cpu().tolist()
-        diagnostics["noise_sigma_1m"] = refined.noise_sigma_1m
+        diagnostics.update(refined.diagnostics())
         timings["refine"] = time.perf_counter() - t0
 
     statuses, reasons = check_neighbours(T, n_corr, refined, s)

@@ -72,6 +72,17 @@ class RefineResult:
     residual_sigmas: torch.Tensor | None = None
     noise_sigma_1m: float | None = None
 
+    def diagnostics(self) -> dict:
+        """The neighbours' (frames 1..F-1) diagnostics as plain lists, for poses.json."""
+        return {
+            "refine_cost_curve": self.cost_curve,
+            "inlier_fraction": self.inlier_fraction[1:].cpu().tolist(),
+            "condition": self.condition[1:].cpu().tolist(),
+            "residual_m": self.residual_m[1:].cpu().tolist(),
+            "residual_sigmas": self.residual_sigmas[1:].cpu().tolist(),
+            "noise_sigma_1m": self.noise_sigma_1m,
+        }
+
 
 def frame_pairs(n_frames: int, mode: str, offsets: list[int] | None = None) -> torch.Tensor:
     """Ordered pairs (a, b) (b's points into a's camera) as a (P, 2) long tensor."""
