@@ -91,7 +91,7 @@ class FrameSetSettings:
         target_step: a target every ``target_step`` frames.
         batch_size: frame sets one job builds in turn (a contiguous slice of one scene's
             targets, written to one shard): process start, imports and model loading are
-            paid once per batch (README "Output layout").
+            paid once per batch (docs/output-layout.md).
     """
 
     neighbours: int = 3
@@ -204,7 +204,7 @@ class RenderSettings:
 
     Defaults were chosen on the TUNING set of bench/bench_gt_protocol.py (synthetic
     ``room`` and ``varied`` scenes of seed 0, Kinect v1 profile) and are reported on its
-    disjoint EVALUATION set (README "GT renderer").
+    disjoint EVALUATION set (docs/gt-renderer.md, bench/README.md).
 
     Attributes:
         m: at most this many samples of the chosen surface per pixel, nearest to the
@@ -528,7 +528,7 @@ REGISTRATION_PRESETS: dict[str, dict[str, Any]] = {
     # correspondence initialisation, no overfit iterations, then chaining and a
     # sparser refinement, its point-to-plane scale growing as z^2 beyond 1.5 m and a
     # stronger photometric term (chosen on bench_gt_protocol.py's tuning sets: pose
-    # error vs the source's poses and GT error; README "GT renderer").
+    # error vs the source's poses and GT error; bench/README.md).
     "fast": {
         "n_blocks": 1, "channels": 32, "n_candidates": 1024, "iterations": 0, "render_stride": 2,
         "refine_settings": {"scales": (4, 2, 1), "iters": (8, 5, 3), "point_stride": (1, 2, 4),
@@ -570,7 +570,7 @@ class TrainSettings:
             LapDENConfig overrides).
         loss_params: keyword arguments of the model's loss (``lapden``: LossConfig fields).
         epochs: number of epochs; batch_size: patches per step; lr: Adam learning rate
-            (defaults 6, 8, 1e-3: the config's ``enhance.train``, README "Configuration").
+            (defaults 6, 8, 1e-3: the config's ``enhance.train``, docs/configuration.md).
         weight_decay: Adam weight decay.
         seed: seeds the initial weights, the shuffling and the flips.
         flips: random horizontal and vertical flips (intrinsics flipped too).
