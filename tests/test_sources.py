@@ -751,3 +751,13 @@ def test_frame_count_comes_from_metadata(tmp_path, monkeypatch):
     monkeypatch.undo()
     assert base.frame_count("scannet", tmp_path / "scannet", "scene0002_00") == 5
     assert len(base.open_scene("scannet", tmp_path / "scannet", "scene0002_00")) == 3
+
+
+def test_colour_matches_depth_only_for_synthetic_scenes():
+    """The registration's photometric refinement term (``photometric: auto``) is used only
+    where colour is the depth's camera at the depth's instant."""
+    from depthgt.sources import scannet, sevenscenes, synthetic
+
+    real = (scannet.ScanNetExportedScene, scannet.ScanNetSensScene, sevenscenes.SevenScenesScene, tum.TumScene)
+    assert not any(cls.colour_matches_depth for cls in real)
+    assert synthetic.SyntheticScene.colour_matches_depth

@@ -87,7 +87,6 @@ class ScanNetExportedScene(NumberedFrames):
     """One scene in ScanNet's exported folder layout (see the module docstring)."""
 
     has_clean_depth = False
-    colour_matches_depth = False  # colour from another camera / instant: no sub-pixel photometric term
 
     def __init__(
         self,

@@ -63,7 +63,6 @@ class SevenScenesScene(NumberedFrames):
     """One 7-Scenes sequence folder (see the module docstring)."""
 
     has_clean_depth = False
-    colour_matches_depth = False  # colour from another camera / instant: no sub-pixel photometric term
 
     def __init__(
         self,

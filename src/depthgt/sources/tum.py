@@ -240,7 +240,6 @@ class TumScene(FileScene):
     """One TUM RGB-D sequence (see the module docstring)."""
 
     has_clean_depth = False
-    colour_matches_depth = False  # colour from another camera / instant: no sub-pixel photometric term
 
     def __init__(
         self,
