@@ -32,11 +32,12 @@ def make_workdir(path: Path, config: dict) -> Path:
 
 
 def _normalised(name: str, data: bytes) -> bytes:
-    """poses.json without its timings (wall-clock); the dataset card without the
-    checksums of the shards (their poses.json hold the timings)."""
+    """poses.json without its timings (wall-clock and CPU seconds); the dataset card
+    without the checksums of the shards (their poses.json hold the timings)."""
     if name.endswith("poses.json"):
         doc = json.loads(data)
         doc.pop("timings_s", None)
+        doc.pop("cpu_s", None)
         return json.dumps(doc, sort_keys=True).encode()
     if name == "card.json":
         doc = json.loads(data)
