@@ -31,6 +31,7 @@ import pandas as pd
 import torch
 import yaml
 
+from depthgt.errors import FrameError
 from depthgt.gt.build import FrameSetOutputs, process_frameset
 from depthgt.gt.cache import ResizedScene
 from depthgt.jobs.common import open_source_scene
@@ -64,7 +65,7 @@ def run(source: dict, scene_name: str, mode: str, n: int, config: dict) -> pd.Da
             c0 = time.process_time()
             try:
                 process_frameset(scene, source["name"], t, members, "train", out, settings)
-            except Exception as err:  # a frame without a pose etc.: the batch records it; here it is skipped
+            except FrameError as err:  # a frame without a pose etc.: the batch records it; here it is skipped
                 print(f"{source['name']} target {t}: skipped ({err})")
                 continue
             cpu = json.loads(out.poses.read_text())["cpu_s"]
