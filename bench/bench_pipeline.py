@@ -15,27 +15,43 @@ first frame set is left out of the means (warm-up: imports, first allocations).
 
 Data: the 7-Scenes fixture (640x480 JPEG/PNG) and the TUM tuning frames (640x480 PNG) in
 ``../shared/data``, and the default synthetic scene (``--data synthetic``).
+
+Side by side with another commit (issue 20's acceptance): ``--against DIR`` runs the same
+frame sets with ``DIR/src`` (e.g. ``git worktree add /tmp/base b0fc1da``) in a second
+process after each (recording, mode) of this checkout, and prints both totals and their
+ratio. A checkout older than the per-stage timings reports its total only.
+
+    python3 bench/bench_pipeline.py --modes given fast --against /tmp/base
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
+import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+if __name__ == "__main__" and "--src" in sys.argv:  # run another checkout's library (see --against)
+    sys.path.insert(0, sys.argv[sys.argv.index("--src") + 1])
 
 import pandas as pd
 import torch
 import yaml
 
 from depthgt.errors import FrameError
-from depthgt.gt.build import FrameSetOutputs, process_frameset
 from depthgt.gt.cache import ResizedScene
 from depthgt.jobs.common import open_source_scene
 from depthgt.settings import settings_from_config
+
+try:
+    from depthgt.gt.build import FrameSetOutputs, process_frameset
+except ImportError:  # a checkout from before the gt.frameset -> gt.build rename
+    from depthgt.gt.frameset import FrameSetOutputs, process_frameset
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = next((p for p in (ROOT.parent / "shared", ROOT.parents[1] / "shared") if p.is_dir()), ROOT.parent / "shared")
@@ -54,7 +70,7 @@ def sources(config: dict) -> dict[str, tuple[dict, str]]:
 def run(source: dict, scene_name: str, mode: str, n: int, config: dict) -> pd.DataFrame:
     settings = settings_from_config({**config, "registration": MODES[mode], "sources": [source]})
     fs = settings.frameset
-    need = settings.registration.uses_source_poses
+    need = getattr(settings.registration, "uses_source_poses", settings.registration.method == "given")
     scene = ResizedScene(open_source_scene(source, scene_name, need_poses=need), settings.size_hw,
                          keep=2 * fs.reach + 2, need_pose=need)
     rows = []
@@ -68,8 +84,9 @@ def run(source: dict, scene_name: str, mode: str, n: int, config: dict) -> pd.Da
             except FrameError as err:  # a frame without a pose etc.: the batch records it; here it is skipped
                 print(f"{source['name']} target {t}: skipped ({err})")
                 continue
-            cpu = json.loads(out.poses.read_text())["cpu_s"]
-            rows.append(dict(data=source["name"], mode=mode, target=t, total=time.process_time() - c0, **cpu))
+            total = time.process_time() - c0
+            cpu = json.loads(out.poses.read_text()).get("cpu_s", {})  # per stage (absent in older checkouts)
+            rows.append(dict(data=source["name"], mode=mode, target=t, total=total, **cpu))
     return pd.DataFrame(rows)
 
 
@@ -80,21 +97,50 @@ def main(argv=None) -> None:
     ap.add_argument("--framesets", type=int, default=9, help="consecutive targets per recording (the first is warm-up)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (a frame-set job uses one)")
     ap.add_argument("--config", default=str(ROOT / "config/config.yaml"))
+    ap.add_argument("--against", help="another checkout (its src/ is used) run on the same frame sets, side by side")
+    ap.add_argument("--src", help=argparse.SUPPRESS)  # internal: the library this process runs (see --against)
+    ap.add_argument("--csv", help=argparse.SUPPRESS)  # internal: write the per-set rows here
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     config = yaml.safe_load(Path(a.config).read_text())
     config["device"] = "cpu"
-    frames = []
+    import depthgt
+    frames, other = [], []
     for data in a.data:
         source, scene = sources(config)[data]
         for mode in a.modes:
             frames.append(run(source, scene, mode, a.framesets, config).iloc[1:])  # first: warm-up
+            if a.against:  # the other checkout right after, on the same frames (same machine load)
+                other.append(_run_other(Path(a.against), data, mode, a))
     df = pd.concat(frames)
     stages = [c for c in df.columns if c not in ("data", "mode", "target")]
+    if a.csv:
+        df.to_csv(a.csv, index=False)
+        return
     print(f"command: python3 bench/bench_pipeline.py {' '.join(sys.argv[1:] if argv is None else argv)}")
+    print(f"library: {Path(depthgt.__file__).parent}")
     print(f"CPU seconds per frame set (process CPU, {a.threads} torch thread(s)), means over {a.framesets} sets after a warm-up")
     print(df.groupby(["data", "mode"], sort=False)[stages].mean().to_markdown(floatfmt=".3f"))
     print(f"peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
+    if a.against:
+        base = pd.concat(other)
+        side = pd.DataFrame({"this": df.groupby(["data", "mode"], sort=False)["total"].mean(),
+                             "against": base.groupby(["data", "mode"], sort=False)["total"].mean()})
+        side["against / this"] = side["against"] / side["this"]
+        print(f"side by side, total CPU per frame set: this checkout vs {a.against}/src")
+        print(side.to_markdown(floatfmt=".3f"))
+
+
+def _run_other(checkout: Path, data: str, mode: str, a: argparse.Namespace) -> pd.DataFrame:
+    """The same (recording, mode) with ``checkout/src`` and its own default config, in a fresh process; its rows."""
+    with tempfile.TemporaryDirectory() as tmp:
+        csv = Path(tmp) / "rows.csv"
+        cmd = [sys.executable, __file__, "--src", str(checkout / "src"), "--data", data, "--modes", mode,
+               "--framesets", str(a.framesets), "--threads", str(a.threads), "--config", str(checkout / "config/config.yaml"),
+               "--csv", str(csv)]
+        env = {**os.environ, "PYTHONPATH": str(checkout / "src")}
+        subprocess.run(cmd, check=True, env=env, cwd=str(checkout))
+        return pd.read_csv(csv)
 
 
 if __name__ == "__main__":

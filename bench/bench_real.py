@@ -9,6 +9,9 @@ Real recordings have no clean depth; what they can measure (per pose mode):
 * ``gt_completeness`` against the input's (``input_completeness``), 256x256;
 * ``lto_mae_mm``: leave-target-out MAE, the neighbours fused alone against the target's
   raw valid depth (where both have depth), as the workflow's ``leave_target_out``;
+* ``lto_edge_mm`` / ``lto_flat_mm`` / ``lto_edge_gross``: that error split by whether a
+  depth edge or hole of the target lies within 2 px (inverse depth range in the 5x5 window
+  beyond 2 % of it plus 0.01 /m), and the share of the edge pixels off by more than 30 cm;
 * ``reg_rot_deg`` / ``reg_trans_cm``: the mode's poses against the reference poses (the
   recording's own: motion capture for TUM, KinectFusion for 7-Scenes), median and 90th
   percentile over the neighbours;
@@ -46,6 +49,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
+import torch.nn.functional as F
 
 from depthgt.errors import FrameError
 from depthgt.eval.metrics import depth_errors, pose_errors
@@ -98,21 +102,27 @@ def run(data: str, mode: str, step: int, render: RenderSettings, options: dict, 
             print(f"{data} target {t}: skipped: {err}")
             continue
         key = cache / f"{data}-{mode}-{t}-{_digest(options, reg_over, step)}.pt"
+        cached = None
         if key.is_file():
-            al, sec = torch.load(key, weights_only=False)
+            try:
+                cached = torch.load(key, weights_only=False)
+            except Exception as err:  # a cache written by another code version: recompute it
+                print(f"{key.name}: cache not readable ({type(err).__name__}: {err}); registering again")
+        if cached is not None:
+            al, sec = cached
         else:
             t0 = time.perf_counter()
             al = align(data_fs, fs.offsets, reg, seed=t)
             sec = time.perf_counter() - t0
             torch.save((al, sec), key)
-        gt = fuse(data_fs, al.T_j_to_t, render, members=al.fused)
+        gt = fuse(data_fs, al.T_j_to_t, render, members=al.fused, leave_target_out=True)
         agree = gt.agreement[0].numpy() if gt.agreement.numel() else np.full(len(al.fused), np.nan)
         dropped = np.zeros(len(fs.offsets), bool)
         for k, m in enumerate(al.fused):
             if m > 0 and np.isfinite(agree[k]) and agree[k] < render.min_frame_agreement:
                 dropped[m] = True
         kept = sum(1 for m in al.fused if m > 0 and not dropped[m])
-        stats = quality_statistics(data_fs, al, gt.depth[0, 0].numpy(), render)
+        stats = quality_statistics(data_fs, al, gt.depth[0, 0].numpy(), render, left_out=gt.left_out)
         lto = stats.get("leave_target_out", {})
         inp = data_fs.depth_m[0, 0]
         ref = poses_from_source(data_fs)
@@ -121,6 +131,7 @@ def run(data: str, mode: str, step: int, render: RenderSettings, options: dict, 
                    gt_completeness=float((gt.depth[0, 0] > 0).float().mean()),
                    input_completeness=float((inp > 0).float().mean()),
                    lto_mae_mm=1000 * float(lto.get("mae_m", np.nan)),
+                   **_edge_split(gt.left_out, data_fs.depth_m[0, 0]),
                    agreement_median=float(np.nanmedian(agree[1:])) if np.isfinite(agree[1:]).any() else np.nan,
                    rot=err.rot_err_deg.tolist(), trans=np.asarray(err.trans_err_cm).tolist())
         if getattr(gt, "disagreement", None) is not None:
@@ -134,15 +145,34 @@ def run(data: str, mode: str, step: int, render: RenderSettings, options: dict, 
     return rows
 
 
+def _edge_split(left_out, target: torch.Tensor) -> dict:
+    """Leave-target-out errors (metres -> mm) at the target's depth edges and holes and away
+    from them; the per-pixel errors are kept for the pooled means of :func:`summarise`."""
+    if left_out is None:
+        return dict(edge_err=[], flat_err=[])
+    lto = left_out.depth[0, 0]
+    iz = torch.where(target > 0, 1 / target.clamp_min(1e-6), torch.nan)[None, None]
+    hi = F.max_pool2d(torch.nan_to_num(iz, nan=float("inf")), 5, 1, 2)
+    lo = -F.max_pool2d(-torch.nan_to_num(iz, nan=-float("inf")), 5, 1, 2)
+    edge = ((hi - lo) > 0.02 * iz.nan_to_num(0) + 0.01)[0, 0]
+    both = (lto > 0) & (target > 0)
+    err = 1000 * (lto - target)
+    return dict(edge_err=err[both & edge].tolist(), flat_err=err[both & ~edge].tolist())
+
+
 def summarise(df: pd.DataFrame) -> pd.DataFrame:
     out = []
     for (data, mode), g in df.groupby(["data", "mode"], sort=False):
         rot = np.concatenate(g.rot.tolist())
+        edge, flat = (np.concatenate([np.asarray(e, float) for e in g[c]]) for c in ("edge_err", "flat_err"))
         trans = np.concatenate(g.trans.tolist())
         r = dict(data=data, mode=mode, framesets=len(g), kept=g.kept.mean(),
                  kept_px=g.kept_px.mean() if "kept_px" in g else np.nan,
                  gt_completeness=g.gt_completeness.mean(), input_completeness=g.input_completeness.mean(),
-                 lto_mae_mm=g.lto_mae_mm.mean(), agreement_median=g.agreement_median.median(),
+                 lto_mae_mm=g.lto_mae_mm.mean(), lto_edge_mm=np.abs(edge).mean() if edge.size else np.nan,
+                 lto_flat_mm=np.abs(flat).mean() if flat.size else np.nan,
+                 lto_edge_gross=(np.abs(edge) > 300).mean() if edge.size else np.nan,
+                 agreement_median=g.agreement_median.median(),
                  reg_rot_deg_med=np.median(rot), reg_rot_deg_p90=np.percentile(rot, 90),
                  reg_trans_cm_med=np.median(trans), reg_trans_cm_p90=np.percentile(trans, 90),
                  sec_per_set=g.sec.mean())

@@ -207,25 +207,40 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
             fi = qualified.index(True) if any(qualified) else 0
             bi = next((k for k in range(fi + 1, len(clusters)) if qualified[k]), None)
 
-            def geometry(cl):
+            def geometry(ci):
+                cl = clusters[ci]
                 offs = np.array([c["o"] for c in cl])
                 cen = offs.mean(0)
                 norm = np.linalg.norm(cen)
                 reach = np.inf if norm <= 1e-9 else -min(offs @ (cen / norm))
+                if st.edge_vote > 0 and frame is not None and norm > 1e-9:
+                    # each frame's own reach (-inf: a frame seen only behind this surface);
+                    # the k-th largest (k = ceil(edge_vote x voters)) plus the slack
+                    voters = {c["f"] for later in clusters[ci:] for c in later}
+                    per_frame = sorted((-min(np.array([c["o"] for c in cl if c["f"] == f]) @ (cen / norm))
+                                        if any(c["f"] == f for c in cl) else -np.inf for f in voters), reverse=True)
+                    k = min(max(math.ceil(st.edge_vote * len(per_frame)), 1), len(per_frame))
+                    reach = min(reach, per_frame[k - 1] + st.edge_vote_slack_px)
                 d_near = min(c["d2"] for c in cl)
                 hit = d_near <= 0.05**2
                 return reach, d_near, hit, (reach >= st.edge_margin_px) or hit
 
-            reach_f, dn_f, hit_f, cov_f = geometry(clusters[fi])
+            reach_f, dn_f, hit_f, cov_f = geometry(fi)
             chosen = fi
             if bi is not None and not cov_f:
-                _, dn_b, _, cov_b = geometry(clusters[bi])
+                _, dn_b, _, cov_b = geometry(bi)
                 if cov_b or dn_b < dn_f:
                     chosen = bi
-            if not (cov_f or bi is not None or st.extend_uncovered):
-                continue
             ambiguous = bi is not None and not hit_f and abs(reach_f - st.edge_margin_px) < st.ambiguous_px
-            if ambiguous and st.drop_ambiguous:
+            if not (cov_f or bi is not None or st.extend_uncovered) or (ambiguous and st.drop_ambiguous):
+                chosen = None
+            if st.target_resolves_ambiguous and target_frame is not None and frame is not None and (chosen is None or ambiguous):
+                # the target's own sample at the position decides, on a surface of >= min_frames frames
+                own = [k for k, cl in enumerate(clusters) if any(c["f"] == target_frame and c["d2"] <= 0.05**2 for c in cl)
+                       and len({c["f"] for c in cl}) >= st.min_frames]
+                if own:
+                    chosen, ambiguous = own[0], False
+            if chosen is None:
                 continue
             kept = sorted(clusters[chosen], key=lambda c: c["d2"])[: st.m]  # stable: ties keep point order
             wsp = np.array([math.exp(-c["d2"] / (R * R)) for c in kept])

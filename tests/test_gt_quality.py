@@ -61,6 +61,25 @@ def test_leave_target_out_uses_neighbours_only(framesets, rendered):
     assert not np.array_equal(full, lto)
 
 
+@pytest.mark.parametrize("members", [slice(None), [0, 1, 2, 4, 6]])
+def test_leave_target_out_beside_the_gt_is_the_same_render(framesets, members):
+    """fuse(leave_target_out=True) renders the neighbours alone from the GT's candidates:
+    the same depth, weights, counts and sigmas as fusing them on their own (noise law
+    estimated without the target), and the GT itself unchanged."""
+    data, T = framesets[1]
+    st = RenderSettings()
+    both = fuse(data, T, st, members=members, leave_target_out=True)
+    alone = fuse(data, T, st, members=slice(1, None) if isinstance(members, slice) else members[1:])
+    gt = fuse(data, T, st, members=members)
+    assert both.left_out is not None and gt.left_out is None
+    for a, b in ((both, gt), (both.left_out, alone)):
+        for name in ("depth", "weight_sum", "count", "sigma"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), name
+    assert (both.left_out.depth > 0).float().mean() > 0.8
+    # without neighbours there is nothing to leave the target out of
+    assert fuse(data, T, st, members=[0], leave_target_out=True).left_out is None
+
+
 def test_confidence_tracks_actual_error(framesets, rendered):
     """sigma (gt.exr channel S) against the known truth: larger where the GT is worse,
     about calibrated, and leaving out the least certain pixels cuts the error."""

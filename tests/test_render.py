@@ -180,24 +180,38 @@ def _compare_with_reference(p, nrm, valid, K, frame, sigma, st, src_hw, target_f
 
 @pytest.mark.parametrize("seed", [0, 1])
 @pytest.mark.parametrize("src_hw", [None, (30, 40)])
-@pytest.mark.parametrize("variant", ["default", "normals", "plain", "strict"])
+@pytest.mark.parametrize("variant", ["default", "normals", "plain", "strict", "union", "resolve"])
 def test_render_gt_matches_reference(seed, src_hw, variant):
     """The vectorised renderer against the plain loop oracle (tests/render_reference.py)."""
     p, nrm, valid, K, frame, sigma = _two_layer_cloud(seed)
     kw = {"default": {}, "normals": dict(plane="normals"), "plain": dict(plane="none", drop_ambiguous=False),
-          "strict": dict(extend_uncovered=False, min_frames=3, max_sigma_m=0.002)}[variant]
+          "strict": dict(extend_uncovered=False, min_frames=3, max_sigma_m=0.002), "union": dict(edge_vote=0.0),
+          "resolve": dict(target_resolves_ambiguous=True)}[variant]
     st = RenderSettings(m=5, radius_px=1.3, min_points=2, **kw)
-    if variant == "strict":  # the target's own samples, right on some sample positions
+    if variant in ("strict", "resolve"):  # the target's own samples, right on some sample positions
         gu = resampled_positions(src_hw[1], 16, dtype=torch.float64) if src_hw else torch.arange(16, dtype=torch.float64)
         gv = resampled_positions(src_hw[0], 16, dtype=torch.float64) if src_hw else torch.arange(16, dtype=torch.float64)
-        uv = torch.stack(torch.meshgrid(gu[::3], gv[::3], indexing="xy"), -1).reshape(-1, 2)
-        on = _unproject(uv, torch.full((len(uv),), 1.1, dtype=torch.float64), K[0])[None]  # a lone frame at 1.1 m
+        step = 3 if variant == "strict" else 1
+        uv = torch.stack(torch.meshgrid(gu[::step], gv[::step], indexing="xy"), -1).reshape(-1, 2)
+        if variant == "strict":  # a lone frame at 1.1 m
+            z_on = torch.full((len(uv),), 1.1, dtype=torch.float64)
+        else:  # the target sees the background plane everywhere (the patch's edge pixels are ambiguous);
+            # off the positions by < 0.02 px, so that no two samples tie in distance to a position
+            uv = uv + 0.02 * (torch.rand(uv.shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) - 0.5)
+            n_bg = torch.tensor([0.3, -0.2, -1.0], dtype=torch.float64)
+            ray = torch.stack([(uv[:, 0] - 7.5) / 14.0, (uv[:, 1] - 7.5) / 14.0, torch.ones(len(uv), dtype=torch.float64)], 1)
+            z_on = -2.0 / (ray @ (n_bg / n_bg.norm()))
+        on = _unproject(uv, z_on, K[0])[None]
         p, nrm = torch.cat([p, on], 1), torch.cat([nrm, torch.zeros_like(on)], 1)
         valid = torch.cat([valid, torch.ones(1, on.shape[1], dtype=torch.bool)], 1)
         frame = torch.cat([frame, torch.full((1, on.shape[1]), 7)], 1)
         sigma = torch.cat([sigma, torch.full((1, on.shape[1]), 0.002, dtype=torch.float64)], 1)
     out, rd, rc, rs = _compare_with_reference(p, nrm, valid, K, frame, sigma, st, src_hw,
-                                              target_frame=7 if variant == "strict" else None)
+                                              target_frame=7 if variant in ("strict", "resolve") else None)
+    if variant == "resolve":  # the target's samples decided pixels the default leaves empty
+        plain = render_gt(p, K, (16, 16), valid, RenderSettings(m=5, radius_px=1.3, min_points=2), nrm, sigma, frame, src_hw, 7)
+        assert ((rd > 0) & (plain.depth[0, 0].numpy() == 0)).any()
+        return
     # the case exercises both surfaces, the cap and min_points
     assert (rc == st.m).any() and (variant == "strict" or ((rc > 0) & (rc < st.min_points)).any())
     assert (rd > 1.5).any() and ((rd > 0) & (rd < 1.4)).any()
@@ -397,6 +411,38 @@ def test_slanted_far_plane_stays_one_surface(incidence_deg, distance_m):
     assert err_gt < 0.5 * err_in
     # the noise estimate found the sensor's law: sigma of the samples ~ 1.2e-3 z^2
     assert float(cloud.sigma_m[0, depth.flatten() > 0].max()) > 0.5 * 0.0012 * float(exact.max()) ** 2
+
+
+def test_render_gt_edge_where_most_frames_put_it():
+    """A real sensor fattens and jitters depth edges differently in every frame: a
+    foreground plane at 1.5 m whose edge (truth: between columns 24 and 25) three of seven
+    frames extend by 1-3 px, in front of a wall at 4 m. The GT's edge is where most frames
+    put it (``edge_vote``), not at the farthest frame's (the union, ``edge_vote=0``)."""
+    h = w = 48
+    K = torch.tensor([[60.0, 0, 23.5], [0, 60.0, 23.5], [0, 0, 1]], dtype=torch.float64)
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    fattened_px = [0, 2, 0, 0, 3, 0, 1]
+    x_edge = (24.5 - 23.5) / 60.0 * 1.5  # world x of the edge on the plane z = 1.5
+    frames, poses = [], []
+    for k, fat in zip(range(-3, 4), fattened_px):
+        T = torch.eye(4, dtype=torch.float64)
+        T[0, 3] = 0.01 * k  # camera k at x = 0.01 k: sub-pixel parallax between the frames
+        x_world = (u - K[0, 2]) / K[0, 0] * 1.5 + 0.01 * k
+        fg = x_world < x_edge + fat * 1.5 / 60.0
+        frames.append(torch.where(fg, torch.full_like(u, 1.5), torch.full_like(u, 4.0)))
+        poses.append(T)
+    depth, poses = torch.stack(frames)[:, None].float(), torch.stack(poses).float()
+    cloud = cloud_in_target(depth, K.float().expand(7, 3, 3), poses)
+
+    def gt(**kw):
+        return render_gt(cloud.points, K.float()[None], (h, w), cloud.valid, RenderSettings(**kw), cloud.normals,
+                         cloud.sigma_m, cloud.frame).depth[0, 0]
+
+    voted, union = gt(), gt(edge_vote=0.0)
+    assert torch.allclose(voted[:, 4:25], torch.tensor(1.5), atol=1e-3)  # the foreground up to its true edge
+    assert not ((voted[:, 25:30] > 0) & (voted[:, 25:30] < 2)).any()  # and not beyond it
+    assert float((voted[:, 25:44] > 0).float().mean()) > 0.9  # the wall behind is there
+    assert float(((union[:, 25:28] > 0) & (union[:, 25:28] < 2)).float().mean()) > 0.5  # the union fattens it
 
 
 def test_thin_pole_seen_by_several_frames_is_kept():

@@ -86,7 +86,7 @@ def candidates(
         ok = valid.reshape(-1) & (z_f > min_depth) & torch.isfinite(u) & torch.isfinite(v)
         ok &= (u > -r) & (u < w - 1 + r) & (v > -r) & (v < h - 1 + r)
         pid = ok.nonzero().squeeze(1)
-        u, v = u[pid], v[pid]
+        u, v = u.index_select(0, pid), v.index_select(0, pid)
         # Every pixel centre within r of (u, v) lies in [ceil(u - r), floor(u + r)]:
         # at most floor(2r) + 1 columns (and rows) starting at ceil(u - r).
         span = int(math.floor(2 * r)) + 1
@@ -105,10 +105,10 @@ def candidates(
         sel = inside.nonzero()  # (C, 3): point slot, row offset, column offset
         del inside
         slot, oy, ox = sel.unbind(1)
-        point = pid[slot]
+        point = pid.index_select(0, slot)
         batch = torch.div(pid, n, rounding_mode="floor")
         base = (batch * h + y0.long()) * w + x0.long()  # pixel index of the window corner
-        pixel = base[slot] + oy * w + ox
+        pixel = base.index_select(0, slot) + oy * w + ox
     # differentiable offsets (pixel centre - projection), gathered per candidate
     dx = (x0 - uv_f[pid, 0])[slot] + ox.to(uv_f.dtype)
     dy = (y0 - uv_f[pid, 1])[slot] + oy.to(uv_f.dtype)
@@ -130,7 +130,7 @@ def candidates_on_grid(uv_f, z_f, valid, b, n, h, w, r, min_depth, grid_uv):
         ok = valid.reshape(-1) & (z_f > min_depth) & torch.isfinite(u) & torch.isfinite(v)
         ok &= (u > float(gu[0]) - r) & (u < float(gu[-1]) + r) & (v > float(gv[0]) - r) & (v < float(gv[-1]) + r)
         pid = ok.nonzero().squeeze(1)
-        u, v = u[pid], v[pid]
+        u, v = u.index_select(0, pid), v.index_select(0, pid)
         # sample positions within r of u lie in columns [ceil(u - r - shift), floor(u + r + shift)]
         span = int(math.floor(2 * (r + shift))) + 1
         off = torch.arange(span, device=u.device)
@@ -145,13 +145,13 @@ def candidates_on_grid(uv_f, z_f, valid, b, n, h, w, r, min_depth, grid_uv):
         del dx2, dy2
         slot, oy, ox = inside.nonzero().unbind(1)
         del inside
-        point = pid[slot]
-        col = x0[slot] + ox
-        row = y0[slot] + oy
+        point = pid.index_select(0, slot)
+        col = x0.index_select(0, slot) + ox
+        row = y0.index_select(0, slot) + oy
         base = torch.div(pid, n, rounding_mode="floor") * (h * w)  # (P,) first pixel of each point's batch element
-        pixel = base[slot] + row * w + col
-    dx = gu[col] - uv_f[point, 0]
-    dy = gv[row] - uv_f[point, 1]
+        pixel = base.index_select(0, slot) + row * w + col
+    dx = gu.index_select(0, col) - uv_f[point, 0]
+    dy = gv.index_select(0, row) - uv_f[point, 1]
     return Candidates(point, pixel, dx * dx + dy * dy, dx, dy), z_f
 
 
@@ -187,7 +187,7 @@ def segment_rank_keep(pixel: torch.Tensor, key: torch.Tensor, active: torch.Tens
     if pixel.numel() == 0:
         return active
     counts = torch.bincount(pixel, weights=active.to(torch.float32), minlength=n_pixels)
-    over = (active & (counts[pixel] > limit)).nonzero().squeeze(1)
+    over = (active & (counts.index_select(0, pixel) > limit)).nonzero().squeeze(1)
     if over.numel() == 0:
         return active
     out = active.clone()
@@ -203,7 +203,7 @@ def rank_in_pixel(pixel: torch.Tensor, key: torch.Tensor) -> torch.Tensor:
     lo, hi = k.min(), k.max()
     kn = (k - lo) / (hi - lo).clamp_min(1e-30) * 0.5  # in [0, 0.5]: stays inside its pixel's unit interval
     order = torch.sort(pixel.to(torch.float64) + kn, stable=True).indices
-    pix_sorted = pixel[order]
+    pix_sorted = pixel.index_select(0, order)
     pos = torch.arange(order.numel(), device=pixel.device)
     starts = torch.ones_like(pix_sorted, dtype=torch.bool)
     starts[1:] = pix_sorted[1:] != pix_sorted[:-1]

@@ -25,6 +25,7 @@ from depthgt.gt.patches import make_patches
 from depthgt.gt.planning import stable_seed
 from depthgt.gt.render import GTRender, cloud_in_target, render_gt
 from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
+from depthgt.noise_law import depth_sigma_m, estimate_noise_sigma_1m
 from depthgt.settings import RegistrationSettings, RenderSettings, Settings
 from depthgt.sources.base import Scene, check_frame
 from depthgt.status import Status
@@ -202,7 +203,7 @@ def photometric_for(settings: RegistrationSettings, colour_matches_depth: bool) 
 
 
 def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, depth_m: torch.Tensor | None = None,
-         members: slice | list[int] = slice(None)) -> GTRender:
+         members: slice | list[int] = slice(None), leave_target_out: bool = False) -> GTRender:
     """Render the aligned members into the target view (paper eq. 5).
 
     Args:
@@ -210,6 +211,11 @@ def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, d
         depth_m: (F, 1, H, W) depth to fuse (default: the raw depth of the members).
         members: which members to use (``slice(1, None)`` leaves the target out; a
             list of positions, 0 = the target, keeps those).
+        leave_target_out: with the target among the members and neighbours beside it,
+            also render the neighbours alone into ``left_out`` (the leave-target-out
+            check of :func:`quality_statistics`): the same result as fusing
+            ``members`` without the target, sharing the clouds, the projection and the
+            sort with the GT render.
     """
     depth = (data.depth_m if depth_m is None else depth_m)[members]
     eye = torch.eye(4, dtype=T_j_to_t.dtype, device=T_j_to_t.device)[None]
@@ -220,24 +226,36 @@ def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, d
     h, w = data.depth_m.shape[-2:]
     chosen = list(range(len(data.depth_m)))[members] if isinstance(members, slice) else list(members)
     with_target = bool(chosen) and chosen[0] == 0  # the target's own depth is fused, as frame 0 of the cloud
+    lo_sigma = None
+    leave_out = with_target and leave_target_out and len(chosen) > 1
+    if leave_out and settings.noise_sigma_1m is None:
+        # the noise law as fusing the neighbours alone estimates it (without the target's depth)
+        sigma_1m = estimate_noise_sigma_1m(depth[1:], data.src_hw)
+        lo_sigma = torch.cat([torch.zeros_like(depth[:1]), depth_sigma_m(depth[1:], sigma_1m, settings.noise_sigma_abs_m)])
+        lo_sigma = lo_sigma.reshape(1, -1).to(cloud.sigma_m.dtype)
     return render_gt(cloud.points, data.K[None].to(depth.dtype), (h, w), cloud.valid, settings, normals_cam=cloud.normals,
-                     sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=data.src_hw, target_frame=0 if with_target else None)
+                     sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=data.src_hw, target_frame=0 if with_target else None,
+                     leave_out_frame=0 if leave_out else None, leave_out_sigma_m=lo_sigma)
 
 
-def quality_statistics(data: FrameSetData, alignment: Alignment, gt_m: np.ndarray, settings: RenderSettings) -> dict:
+def quality_statistics(data: FrameSetData, alignment: Alignment, gt_m: np.ndarray, settings: RenderSettings,
+                       left_out: GTRender | None = None) -> dict:
     """Depth errors of the GT (:func:`depthgt.metric_vocabulary.depth_errors`).
 
     With a clean truth: ``gt_vs_truth``, ``input_vs_truth`` and
     ``gt_vs_truth_input_valid`` (the fair accuracy comparison: only where the sensor has
     data). Without: ``leave_target_out``, the neighbours fused alone against the target's
-    raw valid depth -- the only accuracy check possible on real data.
+    raw valid depth -- the only accuracy check possible on real data (``left_out``: that
+    render when :func:`fuse` made it beside the GT, else it is rendered here).
     """
     depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
     stats: dict[str, Any] = {}
     if data.truth_m is None:
         fused = alignment.fused
         if len(fused) > 1:
-            lto = fuse(data, alignment.T_j_to_t, settings, members=fused[1:]).depth[0, 0].detach().cpu().numpy()
+            if left_out is None:
+                left_out = fuse(data, alignment.T_j_to_t, settings, members=fused[1:])
+            lto = left_out.depth[0, 0].detach().cpu().numpy()
             stats["leave_target_out"] = depth_errors(lto.astype(np.float32), depth_in)
     else:
         truth = data.truth_m[0, 0].cpu().numpy().astype(np.float32)
@@ -281,7 +299,8 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     lap("align")
 
     fused = alignment.fused
-    gt = fuse(data, alignment.T_j_to_t, settings.render, members=fused if len(fused) < len(members) else slice(None))
+    gt = fuse(data, alignment.T_j_to_t, settings.render, members=fused if len(fused) < len(members) else slice(None),
+              leave_target_out=data.truth_m is None)
     lap("render")
 
     depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
@@ -307,7 +326,7 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     if gt.disagreement is not None and float(gt.disagreement[0, 0].sum()) > 0:
         # share of the neighbours' compared samples that the agreement check kept
         stats["render_kept_share"] = round(float(gt.disagreement[0, 2].sum() / gt.disagreement[0, 0].sum()), 4)
-    stats.update(quality_statistics(data, alignment, gt_depth, settings.render))
+    stats.update(quality_statistics(data, alignment, gt_depth, settings.render, left_out=gt.left_out))
     lap("quality")
 
     rng = np.random.default_rng(stable_seed(settings.seed, dataset, scene.name, target, "patches"))
