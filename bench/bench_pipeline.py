@@ -105,6 +105,11 @@ def main(argv=None) -> None:
     config = yaml.safe_load(Path(a.config).read_text())
     config["device"] = "cpu"
     import depthgt
+    try:  # as the frame-set batch job does (absent in older checkouts)
+        from depthgt.device import keep_freed_memory
+        keep_freed_memory()
+    except ImportError:
+        pass
     frames, other = [], []
     for data in a.data:
         source, scene = sources(config)[data]

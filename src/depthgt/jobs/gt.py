@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from depthgt import io
 from depthgt.atomic import work_dir, write_atomic
-from depthgt.device import resolve_device
+from depthgt.device import keep_freed_memory, resolve_device
 from depthgt.errors import FrameError
 from depthgt.gt import store
 from depthgt.gt.assemble import DatasetOutputs, assemble, summarize_scene
@@ -84,6 +84,8 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
     # heavy (torch): only the jobs that build frame sets need them
     from depthgt.gt.build import FrameSetOutputs, process_frameset
     from depthgt.gt.cache import ResizedScene
+
+    keep_freed_memory()  # a process of its own: no page faults for every large tensor
 
     settings = settings_from_config(config)
     need_poses = settings.registration.uses_source_poses
