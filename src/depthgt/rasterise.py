@@ -110,8 +110,9 @@ def candidates(
         base = (batch * h + y0.long()) * w + x0.long()  # pixel index of the window corner
         pixel = base.index_select(0, slot) + oy * w + ox
     # differentiable offsets (pixel centre - projection), gathered per candidate
-    dx = (x0 - uv_f[pid, 0])[slot] + ox.to(uv_f.dtype)
-    dy = (y0 - uv_f[pid, 1])[slot] + oy.to(uv_f.dtype)
+    uv_p = uv_f.index_select(0, pid)
+    dx = (x0 - uv_p[:, 0]).index_select(0, slot) + ox.to(uv_f.dtype)
+    dy = (y0 - uv_p[:, 1]).index_select(0, slot) + oy.to(uv_f.dtype)
     d2 = dx * dx + dy * dy
     return Candidates(point, pixel, d2, dx, dy), z_f
 
@@ -150,8 +151,9 @@ def candidates_on_grid(uv_f, z_f, valid, b, n, h, w, r, min_depth, grid_uv):
         row = y0.index_select(0, slot) + oy
         base = torch.div(pid, n, rounding_mode="floor") * (h * w)  # (P,) first pixel of each point's batch element
         pixel = base.index_select(0, slot) + row * w + col
-    dx = gu.index_select(0, col) - uv_f[point, 0]
-    dy = gv.index_select(0, row) - uv_f[point, 1]
+    uv_c = uv_f.index_select(0, point)
+    dx = gu.index_select(0, col) - uv_c[:, 0]
+    dy = gv.index_select(0, row) - uv_c[:, 1]
     return Candidates(point, pixel, dx * dx + dy * dy, dx, dy), z_f
 
 

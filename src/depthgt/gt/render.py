@@ -423,7 +423,8 @@ def _estimate(pixel, d2, ox, oy, point, iz, s, fr, grad, bhw, st: RenderSettings
     if grad is None or st.plane == "none":
         gx = gy = torch.zeros_like(iz)
     else:
-        gx, gy = grad[point, 0], grad[point, 1]
+        g = grad.index_select(0, point)
+        gx, gy = g[:, 0], g[:, 1]
     sw, s_iz, s_x, s_y, s_gx, s_gy, wsum = _segment_sums(pixel, [wt, wt * iz, wt * ox, wt * oy, wt * gx, wt * gy, w_sp], n_pix)
     has = sw > 0
     sw_safe = torch.where(has, sw, torch.ones_like(sw))
@@ -531,9 +532,10 @@ def _frame_agreement(pixel, iz, s, fr, d2, b, n_fr, hw, st, target_frame):
         tol = st.gap_sigmas * math.sqrt(2.0) * s_t.reshape(b, 1, h, w) + st.gap_slope_rel * img * (2 * r)
         judge &= ((hi - lo) <= tol).reshape(-1)
     near = (fr != target_frame) & (d2 <= _NEAR_PX**2) & judge.index_select(0, pixel)
-    p, f = pixel[near], fr[near]
-    tol = st.gap_sigmas * torch.hypot(s[near], s_t.index_select(0, p)) + st.gap_slope_rel * iz[near] * torch.sqrt(d2[near])
-    agree = (iz[near] - iz_t.index_select(0, p)).abs() <= tol
+    ni = near.nonzero().squeeze(1)
+    p, f, s_n, iz_n, d2_n = (x.index_select(0, ni) for x in (pixel, fr, s, iz, d2))
+    tol = st.gap_sigmas * torch.hypot(s_n, s_t.index_select(0, p)) + st.gap_slope_rel * iz_n * torch.sqrt(d2_n)
+    agree = (iz_n - iz_t.index_select(0, p)).abs() <= tol
     slot = torch.div(p, h_w, rounding_mode="floor") * n_fr + f
     n_cmp = torch.bincount(slot, minlength=b * n_fr).reshape(b, n_fr)
     n_ok = torch.bincount(slot[agree], minlength=b * n_fr).reshape(b, n_fr)
