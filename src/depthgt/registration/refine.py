@@ -177,7 +177,8 @@ def _residuals(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "LevelS
     """Scaled residuals r (P, 2N) (N geometric, then N photometric), Jacobians
     J (P, 6, 2N) w.r.t. a left twist (v, w) of T_ab, validity (P, 2N) (associated:
     seen and within the gate) and visibility (P, 2N) (a valid source point that lands
-    on a destination pixel with a surface, whether or not within the gate).
+    on a destination pixel with a surface, whether or not within the gate); N columns
+    in place of 2N without the photometric term (``photo_weight`` 0).
 
     Planar layout (one contiguous (P, N) plane per component) keeps the element-wise
     work cache friendly."""
@@ -188,7 +189,9 @@ def _residuals(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "LevelS
 def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "LevelSettings", gate: float):
     """:func:`_residuals` with the Jacobians left to a function ``jac()`` (same values):
     r, valid, vis, r_geo, jac. A trial pose that the LM step rejects (or a cost-only
-    evaluation) never builds them."""
+    evaluation) never builds them. Without the photometric term (``photo_weight`` 0)
+    r, valid, vis and J hold the N geometric columns only (the photometric ones would
+    be invalid and invisible: no weight, no cost)."""
     a, b = pairs[:, 0], pairs[:, 1]
     p = level.points.index_select(0, b)  # (P, 3, N)
     R = T_ab[:, :3, :3].to(p.dtype)
@@ -220,15 +223,23 @@ def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "L
     else:
         gate_pt, inv_geo = gate, 1.0 / s.geo_scale_m
     ok = seen & ((qz - X[2]).abs() < gate_pt) & (r_geo.abs() < gate_pt)
+    qv = (qx, qy, qz)
+    if not s.photo_weight > 0:
+        # without the photometric term its half would be all invalid and invisible
+        # (zero weight, zero cost): the geometric residuals alone, (P, N), (P, 6, N)
+        def jac_geo() -> torch.Tensor:
+            J_geo = torch.stack([*Nrm, *_cross(qv, Nrm)], 1)  # (P, 6, N)
+            return J_geo * (inv_geo[:, None] if torch.is_tensor(inv_geo) else inv_geo)
+
+        return r_geo * inv_geo, ok, seen, r_geo, jac_geo
     r_ph = smp[:, 6] - level.gray.index_select(0, b)
     wp = math.sqrt(s.photo_weight)
     # geometric then photometric residuals side by side: (P, 2N), (P, 6, 2N)
     r = torch.cat([r_geo * inv_geo, r_ph * (wp / s.photo_scale)], 1)
-    valid = torch.cat([ok, ok & (s.photo_weight > 0)], 1)
-    vis = torch.cat([seen, seen & (s.photo_weight > 0)], 1)
+    valid = torch.cat([ok, ok], 1)
+    vis = torch.cat([seen, seen], 1)
 
     def jac() -> torch.Tensor:
-        qv = (qx, qy, qz)
         J_geo = torch.stack([*Nrm, *_cross(qv, Nrm)], 1)  # (P, 6, N)
         # d(u, v)/dq of the pinhole projection chained with the image gradient (gx, gy).
         gx, gy = smp[:, 7] * fx * zi, smp[:, 8] * fy * zi
@@ -518,7 +529,7 @@ def target_residual_stats(level: Level, T: torch.Tensor, pairs: torch.Tensor, s:
     seen on a surface of the target (one beyond the gate counts as infinitely off). 0 for
     the target, NaN where nothing is associated / seen."""
     T_ab = torch.linalg.inv(T[pairs[:, 0]]) @ T[pairs[:, 1]]
-    _, _, valid, vis, r_geo = _residuals(level, T_ab, pairs, s, gate)
+    _, valid, vis, r_geo, _ = _residuals_lazy(level, T_ab, pairs, s, gate)
     n = level.valid.shape[1]
     r_geo = r_geo.abs().to(torch.float64)
     nan = torch.full_like(r_geo, float("nan"))
@@ -533,7 +544,7 @@ def target_residual_stats(level: Level, T: torch.Tensor, pairs: torch.Tensor, s:
     # is wider (beyond ref the gate grows as (z / ref)^2, like the noise), so that a noisy
     # sensor's far points stay associated ...
     ref = math.sqrt(gate / (NOISE_GATE_SIGMAS * sigma_1m))
-    _, _, valid, vis, r_geo = _residuals(level, T_ab, pairs, replace(s, geo_ref_depth_m=ref), gate)
+    _, valid, vis, r_geo, _ = _residuals_lazy(level, T_ab, pairs, replace(s, geo_ref_depth_m=ref), gate)
     r_geo = r_geo.abs().to(torch.float64)
     p = level.points[pairs[:, 1]].to(torch.float64)  # (P, 3, N)
     z = (T_ab[:, 2, :3, None] * p).sum(1) + T_ab[:, 2, 3, None]  # depth in the target camera
