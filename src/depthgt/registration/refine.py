@@ -205,13 +205,18 @@ def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "L
     v = fy * qy * zi + cy
     h, w = level.hw
     grid = torch.stack([(u + 0.5) * (2.0 / w) - 1, (v + 0.5) * (2.0 / h) - 1], -1)  # (P, N, 2)
-    smp = _sample_grouped(level.maps, grid, a)  # (P, 10, N)
+    if s.photo_weight > 0:
+        smp = _sample_grouped(level.maps, grid, a)  # (P, 10, N)
+        nvalid = smp[:, 9]
+    else:  # X, N and normal validity only (each channel is sampled on its own: same values)
+        smp = _sample_grouped(_geometric_maps(level), grid, a)  # (P, 7, N)
+        nvalid = smp[:, 6]
     X = (smp[:, 0], smp[:, 1], smp[:, 2])
     n_inv = torch.rsqrt((smp[:, 3:6] * smp[:, 3:6]).sum(1).clamp(min=1e-12))
     Nrm = (smp[:, 3] * n_inv, smp[:, 4] * n_inv, smp[:, 5] * n_inv)
     inb = (qz > 1e-3) & (u > -0.5) & (u < w - 0.5) & (v > -0.5) & (v < h - 0.5)
     src_valid = level.valid.index_select(0, b)
-    seen = src_valid & inb & (smp[:, 9] > 0.999)
+    seen = src_valid & inb & (nvalid > 0.999)
     d = (qx - X[0], qy - X[1], qz - X[2])
     r_geo = Nrm[0] * d[0] + Nrm[1] * d[1] + Nrm[2] * d[2]
     if s.geo_ref_depth_m > 0:
@@ -249,6 +254,17 @@ def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "L
                           J_ph * (wp / s.photo_scale)], 2)
 
     return r, valid, vis, r_geo, jac
+
+
+def _geometric_maps(level: Level) -> torch.Tensor:
+    """``level.maps`` without the photometric channels: X, N and validity (F, 7, h, w),
+    kept while ``level.maps`` is the same tensor."""
+    cached = getattr(level, "_geometric", None)
+    if cached is None or cached[0] is not level.maps:
+        keep = torch.tensor([0, 1, 2, 3, 4, 5, 9], device=level.maps.device)
+        cached = (level.maps, level.maps.index_select(1, keep))
+        level._geometric = cached
+    return cached[1]
 
 
 def _sample_grouped(maps: torch.Tensor, grid: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
