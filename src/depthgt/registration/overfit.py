@@ -24,7 +24,8 @@ import torch.nn.functional as F
 
 from depthgt.metric_vocabulary import pose_delta
 from depthgt.registration.correspondences import find_correspondences, sample_candidates
-from depthgt.registration.encoder import build_encoder, lift_points
+from depthgt.geometry import backproject
+from depthgt.registration.encoder import build_encoder
 from depthgt.registration.losses import correspondence_loss, default_render_fn, render_losses
 from depthgt.registration.procrustes import procrustes_random_subsets
 from depthgt.registration.refine import Level, LevelSettings, pair_mean_cost, refine_poses
@@ -126,12 +127,10 @@ def _prepare(rgb, depth_m, K, s: RegistrationSettings, gen: torch.Generator) -> 
     ys = torch.arange(0, H, s.render_stride, device=depth_m.device)
     xs = torch.arange(0, W, s.render_stride, device=depth_m.device)
     ridx = (ys[:, None] * W + xs[None, :]).reshape(-1)
-    from depthgt.geometry import backproject
-
     pts = backproject(depth_m, K.expand(Fn, 3, 3).to(depth_m.dtype))
-    rpts = pts[:, ridx]
-    rrgb = rgb.flatten(2)[:, :, ridx].transpose(1, 2)
-    rmask = valid.flatten(1)[:, ridx]
+    rpts = pts.index_select(1, ridx)
+    rrgb = rgb.flatten(2).index_select(2, ridx).transpose(1, 2)
+    rmask = valid.flatten(1).index_select(1, ridx)
     if s.pairs == "all":
         a, b = torch.triu_indices(Fn, Fn, offset=1)
     else:
@@ -185,6 +184,21 @@ def encode(encoder: torch.nn.Module, rgb: torch.Tensor, precision: str = "fp32")
     return F.normalize(feats.float().contiguous(), dim=1)
 
 
+def encode_at(encoder: torch.nn.Module, rgb: torch.Tensor, index: torch.Tensor, precision: str = "fp32") -> torch.Tensor:
+    """Unit-length float32 features (B, N, C) of the pixels ``index`` (B, N) (flat,
+    row-major) of ``rgb``: :func:`encode` at those pixels (bit-identical), with the
+    normalisation done on the chosen pixels only and the feature map gathered in its
+    own (channels-last) layout, without a copy of the whole map."""
+    dt = autocast_dtype(rgb.device, precision)
+    if rgb.device.type == "cpu":
+        rgb = rgb.contiguous(memory_format=torch.channels_last)
+    with torch.autocast(rgb.device.type, dtype=dt or torch.float32, enabled=dt is not None):
+        feats = encoder(rgb)
+    C = feats.shape[1]
+    f = torch.gather(feats.flatten(2), 2, index[:, None].expand(-1, C, -1)).float()  # (B, C, N)
+    return F.normalize(f, dim=1).transpose(1, 2)
+
+
 def frameset_loss(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettings, gen: torch.Generator,
                   render_fn: Callable | None, with_render: bool = True):
     """Set-wide loss (eq. 4) and the pairwise Procrustes estimates.
@@ -194,11 +208,17 @@ def frameset_loss(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettin
         and a dict of the mean loss terms.
     """
     Fn = fs.rgb.shape[0]
-    feats = encode(encoder, fs.rgb, s.precision)
+    f = encode_at(encoder, fs.rgb, fs.cand_idx, s.precision)  # (F, n, C)
     Kb = fs.K.expand(Fn, 3, 3).to(fs.depth.dtype)
-    pts, f = lift_points(fs.depth, Kb, feats, fs.cand_idx)
+    pts = torch.gather(backproject(fs.depth, Kb), 1, fs.cand_idx[..., None].expand(-1, -1, 3))
     a, b = fs.pairs[:, 0], fs.pairs[:, 1]
-    corr = find_correspondences(pts[a], f[a], fs.cand_mask[a], pts[b], f[b], fs.cand_mask[b], s.top_k, s.knn_block)
+    # x.index_select(0, i) in place of x[i] (faster on CPU); the features keep their
+    # (C, N)-planar layout, as x[i] keeps it, so that their normalisation in
+    # find_correspondences reduces in the same order (bit-identical)
+    sel = lambda x, i: x.index_select(0, i)  # noqa: E731
+    fsel = lambda i: f.transpose(1, 2).index_select(0, i).transpose(1, 2)  # noqa: E731
+    corr = find_correspondences(sel(pts, a), fsel(a), sel(fs.cand_mask, a), sel(pts, b), fsel(b),
+                                sel(fs.cand_mask, b), s.top_k, s.knn_block)
     T_ba, _ = procrustes_random_subsets(corr.points_src, corr.points_dst, corr.weights, s.n_subsets,
                                         s.subset_fraction, gen)
     l_corr = correspondence_loss(T_ba, corr.points_src, corr.points_dst, corr.weights)

@@ -177,12 +177,23 @@ def _residuals(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "LevelS
     """Scaled residuals r (P, 2N) (N geometric, then N photometric), Jacobians
     J (P, 6, 2N) w.r.t. a left twist (v, w) of T_ab, validity (P, 2N) (associated:
     seen and within the gate) and visibility (P, 2N) (a valid source point that lands
-    on a destination pixel with a surface, whether or not within the gate).
+    on a destination pixel with a surface, whether or not within the gate); N columns
+    in place of 2N without the photometric term (``photo_weight`` 0).
 
     Planar layout (one contiguous (P, N) plane per component) keeps the element-wise
     work cache friendly."""
+    r, valid, vis, r_geo, jac = _residuals_lazy(level, T_ab, pairs, s, gate)
+    return r, jac(), valid, vis, r_geo
+
+
+def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "LevelSettings", gate: float):
+    """:func:`_residuals` with the Jacobians left to a function ``jac()`` (same values):
+    r, valid, vis, r_geo, jac. A trial pose that the LM step rejects (or a cost-only
+    evaluation) never builds them. Without the photometric term (``photo_weight`` 0)
+    r, valid, vis and J hold the N geometric columns only (the photometric ones would
+    be invalid and invisible: no weight, no cost)."""
     a, b = pairs[:, 0], pairs[:, 1]
-    p = level.points[b]  # (P, 3, N)
+    p = level.points.index_select(0, b)  # (P, 3, N)
     R = T_ab[:, :3, :3].to(p.dtype)
     t = T_ab[:, :3, 3].to(p.dtype)
     q = torch.baddbmm(t[..., None], R, p)  # (P, 3, N)
@@ -194,12 +205,18 @@ def _residuals(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "LevelS
     v = fy * qy * zi + cy
     h, w = level.hw
     grid = torch.stack([(u + 0.5) * (2.0 / w) - 1, (v + 0.5) * (2.0 / h) - 1], -1)  # (P, N, 2)
-    smp = _sample_grouped(level.maps, grid, a)  # (P, 10, N)
+    if s.photo_weight > 0:
+        smp = _sample_grouped(level.maps, grid, a)  # (P, 10, N)
+        nvalid = smp[:, 9]
+    else:  # X, N and normal validity only (each channel is sampled on its own: same values)
+        smp = _sample_grouped(_geometric_maps(level), grid, a)  # (P, 7, N)
+        nvalid = smp[:, 6]
     X = (smp[:, 0], smp[:, 1], smp[:, 2])
     n_inv = torch.rsqrt((smp[:, 3:6] * smp[:, 3:6]).sum(1).clamp(min=1e-12))
     Nrm = (smp[:, 3] * n_inv, smp[:, 4] * n_inv, smp[:, 5] * n_inv)
     inb = (qz > 1e-3) & (u > -0.5) & (u < w - 0.5) & (v > -0.5) & (v < h - 0.5)
-    seen = level.valid[b] & inb & (smp[:, 9] > 0.999)
+    src_valid = level.valid.index_select(0, b)
+    seen = src_valid & inb & (nvalid > 0.999)
     d = (qx - X[0], qy - X[1], qz - X[2])
     r_geo = Nrm[0] * d[0] + Nrm[1] * d[1] + Nrm[2] * d[2]
     if s.geo_ref_depth_m > 0:
@@ -212,19 +229,42 @@ def _residuals(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "LevelS
         gate_pt, inv_geo = gate, 1.0 / s.geo_scale_m
     ok = seen & ((qz - X[2]).abs() < gate_pt) & (r_geo.abs() < gate_pt)
     qv = (qx, qy, qz)
-    J_geo = torch.stack([*Nrm, *_cross(qv, Nrm)], 1)  # (P, 6, N)
-    r_ph = smp[:, 6] - level.gray[b]
-    # d(u, v)/dq of the pinhole projection chained with the image gradient (gx, gy).
-    gx, gy = smp[:, 7] * fx * zi, smp[:, 8] * fy * zi
-    ga = (gx, gy, -(gx * qx + gy * qy) * zi)
-    J_ph = torch.stack([*ga, *_cross(qv, ga)], 1)
+    if not s.photo_weight > 0:
+        # without the photometric term its half would be all invalid and invisible
+        # (zero weight, zero cost): the geometric residuals alone, (P, N), (P, 6, N)
+        def jac_geo() -> torch.Tensor:
+            J_geo = torch.stack([*Nrm, *_cross(qv, Nrm)], 1)  # (P, 6, N)
+            return J_geo * (inv_geo[:, None] if torch.is_tensor(inv_geo) else inv_geo)
+
+        return r_geo * inv_geo, ok, seen, r_geo, jac_geo
+    r_ph = smp[:, 6] - level.gray.index_select(0, b)
     wp = math.sqrt(s.photo_weight)
     # geometric then photometric residuals side by side: (P, 2N), (P, 6, 2N)
     r = torch.cat([r_geo * inv_geo, r_ph * (wp / s.photo_scale)], 1)
-    J = torch.cat([J_geo * (inv_geo[:, None] if torch.is_tensor(inv_geo) else inv_geo), J_ph * (wp / s.photo_scale)], 2)
-    valid = torch.cat([ok, ok & (s.photo_weight > 0)], 1)
-    vis = torch.cat([seen, seen & (s.photo_weight > 0)], 1)
-    return r, J, valid, vis, r_geo
+    valid = torch.cat([ok, ok], 1)
+    vis = torch.cat([seen, seen], 1)
+
+    def jac() -> torch.Tensor:
+        J_geo = torch.stack([*Nrm, *_cross(qv, Nrm)], 1)  # (P, 6, N)
+        # d(u, v)/dq of the pinhole projection chained with the image gradient (gx, gy).
+        gx, gy = smp[:, 7] * fx * zi, smp[:, 8] * fy * zi
+        ga = (gx, gy, -(gx * qx + gy * qy) * zi)
+        J_ph = torch.stack([*ga, *_cross(qv, ga)], 1)
+        return torch.cat([J_geo * (inv_geo[:, None] if torch.is_tensor(inv_geo) else inv_geo),
+                          J_ph * (wp / s.photo_scale)], 2)
+
+    return r, valid, vis, r_geo, jac
+
+
+def _geometric_maps(level: Level) -> torch.Tensor:
+    """``level.maps`` without the photometric channels: X, N and validity (F, 7, h, w),
+    kept while ``level.maps`` is the same tensor."""
+    cached = getattr(level, "_geometric", None)
+    if cached is None or cached[0] is not level.maps:
+        keep = torch.tensor([0, 1, 2, 3, 4, 5, 9], device=level.maps.device)
+        cached = (level.maps, level.maps.index_select(1, keep))
+        level._geometric = cached
+    return cached[1]
 
 
 def _sample_grouped(maps: torch.Tensor, grid: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
@@ -235,6 +275,13 @@ def _sample_grouped(maps: torch.Tensor, grid: torch.Tensor, a: torch.Tensor) -> 
     """
     Fn, C = maps.shape[:2]
     P, N, _ = grid.shape
+    used = torch.bincount(a, minlength=Fn) > 0
+    if not bool(used.all()):
+        # only the frames some pair lands in (e.g. the target alone): the others' maps
+        # would be sampled at padding only
+        frames = torch.nonzero(used)[:, 0]
+        remap = torch.cumsum(used, 0) - 1
+        maps, a, Fn = maps.index_select(0, frames), remap.index_select(0, a), int(frames.numel())
     order = torch.argsort(a, stable=True)
     counts = torch.bincount(a, minlength=Fn)
     start = torch.cumsum(counts, 0) - counts
@@ -267,18 +314,37 @@ def _gate_cost(gate: float, s: "LevelSettings") -> float:
     return float(rho[0])
 
 
-@dataclass
 class _System:
     """The linearisation of every pair at one set of poses (see :func:`normal_system`),
-    with the per-point costs and visibility the LM acceptance test compares on."""
+    with the per-point costs and visibility the LM acceptance test compares on.
 
-    H_rel: torch.Tensor
-    g_rel: torch.Tensor
-    pair_cost: torch.Tensor
-    inliers: torch.Tensor
-    Tinv: torch.Tensor
-    cost_pts: torch.Tensor  # (P, 2N) robust cost of every visible point, 0 elsewhere
-    vis: torch.Tensor  # (P, 2N) bool
+    ``H_rel`` (P, 6, 6) and ``g_rel`` (P, 6) are built on first use: the costs alone
+    decide whether an LM trial is accepted, and most trials are rejected.
+
+    Attributes:
+        pair_cost, inliers, Tinv: see :func:`normal_system`.
+        cost_pts: (P, 2N) robust cost of every visible point, 0 elsewhere.
+        vis: (P, 2N) bool.
+    """
+
+    def __init__(self, pair_cost, inliers, Tinv, cost_pts, vis, linearise):
+        self.pair_cost, self.inliers, self.Tinv, self.cost_pts, self.vis = pair_cost, inliers, Tinv, cost_pts, vis
+        self._linearise = linearise
+        self._H = self._g = None
+
+    def _normal(self):
+        if self._H is None:
+            self._H, self._g = self._linearise()
+            self._linearise = None  # frees the residuals' intermediates
+        return self._H, self._g
+
+    @property
+    def H_rel(self) -> torch.Tensor:
+        return self._normal()[0]
+
+    @property
+    def g_rel(self) -> torch.Tensor:
+        return self._normal()[1]
 
     def astuple(self):
         return self.H_rel, self.g_rel, self.pair_cost, self.inliers, self.Tinv
@@ -288,11 +354,16 @@ def _system(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings
     a, b = pairs[:, 0], pairs[:, 1]
     Tinv = torch.linalg.inv(T)
     T_ab = Tinv[a] @ T[b]
-    r, J, valid, vis, _ = _residuals(level, T_ab, pairs, s, gate)
+    r, valid, vis, _, jac = _residuals_lazy(level, T_ab, pairs, s, gate)
     wgt, rho = _robust(r, s.robust)
-    Jw = J * (wgt * valid)[:, None]  # (P, 6, 2N)
-    H_rel = (Jw @ J.transpose(1, 2)).to(torch.float64)
-    g_rel = (Jw @ r[..., None])[..., 0].to(torch.float64)
+
+    def linearise():
+        J = jac()
+        Jw = J * (wgt * valid)[:, None]  # (P, 6, 2N)
+        H_rel = (Jw @ J.transpose(1, 2)).to(torch.float64)
+        g_rel = (Jw @ r[..., None])[..., 0].to(torch.float64)
+        return H_rel, g_rel
+
     # Only points that land on a surface of the destination take part in the cost: an
     # associated point its robust cost, a seen point outside the gate the gate's cost.
     # A point that leaves the view (or lands in a hole) costs nothing here and is left
@@ -302,8 +373,8 @@ def _system(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings
     cost_pts = torch.where(valid, rho, torch.full_like(rho, _gate_cost(gate, s))) * vis
     N_ = level.valid.shape[1]
     pair_cost = cost_pts.sum(1).to(torch.float64)
-    inl = (valid[:, :N_] & level.valid[b]).sum(1)
-    return _System(H_rel, g_rel, pair_cost, inl, Tinv, cost_pts, vis)
+    inl = (valid[:, :N_] & level.valid.index_select(0, b)).sum(1)
+    return _System(pair_cost, inl, Tinv, cost_pts, vis, linearise)
 
 
 def normal_system(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings, gate: float):
@@ -431,8 +502,9 @@ def refine_poses(
             out.cost_curve.append(float(cur.pair_cost.sum()))
             if not improved or float(delta.abs().max()) < 1e-7:
                 break
-        last = (level, cur.H_rel, cur.pair_cost, cur.inliers)
-    level, H_rel, pcost, inl = last
+        last = (level, cur)
+    level, cur = last
+    H_rel, pcost, inl = cur.H_rel, cur.pair_cost, cur.inliers  # the finest scale's only
     out.T_f_to_t = T
     out.final_cost = _per_frame(pcost, tgt_pairs, other, Fn)
     n_valid = level.valid.sum(1).clamp(min=1)
@@ -473,7 +545,7 @@ def target_residual_stats(level: Level, T: torch.Tensor, pairs: torch.Tensor, s:
     seen on a surface of the target (one beyond the gate counts as infinitely off). 0 for
     the target, NaN where nothing is associated / seen."""
     T_ab = torch.linalg.inv(T[pairs[:, 0]]) @ T[pairs[:, 1]]
-    _, _, valid, vis, r_geo = _residuals(level, T_ab, pairs, s, gate)
+    _, valid, vis, r_geo, _ = _residuals_lazy(level, T_ab, pairs, s, gate)
     n = level.valid.shape[1]
     r_geo = r_geo.abs().to(torch.float64)
     nan = torch.full_like(r_geo, float("nan"))
@@ -488,7 +560,7 @@ def target_residual_stats(level: Level, T: torch.Tensor, pairs: torch.Tensor, s:
     # is wider (beyond ref the gate grows as (z / ref)^2, like the noise), so that a noisy
     # sensor's far points stay associated ...
     ref = math.sqrt(gate / (NOISE_GATE_SIGMAS * sigma_1m))
-    _, _, valid, vis, r_geo = _residuals(level, T_ab, pairs, replace(s, geo_ref_depth_m=ref), gate)
+    _, valid, vis, r_geo, _ = _residuals_lazy(level, T_ab, pairs, replace(s, geo_ref_depth_m=ref), gate)
     r_geo = r_geo.abs().to(torch.float64)
     p = level.points[pairs[:, 1]].to(torch.float64)  # (P, 3, N)
     z = (T_ab[:, 2, :3, None] * p).sum(1) + T_ab[:, 2, 3, None]  # depth in the target camera
