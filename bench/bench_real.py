@@ -211,7 +211,7 @@ def main(argv=None) -> None:
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     a.cache.mkdir(parents=True, exist_ok=True)
-    render = RenderSettings(**_literal(a.set))
+    render = RenderSettings(**{"leave_target_out_stride": 1, **_literal(a.set)})  # the full check: every pixel
     print(f"command: python3 bench/bench_real.py {' '.join(sys.argv[1:] if argv is None else argv)}")
     rows = []
     for data in a.data:

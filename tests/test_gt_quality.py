@@ -67,7 +67,7 @@ def test_leave_target_out_beside_the_gt_is_the_same_render(framesets, members):
     the same depth, weights, counts and sigmas as fusing them on their own (noise law
     estimated without the target), and the GT itself unchanged."""
     data, T = framesets[1]
-    st = RenderSettings()
+    st = RenderSettings(leave_target_out_stride=1)
     both = fuse(data, T, st, members=members, leave_target_out=True)
     alone = fuse(data, T, st, members=slice(1, None) if isinstance(members, slice) else members[1:])
     gt = fuse(data, T, st, members=members)
@@ -78,6 +78,12 @@ def test_leave_target_out_beside_the_gt_is_the_same_render(framesets, members):
     assert (both.left_out.depth > 0).float().mean() > 0.8
     # without neighbours there is nothing to leave the target out of
     assert fuse(data, T, st, members=[0], leave_target_out=True).left_out is None
+    # every 2nd pixel of every 2nd row (the default): exactly those of the full render
+    sparse = fuse(data, T, RenderSettings(), members=members, leave_target_out=True).left_out
+    # (the weights' common scale, the median sigma of the kept samples, differs: rounding only)
+    a, b = sparse.depth[..., ::2, ::2], alone.depth[..., ::2, ::2]
+    assert torch.equal(a > 0, b > 0) and torch.allclose(a, b, rtol=1e-6, atol=0)
+    assert not sparse.depth[..., 1::2, :].any() and not sparse.depth[..., :, 1::2].any()
 
 
 def test_confidence_tracks_actual_error(framesets, rendered):

@@ -214,8 +214,9 @@ def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, d
         leave_target_out: with the target among the members and neighbours beside it,
             also render the neighbours alone into ``left_out`` (the leave-target-out
             check of :func:`quality_statistics`): the same result as fusing
-            ``members`` without the target, sharing the clouds, the projection and the
-            sort with the GT render.
+            ``members`` without the target (at the pixels of every
+            ``settings.leave_target_out_stride``-th row and column), sharing the clouds,
+            the projection and the sort with the GT render.
     """
     depth = (data.depth_m if depth_m is None else depth_m)[members]
     eye = torch.eye(4, dtype=T_j_to_t.dtype, device=T_j_to_t.device)[None]
@@ -235,7 +236,8 @@ def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, d
         lo_sigma = lo_sigma.reshape(1, -1).to(cloud.sigma_m.dtype)
     return render_gt(cloud.points, data.K[None].to(depth.dtype), (h, w), cloud.valid, settings, normals_cam=cloud.normals,
                      sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=data.src_hw, target_frame=0 if with_target else None,
-                     leave_out_frame=0 if leave_out else None, leave_out_sigma_m=lo_sigma)
+                     leave_out_frame=0 if leave_out else None, leave_out_sigma_m=lo_sigma,
+                     leave_out_stride=settings.leave_target_out_stride)
 
 
 def quality_statistics(data: FrameSetData, alignment: Alignment, gt_m: np.ndarray, settings: RenderSettings,
@@ -256,7 +258,8 @@ def quality_statistics(data: FrameSetData, alignment: Alignment, gt_m: np.ndarra
             if left_out is None:
                 left_out = fuse(data, alignment.T_j_to_t, settings, members=fused[1:])
             lto = left_out.depth[0, 0].detach().cpu().numpy()
-            stats["leave_target_out"] = depth_errors(lto.astype(np.float32), depth_in)
+            k = settings.leave_target_out_stride  # fuse(leave_target_out=True) rendered these pixels only
+            stats["leave_target_out"] = depth_errors(lto[::k, ::k].astype(np.float32), depth_in[::k, ::k])
     else:
         truth = data.truth_m[0, 0].cpu().numpy().astype(np.float32)
         stats["gt_vs_truth"] = depth_errors(gt_m, truth)

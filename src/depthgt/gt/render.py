@@ -76,7 +76,8 @@ class GTRender(NamedTuple):
         with the target's: compared, disagreeing, and kept by the agreement check (a
         diagnostic of where frames disagree); None when nothing was judged.
     left_out: with ``leave_out_frame``, the render of the other frames alone (no
-        agreement check; the leave-target-out check of real data), else None.
+        agreement check; the leave-target-out check of real data; with
+        ``leave_out_stride`` only at those pixels), else None.
     """
 
     depth: torch.Tensor
@@ -264,6 +265,7 @@ def render_gt(
     target_frame: int | None = None,
     leave_out_frame: int | None = None,
     leave_out_sigma_m: torch.Tensor | None = None,
+    leave_out_stride: int = 1,
 ) -> GTRender:
     """GT depth from a merged point cloud (paper eq. 5 with a geometric surface choice).
 
@@ -324,6 +326,9 @@ def render_gt(
             render, sharing the projection and the sort with the main one).
         leave_out_sigma_m: (B, N) the points' sigmas for that second render (the noise
             estimated without the left-out frame), or None (``sigma_m``).
+        leave_out_stride: that second render only at the pixels of every this-th row and
+            column (others empty); each holds what the full render gives it (to float
+            rounding: the weights' common scale is the median sigma of the kept samples).
 
     Returns:
         :class:`GTRender` (depth, weight_sum, count, sigma), each (B, 1, H, W).
@@ -388,7 +393,11 @@ def render_gt(
         # the leave-target-out render (the neighbours alone, no agreement check) from the
         # same candidates: the projection, the sort and the clouds are shared
         with torch.no_grad():
-            lo = (fr_all != leave_out_frame).nonzero().squeeze(1)
+            lo = fr_all != leave_out_frame
+            if leave_out_stride > 1:  # only the pixels of every leave_out_stride-th row and column
+                pix = pixel_all % (h * w)
+                lo &= (torch.div(pix, w, rounding_mode="floor") % leave_out_stride == 0) & (pix % w % leave_out_stride == 0)
+            lo = lo.nonzero().squeeze(1)
         pixel_lo, d2_lo, ox_lo, oy_lo, point_lo, s_lo, fr_lo = (
             x.index_select(0, lo) for x in (pixel_all, d2_all, ox_all, oy_all, point_all, s_pre, fr_all))
         if s_all_lo is not None:  # the sigmas of the noise estimated without the left-out frame
