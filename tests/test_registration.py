@@ -11,9 +11,9 @@ import pytest
 import torch
 
 from depthgt.registration.correspondences import find_correspondences, sample_candidates
-from depthgt.registration.encoder import build_encoder, lift_points
+from depthgt.registration.encoder import build_encoder, candidate_points
 from depthgt.eval.metrics import pose_errors
-from depthgt.registration.overfit import register_frameset
+from depthgt.registration.overfit import encode_at, register_frameset
 from depthgt.registration.procrustes import procrustes_random_subsets, weighted_procrustes
 from depthgt.registration.refine import adjoint, refine_poses
 from depthgt.settings import REGISTRATION_PRESETS, RefineSettings, RegistrationSettings, registration_settings
@@ -137,10 +137,9 @@ def test_gradients_reach_the_encoder_through_the_weights():
     torch.manual_seed(0)
     rgb, depth, K, _ = _frameset([0, 2], hw=(24, 24))
     enc = build_encoder(n_blocks=1, channels=8, feat_dim=8, seed=0)
-    feats = torch.nn.functional.normalize(enc(rgb), dim=1)
     gen = torch.Generator().manual_seed(0)
     idx, mask = sample_candidates(depth > 0, 200, gen)
-    pts, f = lift_points(depth, K.expand(2, 3, 3), feats, idx)
+    pts, f = candidate_points(depth, K.expand(2, 3, 3), idx), encode_at(enc, rgb, idx)
     corr = find_correspondences(pts[:1], f[:1], mask[:1], pts[1:], f[1:], mask[1:], top_k=30)
     assert corr.weights.shape == (1, 60) and (corr.weights >= 0).all() and (corr.weights <= 1).all()
     T, _ = procrustes_random_subsets(corr.points_src, corr.points_dst, corr.weights, 4, 0.5, gen)
@@ -304,16 +303,17 @@ def test_residual_check_adapts_to_the_sensor_noise():
 
 
 def test_bf16_encoder_matches_fp32_features():
-    from depthgt.registration.overfit import autocast_dtype, encode
+    from depthgt.registration.overfit import autocast_dtype
 
     assert autocast_dtype("cpu", "fp32") is None and autocast_dtype("cpu", "bf16") is torch.bfloat16
     enc = build_encoder(1, 16, 16, seed=0).eval()
     rgb = _frameset([0, 2], hw=(32, 32))[0][:1]
-    f32 = encode(enc, rgb, "fp32")
-    f16 = encode(enc, rgb, "bf16")
-    assert f16.dtype == torch.float32 and f16.shape == f32.shape
-    assert torch.allclose(f32.norm(dim=1), torch.ones(1, 32, 32), atol=1e-5)
-    cos = (f32 * f16).sum(1)  # unit features: bf16 keeps them pointing the same way
+    every = torch.arange(32 * 32)[None]  # every pixel
+    f32 = encode_at(enc, rgb, every, "fp32")
+    f16 = encode_at(enc, rgb, every, "bf16")
+    assert f16.dtype == torch.float32 and f16.shape == f32.shape == (1, 32 * 32, 16)
+    assert torch.allclose(f32.norm(dim=2), torch.ones(1, 32 * 32), atol=1e-5)
+    cos = (f32 * f16).sum(2)  # unit features: bf16 keeps them pointing the same way
     assert cos.min() > 0.99, cos.min()
 
 

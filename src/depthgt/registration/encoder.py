@@ -13,7 +13,7 @@ from torch import nn
 
 from depthgt.geometry import backproject
 
-__all__ = ["BasicBlock", "RGBEncoder", "build_encoder", "lift_points"]
+__all__ = ["BasicBlock", "RGBEncoder", "build_encoder", "candidate_points"]
 
 
 class BasicBlock(nn.Module):
@@ -66,22 +66,10 @@ def build_encoder(n_blocks: int = 2, channels: int = 64, feat_dim: int = 32, see
         return RGBEncoder(n_blocks, channels, feat_dim)
 
 
-def lift_points(depth_m: torch.Tensor, K: torch.Tensor, features: torch.Tensor, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """3D points and features of chosen pixels.
-
-    Args:
-        depth_m: (B, 1, H, W) depth in metres.
-        K: (B, 3, 3) intrinsics.
-        features: (B, C, H, W) per-pixel features.
-        index: (B, N) long flat pixel indices (row-major) of valid pixels.
-
-    Returns:
-        points (B, N, 3) in the camera frame (metres) and features (B, N, C).
-    """
-    B, C, H, W = features.shape
-    if depth_m.shape != (B, 1, H, W):
-        raise ValueError(f"depth_m must be {(B, 1, H, W)}, got {tuple(depth_m.shape)}")
-    pts = backproject(depth_m, K)  # (B, HW, 3)
-    p = torch.gather(pts, 1, index[..., None].expand(-1, -1, 3))
-    f = torch.gather(features.flatten(2), 2, index[:, None].expand(-1, C, -1)).transpose(1, 2)
-    return p, f
+def candidate_points(depth_m: torch.Tensor, K: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """(B, N, 3) camera-frame points (metres) of the pixels ``index`` (B, N) (flat,
+    row-major) of ``depth_m`` (B, 1, H, W) with intrinsics ``K`` (B, 3, 3); their features
+    come from :func:`depthgt.registration.overfit.encode_at`."""
+    if depth_m.ndim != 4 or depth_m.shape[1] != 1 or index.shape[0] != depth_m.shape[0]:
+        raise ValueError(f"depth_m must be (B, 1, H, W) and index (B, N), got {tuple(depth_m.shape)}, {tuple(index.shape)}")
+    return torch.gather(backproject(depth_m, K), 1, index[..., None].expand(-1, -1, 3))

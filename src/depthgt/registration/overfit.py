@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from depthgt.metric_vocabulary import pose_delta
 from depthgt.registration.correspondences import find_correspondences, sample_candidates
 from depthgt.geometry import backproject
-from depthgt.registration.encoder import build_encoder
+from depthgt.registration.encoder import build_encoder, candidate_points
 from depthgt.registration.losses import correspondence_loss, default_render_fn, render_losses
 from depthgt.registration.procrustes import procrustes_random_subsets
 from depthgt.registration.refine import Level, LevelSettings, pair_mean_cost, refine_poses
@@ -172,23 +172,12 @@ def autocast_dtype(device: torch.device | str, precision: str) -> torch.dtype | 
     return None
 
 
-def encode(encoder: torch.nn.Module, rgb: torch.Tensor, precision: str = "fp32") -> torch.Tensor:
-    """Unit-length float32 features (B, C, H, W) of ``rgb`` (B, 3, H, W), with the
-    encoder's convolutions in the dtype :func:`autocast_dtype` picks (channels-last
-    memory on CPU, the fast layout of oneDNN's convolutions)."""
-    dt = autocast_dtype(rgb.device, precision)
-    if rgb.device.type == "cpu":
-        rgb = rgb.contiguous(memory_format=torch.channels_last)
-    with torch.autocast(rgb.device.type, dtype=dt or torch.float32, enabled=dt is not None):
-        feats = encoder(rgb)
-    return F.normalize(feats.float().contiguous(), dim=1)
-
-
 def encode_at(encoder: torch.nn.Module, rgb: torch.Tensor, index: torch.Tensor, precision: str = "fp32") -> torch.Tensor:
     """Unit-length float32 features (B, N, C) of the pixels ``index`` (B, N) (flat,
-    row-major) of ``rgb``: :func:`encode` at those pixels (bit-identical), with the
-    normalisation done on the chosen pixels only and the feature map gathered in its
-    own (channels-last) layout, without a copy of the whole map."""
+    row-major) of ``rgb`` (B, 3, H, W), with the encoder's convolutions in the dtype
+    :func:`autocast_dtype` picks (channels-last memory on CPU, the fast layout of
+    oneDNN's convolutions). Only the chosen pixels are gathered (in the map's own
+    layout, without a copy of the whole map) and normalised."""
     dt = autocast_dtype(rgb.device, precision)
     if rgb.device.type == "cpu":
         rgb = rgb.contiguous(memory_format=torch.channels_last)
@@ -210,7 +199,7 @@ def frameset_loss(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettin
     Fn = fs.rgb.shape[0]
     f = encode_at(encoder, fs.rgb, fs.cand_idx, s.precision)  # (F, n, C)
     Kb = fs.K.expand(Fn, 3, 3).to(fs.depth.dtype)
-    pts = torch.gather(backproject(fs.depth, Kb), 1, fs.cand_idx[..., None].expand(-1, -1, 3))
+    pts = candidate_points(fs.depth, Kb, fs.cand_idx)
     a, b = fs.pairs[:, 0], fs.pairs[:, 1]
     # x.index_select(0, i) in place of x[i] (faster on CPU); the features keep their
     # (C, N)-planar layout, as x[i] keeps it, so that their normalisation in

@@ -323,8 +323,9 @@ class _System:
 
     Attributes:
         pair_cost, inliers, Tinv: see :func:`normal_system`.
-        cost_pts: (P, 2N) robust cost of every visible point, 0 elsewhere.
-        vis: (P, 2N) bool.
+        cost_pts: (P, 2N) robust cost of every visible point, 0 elsewhere ((P, N)
+            without the photometric term, as every residual array).
+        vis: (P, 2N) bool (likewise).
     """
 
     def __init__(self, pair_cost, inliers, Tinv, cost_pts, vis, linearise):
