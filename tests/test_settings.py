@@ -75,6 +75,10 @@ def test_unknown_keys_are_named(config, key):
     ({"resize": 100_000}, "resize"),
     ({"frameset": {"neighbours": 500}}, "frameset.neighbours"),
     ({"render": {"m": 0}}, "render.m"),
+    ({"render": {"edge_vote": 1.5}}, "render.edge_vote"),
+    ({"render": {"edge_vote_slack_px": -0.5}}, "render.edge_vote_slack_px"),
+    ({"render": {"leave_target_out_stride": 0}}, "render.leave_target_out_stride"),
+    ({"render": {"target_resolves_ambiguous": "yes"}}, "render.target_resolves_ambiguous"),  # wrong type
     ({"registration": {"n_candidates": 10**7}}, "registration.n_candidates"),
     ({"registration": {"method": "given", "pairs": "some"}}, "registration.pairs"),
     ({"registration": {"preset": "slow"}}, "registration.preset"),
