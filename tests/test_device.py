@@ -49,3 +49,25 @@ def test_keep_freed_memory_stops_the_page_faults_of_large_blocks():
     default, kept = int(runs["default"][1]), int(runs["keep"][1])
     assert default > 10 * 2000  # pages of 4 KiB faulted again in every round
     assert kept < default / 5
+
+
+def test_plain_cpu_convolutions_agree_with_onednn_and_restore_the_flag():
+    """kornia's gradient filters give the same normals without oneDNN (to float rounding),
+    and the global flag is back afterwards, also after an error."""
+    import torch
+    from kornia.geometry.depth import depth_to_normals
+
+    from depthgt.device import plain_cpu_convolutions
+
+    g = torch.Generator().manual_seed(0)
+    depth = 1.0 + torch.rand(3, 1, 40, 50, generator=g)
+    K = torch.tensor([[40.0, 0, 25], [0, 40, 20], [0, 0, 1]]).expand(3, 3, 3)
+    before = torch.backends.mkldnn.enabled
+    with plain_cpu_convolutions():
+        assert not torch.backends.mkldnn.enabled
+        plain = depth_to_normals(depth, K)
+    assert torch.backends.mkldnn.enabled == before
+    torch.testing.assert_close(plain, depth_to_normals(depth, K), rtol=1e-5, atol=1e-6)
+    with pytest.raises(RuntimeError), plain_cpu_convolutions():
+        raise RuntimeError("inside")
+    assert torch.backends.mkldnn.enabled == before

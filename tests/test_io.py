@@ -216,3 +216,22 @@ def test_truncated_empty_and_mistyped_images(tmp_path):
         (tmp_path / name).write_bytes(data)
         with pytest.raises(FrameError, match=msg):
             read_depth_png(tmp_path / name, 1000.0)
+
+
+def test_save_npz_round_trip_at_exactly_the_path(tmp_path):
+    """Every array comes back from numpy.load with its dtype and shape, at a name without
+    ``.npz``; deflated (smaller than the arrays), with no time of writing in the bytes."""
+    from depthgt.atomic import save_npz
+
+    arrays = {"gt": np.linspace(0.5, 4.0, 2 * 128 * 128, dtype=np.float32).reshape(2, 128, 128),
+              "rgb": np.full((2, 8, 8, 3), 7, np.uint8), "kept": np.array([True, False]), "boxes": np.arange(8).reshape(2, 4)}
+    path = tmp_path / "patches.tmp"
+    save_npz(path, arrays)
+    with np.load(path) as z:
+        assert sorted(z.files) == sorted(arrays)
+        for name, value in arrays.items():
+            assert z[name].dtype == value.dtype and np.array_equal(z[name], value)
+    assert path.stat().st_size < sum(a.nbytes for a in arrays.values()) / 2
+    import zipfile
+    with zipfile.ZipFile(path) as zf:  # no time of writing in the bytes
+        assert {m.date_time for m in zf.infolist()} == {(1980, 1, 1, 0, 0, 0)}

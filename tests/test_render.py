@@ -339,6 +339,47 @@ def test_render_gt_bad_input():
         render_gt(torch.ones(4, 3), K, (9, 9))
 
 
+def test_front_to_back_sorts_by_decreasing_inverse_depth_exactly():
+    """The bit-pattern sort equals a stable float sort, ties in index order, in each float type."""
+    from depthgt.rasterise import front_to_back
+
+    g = torch.Generator().manual_seed(3)
+    for dtype in (torch.float32, torch.float64):
+        iz = torch.rand(5000, generator=g, dtype=torch.float64).to(dtype) * 5 + 1e-4
+        iz[::7] = iz[3]  # ties
+        iz[1::11] = torch.nextafter(iz[3], torch.tensor(10.0, dtype=dtype))  # one ulp apart
+        expected = torch.sort(-iz, stable=True).indices
+        assert torch.equal(front_to_back(iz), expected)
+
+
+def test_candidates_in_point_order_are_the_same_candidates():
+    """``point_order`` changes the order the candidates come in, not which they are; sorted
+    by pixel, points made front first give every pixel's candidates front first."""
+    from depthgt.rasterise import candidates, front_to_back, sort_by_pixel
+
+    g = torch.Generator().manual_seed(4)
+    pts = torch.rand(1, 3000, 3, generator=g, dtype=torch.float64) * torch.tensor([2.0, 2.0, 3.0], dtype=torch.float64) \
+        - torch.tensor([1.0, 1.0, -0.5], dtype=torch.float64)
+    K = _K(1, 20.0, 15.5, 11.5)
+    valid = torch.rand(1, 3000, generator=g) > 0.1
+    grid = (resampled_positions(64, 32, dtype=torch.float64), resampled_positions(48, 24, dtype=torch.float64))
+    iz = 1.0 / pts[0, :, 2]
+    for grid_uv in (None, grid):
+        plain, _ = candidates(pts, K, valid, (24, 32), 1.25, 0.1, grid_uv)
+        order = front_to_back(iz)
+        made, _ = candidates(pts, K, valid, (24, 32), 1.25, 0.1, grid_uv, point_order=order)
+        pairs = lambda c: sorted(zip(c.point.tolist(), c.pixel.tolist(), c.d2.tolist()))  # noqa: E731
+        assert pairs(made) == pairs(plain) and len(plain.point) > 3000
+        rank = torch.empty_like(order)
+        rank[order] = torch.arange(len(order))
+        assert (rank.index_select(0, made.point).diff() >= 0).all()  # point by point, in that order
+        pixel, perm = sort_by_pixel(made.pixel)
+        assert torch.equal(pixel, made.pixel[perm]) and (pixel.diff() >= 0).all()
+        point = made.point[perm]
+        same = pixel[1:] == pixel[:-1]
+        assert (iz[point[1:]][same] <= iz[point[:-1]][same]).all()  # front first within a pixel
+
+
 def test_resampled_positions_match_nearest_resize():
     """The sample positions are the source pixel centres that resize_depth_nearest takes."""
     src = torch.arange(480 * 640, dtype=torch.float32).reshape(1, 1, 480, 640)

@@ -22,8 +22,8 @@ import torch
 
 from depthgt.geometry import project
 
-__all__ = ["Candidates", "candidates", "check_points", "resampled_positions", "sort_in_pixel", "segment_rank_keep",
-           "rank_in_pixel"]
+__all__ = ["Candidates", "candidates", "check_points", "resampled_positions", "front_to_back", "sort_by_pixel",
+           "segment_rank_keep", "rank_in_pixel"]
 
 def check_points(points_cam: torch.Tensor, K: torch.Tensor, valid: torch.Tensor | None, size_hw) -> torch.Tensor:
     if points_cam.ndim != 3 or points_cam.shape[-1] != 3:
@@ -65,13 +65,16 @@ def candidates(
     radius_px: float,
     min_depth: float,
     grid_uv: tuple[torch.Tensor, torch.Tensor] | None = None,
+    point_order: torch.Tensor | None = None,
 ) -> tuple[Candidates, torch.Tensor]:
     """Pair every valid point with the pixel sample positions strictly inside ``radius_px``.
 
     The sample position of pixel (u, v) is its centre, or with ``grid_uv`` = (gu (W,),
     gv (H,)) the position (gu[u], gv[v]) (each within 0.5 px of the centre, see
-    :func:`resampled_positions`). Returns the candidates and the (B*N,) depth of every
-    point (differentiable).
+    :func:`resampled_positions`). The candidates come point by point, in the order of the
+    flattened points or, with ``point_order`` (a permutation of the B*N flattened
+    points, e.g. :func:`front_to_back`), in that order. Returns the candidates and the
+    (B*N,) depth of every point (differentiable).
     """
     b, n, _ = points_cam.shape
     h, w = int(size_hw[0]), int(size_hw[1])
@@ -80,12 +83,12 @@ def candidates(
     z_f = z.reshape(-1)
     r = float(radius_px)
     if grid_uv is not None:
-        return candidates_on_grid(uv_f, z_f, valid, b, n, h, w, r, min_depth, grid_uv)
+        return candidates_on_grid(uv_f, z_f, valid, b, n, h, w, r, min_depth, grid_uv, point_order)
     with torch.no_grad():
         u, v = uv_f[:, 0], uv_f[:, 1]
         ok = valid.reshape(-1) & (z_f > min_depth) & torch.isfinite(u) & torch.isfinite(v)
         ok &= (u > -r) & (u < w - 1 + r) & (v > -r) & (v < h - 1 + r)
-        pid = ok.nonzero().squeeze(1)
+        pid = _visited(ok, point_order)
         u, v = u.index_select(0, pid), v.index_select(0, pid)
         # Every pixel centre within r of (u, v) lies in [ceil(u - r), floor(u + r)]:
         # at most floor(2r) + 1 columns (and rows) starting at ceil(u - r).
@@ -117,7 +120,14 @@ def candidates(
     return Candidates(point, pixel, d2, dx, dy), z_f
 
 
-def candidates_on_grid(uv_f, z_f, valid, b, n, h, w, r, min_depth, grid_uv):
+def _visited(ok: torch.Tensor, point_order: torch.Tensor | None) -> torch.Tensor:
+    """Indices of the points where ``ok``, ascending or in the order of ``point_order``."""
+    if point_order is None:
+        return ok.nonzero().squeeze(1)
+    return point_order.index_select(0, ok.index_select(0, point_order).nonzero().squeeze(1))
+
+
+def candidates_on_grid(uv_f, z_f, valid, b, n, h, w, r, min_depth, grid_uv, point_order=None):
     """:func:`candidates` for sample positions ``grid_uv`` off the pixel centres."""
     gu, gv = (g.to(uv_f.dtype) for g in grid_uv)
     if gu.shape != (w,) or gv.shape != (h,):
@@ -130,7 +140,7 @@ def candidates_on_grid(uv_f, z_f, valid, b, n, h, w, r, min_depth, grid_uv):
         u, v = uv_f[:, 0], uv_f[:, 1]
         ok = valid.reshape(-1) & (z_f > min_depth) & torch.isfinite(u) & torch.isfinite(v)
         ok &= (u > float(gu[0]) - r) & (u < float(gu[-1]) + r) & (v > float(gv[0]) - r) & (v < float(gv[-1]) + r)
-        pid = ok.nonzero().squeeze(1)
+        pid = _visited(ok, point_order)
         u, v = u.index_select(0, pid), v.index_select(0, pid)
         # sample positions within r of u lie in columns [ceil(u - r - shift), floor(u + r + shift)]
         span = int(math.floor(2 * (r + shift))) + 1
@@ -151,7 +161,7 @@ def candidates_on_grid(uv_f, z_f, valid, b, n, h, w, r, min_depth, grid_uv):
         row = y0.index_select(0, slot) + oy
         base = torch.div(pid, n, rounding_mode="floor") * (h * w)  # (P,) first pixel of each point's batch element
         pixel = base.index_select(0, slot) + row * w + col
-    uv_c = uv_f.index_select(0, point)
+    uv_c = uv_f.index_select(0, pid).index_select(0, slot)  # per point, then per candidate: in the candidates' order
     dx = gu.index_select(0, col) - uv_c[:, 0]
     dy = gv.index_select(0, row) - uv_c[:, 1]
     return Candidates(point, pixel, dx * dx + dy * dy, dx, dy), z_f
@@ -166,16 +176,32 @@ def resampled_positions(n_src: int, n_dst: int, device=None, dtype=torch.float32
     return ((i + 0.5) * (n_dst / n_src) - 0.5).to(dtype)
 
 
-def sort_in_pixel(pixel: torch.Tensor, key: torch.Tensor) -> torch.Tensor:
-    """Permutation sorting candidates by pixel, then by ascending ``key`` within a pixel.
+def front_to_back(iz: torch.Tensor) -> torch.Tensor:
+    """(N,) permutation of points by decreasing inverse depth ``iz`` (N,) > 0, equal
+    values in index order.
 
-    One radix-friendly int64 sort of pixel * 2^32 + the key quantised to 31 bits of
-    its global range (ties and keys closer than range / 2^31 keep candidate order).
+    One stable integer sort of the floats' bit patterns, which order as the positive
+    floats they encode (IEEE 754): exact, and a radix sort on the CPU (~7x faster than a
+    float sort). Written by hand: torch sorts floats by comparison only. NaN (no depth)
+    sorts first; such points have no candidates.
     """
-    k = key.detach().to(torch.float64)
-    lo, hi = k.min(), k.max()
-    q = ((k - lo) / (hi - lo).clamp_min(1e-300) * (2**31 - 1)).long()
-    return torch.sort(pixel * (2**32) + q, stable=True).indices
+    ints = {torch.float64: torch.int64, torch.float32: torch.int32, torch.float16: torch.int16, torch.bfloat16: torch.int16}
+    bits = iz.detach().contiguous().view(ints[iz.dtype])
+    return torch.sort(-bits, stable=True).indices
+
+
+def sort_by_pixel(pixel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(sorted pixel, permutation): candidates grouped by pixel, in their order within a
+    pixel (a stable sort; int32 keys when the pixel indices fit, a two-pass radix sort).
+
+    With the candidates made in :func:`front_to_back` order of their points
+    (``candidates(point_order=...)``), this sorts by pixel and front first within a
+    pixel.
+    """
+    if pixel.numel() and int(pixel.max()) < 2**31:
+        values, order = torch.sort(pixel.to(torch.int32), stable=True)
+        return values.to(pixel.dtype), order
+    return torch.sort(pixel, stable=True)
 
 
 def segment_rank_keep(pixel: torch.Tensor, key: torch.Tensor, active: torch.Tensor, limit: int, n_pixels: int) -> torch.Tensor:

@@ -27,6 +27,7 @@ from kornia.filters import spatial_gradient
 from kornia.geometry.depth import depth_to_normals
 from kornia.geometry.liegroup import Se3
 
+from depthgt.device import plain_cpu_convolutions
 from depthgt.geometry import backproject, resize_depth_nearest, resize_rgb, scale_intrinsics
 from depthgt.noise_law import estimate_noise_sigma_1m
 from depthgt.settings import RefineSettings
@@ -154,9 +155,10 @@ class Level:
         gray = c.mean(1, keepdim=True)
         valid = (d > 0).to(d.dtype)
         X = backproject(d, Kb).transpose(1, 2).reshape(Fn, 3, h, w)
-        N = depth_to_normals(d, Kb, normalize_points=False)
+        with plain_cpu_convolutions():  # 3x3 filters: ~3x faster than oneDNN's on one thread
+            N = depth_to_normals(d, Kb, normalize_points=False)
+            g = spatial_gradient(gray, mode="sobel", order=1, normalized=True)[:, 0]  # (F, 2, h, w) per pixel
         nvalid = _erode(valid)  # normals need all 3x3 neighbours valid
-        g = spatial_gradient(gray, mode="sobel", order=1, normalized=True)[:, 0]  # (F, 2, h, w) per pixel
         # channels: X(3) N(3) gray gx gy valid
         self.maps = torch.cat([X, N, gray, g, nvalid], 1)
         ys = torch.arange(0, h, stride, device=d.device)
