@@ -5,12 +5,15 @@ residual check in units of the noise) and the GT renderer (tolerances, confidenc
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 import torch.nn.functional as F
 
 from depthgt.rasterise import resampled_positions
 
-__all__ = ["KINECT_SIGMA_1M", "depth_sigma_m", "estimate_noise_sigma_1m", "second_differences"]
+__all__ = ["KINECT_SIGMA_1M", "depth_sigma_m", "estimate_noise_sigma_1m", "second_differences", "Residuals",
+           "second_difference_residuals", "noise_sigma_1m_from"]
 
 #: sigma of one depth sample at 1 m (metres) used when neither the settings nor the
 #: caller give one: Kinect v1 (1/8-px disparity steps and noise, bench/calibrate_noise.py)
@@ -39,6 +42,53 @@ def second_differences(iz: torch.Tensor, ok: torch.Tensor, dim: int, pos: torch.
     return F.pad(r, pad), F.pad(both, pad)
 
 
+class Residuals(NamedTuple):
+    """The :func:`second_differences` of J depth images along x and y (float64).
+
+    iz: (J, 1, H, W) inverse depth, 0 where invalid; ok: (J, 1, H, W) valid depth;
+    r, both: the residuals and their validity along x then y (a direction with fewer
+    than 3 pixels is left out).
+    """
+
+    iz: torch.Tensor
+    ok: torch.Tensor
+    r: tuple[torch.Tensor, ...]
+    both: tuple[torch.Tensor, ...]
+
+
+def second_difference_residuals(depth_m: torch.Tensor, src_hw: tuple[int, int] | None = None) -> Residuals:
+    """:class:`Residuals` of (J, 1, H, W) depth in metres (0 = invalid), nearest-resized
+    from ``src_hw`` (None: sampled at the pixel centres). Computed once per frame set,
+    they give the noise estimate of every subset of its frames
+    (:func:`noise_sigma_1m_from`) and the renderer's depth-edge test."""
+    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
+        raise ValueError(f"depth_m must be (J, 1, H, W), got {tuple(depth_m.shape)}")
+    d = depth_m.detach().to(torch.float64)
+    h, w = d.shape[-2:]
+    ok = d > 0
+    iz = torch.where(ok, 1.0 / d.clamp_min(1e-9), torch.zeros_like(d))
+    src = (h, w) if src_hw is None else src_hw
+    rs, boths = [], []
+    for dim, n_src, n in ((3, src[1], w), (2, src[0], h)):
+        if n < 3:
+            continue
+        r, both = second_differences(iz, ok, dim, resampled_positions(n_src, n, d.device, torch.float64))
+        rs.append(r)
+        boths.append(both)
+    return Residuals(iz, ok, tuple(rs), tuple(boths))
+
+
+def noise_sigma_1m_from(res: Residuals, frames: slice = slice(None), min_pixels: int = 2000) -> float:
+    """:func:`estimate_noise_sigma_1m` of the frames ``frames`` of ``res`` (the same
+    value as estimating it from those frames' depth alone)."""
+    if len(res.r) < 2:
+        return KINECT_SIGMA_1M
+    r = torch.cat([r[frames][both[frames]].abs() for r, both in zip(res.r, res.both)])
+    if r.numel() < min_pixels:
+        return KINECT_SIGMA_1M
+    return float(r.kthvalue(max(1, int(round(0.6827 * r.numel())))).values)
+
+
 def estimate_noise_sigma_1m(depth_m: torch.Tensor, src_hw: tuple[int, int] | None = None, min_pixels: int = 2000) -> float:
     """Sigma of one depth sample at 1 m (metres, the z^2 law) estimated from noisy depth alone.
 
@@ -60,20 +110,4 @@ def estimate_noise_sigma_1m(depth_m: torch.Tensor, src_hw: tuple[int, int] | Non
         sigma at 1 m in metres; :data:`KINECT_SIGMA_1M` when fewer than ``min_pixels``
         residuals exist.
     """
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
-        raise ValueError(f"depth_m must be (J, 1, H, W), got {tuple(depth_m.shape)}")
-    d = depth_m.detach().to(torch.float64)
-    h, w = d.shape[-2:]
-    if h < 3 or w < 3:
-        return KINECT_SIGMA_1M
-    ok = d > 0
-    iz = torch.where(ok, 1.0 / d.clamp_min(1e-9), torch.zeros_like(d))
-    src = (h, w) if src_hw is None else src_hw
-    rs = []
-    for dim, n_src, n in ((3, src[1], w), (2, src[0], h)):
-        r, both = second_differences(iz, ok, dim, resampled_positions(n_src, n, d.device, torch.float64))
-        rs.append(r[both].abs())
-    r = torch.cat(rs)
-    if r.numel() < min_pixels:
-        return KINECT_SIGMA_1M
-    return float(r.kthvalue(max(1, int(round(0.6827 * r.numel())))).values)
+    return noise_sigma_1m_from(second_difference_residuals(depth_m, src_hw), min_pixels=min_pixels)

@@ -25,7 +25,7 @@ from depthgt.gt.patches import make_patches
 from depthgt.gt.planning import stable_seed
 from depthgt.gt.render import GTRender, cloud_in_target, render_gt
 from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
-from depthgt.noise_law import depth_sigma_m, estimate_noise_sigma_1m
+from depthgt.noise_law import depth_sigma_m, noise_sigma_1m_from, second_difference_residuals
 from depthgt.settings import RegistrationSettings, RenderSettings, Settings
 from depthgt.sources.base import Scene, check_frame
 from depthgt.status import Status
@@ -222,8 +222,9 @@ def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, d
     eye = torch.eye(4, dtype=T_j_to_t.dtype, device=T_j_to_t.device)[None]
     T = torch.cat([eye, T_j_to_t], dim=0)[members]
     K = data.K[None].expand(depth.shape[0], 3, 3)
+    residuals = second_difference_residuals(depth, data.src_hw)  # the noise estimates and the normals' edge test
     cloud = cloud_in_target(depth, K, T, src_hw=data.src_hw, noise_sigma_1m=settings.noise_sigma_1m,
-                            noise_sigma_abs_m=settings.noise_sigma_abs_m)
+                            noise_sigma_abs_m=settings.noise_sigma_abs_m, residuals=residuals)
     h, w = data.depth_m.shape[-2:]
     chosen = list(range(len(data.depth_m)))[members] if isinstance(members, slice) else list(members)
     with_target = bool(chosen) and chosen[0] == 0  # the target's own depth is fused, as frame 0 of the cloud
@@ -231,7 +232,7 @@ def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, d
     leave_out = with_target and leave_target_out and len(chosen) > 1
     if leave_out and settings.noise_sigma_1m is None:
         # the noise law as fusing the neighbours alone estimates it (without the target's depth)
-        sigma_1m = estimate_noise_sigma_1m(depth[1:], data.src_hw)
+        sigma_1m = noise_sigma_1m_from(residuals, frames=slice(1, None))
         lo_sigma = torch.cat([torch.zeros_like(depth[:1]), depth_sigma_m(depth[1:], sigma_1m, settings.noise_sigma_abs_m)])
         lo_sigma = lo_sigma.reshape(1, -1).to(cloud.sigma_m.dtype)
     return render_gt(cloud.points, data.K[None].to(depth.dtype), (h, w), cloud.valid, settings, normals_cam=cloud.normals,

@@ -32,7 +32,8 @@ from kornia.geometry.linalg import transform_points
 
 from depthgt.device import plain_cpu_convolutions
 from depthgt.geometry import backproject
-from depthgt.noise_law import KINECT_SIGMA_1M, depth_sigma_m, estimate_noise_sigma_1m, second_differences
+from depthgt.noise_law import (KINECT_SIGMA_1M, Residuals, depth_sigma_m, estimate_noise_sigma_1m, noise_sigma_1m_from,
+                               second_difference_residuals)
 from depthgt.rasterise import candidates, check_points, front_to_back, rank_in_pixel, resampled_positions, sort_by_pixel
 from depthgt.settings import RenderSettings
 from depthgt.splatting import SoftSplat, splat_soft  # re-exported: the renderer's public names
@@ -389,7 +390,7 @@ def render_gt(
                 bad, agreement, disagreement = _frame_agreement(pixel, iz.detach(), s, fr, d2.detach(), b, n_fr, (h, w), st,
                                                                 target_frame)
                 if bad.any():  # a frame (or a region of it) that disagrees with the target stays out
-                    ok = ~bad[_agreement_slot(pixel, fr, n_fr, (h, w), st.agreement_tile_px)]
+                    ok = ~bad[_agreement_slot(pixel, fr, b, n_fr, (h, w), st.agreement_tile_px)]
                     sel = ok.nonzero().squeeze(1)
                     pixel, d2, ox, oy, point, iz, s, fr = (x.index_select(0, sel) for x in (pixel, d2, ox, oy, point, iz, s, fr))
     out = _estimate(pixel, d2, ox, oy, point, iz, s, fr, grad, (b, h, w), st, target_frame, agreement, disagreement)
@@ -399,8 +400,9 @@ def render_gt(
         with torch.no_grad():
             lo = fr_all != leave_out_frame
             if leave_out_stride > 1:  # only the pixels of every leave_out_stride-th row and column
-                pix = pixel_all % (h * w)
-                lo &= (torch.div(pix, w, rounding_mode="floor") % leave_out_stride == 0) & (pix % w % leave_out_stride == 0)
+                on_grid = torch.zeros(b, h, w, dtype=torch.bool, device=dev)
+                on_grid[:, ::leave_out_stride, ::leave_out_stride] = True
+                lo &= on_grid.reshape(-1).index_select(0, pixel_all)
             lo = lo.nonzero().squeeze(1)
         pixel_lo, d2_lo, ox_lo, oy_lo, point_lo, s_lo, fr_lo = (
             x.index_select(0, lo) for x in (pixel_all, d2_all, ox_all, oy_all, point_all, s_pre, fr_all))
@@ -488,18 +490,20 @@ def _tile_grid(hw: tuple[int, int], tile_px: int) -> tuple[int, int]:
     return -(-hw[0] // tile_px), -(-hw[1] // tile_px)
 
 
-def _agreement_slot(pixel: torch.Tensor, fr: torch.Tensor, n_fr: int, hw: tuple[int, int], tile_px: int) -> torch.Tensor:
+def _agreement_slot(pixel: torch.Tensor, fr: torch.Tensor, b: int, n_fr: int, hw: tuple[int, int], tile_px: int) -> torch.Tensor:
     """Index of each sample's (image, frame, tile) in the flat decisions of
-    :func:`_frame_agreement`."""
+    :func:`_frame_agreement`: ((image * J + frame) * tiles + tile), from a per-pixel
+    table (one gather, no integer division per sample)."""
     h, w = hw
     ty, tx = _tile_grid(hw, tile_px)
-    img, pix = torch.div(pixel, h * w, rounding_mode="floor"), pixel % (h * w)
-    slot = img * n_fr + fr
+    n_t = ty * tx
+    img = torch.arange(b, device=pixel.device)[:, None, None]
     if tile_px <= 0:
-        return slot
-    tile = torch.div(torch.div(pix, w, rounding_mode="floor"), tile_px, rounding_mode="floor") * tx \
-        + torch.div(pix % w, tile_px, rounding_mode="floor")
-    return slot * (ty * tx) + tile
+        tile = torch.zeros(1, h, w, dtype=torch.long, device=pixel.device)
+    else:
+        tile = (torch.arange(h, device=pixel.device)[:, None] // tile_px) * tx + torch.arange(w, device=pixel.device)[None] // tile_px
+    table = (img * (n_fr * n_t) + tile).reshape(-1)  # per pixel of the B images: image and tile part
+    return table.index_select(0, pixel) + fr * n_t
 
 
 def _frame_agreement(pixel, iz, s, fr, d2, b, n_fr, hw, st, target_frame):
@@ -556,7 +560,7 @@ def _frame_agreement(pixel, iz, s, fr, d2, b, n_fr, hw, st, target_frame):
     bad = share < st.min_frame_agreement  # (NaN: not judged)
     if st.agreement_tile_px > 0:
         ty, tx = _tile_grid(hw, st.agreement_tile_px)
-        tslot = _agreement_slot(p, f, n_fr, hw, st.agreement_tile_px)
+        tslot = _agreement_slot(p, f, b, n_fr, hw, st.agreement_tile_px)
         counts = torch.stack([torch.bincount(tslot, minlength=b * n_fr * ty * tx),
                               torch.bincount(tslot[agree], minlength=b * n_fr * ty * tx)]).to(torch.float32)
         # comparisons pooled over each tile's 3x3 neighbourhood (sums: average x 9)
@@ -565,7 +569,7 @@ def _frame_agreement(pixel, iz, s, fr, d2, b, n_fr, hw, st, target_frame):
         judged = n_cmp_t >= _MIN_TILE_COMPARED
         bad_t = torch.where(judged, n_ok_t < st.min_frame_agreement * n_cmp_t, bad[..., None, None])
         bad = bad_t | (share < st.min_whole_frame_agreement)[..., None, None]
-    kept = ~bad.reshape(-1)[_agreement_slot(p, f, n_fr, hw, st.agreement_tile_px)]
+    kept = ~bad.reshape(-1)[_agreement_slot(p, f, b, n_fr, hw, st.agreement_tile_px)]
     diag = torch.stack([torch.bincount(p, minlength=n_pix), torch.bincount(p[~agree], minlength=n_pix),
                         torch.bincount(p[kept], minlength=n_pix)]).to(torch.float32)
     return bad.reshape(-1), share.to(torch.float32), diag.reshape(3, b, h, w).transpose(0, 1)
@@ -613,23 +617,15 @@ def _backproject_resampled(depth_m: torch.Tensor, K: torch.Tensor, src_hw: tuple
     return torch.stack([x * z, y * z, z], dim=-1).reshape(depth_m.shape[0], -1, 3)
 
 
-def _smooth_3x3(depth_m: torch.Tensor, src_hw, max_rel: float, sigma_1m: float, noise_sigmas: float = 6.0) -> torch.Tensor:
+def _smooth_3x3(res: Residuals, max_rel: float, sigma_1m: float, noise_sigmas: float = 6.0) -> torch.Tensor:
     """(J, 1, H, W) bool: the 3x3 neighbourhood is valid and holds no depth edge.
 
-    An edge is a second difference of inverse depth (along x or y, zero on any plane
-    however slanted) above ``max_rel`` x the inverse depth plus ``noise_sigmas``
+    An edge is a second difference of inverse depth (``res``, along x or y, zero on any
+    plane however slanted) above ``max_rel`` x the inverse depth plus ``noise_sigmas``
     times its noise, anywhere in the 3x3 window."""
-    d = depth_m.to(torch.float64)
-    h, w = d.shape[-2:]
-    ok = d > 0
-    iz = torch.where(ok, 1.0 / d.clamp_min(1e-9), torch.zeros_like(d))
-    src = (h, w) if src_hw is None else src_hw
-    bad = ~ok
-    for dim, n_src, n in ((3, src[1], w), (2, src[0], h)):
-        if n < 3:
-            continue
-        r, both = second_differences(iz, ok, dim, resampled_positions(n_src, n, d.device, torch.float64))
-        bad |= both & (r.abs() > max_rel * iz + noise_sigmas * sigma_1m)
+    bad = ~res.ok
+    for r, both in zip(res.r, res.both):
+        bad |= both & (r.abs() > max_rel * res.iz + noise_sigmas * sigma_1m)
     return F.max_pool2d(bad.to(torch.float32), 3, stride=1, padding=1) == 0
 
 
@@ -657,6 +653,7 @@ def cloud_in_target(
     src_hw: tuple[int, int] | None = None,
     noise_sigma_1m: float | None = None,
     noise_sigma_abs_m: float = RenderSettings.noise_sigma_abs_m,
+    residuals: Residuals | None = None,
 ) -> TargetCloud:
     """Back-project J depth images and move their points and normals into the target camera.
 
@@ -679,6 +676,8 @@ def cloud_in_target(
         noise_sigma_1m: the sensor's depth sigma at 1 m (metres); None estimates it
             from ``depth_m`` (:func:`estimate_noise_sigma_1m`).
         noise_sigma_abs_m: floor of every point's sigma (metres).
+        residuals: :func:`depthgt.noise_law.second_difference_residuals` of ``depth_m``
+            when the caller has them (they are computed here otherwise).
 
     Returns:
         :class:`TargetCloud` with J*H*W points in row-major pixel order, frame by frame.
@@ -696,10 +695,11 @@ def cloud_in_target(
     else:
         pts_j = _backproject_resampled(depth_m, K, src_hw)
     pts = transform_points(T, pts_j)  # (J, HW, 3)
-    sigma_1m = estimate_noise_sigma_1m(depth_m, src_hw) if noise_sigma_1m is None else float(noise_sigma_1m)
+    res = second_difference_residuals(depth_m, src_hw) if residuals is None else residuals
+    sigma_1m = noise_sigma_1m_from(res) if noise_sigma_1m is None else float(noise_sigma_1m)
     with plain_cpu_convolutions():  # 3x3 filters: ~3x faster than oneDNN's on one thread
         nrm = depth_to_normals(depth_m, K)  # (J, 3, H, W)
-    flat = _smooth_3x3(depth_m, src_hw, normal_max_jump_rel, sigma_1m)
+    flat = _smooth_3x3(res, normal_max_jump_rel, sigma_1m)
     nrm = torch.where(flat & torch.isfinite(nrm).all(dim=1, keepdim=True), nrm, torch.zeros_like(nrm))
     nrm = nrm.flatten(2).transpose(1, 2) @ T[:, :3, :3].transpose(1, 2)  # rotate into the target camera
     valid = (depth_m > 0).reshape(j, -1)
