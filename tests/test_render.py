@@ -352,6 +352,19 @@ def test_front_to_back_sorts_by_decreasing_inverse_depth_exactly():
         assert torch.equal(front_to_back(iz), expected)
 
 
+def test_cells_inside_unravels_as_nonzero():
+    """The float64 unravelling of the flat nonzero gives nonzero's (slot, row, column) for
+    every window size, including the last cells of many points."""
+    from depthgt.rasterise import _cells_inside
+
+    g = torch.Generator().manual_seed(5)
+    for span in (1, 2, 3, 4, 5, 7):
+        inside = torch.rand(20000, span, span, generator=g) < 0.4
+        inside[-1] = True
+        got = torch.stack(_cells_inside(inside), 1)
+        assert torch.equal(got, inside.nonzero())
+
+
 def test_candidates_in_point_order_are_the_same_candidates():
     """``point_order`` changes the order the candidates come in, not which they are; sorted
     by pixel, points made front first give every pixel's candidates front first."""

@@ -121,16 +121,22 @@ def candidates(
 
 def _cells_inside(inside: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(point slot, row offset, column offset) of every True cell of ``inside`` (P, S, S),
-    in row-major order: ``inside.nonzero()`` unravelled by hand, because torch's
-    nonzero on the flat tensor is ~2x faster than on three dimensions (and shifts
-    unravel it when S is a power of two)."""
+    in row-major order: ``inside.nonzero()`` unravelled by hand, because torch's nonzero
+    on the flat tensor and this unravelling take half the time of nonzero on three
+    dimensions. The slot of flat index i = S^2 k + j (0 <= j < S^2) is
+    floor((i + 1/2) / S^2) in float64: (j + 1/2) / S^2 lies at least 1 / (2 S^2) from
+    any integer, far beyond the product's rounding error (< 2^-12 for i < 2^40), so it
+    is exact, and cheaper than torch's integer division; the cell j gives both offsets
+    from a table of S^2 entries."""
     span = inside.shape[-1]
+    cells = span * span
+    if inside.numel() >= 2**40:
+        raise ValueError(f"too many candidate cells for one rasterisation: {inside.numel()}")
     flat = inside.reshape(-1).nonzero().squeeze(1)
-    if span & (span - 1) == 0:
-        bits = span.bit_length() - 1
-        return flat >> (2 * bits), (flat >> bits) & (span - 1), flat & (span - 1)
-    cell = flat % (span * span)
-    return torch.div(flat, span * span, rounding_mode="floor"), torch.div(cell, span, rounding_mode="floor"), cell % span
+    slot = flat.to(torch.float64).add_(0.5).mul_(1.0 / cells).long()
+    cell = flat - slot * cells
+    table = torch.arange(cells, device=flat.device)
+    return slot, torch.div(table, span, rounding_mode="floor").index_select(0, cell), (table % span).index_select(0, cell)
 
 
 def _visited(ok: torch.Tensor, point_order: torch.Tensor | None) -> torch.Tensor:
