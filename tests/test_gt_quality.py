@@ -4,6 +4,8 @@ accuracy where the input has data; the GT's confidence (sigma) tracks its actual
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -64,8 +66,9 @@ def test_leave_target_out_uses_neighbours_only(framesets, rendered):
 @pytest.mark.parametrize("members", [slice(None), [0, 1, 2, 4, 6]])
 def test_leave_target_out_beside_the_gt_is_the_same_render(framesets, members):
     """fuse(leave_target_out=True) renders the neighbours alone from the GT's candidates:
-    the same depth, weights, counts and sigmas as fusing them on their own (noise law
-    estimated without the target), and the GT itself unchanged."""
+    the same depth, weights and counts as fusing them on their own (noise law
+    estimated without the target), no sigma (the check needs the depth only) unless
+    max_sigma_m asks for it, and the GT itself unchanged."""
     data, T = framesets[1]
     st = RenderSettings(leave_target_out_stride=1)
     both = fuse(data, T, st, members=members, leave_target_out=True)
@@ -73,8 +76,15 @@ def test_leave_target_out_beside_the_gt_is_the_same_render(framesets, members):
     gt = fuse(data, T, st, members=members)
     assert both.left_out is not None and gt.left_out is None
     for a, b in ((both, gt), (both.left_out, alone)):
-        for name in ("depth", "weight_sum", "count", "sigma"):
+        for name in ("depth", "weight_sum", "count", "sigma")[:4 if a is both else 3]:
             assert torch.equal(getattr(a, name), getattr(b, name)), name
+    assert not both.left_out.sigma.any()
+    capped = replace(st, max_sigma_m=0.004)  # sigma decides which pixels stay: estimated, and the same
+    c_both, c_alone = (fuse(data, T, capped, members=m, leave_target_out=lto) for m, lto in
+                       ((members, True), (slice(1, None) if isinstance(members, slice) else members[1:], False)))
+    for name in ("depth", "sigma"):
+        assert torch.equal(getattr(c_both.left_out, name), getattr(c_alone, name)), name
+    assert c_both.left_out.sigma.any() and (c_both.left_out.depth > 0).sum() < (both.left_out.depth > 0).sum()
     assert (both.left_out.depth > 0).float().mean() > 0.8
     # without neighbours there is nothing to leave the target out of
     assert fuse(data, T, st, members=[0], leave_target_out=True).left_out is None

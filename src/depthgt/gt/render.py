@@ -79,7 +79,8 @@ class GTRender(NamedTuple):
         diagnostic of where frames disagree); None when nothing was judged.
     left_out: with ``leave_out_frame``, the render of the other frames alone (no
         agreement check; the leave-target-out check of real data; with
-        ``leave_out_stride`` only at those pixels), else None.
+        ``leave_out_stride`` only at those pixels), else None. Its ``sigma`` is zero
+        unless ``max_sigma_m`` needs it (the check uses the depth only).
     """
 
     depth: torch.Tensor
@@ -410,15 +411,17 @@ def render_gt(
         if s_all_lo is not None:  # the sigmas of the noise estimated without the left-out frame
             s_lo = s_all_lo.index_select(0, point_lo)
         left = _estimate(pixel_lo, d2_lo, ox_lo, oy_lo, point_lo, iz_all.index_select(0, point_lo), s_lo, fr_lo, grad,
-                         (b, h, w), st, None, torch.full((b, agreement.shape[1]), float("nan"), device=dev), None)
+                         (b, h, w), st, None, torch.full((b, agreement.shape[1]), float("nan"), device=dev), None,
+                         with_sigma=False)
         out = out._replace(left_out=left)
     return out
 
 
 def _estimate(pixel, d2, ox, oy, point, iz, s, fr, grad, bhw, st: RenderSettings, target_frame, agreement,
-              disagreement) -> GTRender:
+              disagreement, with_sigma: bool = True) -> GTRender:
     """Steps 2-5 of :func:`render_gt` on the candidates (C,) sorted by pixel, front first:
-    surfaces, visibility, the m nearest samples, the plane fit and the confidence."""
+    surfaces, visibility, the m nearest samples, the plane fit and the confidence (with
+    ``with_sigma`` or ``max_sigma_m``; else ``sigma`` is zero)."""
     b, h, w = bhw
     n_pix = b * h * w
     r2 = st.radius_px**2
@@ -474,9 +477,12 @@ def _estimate(pixel, d2, ox, oy, point, iz, s, fr, grad, bhw, st: RenderSettings
     good = has & (count >= st.min_points) & (iz_hat > 0)
     depth = torch.where(good, 1.0 / torch.where(good, iz_hat, torch.ones_like(iz_hat)), torch.zeros_like(iz_hat))
     with torch.no_grad():
-        sigma = _confidence(pixel, wt.detach(), s, resid.detach(), fr, depth.detach(), sw_safe.detach(), surf, n_pix,
-                            (mean_x.detach(), mean_y.detach(), cxx.detach(), cyy.detach(), cxy.detach()), st)
-        sigma = torch.where(good, sigma, torch.zeros_like(sigma))
+        if with_sigma or st.max_sigma_m is not None:
+            sigma = _confidence(pixel, wt.detach(), s, resid.detach(), fr, depth.detach(), sw_safe.detach(), surf, n_pix,
+                                (mean_x.detach(), mean_y.detach(), cxx.detach(), cyy.detach(), cxy.detach()), st)
+            sigma = torch.where(good, sigma, torch.zeros_like(sigma))
+        else:
+            sigma = torch.zeros_like(depth.detach())
         if st.max_sigma_m is not None:
             good = good & (sigma <= st.max_sigma_m)
     depth = torch.where(good, depth, torch.zeros_like(depth))
