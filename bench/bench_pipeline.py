@@ -22,6 +22,10 @@ process after each (recording, mode) of this checkout, and prints both totals an
 ratio. A checkout older than the per-stage timings reports its total only.
 
     python3 bench/bench_pipeline.py --modes given fast --against /tmp/base
+    python3 bench/bench_pipeline.py --modes given fast --against /tmp/base --repeats 3   # alternating runs
+
+On a shared machine the CPU time of the same work moves by +-5 % from minute to minute;
+``--repeats`` alternates the two checkouts and prints the spread of the per-pair ratios.
 """
 
 from __future__ import annotations
@@ -98,6 +102,8 @@ def main(argv=None) -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads (a frame-set job uses one)")
     ap.add_argument("--config", default=str(ROOT / "config/config.yaml"))
     ap.add_argument("--against", help="another checkout (its src/ is used) run on the same frame sets, side by side")
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="with --against: runs of both checkouts, alternating (this, other, this, ...), per (recording, mode)")
     ap.add_argument("--src", help=argparse.SUPPRESS)  # internal: the library this process runs (see --against)
     ap.add_argument("--csv", help=argparse.SUPPRESS)  # internal: write the per-set rows here
     a = ap.parse_args(argv)
@@ -114,11 +120,12 @@ def main(argv=None) -> None:
     for data in a.data:
         source, scene = sources(config)[data]
         for mode in a.modes:
-            frames.append(run(source, scene, mode, a.framesets, config).iloc[1:])  # first: warm-up
-            if a.against:  # the other checkout right after, on the same frames (same machine load)
-                other.append(_run_other(Path(a.against), data, mode, a))
+            for rep in range(a.repeats if a.against else 1):
+                frames.append(run(source, scene, mode, a.framesets, config).iloc[1:].assign(rep=rep))  # first: warm-up
+                if a.against:  # the other checkout right after, on the same frames (same machine load)
+                    other.append(_run_other(Path(a.against), data, mode, a).assign(rep=rep))
     df = pd.concat(frames)
-    stages = [c for c in df.columns if c not in ("data", "mode", "target")]
+    stages = [c for c in df.columns if c not in ("data", "mode", "target", "rep")]
     if a.csv:
         df.to_csv(a.csv, index=False)
         return
@@ -132,7 +139,12 @@ def main(argv=None) -> None:
         side = pd.DataFrame({"this": df.groupby(["data", "mode"], sort=False)["total"].mean(),
                              "against": base.groupby(["data", "mode"], sort=False)["total"].mean()})
         side["against / this"] = side["against"] / side["this"]
-        print(f"side by side, total CPU per frame set: this checkout vs {a.against}/src")
+        if a.repeats > 1:  # the ratio of each alternating pair of runs: how much the machine's load moved it
+            per = (base.groupby(["data", "mode", "rep"], sort=False)["total"].mean()
+                   / df.groupby(["data", "mode", "rep"], sort=False)["total"].mean()).groupby(["data", "mode"], sort=False)
+            side["ratio min"], side["ratio max"] = per.min(), per.max()
+        print(f"side by side, total CPU per frame set: this checkout vs {a.against}/src "
+              f"({a.repeats} alternating run(s) of each, {a.framesets} frame sets per run)")
         print(side.to_markdown(floatfmt=".3f"))
 
 

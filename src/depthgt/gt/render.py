@@ -180,7 +180,7 @@ def _choose_surfaces(pixel, iz, s_iz, frame, ox, oy, d2, n_pix: int, st: RenderS
     new[1:] = (pixel[1:] != pixel[:-1]) | ((iz[:-1] - iz[1:]) > tol)
     cluster = torch.cumsum(new.to(torch.long), 0) - 1  # numbered pixel by pixel, front to back
     n_cl = int(cluster[-1]) + 1
-    cl_pixel = pixel[new]
+    cl_pixel = pixel.index_select(0, new.nonzero().squeeze(1))  # (faster than pixel[new] on ~2 M candidates)
     # support: distinct frames (each point its own frame when no frame ids are given)
     if frame is None:
         support = torch.bincount(cluster, minlength=n_cl)
@@ -192,7 +192,7 @@ def _choose_surfaces(pixel, iz, s_iz, frame, ox, oy, d2, n_pix: int, st: RenderS
     qualified = support >= st.min_frames
     if target_frame is not None and frame is not None:
         # the target's own sample at a pixel's position: that surface is seen there
-        qualified[cluster[(frame == target_frame) & (d2 <= _HIT_PX**2)]] = True
+        qualified[cluster.index_select(0, ((frame == target_frame) & (d2 <= _HIT_PX**2)).nonzero().squeeze(1))] = True
     idx = torch.arange(n_cl, device=dev)
     none = torch.full((n_pix,), n_cl, dtype=torch.long, device=dev)
     first_q = none.scatter_reduce(0, cl_pixel, torch.where(qualified, idx, n_cl), reduce="amin")
