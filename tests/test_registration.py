@@ -182,6 +182,24 @@ def test_adjoint_moves_a_twist_between_frames():
     assert torch.allclose(lhs, rhs, atol=1e-9)
 
 
+def test_grouped_sampling_equals_one_map_per_pair():
+    """The refinement samples each frame's map once for all pairs landing in it: the same
+    values as sampling one map per pair, whether the pairs come in frame order with equal
+    counts (the grid used as it is), interleaved, or unbalanced with unused frames."""
+    import torch.nn.functional as F
+
+    from depthgt.registration.refine import _sample_grouped
+
+    g = torch.Generator().manual_seed(0)
+    maps = torch.rand(7, 7, 32, 40, generator=g)
+    grid = torch.rand(42, 300, 2, generator=g) * 2.4 - 1.2  # some beyond the border: zeros
+    for a in (torch.arange(7).repeat_interleave(6), torch.arange(7).repeat(6), torch.tensor([0] * 6 + [1] * 3 + [3] * 3)):
+        gr = grid[: len(a)]
+        one_by_one = torch.cat([F.grid_sample(maps[int(a[p])][None], gr[p][None, :, None], mode="bilinear",
+                                              padding_mode="zeros", align_corners=False)[..., 0] for p in range(len(a))])
+        assert torch.equal(_sample_grouped(maps, gr, a), one_by_one)
+
+
 def test_refinement_recovers_poses_from_a_perturbed_start():
     offsets = [0, -2, 2, 4]
     rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64))
