@@ -83,10 +83,13 @@ def noise_sigma_1m_from(res: Residuals, frames: slice = slice(None), min_pixels:
     value as estimating it from those frames' depth alone)."""
     if len(res.r) < 2:
         return KINECT_SIGMA_1M
-    r = torch.cat([r[frames][both[frames]].abs() for r, both in zip(res.r, res.both)])
-    if r.numel() < min_pixels:
+    n = sum(int(both[frames].sum()) for both in res.both)
+    if n == 0 or n < min_pixels:
         return KINECT_SIGMA_1M
-    return float(r.kthvalue(max(1, int(round(0.6827 * r.numel())))).values)
+    # the invalid residuals as +inf: the k-th smallest of all is the k-th of the valid ones
+    # (k <= n), without gathering them into a copy first
+    r = torch.cat([torch.where(both[frames], r[frames].abs(), float("inf")).reshape(-1) for r, both in zip(res.r, res.both)])
+    return float(r.kthvalue(max(1, int(round(0.6827 * n)))).values)
 
 
 def estimate_noise_sigma_1m(depth_m: torch.Tensor, src_hw: tuple[int, int] | None = None, min_pixels: int = 2000) -> float:
