@@ -200,6 +200,26 @@ def test_grouped_sampling_equals_one_map_per_pair():
         assert torch.equal(_sample_grouped(maps, gr, a), one_by_one)
 
 
+def test_levels_of_one_frame_set_share_their_maps():
+    """A level built from the maps another level of the frame set computed (the chaining's
+    and the refinement's at scale 2) equals one built from scratch, at its own stride."""
+    from depthgt.registration.refine import Level
+
+    g = torch.Generator().manual_seed(1)
+    depth = 1.0 + torch.rand(3, 1, 32, 40, generator=g)
+    depth[:, :, 5:9, 7:12] = 0
+    rgb = torch.rand(3, 3, 32, 40, generator=g)
+    K = torch.tensor([[30.0, 0, 20], [0, 30, 16], [0, 0, 1]])
+    maps_of: dict = {}
+    first = Level(rgb, depth, K, 2, 1, maps_of)
+    shared = Level(rgb, depth, K, 2, 2, maps_of)
+    fresh = Level(rgb, depth, K, 2, 2)
+    assert shared.maps is first.maps and list(maps_of) == [2]
+    for name in ("maps", "points", "gray", "valid", "K", "median_depth"):
+        assert torch.equal(getattr(shared, name), getattr(fresh, name)), name
+    assert shared.hw == fresh.hw and first.points.shape[-1] == 4 * fresh.points.shape[-1]
+
+
 def test_refinement_recovers_poses_from_a_perturbed_start():
     offsets = [0, -2, 2, 4]
     rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64))

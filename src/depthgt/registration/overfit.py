@@ -253,13 +253,13 @@ def _pair_table(T_ba: torch.Tensor, pairs: torch.Tensor, Fn: int) -> dict[tuple[
 # --------------------------------------------------------------------------- chaining
 
 
-def _chain(fs: _Frameset, T_init: torch.Tensor, table, offsets, s: RegistrationSettings, extra=None):
+def _chain(fs: _Frameset, T_init: torch.Tensor, table, offsets, s: RegistrationSettings, extra=None, maps_of=None):
     """Choose per neighbour between the direct estimate and compositions through nearer
     neighbours (and an external initial guess) by their alignment cost into the target
     (robust point-to-plane + photometric cost at half resolution)."""
     Fn = len(offsets)
     rs = s.refine_settings
-    level = Level(fs.rgb, fs.depth, fs.K, 2, 1)
+    level = Level(fs.rgb, fs.depth, fs.K, 2, 1, maps_of)
     cands, owners, labels = [], [], []
     for j in range(1, Fn):
         options = [("direct", T_init[j]), ("identity", torch.eye(4, dtype=T_init.dtype, device=T_init.device))]
@@ -507,6 +507,7 @@ def register_frameset(
 
     diagnostics: dict = {"poses_paper": T_paper[1:].cpu().numpy().tolist()}
     T = T_paper
+    maps_of: dict = {}  # the refinement pyramid's maps by scale, shared by the chaining and the refinement
     extra = None
     if init_T_j_to_t is not None:
         extra = torch.cat([torch.eye(4, dtype=torch.float64)[None], init_T_j_to_t.to(torch.float64).cpu()]).to(dev)
@@ -514,7 +515,7 @@ def register_frameset(
         t0 = time.perf_counter()
         with torch.no_grad():
             table = _pair_table(T_ba, fs.pairs, Fn) if s.chaining else {}
-            T, choice = _chain(fs, T, table, offsets, s, extra)
+            T, choice = _chain(fs, T, table, offsets, s, extra, maps_of)
         diagnostics["chaining"] = choice
         timings["chaining"] = time.perf_counter() - t0
 
@@ -522,7 +523,7 @@ def register_frameset(
     if s.refine:
         t0 = time.perf_counter()
         with torch.no_grad():
-            refined = refine_poses(fs.rgb, fs.depth, fs.K, T, s.refine_settings, offsets)
+            refined = refine_poses(fs.rgb, fs.depth, fs.K, T, s.refine_settings, offsets, maps_of)
         T = refined.T_f_to_t
         diagnostics.update(refined.diagnostics())
         timings["refine"] = time.perf_counter() - t0

@@ -144,30 +144,38 @@ class Level:
         K: (3, 3) intrinsics at (h, w); hw: (h, w); median_depth: metres.
     """
 
-    def __init__(self, rgb, depth_m, K, scale: int, stride: int):
+    def __init__(self, rgb, depth_m, K, scale: int, stride: int, maps_of: dict | None = None):
+        """``maps_of``: a dict shared by the levels of one frame set (the same rgb,
+        depth_m and K), in which each scale's maps, which do not depend on ``stride``,
+        are computed once (the chaining and the refinement both use scale 2)."""
         Fn, _, H, W = depth_m.shape
         h, w = H // scale, W // scale
         self.hw = (h, w)
-        self.K = scale_intrinsics(K, (H, W), (h, w)) if scale != 1 else K
-        Kb = self.K.expand(Fn, 3, 3).contiguous()
-        d = resize_depth_nearest(depth_m, (h, w)) if scale != 1 else depth_m
-        c = resize_rgb(rgb, (h, w)) if scale != 1 else rgb
-        gray = c.mean(1, keepdim=True)
-        valid = (d > 0).to(d.dtype)
-        X = backproject(d, Kb).transpose(1, 2).reshape(Fn, 3, h, w)
-        with plain_cpu_convolutions():  # 3x3 filters: ~3x faster than oneDNN's on one thread
-            N = depth_to_normals(d, Kb, normalize_points=False)
-            g = spatial_gradient(gray, mode="sobel", order=1, normalized=True)[:, 0]  # (F, 2, h, w) per pixel
-        nvalid = _erode(valid)  # normals need all 3x3 neighbours valid
-        # channels: X(3) N(3) gray gx gy valid
-        self.maps = torch.cat([X, N, gray, g, nvalid], 1)
-        ys = torch.arange(0, h, stride, device=d.device)
-        xs = torch.arange(0, w, stride, device=d.device)
+        if maps_of is not None and scale in maps_of:
+            self.K, gray, valid, X, self.maps, self.median_depth = maps_of[scale]
+        else:
+            self.K = scale_intrinsics(K, (H, W), (h, w)) if scale != 1 else K
+            Kb = self.K.expand(Fn, 3, 3).contiguous()
+            d = resize_depth_nearest(depth_m, (h, w)) if scale != 1 else depth_m
+            c = resize_rgb(rgb, (h, w)) if scale != 1 else rgb
+            gray = c.mean(1, keepdim=True)
+            valid = (d > 0).to(d.dtype)
+            X = backproject(d, Kb).transpose(1, 2).reshape(Fn, 3, h, w)
+            with plain_cpu_convolutions():  # 3x3 filters: ~3x faster than oneDNN's on one thread
+                N = depth_to_normals(d, Kb, normalize_points=False)
+                g = spatial_gradient(gray, mode="sobel", order=1, normalized=True)[:, 0]  # (F, 2, h, w) per pixel
+            nvalid = _erode(valid)  # normals need all 3x3 neighbours valid
+            # channels: X(3) N(3) gray gx gy valid
+            self.maps = torch.cat([X, N, gray, g, nvalid], 1)
+            self.median_depth = d[d > 0].median() if (d > 0).any() else torch.tensor(1.0)
+            if maps_of is not None:
+                maps_of[scale] = (self.K, gray, valid, X, self.maps, self.median_depth)
+        ys = torch.arange(0, h, stride, device=X.device)
+        xs = torch.arange(0, w, stride, device=X.device)
         idx = (ys[:, None] * w + xs[None, :]).reshape(-1)
         self.points = X.flatten(2)[:, :, idx].contiguous()  # (F, 3, N) planar
         self.gray = gray.flatten(2)[:, 0, idx]  # (F, N)
         self.valid = valid.flatten(2)[:, 0, idx] > 0  # (F, N)
-        self.median_depth = d[d > 0].median() if (d > 0).any() else torch.tensor(1.0)
 
 
 def _cross(a, b):
@@ -453,6 +461,7 @@ def refine_poses(
     T_f_to_t: torch.Tensor,
     settings: RefineSettings = RefineSettings(),
     offsets: list[int] | None = None,
+    maps_of: dict | None = None,
 ) -> RefineResult:
     """Jointly refine the poses of a frame set (frame 0 = target, kept at identity).
 
@@ -464,6 +473,8 @@ def refine_poses(
             (``T_f_to_t[0]`` is replaced by the identity).
         settings: :class:`RefineSettings`.
         offsets: frame offsets (for ``pairs="adjacent"``).
+        maps_of: the :class:`Level` maps already computed for this frame set, by scale
+            (a dict shared with the caller's own levels of the same frames), or None.
 
     Returns:
         :class:`RefineResult` with float64 poses on the input device.
@@ -483,7 +494,7 @@ def refine_poses(
     eye6 = torch.eye(6 * (Fn - 1), dtype=torch.float64, device=dev)
     last = None
     for li, (scale, n_it, stride, gate) in enumerate(zip(settings.scales, settings.iters, settings.point_stride, settings.max_dist_m)):
-        level = Level(rgb, depth_m, K, scale, stride)
+        level = Level(rgb, depth_m, K, scale, stride, maps_of)
         ls = LevelSettings(settings.geo_scale_m[li], settings.photo_scale, settings.photo_weight, settings.robust,
                            settings.geo_ref_depth_m)
         lam = settings.damping
