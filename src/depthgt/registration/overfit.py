@@ -16,6 +16,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Callable, Iterable
 
 import numpy as np
@@ -99,10 +100,32 @@ class _Frameset:
     K: torch.Tensor  # (3, 3)
     cand_idx: torch.Tensor  # (F, n)
     cand_mask: torch.Tensor  # (F, n)
-    rpts: torch.Tensor  # (F, M, 3) render points
-    rrgb: torch.Tensor  # (F, M, 3)
-    rmask: torch.Tensor  # (F, M)
     pairs: torch.Tensor  # (P, 2) unordered (a, b), a < b
+    render_stride: int  # the render losses' points: every render_stride-th pixel and row
+
+    @cached_property
+    def _render_samples(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(rpts (F, M, 3) render points, rrgb (F, M, 3), rmask (F, M)): made when the
+        render losses first need them (never with ``iterations: 0``, as preset fast)."""
+        Fn, _, H, W = self.depth.shape
+        ys = torch.arange(0, H, self.render_stride, device=self.depth.device)
+        xs = torch.arange(0, W, self.render_stride, device=self.depth.device)
+        ridx = (ys[:, None] * W + xs[None, :]).reshape(-1)
+        pts = backproject(self.depth, self.K.expand(Fn, 3, 3).to(self.depth.dtype))
+        return (pts.index_select(1, ridx), self.rgb.flatten(2).index_select(2, ridx).transpose(1, 2),
+                (self.depth > 0).flatten(1).index_select(1, ridx))
+
+    @property
+    def rpts(self) -> torch.Tensor:
+        return self._render_samples[0]
+
+    @property
+    def rrgb(self) -> torch.Tensor:
+        return self._render_samples[1]
+
+    @property
+    def rmask(self) -> torch.Tensor:
+        return self._render_samples[2]
 
 
 def _check_inputs(rgb, depth_m, K, offsets):
@@ -121,23 +144,15 @@ def _check_inputs(rgb, depth_m, K, offsets):
 
 
 def _prepare(rgb, depth_m, K, s: RegistrationSettings, gen: torch.Generator) -> _Frameset:
-    Fn, _, H, W = depth_m.shape
-    valid = depth_m > 0
-    cand_idx, cand_mask = sample_candidates(valid, s.n_candidates, gen)
-    ys = torch.arange(0, H, s.render_stride, device=depth_m.device)
-    xs = torch.arange(0, W, s.render_stride, device=depth_m.device)
-    ridx = (ys[:, None] * W + xs[None, :]).reshape(-1)
-    pts = backproject(depth_m, K.expand(Fn, 3, 3).to(depth_m.dtype))
-    rpts = pts.index_select(1, ridx)
-    rrgb = rgb.flatten(2).index_select(2, ridx).transpose(1, 2)
-    rmask = valid.flatten(1).index_select(1, ridx)
+    Fn = depth_m.shape[0]
+    cand_idx, cand_mask = sample_candidates(depth_m > 0, s.n_candidates, gen)
     if s.pairs == "all":
         a, b = torch.triu_indices(Fn, Fn, offset=1)
     else:
         b = torch.arange(1, Fn)
         a = torch.zeros_like(b)
     pairs = torch.stack([a, b], 1).to(depth_m.device)
-    return _Frameset(rgb, depth_m, K, cand_idx, cand_mask, rpts, rrgb, rmask, pairs)
+    return _Frameset(rgb, depth_m, K, cand_idx, cand_mask, pairs, s.render_stride)
 
 
 # --------------------------------------------------------------------------- loss
