@@ -121,3 +121,31 @@ def test_confidence_tracks_actual_error(framesets, rendered):
     cut = fuse(data, T, RenderSettings(max_sigma_m=thr))
     assert 0 < (cut.depth[0, 0].numpy() > 0).sum() < (full > 0).sum()
     assert (cut.sigma[0, 0].numpy()[cut.depth[0, 0].numpy() > 0] <= thr).all()
+
+
+def test_gt_reuses_the_refinements_normals_unchanged(framesets):
+    """The refinement's full-resolution normals (kornia's, of the same depth) go on to the
+    renderer instead of being computed again when every member is fused: the GT and the
+    leave-target-out render are bit for bit those of the renderer's own normals (for a
+    subset the renderer computes its own: a smaller batch rounds differently)."""
+    from depthgt.gt.build import align
+    from depthgt.settings import registration_settings
+
+    data, _ = framesets[0]
+    settings = registration_settings({"method": "refine", "refine_settings": {"iters": [1, 1, 1]}})
+    alignment = align(data, list(FrameSetSettings().offsets), settings, seed=0)
+    assert alignment.normals is not None and alignment.normals.shape == (7, 3, 256, 256)
+    for members in (slice(None), [0, 1, 2, 4, 6]):
+        reused = fuse(data, alignment.T_j_to_t, RenderSettings(), members=members, leave_target_out=True,
+                      normals=alignment.normals)
+        own = fuse(data, alignment.T_j_to_t, RenderSettings(), members=members, leave_target_out=True)
+        for name in ("depth", "weight_sum", "count", "sigma"):
+            assert torch.equal(getattr(reused, name), getattr(own, name)), name
+        assert torch.equal(reused.left_out.depth, own.left_out.depth)
+        # they are what the renderer uses (all members), or ignored (a subset): zero normals
+        # (no plane correction) change the GT only where they are used
+        zero = fuse(data, alignment.T_j_to_t, RenderSettings(), members=members, normals=torch.zeros_like(alignment.normals))
+        assert torch.equal(zero.depth, own.depth) == isinstance(members, list)
+    # normals that do not match the depth are not used (a depth other than the raw one)
+    other = fuse(data, alignment.T_j_to_t, RenderSettings(), depth_m=data.depth_m * 1.01, normals=alignment.normals)
+    assert torch.equal(other.depth, fuse(data, alignment.T_j_to_t, RenderSettings(), depth_m=data.depth_m * 1.01).depth)

@@ -147,6 +147,8 @@ class Alignment:
         fused: positions of the members rendered into the GT (0 = the target).
         status, reason: "ok" | "failed" and why.
         info: the registration record written to poses.json.
+        normals: (F, 3, H, W) the members' normals as the registration's refinement
+            computed them (the renderer's own, reused), or None.
     """
 
     T_j_to_t: torch.Tensor
@@ -154,6 +156,7 @@ class Alignment:
     status: str = Status.OK
     reason: str = ""
     info: dict | None = None
+    normals: torch.Tensor | None = None
 
 
 def align(data: FrameSetData, offsets: list[int], settings: RegistrationSettings, seed: int,
@@ -188,7 +191,7 @@ def align(data: FrameSetData, offsets: list[int], settings: RegistrationSettings
         status, reason = Status.FAILED, f"neighbours_not_registered(offsets {','.join(f'{o:+d}' for o in failed)})"
     fused = [0] + [i + 1 for i, st in enumerate(result.neighbour_status) if st == Status.OK]
     info["fused_offsets"] = [offsets[i] for i in fused]
-    return Alignment(T_j_to_t, fused, status, reason, info)
+    return Alignment(T_j_to_t, fused, status, reason, info, getattr(result, "normals", None))
 
 
 def photometric_for(settings: RegistrationSettings, colour_matches_depth: bool) -> RegistrationSettings:
@@ -203,7 +206,8 @@ def photometric_for(settings: RegistrationSettings, colour_matches_depth: bool) 
 
 
 def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, depth_m: torch.Tensor | None = None,
-         members: slice | list[int] = slice(None), leave_target_out: bool = False) -> GTRender:
+         members: slice | list[int] = slice(None), leave_target_out: bool = False,
+         normals: torch.Tensor | None = None) -> GTRender:
     """Render the aligned members into the target view (paper eq. 5).
 
     Args:
@@ -217,14 +221,26 @@ def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, d
             ``members`` without the target (at the pixels of every
             ``settings.leave_target_out_stride``-th row and column), sharing the clouds,
             the projection and the sort with the GT render.
+        normals: (F, 3, H, W) kornia's ``depth_to_normals`` of all F members' raw depth
+            when the caller has them (``Alignment.normals``); used when every member is
+            fused (a batch of other frames rounds the convolution differently, which
+            the normalisation can amplify where the gradients vanish), for the raw
+            depth (no ``depth_m``) and when they match it in shape and dtype.
     """
     depth = (data.depth_m if depth_m is None else depth_m)[members]
+    n_all = data.depth_m.shape[0]
+    every = list(range(n_all))[members] if isinstance(members, slice) else list(members)
+    if normals is not None and (depth_m is not None or every != list(range(n_all))
+                                or normals.shape != (n_all, 3, *data.depth_m.shape[-2:])
+                                or normals.dtype != depth.dtype or normals.device != depth.device):
+        normals = None
     eye = torch.eye(4, dtype=T_j_to_t.dtype, device=T_j_to_t.device)[None]
     T = torch.cat([eye, T_j_to_t], dim=0)[members]
     K = data.K[None].expand(depth.shape[0], 3, 3)
     residuals = second_difference_residuals(depth, data.src_hw)  # the noise estimates and the normals' edge test
     cloud = cloud_in_target(depth, K, T, src_hw=data.src_hw, noise_sigma_1m=settings.noise_sigma_1m,
-                            noise_sigma_abs_m=settings.noise_sigma_abs_m, residuals=residuals)
+                            noise_sigma_abs_m=settings.noise_sigma_abs_m, residuals=residuals,
+                            normals=normals)
     h, w = data.depth_m.shape[-2:]
     chosen = list(range(len(data.depth_m)))[members] if isinstance(members, slice) else list(members)
     with_target = bool(chosen) and chosen[0] == 0  # the target's own depth is fused, as frame 0 of the cloud
@@ -304,7 +320,7 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
 
     fused = alignment.fused
     gt = fuse(data, alignment.T_j_to_t, settings.render, members=fused if len(fused) < len(members) else slice(None),
-              leave_target_out=data.truth_m is None)
+              leave_target_out=data.truth_m is None, normals=alignment.normals)
     lap("render")
 
     depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)

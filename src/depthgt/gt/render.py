@@ -662,6 +662,7 @@ def cloud_in_target(
     noise_sigma_1m: float | None = None,
     noise_sigma_abs_m: float = RenderSettings.noise_sigma_abs_m,
     residuals: Residuals | None = None,
+    normals: torch.Tensor | None = None,
 ) -> TargetCloud:
     """Back-project J depth images and move their points and normals into the target camera.
 
@@ -686,6 +687,9 @@ def cloud_in_target(
         noise_sigma_abs_m: floor of every point's sigma (metres).
         residuals: :func:`depthgt.noise_law.second_difference_residuals` of ``depth_m``
             when the caller has them (they are computed here otherwise).
+        normals: (J, 3, H, W) :func:`kornia.geometry.depth.depth_to_normals` of
+            ``depth_m`` and ``K`` when the caller has them (the registration's
+            refinement computes the same), else computed here.
 
     Returns:
         :class:`TargetCloud` with J*H*W points in row-major pixel order, frame by frame.
@@ -705,8 +709,13 @@ def cloud_in_target(
     pts = transform_points(T, pts_j)  # (J, HW, 3)
     res = second_difference_residuals(depth_m, src_hw) if residuals is None else residuals
     sigma_1m = noise_sigma_1m_from(res) if noise_sigma_1m is None else float(noise_sigma_1m)
-    with plain_cpu_convolutions():  # 3x3 filters: ~3x faster than oneDNN's on one thread
-        nrm = depth_to_normals(depth_m, K)  # (J, 3, H, W)
+    if normals is None:
+        with plain_cpu_convolutions():  # 3x3 filters: ~3x faster than oneDNN's on one thread
+            nrm = depth_to_normals(depth_m, K)  # (J, 3, H, W)
+    elif normals.shape != (j, 3, *depth_m.shape[-2:]):
+        raise ValueError(f"normals must be ({j}, 3, H, W) to match depth_m {tuple(depth_m.shape)}, got {tuple(normals.shape)}")
+    else:
+        nrm = normals
     flat = _smooth_3x3(res, normal_max_jump_rel, sigma_1m)
     nrm = torch.where(flat & torch.isfinite(nrm).all(dim=1, keepdim=True), nrm, torch.zeros_like(nrm))
     nrm = nrm.flatten(2).transpose(1, 2) @ T[:, :3, :3].transpose(1, 2)  # rotate into the target camera

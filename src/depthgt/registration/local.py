@@ -73,4 +73,5 @@ def refine_source_poses(
         n_correspondences=[0] * (Fn - 1),
         timings={"refine": time.perf_counter() - t_start, "total": time.perf_counter() - t_start},
         diagnostics=diagnostics,
+        normals=refined.normals,
     )

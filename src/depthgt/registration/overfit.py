@@ -55,6 +55,9 @@ class RegistrationResult:
         timings: seconds per phase.
         diagnostics: refinement cost, inlier fractions, condition numbers, chaining
             choices, poses before refinement.
+        normals: (F, 3, H, W) the refinement's full-resolution normals of the members
+            (:attr:`RefineResult.normals`; the GT renderer reuses them), or None. Not
+            written to poses.json.
     """
 
     T_j_to_t: torch.Tensor
@@ -68,6 +71,7 @@ class RegistrationResult:
     n_correspondences: list[int] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     diagnostics: dict = field(default_factory=dict)
+    normals: torch.Tensor | None = None
 
     def to_dict(self) -> dict:
         T = self.T_j_to_t.detach().cpu().numpy()
@@ -558,6 +562,7 @@ def register_frameset(
         n_correspondences=[int(x) for x in n_corr[1:]],
         timings=timings,
         diagnostics=diagnostics,
+        normals=None if refined is None else refined.normals,
     )
 
 

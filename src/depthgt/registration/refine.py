@@ -61,6 +61,9 @@ class RefineResult:
             synthetic sensor profiles, up to 1.06 on 7-Scenes, whatever the noise.
         noise_sigma_1m: the frame set's depth sigma at 1 m (metres), estimated from its
             depth (:func:`depthgt.noise_law.estimate_noise_sigma_1m`).
+        normals: (F, 3, H, W) the full-resolution level's normals (kornia's
+            ``depth_to_normals`` of ``depth_m`` and ``K``), which the GT renderer reuses;
+            None without a scale-1 level.
     """
 
     T_f_to_t: torch.Tensor
@@ -72,6 +75,7 @@ class RefineResult:
     residual_m: torch.Tensor | None = None
     residual_sigmas: torch.Tensor | None = None
     noise_sigma_1m: float | None = None
+    normals: torch.Tensor | None = None
 
     def diagnostics(self) -> dict:
         """The neighbours' (frames 1..F-1) diagnostics as plain lists, for poses.json."""
@@ -495,6 +499,8 @@ def refine_poses(
     last = None
     for li, (scale, n_it, stride, gate) in enumerate(zip(settings.scales, settings.iters, settings.point_stride, settings.max_dist_m)):
         level = Level(rgb, depth_m, K, scale, stride, maps_of)
+        if scale == 1:
+            out.normals = level.maps[:, 3:6]  # channels X(3) N(3) ...
         ls = LevelSettings(settings.geo_scale_m[li], settings.photo_scale, settings.photo_weight, settings.robust,
                            settings.geo_ref_depth_m)
         lam = settings.damping
