@@ -229,8 +229,8 @@ def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, d
     """
     depth = (data.depth_m if depth_m is None else depth_m)[members]
     n_all = data.depth_m.shape[0]
-    every = list(range(n_all))[members] if isinstance(members, slice) else list(members)
-    if normals is not None and (depth_m is not None or every != list(range(n_all))
+    chosen = list(range(n_all))[members] if isinstance(members, slice) else list(members)
+    if normals is not None and (depth_m is not None or chosen != list(range(n_all))
                                 or normals.shape != (n_all, 3, *data.depth_m.shape[-2:])
                                 or normals.dtype != depth.dtype or normals.device != depth.device):
         normals = None
@@ -242,7 +242,6 @@ def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, d
                             noise_sigma_abs_m=settings.noise_sigma_abs_m, residuals=residuals,
                             normals=normals)
     h, w = data.depth_m.shape[-2:]
-    chosen = list(range(len(data.depth_m)))[members] if isinstance(members, slice) else list(members)
     with_target = bool(chosen) and chosen[0] == 0  # the target's own depth is fused, as frame 0 of the cloud
     lo_sigma = None
     leave_out = with_target and leave_target_out and len(chosen) > 1
