@@ -4,7 +4,8 @@ It composes the shared rasteriser (:mod:`depthgt.rasterise`: every point paired 
 the pixels whose sample positions lie within ``radius_px`` of its projection; the soft
 splat of the registration, :mod:`depthgt.splatting`, uses it too) with its own
 compositor: the candidates made front first (the points sorted by inverse depth) and
-sorted once by pixel (a stable int32 sort), grouped into surfaces by gaps in inverse depth scaled to the sensor's noise
+sorted once by pixel (a stable int32 sort), grouped into surfaces by gaps in inverse
+depth scaled to the sensor's noise
 (:mod:`depthgt.noise_law`), the visible surface picked by its support and its sampled
 footprint, frames (or regions of them) that disagree with the target left out, and a
 weighted plane fitted in inverse depth per pixel (closed-form 2x2 solves), with a
