@@ -146,6 +146,9 @@ def test_evaluate_frames_on_a_synthetic_frame_set(tmp_path):
     assert wide.loc["gt", "mae_m"] == pytest.approx(0.001, rel=1e-3)
     assert wide.loc["rgf", "rmse_m"] < wide.loc["input", "rmse_m"]
     assert wide.loc["rgf", "completeness"] == 1.0 and wide.loc["input", "completeness"] < 1.0
+    # the denoising mask is the input's valid pixels: the input has no missing value there
+    assert wide.loc["input", "n_input_valid_px"] == wide.loc["rgf", "n_input_valid_px"] == int((noisy > 0).sum())
+    assert wide.loc["input", "mae_input_valid_m"] == pytest.approx(wide.loc["input", "mae_m"], rel=1e-6)
     assert (tmp_path / "pred" / "rgf" / "synth" / "s0" / "000010.npy").is_file()
     assert not (tmp_path / "pred" / "input").exists()  # only the methods given a folder are saved
     both = evaluate_frames(frames, {"input": {"baseline": "input"}})  # default references: gt and truth

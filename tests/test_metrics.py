@@ -12,6 +12,7 @@ from depthgt.eval.metrics import (
     PoseErrors,
     depth_errors,
     depth_metrics,
+    input_valid_errors,
     ls_distance,
     pose_delta,
     pose_errors,
@@ -72,6 +73,32 @@ def test_ssim_identical_and_constant_images():
     b = np.full((24, 24), 2.0, np.float32)
     expected = (2 * 0.1 * 0.2 + 1e-4) / (0.01 + 0.04 + 1e-4)
     assert ssim_depth(a, b) == pytest.approx(expected, rel=1e-4)
+
+
+def test_fixed_masks_do_not_depend_on_the_method():
+    """The denoising errors and the counted SSIM use one pixel set whatever the
+    estimate covers; the both-valid values move with the estimate's holes."""
+    rng = np.random.default_rng(1)
+    ref = (2.0 + 0.1 * rng.random((24, 24))).astype(np.float32)
+    inp = ref + 0.01
+    inp[:4] = 0.0  # 96 input holes
+    full = ref + 0.02  # fills every pixel, 2 cm off
+    sparse = full.copy()
+    sparse[10:14] = 0.0  # leaves 96 input-valid pixels empty
+    a, b = input_valid_errors(full, ref, inp), input_valid_errors(sparse, ref, inp)
+    assert a["n_input_valid_px"] == b["n_input_valid_px"] == 24 * 20
+    assert a["mae_input_valid_m"] == pytest.approx(0.02, abs=1e-6)
+    # the 96 empty pixels count with their reference depth (~2.05 m)
+    expected = (0.02 * 384 + ref[10:14].astype(np.float64).sum()) / 480
+    assert b["mae_input_valid_m"] == pytest.approx(expected, rel=1e-5)
+    assert depth_errors(sparse, ref)["mae_m"] == pytest.approx(0.02, abs=1e-6)  # both-valid: blind to the hole
+    assert ssim_depth(sparse, ref, missing_counted=True) < ssim_depth(sparse, ref) - 0.1
+    assert ssim_depth(full, ref, missing_counted=True) == pytest.approx(ssim_depth(full, ref), abs=1e-7)
+    m = depth_metrics(sparse, ref, inp)
+    assert m["mae_input_valid_m"] == pytest.approx(b["mae_input_valid_m"]) and "ssim_missing_counted" in m
+    assert "mae_input_valid_m" not in depth_metrics(sparse, ref)  # no input, no denoising mask
+    with pytest.raises(ValueError, match="differ in shape"):
+        input_valid_errors(full, ref, inp[:4])
 
 
 def test_ls_distance_step_edge():

@@ -62,15 +62,19 @@ def test_tables_without_real_source(synthetic_only):
     assert "no real source" in (wd / "results/tables/table2.md").read_text()
     t3 = _table(wd, "table3")
     assert list(t3["method"]) == ["Input (raw depth)", "RGF"] and set(t3["dataset"]) == {"syntest"}
-    assert {"RMSE (m)", "MAE (m)", "SSIM (unitless)"} <= set(t3.columns)
-    assert (t3["RMSE (m)"] > 0).all() and (t3["RMSE (m)"] < 0.5).all()
+    assert {"RMSE, filling (m)", "MAE, denoising (m)", "SSIM, filling (unitless)",
+            "RMSE, filling (m) 95% low"} <= set(t3.columns)
+    assert (t3["RMSE, filling (m)"] > 0).all() and (t3["RMSE, denoising (m)"] < 0.5).all()
+    assert (t3["frames"] == t3["frames"].iloc[0]).all()  # every method on the same frames
+    paired = _table(wd, "table3_paired")  # no LapDEN in this build: the note says so
+    assert list(paired.columns) == ["note"] and "lapden" in paired.iloc[0, 0]
     t1 = _table(wd, "table1")
     assert set(t1["GT"]) == {"depthgt GT (local frame set)", "global reconstruction GT (TSDF)"}
     assert t1["SSIM (unitless)"].between(0, 1).all()
     tq = _table(wd, "table_gt_quality")
     assert {"depthgt GT (local frame set)", "global reconstruction GT (TSDF)", "input (raw depth)"} <= set(tq["estimate"])
     md = (wd / "results/tables/table3.md").read_text()
-    assert "RMSE (m)" in md and "data_range 1" in md
+    assert "RMSE, filling (m)" in md and "data_range 1" in md and "seed 0" in md
 
 
 def test_rde_gt_and_figures(synthetic_only):
@@ -113,9 +117,12 @@ def test_table2_from_7scenes_fixture(tmp_path):
     snakemake(wd, "tables")
     t2 = _table(wd, "table2")
     assert set(t2["dataset"]) == {"kitchen"} and len(t2) == 4
-    assert t2["RMSE (m)"].notna().all() and t2["MAE (m)"].notna().all()
+    assert t2["RMSE, filling (m)"].notna().all() and t2["MAE, denoising (m)"].notna().all()
     filters = t2[t2["method"].isin(["Input (raw depth)", "RGF", "JF"])]
-    assert len(filters) == 3 and (filters["RMSE (m)"] < 0.5).all()  # the models had two training steps only
+    assert len(filters) == 3 and (filters["RMSE, denoising (m)"] < 0.5).all()  # the models had two training steps only
+    paired = _table(wd, "table2_paired")
+    assert set(paired["dataset"]) == {"kitchen"} and len(paired) == 3  # LapDEN against input, RGF, JF
+    assert (paired["frames"] == t2["frames"].iloc[0]).all()
     t3 = _table(wd, "table3")
     assert set(t3["dataset"]) == {"syntest"} and len(t3) == 4
     t1 = _table(wd, "table1")

@@ -20,8 +20,15 @@ clean truth, depthgt's GT, the raw target depth), :func:`depth_errors`:
 * ``completeness``: fraction of reference-valid pixels that the estimate covers;
 * ``n_reference_px``, ``n_both_px``: pixel counts behind these numbers.
 
-The structure metrics ``ssim`` and ``ls`` (torch) are computed by
-:mod:`depthgt.eval.metrics`. Pose errors (:func:`pose_errors`): rotation angle in
+``mae_m``/``rmse_m`` are taken over a pixel set that depends on the estimate, so they
+cannot rank methods; the evaluation tables use masks that are the same for every method
+(:mod:`depthgt.eval.metrics`): the *filling* task (every reference-valid pixel, missing
+counted: the ``*_missing_counted_m`` values) and the *denoising* task
+(``mae_input_valid_m``, ``rmse_input_valid_m``: the pixels where the raw input and the
+reference are both valid, a missing estimate again counting as predicting 0 m).
+
+The structure metrics ``ssim``, ``ssim_missing_counted`` and ``ls`` (torch) are computed
+by :mod:`depthgt.eval.metrics`. Pose errors (:func:`pose_errors`): rotation angle in
 degrees and translation distance in centimetres; :func:`pose_delta` the size of a motion.
 """
 
@@ -55,8 +62,13 @@ METRIC_UNITS = {
     "completeness": "fraction",
     "n_reference_px": "px",
     "n_both_px": "px",
+    # the denoising mask: raw input and reference valid (depth_metrics with the input)
+    "mae_input_valid_m": "m",
+    "rmse_input_valid_m": "m",
+    "n_input_valid_px": "px",
     # structure (depth_metrics)
     "ssim": "1",
+    "ssim_missing_counted": "1",
     "ls": "m^2/px^2",
     # pose errors (pose_errors)
     "rot_err_deg": "deg",

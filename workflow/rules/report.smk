@@ -17,6 +17,10 @@ rule tables:
         table2_csv="results/tables/table2.csv",
         table3=report("results/tables/table3.md", caption="../report/table3.rst", category="Tables"),
         table3_csv="results/tables/table3.csv",
+        table2_paired=report("results/tables/table2_paired.md", caption="../report/table_paired.rst", category="Tables"),
+        table2_paired_csv="results/tables/table2_paired.csv",
+        table3_paired=report("results/tables/table3_paired.md", caption="../report/table_paired.rst", category="Tables"),
+        table3_paired_csv="results/tables/table3_paired.csv",
         quality=report("results/tables/table_gt_quality.md", caption="../report/table_gt_quality.rst", category="Tables"),
         quality_csv="results/tables/table_gt_quality.csv",
     params:

@@ -119,7 +119,7 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
                 out.parent.mkdir(parents=True, exist_ok=True)
                 np.save(out, pred.astype(np.float32))
             for reference in refs:
-                for metric, value in depth_metrics(pred, frame.depth(reference)).items():
+                for metric, value in depth_metrics(pred, frame.depth(reference), frame.input_m).items():
                     rows.append({"dataset": rec.dataset, "scene": rec.scene, "target": int(rec.target), "method": name,
                                  "reference": reference, "metric": metric, "unit": unit_of(metric), "value": float(value)})
     for name, s in seconds.items():

@@ -12,7 +12,19 @@ Markdown file:
   Table 2); when no real source is configured it holds one row saying so.
 * ``table3``: every method on held-out *synthetic* frames against the true clean
   depth (paper Table 3's role), input with Kinect-style noise.
+* ``table2_paired``, ``table3_paired``: LapDEN against every other method of those
+  tables, the mean per-frame difference over the same frames.
 * ``table_gt_quality``: the GTs' own error against the truth (synthetic data).
+
+The method tables' columns each have one pixel set for every method
+(:data:`METHOD_METRICS`): the *filling* task (every reference-valid pixel, a missing
+prediction counted as predicting 0 m) and the *denoising* task (the pixels where the
+raw input and the reference are both valid, missing predictions counted likewise).
+Every mean comes with its 95 % percentile bootstrap interval over frames
+(:mod:`depthgt.eval.bootstrap`: fixed seed, the same draws for every row of a dataset)
+and the number of frames. In the CSV a metric's column holds the mean and the columns
+``"<column> 95% low"``, ``"<column> 95% high"`` its interval; the Markdown writes
+``mean [low, high]``.
 """
 
 from __future__ import annotations
@@ -24,6 +36,7 @@ import numpy as np
 import pandas as pd
 
 from depthgt import registry
+from depthgt.eval.bootstrap import BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED, bootstrap_means
 from depthgt.eval.metrics import ls_distance, ssim_depth, unit_of
 from depthgt.gt import store
 from depthgt.status import Status
@@ -33,15 +46,24 @@ __all__ = [
     "gt_vs_input_long",
     "rde_quality_long",
     "method_table",
+    "paired_table",
     "table1",
     "table2",
     "table3",
+    "table2_paired",
+    "table3_paired",
     "table_gt_quality",
     "write_table",
+    "markdown_view",
     "TABLE1_CAPTION",
     "TABLE2_CAPTION",
     "TABLE3_CAPTION",
+    "TABLE2_PAIRED_CAPTION",
+    "TABLE3_PAIRED_CAPTION",
     "GT_QUALITY_CAPTION",
+    "PAIRED_BASE",
+    "LOW",
+    "HIGH",
 ]
 
 # metric -> column header with its unit
@@ -53,18 +75,43 @@ COLUMN_LABELS = {
     "mae_missing_counted_m": "MAE, missing counted (m)",
     "completeness": "completeness (fraction)",
     "ls": "L_S (m^2/px^2)",
+    "ssim_missing_counted": "SSIM, filling (unitless)",
+    "rmse_input_valid_m": "RMSE, denoising (m)",
+    "mae_input_valid_m": "MAE, denoising (m)",
 }
-METHOD_METRICS = ["ssim", "rmse_m", "mae_m", "rmse_missing_counted_m", "mae_missing_counted_m", "completeness"]
+# the method tables' columns: one pixel set per column, the same for every method
+METHOD_LABELS = {
+    "ssim_missing_counted": "SSIM, filling (unitless)",
+    "rmse_missing_counted_m": "RMSE, filling (m)",
+    "mae_missing_counted_m": "MAE, filling (m)",
+    "rmse_input_valid_m": "RMSE, denoising (m)",
+    "mae_input_valid_m": "MAE, denoising (m)",
+    "completeness": "completeness (fraction)",
+}
+METHOD_METRICS = list(METHOD_LABELS)
+LOW, HIGH = " 95% low", " 95% high"  # suffixes of an interval's columns
+PAIRED_BASE = "lapden"  # the method the paired tables compare with every other
 QUALITY_METRICS = ["mae_m", "rmse_m", "mae_missing_counted_m", "rmse_missing_counted_m", "completeness"]
 GT_LABELS = {"gt": "depthgt GT (local frame set)", "rde": "global reconstruction GT (TSDF)",
              "input": "input (raw depth)"}
 
 _CONVENTIONS = (
-    "RMSE and MAE in metres over pixels where the reference is valid and the prediction is valid; the "
-    "'missing counted' variants count a missing prediction as predicting 0 m over all reference-valid pixels; "
-    "completeness = share of reference-valid pixels the prediction covers. SSIM on depth/10 m with data_range 1, "
-    "11x11 Gaussian window, sigma 1.5, averaged over pixels where both images are valid. Values are means over "
-    "frames of per-frame values; 'frames' counts them."
+    "Each column has one pixel set, the same for every method. Filling: every reference-valid pixel, a missing "
+    "prediction counted as predicting 0 m (its error is the reference depth). Denoising: the pixels where the raw "
+    "input and the reference are both valid, a missing prediction counted likewise. RMSE and MAE in metres, computed "
+    "per image and then averaged over frames (the mean of per-frame values); completeness = share of reference-valid "
+    "pixels the prediction covers. SSIM on depth/10 m with data_range 1, 11x11 Gaussian window, sigma 1.5 (kornia), "
+    "a missing prediction entering the windows as 0 m, the SSIM map averaged over every reference-valid pixel. "
+    f"Brackets: 95 % percentile bootstrap interval over frames ({BOOTSTRAP_RESAMPLES} resamples of the frames with "
+    f"replacement, numpy default_rng seed {BOOTSTRAP_SEED}, the same resamples for every row of a dataset); 'frames' "
+    "counts the frames averaged."
+)
+_PAIRED = (
+    "Paired comparison: per frame, LapDEN's value minus the other method's on the same frame and pixel set, then the "
+    "mean over the frames both have and its 95 % percentile bootstrap interval over those frames "
+    f"({BOOTSTRAP_RESAMPLES} resamples, seed {BOOTSTRAP_SEED}). For RMSE and MAE a negative difference means LapDEN "
+    "has the lower error, for SSIM and completeness a positive one that LapDEN scores higher; an interval that "
+    "excludes 0 separates the two methods on these frames. Pixel sets, units and averaging as in the method table. "
 )
 TABLE1_CAPTION = (
     "Table 1: similarity of a GT to the input depth (paper Table 1): SSIM (depth/10 m, data_range 1, 11x11 Gaussian "
@@ -76,6 +123,10 @@ TABLE2_CAPTION = ("Table 2 (real data): methods on held-out real test frames aga
                   "protocol). " + _CONVENTIONS)
 TABLE3_CAPTION = ("Table 3 (synthetic data): methods on held-out synthetic test frames against the true clean depth; "
                   "the input carries Kinect-style noise. " + _CONVENTIONS)
+TABLE2_PAIRED_CAPTION = ("Table 2, paired (real data, reference: depthgt's GT): LapDEN minus every other method. "
+                         + _PAIRED)
+TABLE3_PAIRED_CAPTION = ("Table 3, paired (synthetic data, reference: the true clean depth): LapDEN minus every other "
+                         "method. " + _PAIRED)
 GT_QUALITY_CAPTION = (
     "GT quality (synthetic data, what the paper could not measure): the error of each GT, and of the raw input, "
     "against the true clean depth, mean over frame sets. MAE/RMSE in metres over pixels valid in both; 'missing "
@@ -84,6 +135,7 @@ GT_QUALITY_CAPTION = (
 )
 NO_REAL_NOTE = "no real source (ScanNet, 7-Scenes, TUM) with held-out test frames is configured: Table 2 is empty"
 NO_SYNTH_NOTE = "no synthetic source with held-out test frames and clean truth is configured: Table 3 is empty"
+NO_BASE_NOTE = f"no paired comparison: {PAIRED_BASE!r} and another method are not both evaluated on these frames"
 
 
 def gt_vs_input_long(framesets: pd.DataFrame, rde_framesets: pd.DataFrame | None = None) -> pd.DataFrame:
@@ -135,30 +187,94 @@ def _ordered(methods) -> list[str]:
     return known + sorted(set(methods) - set(known))
 
 
-def method_table(ev: pd.DataFrame, datasets: list[str], reference: str, note: str) -> pd.DataFrame:
-    """Wide table (one row per dataset and method) of :data:`METHOD_METRICS` from an
-    evaluation long table, restricted to ``datasets`` and ``reference``; a one-row
-    table holding ``note`` when nothing qualifies."""
-    cols = ["dataset", "method", "frames"] + [COLUMN_LABELS[m] for m in METHOD_METRICS]
+def _frame_matrix(ev: pd.DataFrame, datasets: list[str], reference: str) -> pd.DataFrame | None:
+    """Per-frame values of :data:`METHOD_METRICS` restricted to ``datasets`` and
+    ``reference``: index (dataset, scene, target), columns (method, metric); None when
+    nothing qualifies. Raises ValueError when a metric comes with several units."""
     if ev.empty or not datasets:
-        return pd.DataFrame([{"note": note}])
+        return None
     sub = ev[ev["dataset"].isin(datasets) & (ev["reference"] == reference) & ev["metric"].isin(METHOD_METRICS)]
     if sub.empty:
-        return pd.DataFrame([{"note": note}])
+        return None
     bad = sub.groupby(["metric"])["unit"].nunique()
     if (bad > 1).any():
         raise ValueError(f"evaluation table: metrics {list(bad[bad > 1].index)} come with several units")
-    wide = sub.pivot_table(index=["dataset", "method"], columns="metric", values="value", aggfunc="mean")
-    frames = sub.drop_duplicates(["dataset", "method", "scene", "target"]).groupby(["dataset", "method"]).size().rename("frames")
-    wide = wide.join(frames).reset_index()
-    wide["_order"] = wide["method"].map({m: i for i, m in enumerate(_ordered(wide["method"]))})
-    wide = wide.sort_values(["dataset", "_order"]).drop(columns="_order")
-    wide["method"] = wide["method"].map(registry.label)
-    wide = wide.rename(columns=COLUMN_LABELS)
-    for c in cols:
-        if c not in wide.columns:
-            wide[c] = np.nan
-    return wide[cols].reset_index(drop=True)
+    dup = sub.duplicated(["dataset", "scene", "target", "method", "metric"])
+    if dup.any():
+        first = sub[dup].iloc[0]
+        raise ValueError(f"evaluation table: {int(dup.sum())} duplicate rows, e.g. {first['dataset']}/{first['scene']}/"
+                         f"{first['target']} {first['method']} {first['metric']} (a method evaluated twice?)")
+    return sub.pivot(index=["dataset", "scene", "target"], columns=["method", "metric"], values="value")
+
+
+def _interval_columns(labels: list[str]) -> list[str]:
+    return [c for label in labels for c in (label, label + LOW, label + HIGH)]
+
+
+def _rows_with_intervals(values: pd.DataFrame, keys: list[tuple], resamples: int, seed: int) -> list[dict]:
+    """One dict per key of ``keys`` (a method or a comparison) from ``values`` (frames x
+    (key, metric)): the frames, the mean, low and high of each metric (all columns
+    resampled with the same draws)."""
+    cols = [(k, m) for k in keys for m in METHOD_METRICS]
+    v = values.reindex(columns=pd.MultiIndex.from_tuples(cols)).to_numpy(dtype=np.float64)
+    est = bootstrap_means(v, resamples=resamples, seed=seed)
+    rows = []
+    for i, key in enumerate(keys):
+        part = slice(i * len(METHOD_METRICS), (i + 1) * len(METHOD_METRICS))
+        # the frames a row averages: those with any value (each column's own NaNs aside)
+        row = {"frames": int(np.isfinite(v[:, part]).any(axis=1).sum())}
+        for m, mean, lo, hi in zip(METHOD_METRICS, est.mean[part], est.low[part], est.high[part]):
+            label = METHOD_LABELS[m]
+            row.update({label: mean, label + LOW: lo, label + HIGH: hi})
+        rows.append(row)
+    return rows
+
+
+def method_table(ev: pd.DataFrame, datasets: list[str], reference: str, note: str,
+                 resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED) -> pd.DataFrame:
+    """Wide table (one row per dataset and method) of :data:`METHOD_METRICS` from an
+    evaluation long table, restricted to ``datasets`` and ``reference``: the mean over
+    frames of each metric with its bootstrap interval (columns ``label``, ``label +
+    LOW``, ``label + HIGH``) and the frames; a one-row table holding ``note`` when
+    nothing qualifies."""
+    wide = _frame_matrix(ev, datasets, reference)
+    if wide is None:
+        return pd.DataFrame([{"note": note}])
+    out = []
+    for dataset in sorted(set(wide.index.get_level_values("dataset"))):
+        part = wide.xs(dataset, level="dataset")
+        methods = _ordered(set(part.columns.get_level_values("method")))
+        for method, row in zip(methods, _rows_with_intervals(part, methods, resamples, seed)):
+            out.append({"dataset": dataset, "method": registry.label(method), **row})
+    cols = ["dataset", "method", "frames"] + _interval_columns(list(METHOD_LABELS.values()))
+    return pd.DataFrame(out, columns=cols)
+
+
+def paired_table(ev: pd.DataFrame, datasets: list[str], reference: str, note: str, base: str = PAIRED_BASE,
+                 resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED) -> pd.DataFrame:
+    """``base`` against every other method, per dataset: the mean over frames of the
+    per-frame difference (base minus other) of each metric of :data:`METHOD_METRICS`,
+    with its bootstrap interval over the frames both have (the draws of
+    :func:`method_table`); ``note`` (or why no comparison exists) when nothing qualifies."""
+    wide = _frame_matrix(ev, datasets, reference)
+    if wide is None:
+        return pd.DataFrame([{"note": note}])
+    out = []
+    for dataset in sorted(set(wide.index.get_level_values("dataset"))):
+        part = wide.xs(dataset, level="dataset")
+        methods = _ordered(set(part.columns.get_level_values("method")))
+        if base not in methods:
+            continue
+        others = [m for m in methods if m != base]
+        diffs = pd.concat({o: part[base] - part[o] for o in others}, axis=1) if others else None
+        if diffs is None:
+            continue
+        for other, row in zip(others, _rows_with_intervals(diffs, others, resamples, seed)):
+            out.append({"dataset": dataset, "comparison": f"{registry.label(base)} - {registry.label(other)}", **row})
+    if not out:
+        return pd.DataFrame([{"note": NO_BASE_NOTE}])
+    cols = ["dataset", "comparison", "frames"] + _interval_columns(list(METHOD_LABELS.values()))
+    return pd.DataFrame(out, columns=cols)
 
 
 def _kind_datasets(ev: pd.DataFrame, kinds: Mapping[str, str], synthetic: bool) -> list[str]:
@@ -174,6 +290,16 @@ def table2(ev: pd.DataFrame, kinds: Mapping[str, str]) -> pd.DataFrame:
 def table3(ev: pd.DataFrame, kinds: Mapping[str, str]) -> pd.DataFrame:
     """Paper Table 3's role: synthetic test frames, reference = the clean truth."""
     return method_table(ev, _kind_datasets(ev, kinds, synthetic=True), "truth", NO_SYNTH_NOTE)
+
+
+def table2_paired(ev: pd.DataFrame, kinds: Mapping[str, str]) -> pd.DataFrame:
+    """Table 2's frames and reference, LapDEN minus every other method (:func:`paired_table`)."""
+    return paired_table(ev, _kind_datasets(ev, kinds, synthetic=False), "gt", NO_REAL_NOTE)
+
+
+def table3_paired(ev: pd.DataFrame, kinds: Mapping[str, str]) -> pd.DataFrame:
+    """Table 3's frames and reference, LapDEN minus every other method (:func:`paired_table`)."""
+    return paired_table(ev, _kind_datasets(ev, kinds, synthetic=True), "truth", NO_SYNTH_NOTE)
 
 
 def table1(long: pd.DataFrame) -> pd.DataFrame:
@@ -213,14 +339,32 @@ def table_gt_quality(quality: pd.DataFrame, rde_quality: pd.DataFrame | None = N
     return wide[cols].reset_index(drop=True)
 
 
+def markdown_view(table: pd.DataFrame, digits: int = 4) -> pd.DataFrame:
+    """The table as the Markdown shows it: a column with interval columns (``LOW``,
+    ``HIGH``) becomes one text column ``mean [low, high]`` with ``digits`` significant
+    digits; other columns are left as they are."""
+    out = table.copy()
+    for col in list(table.columns):
+        if col + LOW in table.columns and col + HIGH in table.columns:
+            def cell(mean, lo, hi):
+                if not np.isfinite(mean):
+                    return "n/a"
+                return f"{mean:.{digits}g} [{lo:.{digits}g}, {hi:.{digits}g}]"
+
+            out[col] = [cell(*t) for t in zip(table[col], table[col + LOW], table[col + HIGH])]
+            out = out.drop(columns=[col + LOW, col + HIGH])
+    return out
+
+
 def write_table(table: pd.DataFrame, csv_path: str | Path, md_path: str | Path, caption: str,
                 digits: int = 4) -> tuple[Path, Path]:
     """Write ``csv_path`` (full precision) and ``md_path`` (caption, then the table with
-    ``digits`` significant digits). Returns both paths."""
+    ``digits`` significant digits, intervals as ``mean [low, high]``: :func:`markdown_view`).
+    Returns both paths."""
     csv_path, md_path = Path(csv_path), Path(md_path)
     for p in (csv_path, md_path):
         p.parent.mkdir(parents=True, exist_ok=True)
     table.to_csv(csv_path, index=False)
-    md = table.to_markdown(index=False, floatfmt=f".{digits}g")
+    md = markdown_view(table, digits).to_markdown(index=False, floatfmt=f".{digits}g")
     md_path.write_text(f"{caption}\n\n{md}\n")
     return csv_path, md_path

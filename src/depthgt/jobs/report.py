@@ -49,17 +49,18 @@ def run_evaluate(method: str, config: Mapping[str, Any], framesets: str, out_tab
     log.info("evaluated %s on the %s frame sets: %d rows", method, split, len(table))
 
 
-TABLES = ("table1", "table2", "table3", "quality")
+TABLES = ("table1", "table2", "table3", "table2_paired", "table3_paired", "quality")
 
 
 def run_tables(eval_tables: list[str], framesets: str, rde_framesets: str, gt_quality: str, kinds: Mapping[str, str],
                outputs: Mapping[str, str]) -> None:
-    """Tables 1-3 and the GT-quality table as CSV + Markdown.
+    """Tables 1-3, the paired comparisons of Tables 2 and 3 and the GT-quality table as
+    CSV + Markdown.
 
     Args:
         kinds: dataset -> source kind (Table 2: real sources, Table 3: synthetic).
-        outputs: for each of ``table1``, ``table2``, ``table3``, ``quality`` the Markdown
-            path under that key and the CSV path under ``{key}_csv``.
+        outputs: for each key of :data:`TABLES` the Markdown path under that key and the
+            CSV path under ``{key}_csv``.
     """
     from depthgt.eval import tables  # heavy: the structure metrics import torch
 
@@ -70,6 +71,8 @@ def run_tables(eval_tables: list[str], framesets: str, rde_framesets: str, gt_qu
         "table1": (tables.table1(tables.gt_vs_input_long(pd.read_parquet(framesets), rde)), tables.TABLE1_CAPTION),
         "table2": (tables.table2(ev, kinds), tables.TABLE2_CAPTION),
         "table3": (tables.table3(ev, kinds), tables.TABLE3_CAPTION),
+        "table2_paired": (tables.table2_paired(ev, kinds), tables.TABLE2_PAIRED_CAPTION),
+        "table3_paired": (tables.table3_paired(ev, kinds), tables.TABLE3_PAIRED_CAPTION),
         "quality": (tables.table_gt_quality(pd.read_csv(gt_quality), tables.rde_quality_long(rde)), tables.GT_QUALITY_CAPTION),
     }
     for key, (table, caption) in built.items():
