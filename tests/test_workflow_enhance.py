@@ -77,6 +77,32 @@ def test_tables_without_real_source(synthetic_only):
     assert "RMSE, filling (m)" in md and "data_range 1" in md and "seed 0" in md
 
 
+def test_evaluate_command_reproduces_table3(synthetic_only, tmp_path):
+    """`depthgt evaluate` on RGF's saved predictions, with the references of an EXR
+    export of the test frames, prints Table 3's RGF row digit for digit."""
+    import numpy as np
+
+    from depthgt import io
+
+    wd = synthetic_only
+    cli = [sys.executable, "-m", "depthgt.cli"]
+    exp = tmp_path / "export"
+    proc = subprocess.run([*cli, "export", str(exp), "-d", str(wd), "--format", "exr", "--kind", "frames", "--split",
+                           "test"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    preds = tmp_path / "rgf"
+    for npy in (wd / "results/eval/predictions/rgf").rglob("*.npy"):
+        io.write_exr(preds / npy.relative_to(wd / "results/eval/predictions/rgf").with_suffix(".exr"), {"Y": np.load(npy)})
+    proc = subprocess.run([*cli, "evaluate", str(preds), "-d", str(wd), "--export", str(exp), "--out",
+                           str(tmp_path / "out")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    def cells(md):  # the printed cells of the RGF row (the column widths differ with the rows beside it)
+        return [[c.strip() for c in line.split("|")] for line in md.read_text().splitlines() if "| RGF " in line]
+
+    row = cells(wd / "results/tables/table3.md")
+    assert len(row) == 1 and cells(tmp_path / "out/table3.md") == row
+
+
 def test_rde_gt_and_figures(synthetic_only):
     wd = synthetic_only
     rde = pd.read_parquet(wd / "results/rde/framesets.parquet")

@@ -5,6 +5,7 @@
     depthgt show DATASET SCENE TARGET statistics of one frame set and a PNG panel
     depthgt extract DATASET SCENE TARGET DEST   one frame set's files into a folder
     depthgt export DEST [--format png16|exr]    the dataset as plain files (PNG/EXR + index)
+    depthgt evaluate PRED_DIR         score a folder of predictions of the test frames (Tables 2/3)
     depthgt verify [DIR]              check a built dataset or an export against its card
     depthgt report [--out FILE]       Snakemake's HTML report (tables and figures)
     depthgt bench NAME [ARGS ...]     one of the benchmarks in bench/
@@ -169,6 +170,33 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    import pandas as pd  # pandas and torch: only for this command
+
+    from depthgt.eval import predictions
+
+    pred_dir = Path(args.pred_dir)
+    if not pred_dir.is_dir():
+        raise DepthGTError(f"no prediction folder {pred_dir}")
+    name = args.name or pred_dir.resolve().name
+    if args.export:
+        frames = predictions.frames_from_export(args.export)
+    else:
+        frames = predictions.frames_from_results(args.directory)
+    compare = []
+    if args.compare:
+        evals = sorted((Path(args.directory) / "results" / "eval").glob("*.parquet"))
+        if not evals:
+            raise DepthGTError(f"--compare: no evaluation tables in {Path(args.directory) / 'results' / 'eval'} "
+                               "(run `depthgt build tables` first)")
+        compare = [pd.read_parquet(p) for p in evals]
+    out = Path(args.out) if args.out else Path(args.directory) / f"evaluate-{name}"
+    written = predictions.evaluate_folder(pred_dir, out, frames, method=name, compare=compare)
+    for key, path in written.items():
+        print(f"{key}: {path}")
+    return 0
+
+
 def _cmd_verify(args: argparse.Namespace) -> int:
     from depthgt.gt.card import verify
 
@@ -254,6 +282,22 @@ def _parser() -> argparse.ArgumentParser:
                    help="patch pairs or whole frames (default: patches)")
     x.add_argument("--workers", type=int, default=0, help="processes reading the shards (default: 0, this one)")
     x.set_defaults(func=_cmd_export)
+
+    ev = sub.add_parser("evaluate", parents=[common], help="score a folder of predictions of the test frames",
+                        description="Score a folder of depth predictions of the test split with the tables' masks, "
+                                    "metrics and bootstrap intervals, and write Tables 2/3 (CSV + Markdown) and the "
+                                    "long per-frame table. PRED_DIR/{dataset}/{scene}/{target:06d}.png (16-bit, mm) "
+                                    "or .exr (float32 m, channel Y), named like the test split of "
+                                    "`depthgt export --kind frames`. References: the build in -d, or --export.")
+    ev.add_argument("pred_dir", help="the folder of predictions")
+    ev.add_argument("--export", help="read the references from this export (--kind frames, with the test split) "
+                                     "instead of the build in -d; an exr export holds the build's exact images")
+    ev.add_argument("--name", help="the predictions' name in the tables (default: PRED_DIR's folder name)")
+    ev.add_argument("--compare", action="store_true",
+                    help="put the build's methods (results/eval/*.parquet in -d) beside the predictions and write "
+                         "the paired tables: the predictions minus every method, per frame")
+    ev.add_argument("--out", help="folder of the tables (default: evaluate-NAME in -d)")
+    ev.set_defaults(func=_cmd_evaluate)
 
     v = sub.add_parser("verify", parents=[common], help="check a dataset or an export against its card",
                        description="Check every shard and manifest of a built dataset (or every file of an export) "

@@ -8,11 +8,17 @@ by name in :data:`BASELINES`; :func:`run_baseline` checks the inputs and calls o
 * ``input``: the raw depth unchanged (the reference row of the tables).
 * ``rgf``: rolling guidance filter (Zhang et al. ECCV 2014): a Gaussian-smoothed
   initial guidance, then joint bilateral iterations of the input guided by the last
-  result. OpenCV's ``cv2.ximgproc`` (opencv-contrib) is not installed here, so the
-  joint bilateral step is kornia's ``joint_bilateral_blur``; invalid pixels are
-  excluded by normalised convolution (filter(depth * valid) / filter(valid) with the
-  same guidance, hence the same weights), so zeros never bleed in.
-* ``jf``: mutual-structure joint filtering (Shen et al. ICCV 2015), see :func:`jf`.
+  result, with OpenCV's filters (``cv2.GaussianBlur``, opencv-contrib's
+  ``cv2.ximgproc.jointBilateralFilter``). Not ``cv2.ximgproc.rollingGuidanceFilter``
+  itself: its first iteration guides with the input instead of the Gaussian-smoothed
+  image (a bilateral filter that keeps the small structures the method removes), and
+  it averages invalid (0 m) depth into its neighbours. Here invalid pixels are
+  excluded by normalised convolution: the filter of (depth * valid, valid) as two
+  channels with the same guidance, hence the same weights, divided.
+* ``jf``: mutual-structure joint filtering (Shen et al. ICCV 2015), see :func:`jf`:
+  written by hand because no maintained library has it (OpenCV's ``ximgproc`` has the
+  one-way guided and joint filters, not the coupled two-way model); its box filters
+  are kornia's.
 * ``learned``: a network checkpoint written by :func:`depthgt.enhance.train.train`
   (LapDEN, RDE = LapDEN on another GT, DDRNet, SDD); ``checkpoint=`` is required.
 """
@@ -24,10 +30,11 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Callable
 
+import cv2
 import numpy as np
 import torch
 from kornia.color import rgb_to_grayscale
-from kornia.filters import box_blur, gaussian_blur2d, joint_bilateral_blur
+from kornia.filters import box_blur
 
 from depthgt.depth_ops import valid_avg_pool
 from depthgt.enhance.train import load_model, predict_depth
@@ -110,7 +117,7 @@ def box_fill(depth: torch.Tensor, valid: torch.Tensor, kernel: int = 5, max_iter
 @register_baseline("rgf")
 def rgf(depth_m: np.ndarray, rgb: np.ndarray | None = None, sigma_s: float = 3.0, sigma_r: float = 0.05,
         iterations: int = 4) -> np.ndarray:
-    """Rolling guidance filter of depth with invalid pixels excluded.
+    """Rolling guidance filter of depth with invalid pixels excluded (OpenCV filters).
 
     Args:
         depth_m: (H, W) metres, 0 = invalid. rgb: unused (RGF guides with itself).
@@ -124,19 +131,21 @@ def rgf(depth_m: np.ndarray, rgb: np.ndarray | None = None, sigma_s: float = 3.0
     """
     if sigma_s <= 0 or sigma_r <= 0 or iterations < 0:
         raise ValueError(f"rgf: sigma_s, sigma_r must be > 0 and iterations >= 0, got {sigma_s}, {sigma_r}, {iterations}")
-    d = _t(depth_m)
-    valid = (d > 0).to(d.dtype)
+    d = np.ascontiguousarray(depth_m, dtype=np.float32)
+    valid = (d > 0).astype(np.float32)
     k = 2 * math.ceil(2 * sigma_s) + 1
-    num = gaussian_blur2d(d * valid, k, (sigma_s, sigma_s))
-    den = gaussian_blur2d(valid, k, (sigma_s, sigma_s))
-    covered = den > 1e-6
-    J = torch.where(covered, num / den.clamp_min(1e-12), torch.zeros_like(num))
+    # (depth * valid, valid, 0): one filter call gives numerator and denominator with the same weights
+    stack = np.ascontiguousarray(np.stack([d * valid, valid, np.zeros_like(d)], axis=-1))
+
+    def normalised(filtered: np.ndarray) -> np.ndarray:
+        num, den = filtered[..., 0], filtered[..., 1]
+        return np.where(den > 1e-6, num / np.maximum(den, 1e-12), 0.0).astype(np.float32)
+
+    J = normalised(cv2.GaussianBlur(stack, (k, k), sigma_s, sigmaY=sigma_s, borderType=cv2.BORDER_REFLECT_101))
     for _ in range(iterations):
-        num = joint_bilateral_blur(d * valid, J, k, sigma_r, (sigma_s, sigma_s))
-        den = joint_bilateral_blur(valid, J, k, sigma_r, (sigma_s, sigma_s))
-        covered = den > 1e-6
-        J = torch.where(covered, num / den.clamp_min(1e-12), torch.zeros_like(num))
-    return J[0, 0].numpy()
+        J = normalised(cv2.ximgproc.jointBilateralFilter(J, stack, k, sigma_r, sigma_s,
+                                                         borderType=cv2.BORDER_REFLECT_101))
+    return J
 
 
 @register_baseline("jf")

@@ -29,7 +29,7 @@ from depthgt.eval.metrics import depth_metrics, unit_of
 from depthgt.gt import store
 from depthgt.status import Status
 
-__all__ = ["run_method", "method_spec", "evaluate_frames", "EVAL_COLUMNS"]
+__all__ = ["run_method", "method_spec", "evaluate_frames", "score_rows", "EVAL_COLUMNS"]
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +46,20 @@ def run_method(method: Mapping, frame: store.FrameImages) -> np.ndarray:
     if "baseline" not in method:
         raise ValueError(f"method {dict(method)} needs a 'baseline' or an 'image' key")
     return run_baseline(method["baseline"], frame.input_m, frame.rgb, **dict(method.get("params", {})))
+
+
+def score_rows(dataset: str, scene: str, target: int, method: str, pred_m: np.ndarray, input_m: np.ndarray,
+               references: Mapping[str, np.ndarray]) -> list[dict]:
+    """Long-table rows (:data:`EVAL_COLUMNS`) of one prediction (H, W) float32 metres
+    against each reference image (name -> (H, W) metres) with the raw input ``input_m``
+    as the denoising mask (:func:`depthgt.eval.metrics.depth_metrics`): the scoring of
+    the workflow's evaluation and of ``depthgt evaluate`` alike."""
+    rows = []
+    for reference, ref_m in references.items():
+        for metric, value in depth_metrics(pred_m, ref_m, input_m).items():
+            rows.append({"dataset": dataset, "scene": scene, "target": int(target), "method": method,
+                         "reference": reference, "metric": metric, "unit": unit_of(metric), "value": float(value)})
+    return rows
 
 
 def method_spec(name: str, checkpoint: str | Path | None = None, device: str | None = None) -> dict:
@@ -118,10 +132,8 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
                 out = Path(pred_dirs[name]) / str(rec.dataset) / str(rec.scene) / f"{int(rec.target):06d}.npy"
                 out.parent.mkdir(parents=True, exist_ok=True)
                 np.save(out, pred.astype(np.float32))
-            for reference in refs:
-                for metric, value in depth_metrics(pred, frame.depth(reference), frame.input_m).items():
-                    rows.append({"dataset": rec.dataset, "scene": rec.scene, "target": int(rec.target), "method": name,
-                                 "reference": reference, "metric": metric, "unit": unit_of(metric), "value": float(value)})
+            rows += score_rows(rec.dataset, rec.scene, int(rec.target), name, pred, frame.input_m,
+                               {r: frame.depth(r) for r in refs})
     for name, s in seconds.items():
         log.info("method %s: %.2f s on %d frame sets (wall clock, not in the table: results stay deterministic)",
                  name, s, len(table))
