@@ -34,7 +34,6 @@ import cv2
 import numpy as np
 import torch
 from kornia.color import rgb_to_grayscale
-from kornia.filters import box_blur
 
 from depthgt.depth_ops import valid_avg_pool
 from depthgt.enhance.train import load_model, predict_depth
@@ -161,7 +160,7 @@ def jf(depth_m: np.ndarray, rgb: np.ndarray, r: int = 3, eps_I: float = 1e-4, ep
             + lambda_I sum_i (I_i - I0_i)^2 + lambda_G sum_i (G_i - G0_i)^2
 
     solved by alternation: with I, G fixed, (a, b) and (c, e) are guided-filter
-    regressions (box filters); with them fixed, the normal equations of each pixel
+    regressions (OpenCV's box filter, in float64); with them fixed, the normal equations of each pixel
     are a 2x2 linear system in (I_i, G_i) whose coefficients are window averages of
     a^2, a, a b, ... (the structure term is averaged over the windows that cover a
     pixel, so lambda weighs against 1). Depth is scaled by its maximum to [0, 1] so
@@ -183,20 +182,23 @@ def jf(depth_m: np.ndarray, rgb: np.ndarray, r: int = 3, eps_I: float = 1e-4, ep
     if not valid.any():
         return np.zeros_like(depth_m, dtype=np.float32)
     scale = float(d[valid].max())
-    I0 = box_fill(d / scale, valid)
+    # float64: the alternation amplifies rounding (in float32, 20 iterations of kornia's box blur
+    # end up to 16 cm from the float64 result on a 256x256 frame, OpenCV's 1.3 mm)
+    I0 = box_fill(d / scale, valid)[0, 0].numpy().astype(np.float64)
     G0 = rgb_to_grayscale(torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None].float() / 255.0)
-    lam_I = lambda_I * valid.to(I0.dtype)
+    G0 = G0[0, 0].numpy().astype(np.float64)
+    lam_I = lambda_I * valid[0, 0].numpy().astype(np.float64)
     k = 2 * r + 1
 
-    def box(x):
-        return box_blur(x, k, border_type="reflect")
+    def box(x):  # OpenCV's mean filter (reflect-101 border as kornia's "reflect"): ~5x faster on one thread
+        return cv2.boxFilter(x, -1, (k, k), normalize=True, borderType=cv2.BORDER_REFLECT_101)
 
-    I, G = I0.clone(), G0.clone()
+    I, G = I0.copy(), G0.copy()
     for _ in range(iterations):
         mI, mG = box(I), box(G)
         cov = box(I * G) - mI * mG
-        var_I = (box(I * I) - mI * mI).clamp_min(0.0)
-        var_G = (box(G * G) - mG * mG).clamp_min(0.0)
+        var_I = np.maximum(box(I * I) - mI * mI, 0.0)
+        var_G = np.maximum(box(G * G) - mG * mG, 0.0)
         a = cov / (var_I + eps_I)  # G ~ a I + b
         b = mG - a * mI
         c = cov / (var_G + eps_G)  # I ~ c G + e
@@ -213,7 +215,7 @@ def jf(depth_m: np.ndarray, rgb: np.ndarray, r: int = 3, eps_I: float = 1e-4, ep
         det = p11 * p22 - p12 * p12
         I = (p22 * q1 - p12 * q2) / det
         G = (p11 * q2 - p12 * q1) / det
-    return (I * scale)[0, 0].clamp_min(0.0).numpy()
+    return np.maximum(I * scale, 0.0).astype(np.float32)
 
 
 @lru_cache(maxsize=8)

@@ -63,18 +63,25 @@ def _tensors(estimate_m, reference_m):
     return torch.from_numpy(e.astype(np.float32)), torch.from_numpy(r.astype(np.float32))
 
 
+def _ssim_both(estimate_m, reference_m, scale_m: float = SSIM_DEPTH_SCALE_M) -> tuple[float, float]:
+    """(SSIM over pixels valid in both, SSIM over every reference-valid pixel) from one
+    SSIM map (see :func:`ssim_depth`)."""
+    p, r = _tensors(estimate_m, reference_m)
+    if min(p.shape[-2:]) < 11:  # smaller than the window
+        return float("nan"), float("nan")
+    ref_ok = r > 0
+    both = ref_ok & (p > 0)
+    smap = kornia_ssim(p / scale_m, r / scale_m, window_size=11, max_val=1.0)
+    return tuple(float(smap[m].mean()) if m.any() else float("nan") for m in (both, ref_ok))
+
+
 def ssim_depth(estimate_m, reference_m, scale_m: float = SSIM_DEPTH_SCALE_M, missing_counted: bool = False) -> float:
     """SSIM of depth/``scale_m`` (data_range 1, 11x11 Gaussian window, sigma 1.5 --
     kornia's window), averaged over pixels where both images are valid, or with
     ``missing_counted`` over every reference-valid pixel (a missing estimate enters the
     windows as 0 m: the same pixel set for every estimate); NaN for images smaller than
     the window or without a pixel to average."""
-    p, r = _tensors(estimate_m, reference_m)
-    m = (r > 0) if missing_counted else (r > 0) & (p > 0)
-    if not m.any() or min(p.shape[-2:]) < 11:  # no valid pixel, or smaller than the window
-        return float("nan")
-    smap = kornia_ssim(p / scale_m, r / scale_m, window_size=11, max_val=1.0)
-    return float(smap[m].mean())
+    return _ssim_both(estimate_m, reference_m, scale_m)[1 if missing_counted else 0]
 
 
 def ls_distance(estimate_m, reference_m, window: int = 5) -> float:
@@ -117,8 +124,8 @@ def depth_metrics(estimate_m, reference_m, input_m=None) -> dict[str, float]:
     Returns:
         dict metric name -> value; units in :data:`METRIC_UNITS`.
     """
-    out = {**depth_errors(estimate_m, reference_m), "ssim": ssim_depth(estimate_m, reference_m),
-           "ssim_missing_counted": ssim_depth(estimate_m, reference_m, missing_counted=True),
+    ssim_both, ssim_counted = _ssim_both(estimate_m, reference_m)  # one SSIM map, two pixel sets
+    out = {**depth_errors(estimate_m, reference_m), "ssim": ssim_both, "ssim_missing_counted": ssim_counted,
            "ls": ls_distance(estimate_m, reference_m)}
     if input_m is not None:
         out.update(input_valid_errors(estimate_m, reference_m, input_m))
