@@ -22,7 +22,7 @@ def framesets():
     torch.set_num_threads(2)
     out = []
     offsets = FrameSetSettings().offsets
-    for room, n in (("room_000", 48), ("room_100", 32)):  # the default config's train and test rooms
+    for room, n in (("room_000", 48), ("room_100", 32)):  # a default training room, the former test room
         scene = open_source_scene({"kind": "synthetic", "options": {"n_frames": n, "seed": 0}}, room)
         for t in (9, 20):
             data = load_frameset(scene, [t + o for o in offsets], (256, 256), True, torch.device("cpu"))
