@@ -21,7 +21,7 @@ TINY = {
     "resize": 64,
     "patches": {"count": 2, "size": 32, "max_missing": 0.5, "filter_on": "gt"},
 }
-SUBCOMMANDS = ("build", "rebuild", "show", "extract", "report", "bench")
+SUBCOMMANDS = ("build", "rebuild", "show", "extract", "report", "bench", "evaluate")
 
 
 def depthgt(*args: str, check: bool = True, cwd: Path | None = None) -> subprocess.CompletedProcess:
