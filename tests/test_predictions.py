@@ -111,5 +111,8 @@ def test_the_command_and_bad_prediction_folders(build, tmp_path, capsys):
         predictions.score_predictions(pred, predictions.frames_from_results(build), "p")
     assert main(["evaluate", str(tmp_path / "nowhere"), "-d", str(build)]) == 2
     assert "no prediction folder" in capsys.readouterr().err
+    ev = pd.DataFrame({"method": ["rgf"]})
+    with pytest.raises(DepthGTError, match="'rgf' is a method of the build"):
+        predictions.evaluate_folder(pred, tmp_path / "o2", predictions.frames_from_results(build), "rgf", [ev])
     with pytest.raises(DepthGTError, match="not a finished export"):
         next(predictions.frames_from_export(tmp_path))

@@ -161,11 +161,11 @@ def evaluate_folder(pred_dir: str | Path, out_dir: str | Path, frames: Iterator[
         ``table2_paired``/``table3_paired``.
     """
     out_dir = Path(out_dir)
+    if method in {m for c in compare for m in c["method"].unique()}:
+        raise DepthGTError(f"the predictions' name {method!r} is a method of the build: pick another (--name)")
     ev = score_predictions(pred_dir, frames, method)
     if ev.empty:
         raise DepthGTError(f"{pred_dir}: no test frame to score")
-    if method in {m for c in compare for m in c["method"].unique()}:
-        raise DepthGTError(f"the predictions' name {method!r} is a method of the build: pick another (--name)")
     keys = ["dataset", "scene", "target", "reference"]
     scored = ev[keys].drop_duplicates()
     both = [c.merge(scored, on=keys) for c in compare]  # the build's rows on the frames scored here
