@@ -41,7 +41,8 @@ __all__ = [
     "SPLITS", "DEVICES", "ON_FAILURE", "REGISTRATION_METHODS", "REGISTRATION_PRESETS",
     "FrameSetSettings", "SplitSettings", "PatchSettings", "RenderSettings", "RefineSettings", "PretrainSettings",
     "RegistrationSettings", "TrainSettings", "RDESettings", "EnhanceSettings", "EvaluationSettings", "SourceSettings",
-    "Settings", "settings_from_config", "registration_settings", "check_keys", "build", "check_config",
+    "Settings", "Stage", "STAGES", "stage_config", "stage_settings", "settings_from_config",
+    "registration_settings", "check_keys", "build", "check_config",
     "check_scene_name", "check_workflow",
 ]
 
@@ -844,6 +845,97 @@ class Settings:
         names = sections or tuple(f.name for f in dataclasses.fields(self))
         return json.loads(json.dumps({k: asdict(getattr(self, k)) if dataclasses.is_dataclass(getattr(self, k))
                                       else getattr(self, k) for k in names}, default=list))
+
+
+@dataclass(frozen=True)
+class Stage:
+    """The config a workflow stage reads: what its rule passes to its job (the rule's
+    ``config`` param: Snakemake's params rerun trigger re-runs exactly the jobs a change
+    affects) and all its job builds its settings from (:func:`stage_config`).
+
+    Attributes:
+        sections: dotted config paths, in the order the rule's param lists them
+            (``enhance.models.{model}``: the entry of the model the job trains).
+        except_keys: dotted paths inside ``sections`` that do not decide the stage's
+            outputs (``frameset.batch_size``: how the jobs are cut, not what they build).
+    """
+
+    sections: tuple[str, ...]
+    except_keys: tuple[str, ...] = ()
+
+    @property
+    def top(self) -> tuple[str, ...]:
+        """The top-level sections (e.g. for :meth:`Settings.doc`)."""
+        return tuple(dict.fromkeys(p.split(".")[0] for p in self.sections))
+
+
+_FRAMESET_SECTIONS = ("seed", "device", "frameset", "resize", "registration", "render", "patches")
+
+#: The one table of the config sections each stage reads (the Snakefile's rules pass
+#: exactly these to their jobs; the jobs narrow whatever they get to them). The index
+#: reads no frame: neither the registration, the working resolution nor the batch size
+#: decide it. The dataset records the sections that decide the GT in its card.
+STAGES: dict[str, Stage] = {
+    "index": Stage(("seed", "split", "frameset"), except_keys=("frameset.batch_size",)),
+    "frameset": Stage(_FRAMESET_SECTIONS),
+    "pretrain": Stage(_FRAMESET_SECTIONS),
+    "dataset": Stage((*_FRAMESET_SECTIONS, "split")),
+    "rde": Stage(("resize", "enhance.rde")),
+    "train": Stage(("seed", "device", "enhance.train", "enhance.models.{model}")),
+    "evaluate": Stage(("device", "evaluation.split")),
+}
+
+
+def stage_config(config: Mapping[str, Any], stage: str, **names: str) -> dict[str, Any]:
+    """The part of ``config`` that stage ``stage`` reads (:data:`STAGES`), nested as in
+    the config; a path the config does not hold is left out (its default applies).
+
+    Args:
+        names: values of the placeholders of the stage's paths (``model``: the
+            ``enhance.models`` entry of the model a training job trains).
+
+    >>> stage_config({"seed": 1, "resize": 64, "frameset": {"stride": 3, "batch_size": 4}}, "index")
+    {'seed': 1, 'frameset': {'stride': 3}}
+    >>> stage_config({"enhance": {"models": {"sdd": {"epochs": 2}, "ddrnet": {}}}}, "train", model="sdd")
+    {'enhance': {'models': {'sdd': {'epochs': 2}}}}
+    """
+    if stage not in STAGES:
+        raise KeyError(f"unknown stage {stage!r}; known: {', '.join(STAGES)}")
+    if not isinstance(config, Mapping):
+        raise ConfigError(f"the configuration must be a mapping, got {type(config).__name__}")
+    spec = STAGES[stage]
+    out: dict[str, Any] = {}
+    for path in spec.sections:
+        keys = path.format(**names).split(".")
+        node, value = out, config
+        for depth, key in enumerate(keys):
+            if not isinstance(value, Mapping) or key not in value:
+                break
+            value = value[key]
+            if depth == len(keys) - 1:
+                node[key] = value
+            else:
+                node = node.setdefault(key, {})
+    for path in spec.except_keys:
+        out = _without(out, path.split("."))
+    return out
+
+
+def _without(tree: Any, keys: list[str]) -> Any:
+    """A copy of the nested mapping ``tree`` without the key at the path ``keys`` (the
+    config itself is not changed; the other keys keep their order)."""
+    if not isinstance(tree, Mapping) or keys[0] not in tree:
+        return tree
+    if len(keys) == 1:
+        return {k: v for k, v in tree.items() if k != keys[0]}
+    return {**tree, keys[0]: _without(tree[keys[0]], keys[1:])}
+
+
+def stage_settings(config: Mapping[str, Any], stage: str, **names: str) -> "Settings":
+    """The settings a stage's job works with: :func:`settings_from_config` of
+    :func:`stage_config` (the sections the stage reads; every other section takes its
+    defaults, the same whether the job gets the rule's sections or the whole config)."""
+    return settings_from_config(stage_config(config, stage, **names))
 
 
 TOP_LEVEL_KEYS = ("seed", "device", "resize", "sources", "frameset", "split", "patches", "render", "registration",
