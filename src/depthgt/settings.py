@@ -760,7 +760,13 @@ def check_scene_name(scene: str, where: str) -> None:
 
 @dataclass(frozen=True)
 class SourceSettings:
-    """One entry of config ``sources``: an RGB-D source of the adapter ``kind``."""
+    """One entry of config ``sources``: an RGB-D source of the adapter ``kind``.
+
+    ``colour_matches_depth``: ``auto`` (the kind's, :data:`depthgt.sources.base.KINDS`:
+    synthetic only), ``true`` or ``false``: whether the source's colour is taken by the
+    depth's camera at the depth's instant, which decides ``registration.photometric:
+    auto`` (e.g. ``true`` for synthetic or pre-registered data in ScanNet's layout).
+    """
 
     name: str
     kind: str
@@ -768,6 +774,7 @@ class SourceSettings:
     scenes: str | tuple[str, ...] = "all"
     split: str = "auto"
     options: dict = field(default_factory=dict)
+    colour_matches_depth: bool | str = "auto"
 
     def __post_init__(self):
         from depthgt.sources.base import known_kinds
@@ -781,6 +788,8 @@ class SourceSettings:
                      "must be 'all' or a non-empty list of scene names")
             for scene in self.scenes:
                 check_scene_name(scene, f"{where}.scenes")
+        _require(isinstance(self.colour_matches_depth, bool) or self.colour_matches_depth == "auto",
+                 f"{where}.colour_matches_depth", f"must be auto, true or false, got {self.colour_matches_depth!r}")
         _require(isinstance(self.options, Mapping), f"{where}.options", "must be a mapping")
         from depthgt.sources.base import check_options  # numpy only
 

@@ -1,13 +1,11 @@
 # Config validation, wildcard constraints and input functions. Nothing heavy is
 # imported here: the DAG is built without torch, kornia or OpenEXR.
-from pathlib import Path
-
 from snakemake.utils import validate
 
 from depthgt import runlock  # standard library only
 from depthgt.device import check_device_available  # torch-free
 from depthgt.settings import check_config, check_scene_name, check_workflow, settings_from_config, stage_config
-from depthgt.sources.base import check_scene_identity  # numpy only
+from depthgt.sources.base import check_scene_identity, scene_file  # numpy only
 
 check_config(config, workflow.source_path("../schemas/config.schema.yaml"))
 validate(config, schema="../schemas/config.schema.yaml", set_default=True)
@@ -53,15 +51,12 @@ def scene_source(wildcards):
 
 
 def scene_data(wildcards):
-    """The scene's .sens file, when the source is one (an input: Snakemake then re-runs
-    the index when the file changes); folder sources have too many files to list."""
+    """The scene's one file, when its kind may hold a scene in one (ScanNet's .sens; an input:
+    Snakemake then re-runs the index when the file changes); folder sources have too
+    many files to list."""
     src = SOURCES[wildcards.dataset]
-    if src["kind"] == "scannet" and src.get("root"):
-        root = Path(src["root"])
-        for sens in (root / wildcards.scene / f"{wildcards.scene}.sens", root / f"{wildcards.scene}.sens"):
-            if sens.is_file() and not (root / wildcards.scene / "depth").is_dir():
-                return {"sens": str(sens)}
-    return {}
+    path = scene_file(src["kind"], src.get("root"), wildcards.scene, **src.get("options", {}))
+    return {"scene_file": path} if path else {}
 
 
 # The plan: every scene's frame-set batches from its frame count (cheap metadata, see
