@@ -276,6 +276,21 @@ def test_unknown_stage_and_bad_config_are_named():
         settings_from_config(stage_config({"frameset": {"stride": 0}}, "frameset"))
 
 
+def test_a_check_between_sections_runs_where_the_stage_reads_both():
+    """patches.size <= resize: checked for the whole config and for the stages that read
+    both (frame sets), not for the RDE job, which reads resize and not patches (the
+    default patch size of 128 would not fit its resize of 64)."""
+    from depthgt.settings import stage_settings
+
+    small = {"resize": 64, "patches": {"size": 32}, "enhance": {"rde": {"voxel_m": 0.04}}}
+    assert stage_settings(small, "rde").resize == 64 and stage_settings(small, "rde").enhance.rde.voxel_m == 0.04
+    assert stage_settings(small, "frameset").patches.size == 32
+    for bad in (lambda: settings_from_config({"resize": 64}), lambda: stage_settings({"resize": 64}, "frameset"),
+                lambda: stage_settings({"resize": 64}, "dataset")):
+        with pytest.raises(ConfigError, match=r"patches.size: 128 does not fit in the 64x64 working resolution"):
+            bad()
+
+
 def test_the_embedded_defaults_apply_wherever_snakemake_starts(tmp_path):
     """`-s path/Snakefile -d elsewhere --configfile mine.yaml` plans what the same config
     plans in the checkout: mine.yaml over config/config.yaml (target_step 2 there, 1 in

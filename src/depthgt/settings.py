@@ -826,8 +826,6 @@ class Settings:
         _require(self.seed >= 0, "seed", f"must be >= 0, got {self.seed}")
         _require(self.device in DEVICES, "device", f"must be auto, cpu or cuda, got {self.device!r}")
         _require(16 <= self.resize <= MAX_RESIZE, "resize", f"must be in [16, {MAX_RESIZE}], got {self.resize}")
-        _require(self.patches.size <= self.resize, "patches.size",
-                 f"{self.patches.size} does not fit in the {self.resize}x{self.resize} working resolution (resize)")
         names = [s.name for s in self.sources]
         dup = sorted({n for n in names if names.count(n) > 1})
         _require(not dup, "sources", f"the name(s) {dup} are used twice; names must be unique")
@@ -944,16 +942,22 @@ def stage_settings(config: Mapping[str, Any], stage: str, **names: str) -> "Sett
     """The settings a stage's job works with: :func:`settings_from_config` of
     :func:`stage_config` (the sections the stage reads; every other section takes its
     defaults, the same whether the job gets the rule's sections or the whole config)."""
-    return settings_from_config(stage_config(config, stage, **names))
+    return settings_from_config(stage_config(config, stage, **names), sections=STAGES[stage].top)
 
 
 TOP_LEVEL_KEYS = ("seed", "device", "resize", "sources", "frameset", "split", "patches", "render", "registration",
                   "enhance", "evaluation")
 
 
-def settings_from_config(config: Mapping[str, Any]) -> Settings:
+def settings_from_config(config: Mapping[str, Any], sections: tuple[str, ...] | None = None) -> Settings:
     """Every stage's settings from a config mapping (the validated config, or the
     sections of it that a rule passes to its job; missing sections take their defaults).
+
+    Args:
+        sections: the top-level sections the caller reads (a stage's,
+            :func:`stage_settings`): a check between two sections runs only when it
+            reads both (the RDE job reads ``resize`` and not ``patches``, whose default
+            size need not fit a small ``resize``); None: every check.
 
     Raises:
         ConfigError: an unknown key (at any level), a bad value or an inconsistency
@@ -967,7 +971,7 @@ def settings_from_config(config: Mapping[str, Any]) -> Settings:
     sources = config.get("sources") or []
     if not isinstance(sources, list):
         _fail("sources", f"must be a list, got {type(sources).__name__}")
-    return Settings(
+    settings = Settings(
         seed=seed,
         device=device,
         resize=_typed(config.get("resize", 256), int, "resize"),
@@ -980,6 +984,11 @@ def settings_from_config(config: Mapping[str, Any]) -> Settings:
         enhance=_enhance_settings(config.get("enhance"), seed, device),
         evaluation=build(EvaluationSettings, config.get("evaluation"), "evaluation"),
     )
+    if sections is None or {"patches", "resize"} <= set(sections):
+        _require(settings.patches.size <= settings.resize, "patches.size",
+                 f"{settings.patches.size} does not fit in the {settings.resize}x{settings.resize} working resolution "
+                 "(resize)")
+    return settings
 
 
 def check_workflow(settings: Settings) -> None:
