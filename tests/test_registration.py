@@ -316,7 +316,7 @@ def test_residual_check_adapts_to_the_sensor_noise():
     # deep): the correctly registered neighbours' median point-to-plane residual is above
     # the fixed 8 mm bound calibrated on Kinect noise, but within the noise the frame set
     # shows; a neighbour 2 deg off is still caught
-    from depthgt.registration.overfit import check_neighbours
+    from depthgt.registration.checks import check_neighbours
 
     offsets = [0, -2, 2, 4]
     rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64), noise_m=0.003)

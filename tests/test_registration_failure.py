@@ -16,7 +16,7 @@ from depthgt.gt.build import FrameSetOutputs, fuse, load_frameset, poses_from_so
 from depthgt.io import read_exr
 from depthgt.jobs.common import open_source_scene
 from depthgt.settings import FrameSetSettings, settings_from_config
-from depthgt.registration.overfit import RegistrationResult
+from depthgt.registration.result import RegistrationResult
 
 TARGET = 12
 

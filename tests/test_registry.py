@@ -5,11 +5,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import yaml
 
 from depthgt import registry
 from depthgt.enhance.baselines import BASELINES
-from depthgt.enhance.train import MODELS
 from depthgt.eval import tables
 from depthgt.settings import EvaluationSettings, settings_from_config
 
@@ -27,7 +27,7 @@ def test_every_method_runs_through_a_registered_baseline():
 
 
 def test_training_builders_are_the_registry_builders():
-    assert set(MODELS) == registry.builders()
+    assert set(registry.MODELS) == registry.builders()
     for m in registry.learned().values():
         assert m.trains_on in registry.TRAINS_ON and m.settings_key in registry.METHODS
 
@@ -45,3 +45,48 @@ def test_schema_has_no_copy_of_the_method_names():
     models = schema["properties"]["enhance"]["properties"]["models"]
     assert "properties" not in models  # per-model entries are checked against the registry by the settings
     assert set(settings_from_config({}).enhance.models) == set(registry.learned())
+
+
+@pytest.mark.parametrize("name", list(registry.MODELS))
+def test_each_model_entry_builds_and_its_loss_reports_its_log_terms(name):
+    """One entry per model holds builder, loss and log columns: the builder makes a
+    network that maps depth to depth maps, and the loss reports exactly ``total`` and the
+    entry's ``log_terms`` (the loss log's columns)."""
+    import torch
+
+    from depthgt.enhance.train import build_loss, build_model
+
+    torch.manual_seed(0)
+    params = registry.METHODS[name].model_params if name in registry.METHODS else {}
+    model = build_model(name, params).eval()
+    depth = 1.0 + torch.rand(2, 1, 32, 32)
+    K = torch.tensor([[40.0, 0, 15.5], [0, 40.0, 15.5], [0, 0, 1]]).expand(2, 3, 3)
+    batch = {"gt": depth + 0.01, "K": K, "depth": depth, "rgb": torch.rand(2, 3, 32, 32)}
+    with torch.no_grad():
+        outputs = model(depth)
+    total, terms = build_loss(name)(outputs, batch)
+    assert set(terms) == {"total", *registry.MODELS[name].log_terms}
+    assert registry.log_columns(name) == ("epoch", "split", "total", *registry.MODELS[name].log_terms, "batches", "seconds")
+    assert float(total) == pytest.approx(terms["total"])
+
+
+def test_a_loss_term_outside_the_log_columns_fails_loudly():
+    """A loss term the model's entry does not list would be dropped from loss_log.csv
+    without a word: the training stops instead, naming the term and the entry."""
+    from depthgt.enhance.train import _log_row
+
+    terms = {"total": 1.0, "depth": 0.5, "smooth": 0.5, "batches": 3, "seconds": 0.1}
+    assert _log_row(0, "train", terms, "sdd")["smooth"] == "0.5"
+    with pytest.raises(ValueError, match=r"model 'sdd'.*MODELS\['sdd'\]\.log_terms.*not logged: \['edge'\]"):
+        _log_row(0, "train", {**terms, "edge": 0.1}, "sdd")
+    with pytest.raises(ValueError, match=r"missing: \['smooth'\]"):
+        _log_row(0, "val", {k: v for k, v in terms.items() if k != "smooth"}, "sdd")
+
+
+def test_model_entries_are_checked():
+    with pytest.raises(ValueError, match="build must be 'module:function'"):
+        registry.Model("x", build="depthgt.enhance.learned.SDDUNet", loss="a:b", log_terms=())
+    with pytest.raises(ValueError, match="without 'total'"):
+        registry.Model("x", build="a:b", loss="a:b", log_terms=("total",))
+    with pytest.raises(ValueError, match="builder must be one of"):
+        registry.Method("x", "X", "learned", baseline="learned", trains_on="depthgt", builder="unet")

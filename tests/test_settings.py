@@ -202,3 +202,113 @@ def test_overfit_without_a_train_split_fails_when_the_workflow_starts(tmp_path):
     text = proc.stdout + proc.stderr
     assert "registration.pretrain.framesets" in text and "sources[0].split: test" in text, text[-2000:]
     assert not (wd / "results").exists()
+
+
+# --------------------------------------------------------------------------- the stages' config sections
+
+
+def _validated(*extra: Path) -> dict:
+    """config/config.yaml with ``extra`` merged over it and the schema's defaults filled
+    in, as Snakemake builds the run's config."""
+    from snakemake.utils import update_config, validate
+
+    config = yaml.safe_load((REPO / "config/config.yaml").read_text())
+    for path in extra:
+        update_config(config, yaml.safe_load(path.read_text()))
+    validate(config, schema=str(REPO / "workflow/schemas/config.schema.yaml"), set_default=True)
+    return config
+
+
+@pytest.mark.parametrize("extra", [(), (REPO / "config/presets/7scenes-kitchen.yaml",)], ids=["default", "7scenes"])
+def test_each_stage_gets_the_settings_of_its_sections(extra):
+    """A job built from its stage's sections (what its rule passes) has the settings the
+    whole config gives for every section the stage reads; the sections are copies (the
+    config is not changed) and the index's frame sets do not depend on the batch size."""
+    from depthgt import registry
+    from depthgt.settings import STAGES, TOP_LEVEL_KEYS, stage_config, stage_settings
+
+    config = _validated(*extra)
+    before = json.dumps(config, sort_keys=True)
+    whole = settings_from_config(config)
+    for stage, spec in STAGES.items():
+        assert set(spec.top) <= set(TOP_LEVEL_KEYS) and "sources" not in spec.top, stage
+        names = {"model": "lapden"} if stage == "train" else {}
+        part = stage_config(config, stage, **names)
+        assert list(part) == list(spec.top), stage
+        own = stage_settings(part, stage, **names)
+        assert stage_settings(config, stage, **names) == own  # the whole config narrowed to the same
+        for top in spec.top:
+            if top == "enhance":
+                assert own.enhance.rde == whole.enhance.rde or stage != "rde"
+            elif not (stage == "index" and top == "frameset"):
+                assert getattr(own, top) == getattr(whole, top), (stage, top)
+    assert "batch_size" not in stage_config(config, "index")["frameset"]
+    assert stage_settings(config, "index").frameset.targets(100) == whole.frameset.targets(100)
+    for model, method in registry.learned().items():
+        part = stage_config(config, "train", model=method.settings_key)
+        assert list(part["enhance"]["models"]) == [method.settings_key]
+        assert stage_settings(part, "train", model=method.settings_key).train(model) == whole.train(model)
+    # the GT's sections (the dataset card) are the frame sets' and the split
+    assert set(STAGES["dataset"].top) == {*STAGES["frameset"].top, "split"}
+    assert json.dumps(config, sort_keys=True) == before
+
+
+def test_the_rules_pass_the_stage_table_and_the_scripts_pass_only_that():
+    """One table of sections (settings.STAGES): every stage is what a rule passes as its
+    `config` param, and no workflow script hands its job the whole snakemake.config."""
+    from depthgt.settings import STAGES
+
+    rules = "\n".join(p.read_text() for p in sorted((REPO / "workflow/rules").glob("*.smk")))
+    for stage in STAGES:
+        assert f'stage_config(config, "{stage}"' in rules, stage
+    for script in sorted((REPO / "workflow/scripts").glob("*.py")):
+        assert "snakemake.config" not in script.read_text(), script.name
+
+
+def test_unknown_stage_and_bad_config_are_named():
+    from depthgt.settings import stage_config
+
+    with pytest.raises(KeyError, match="unknown stage 'fuse'"):
+        stage_config({}, "fuse")
+    with pytest.raises(ConfigError, match="must be a mapping"):
+        stage_config([], "index")
+    with pytest.raises(ConfigError, match=r"frameset.stride: must be >= 1"):
+        settings_from_config(stage_config({"frameset": {"stride": 0}}, "frameset"))
+
+
+def test_a_check_between_sections_runs_where_the_stage_reads_both():
+    """patches.size <= resize: checked for the whole config and for the stages that read
+    both (frame sets), not for the RDE job, which reads resize and not patches (the
+    default patch size of 128 would not fit its resize of 64)."""
+    from depthgt.settings import stage_settings
+
+    small = {"resize": 64, "patches": {"size": 32}, "enhance": {"rde": {"voxel_m": 0.04}}}
+    assert stage_settings(small, "rde").resize == 64 and stage_settings(small, "rde").enhance.rde.voxel_m == 0.04
+    assert stage_settings(small, "frameset").patches.size == 32
+    for bad in (lambda: settings_from_config({"resize": 64}), lambda: stage_settings({"resize": 64}, "frameset"),
+                lambda: stage_settings({"resize": 64}, "dataset")):
+        with pytest.raises(ConfigError, match=r"patches.size: 128 does not fit in the 64x64 working resolution"):
+            bad()
+
+
+def test_the_embedded_defaults_apply_wherever_snakemake_starts(tmp_path):
+    """`-s path/Snakefile -d elsewhere --configfile mine.yaml` plans what the same config
+    plans in the checkout: mine.yaml over config/config.yaml (target_step 2 there, 1 in
+    the schema), not over the schema's defaults alone; a working directory with its own
+    config/config.yaml (`depthgt build -d DIR`) keeps it as the whole config."""
+    from conftest import make_workdir, snakemake
+
+    mine = {"sources": [{"name": "syn", "kind": "synthetic", "scenes": ["room_000"], "options": {"n_frames": 40}}]}
+    (tmp_path / "mine.yaml").write_text(yaml.safe_dump(mine))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    expected = FrameSetSettings(**_validated(tmp_path / "mine.yaml")["frameset"]).batches(40)
+    assert expected == [(6, 32)]  # target_step 2 of config/config.yaml
+
+    def planned(wd, *args):
+        text = snakemake(wd, "-n", "framesets", *args).stdout
+        return sorted({line.split("/")[-1] for line in text.split() if line.endswith(".zip")})
+
+    assert planned(elsewhere, "--configfile", str(tmp_path / "mine.yaml")) == [f"{a:06d}-{b:06d}.zip" for a, b in expected]
+    own = make_workdir(tmp_path / "own", mine)
+    assert planned(own) == ["000006-000033.zip"]  # its own config, the schema's defaults (target_step 1)

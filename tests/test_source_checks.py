@@ -70,6 +70,76 @@ def test_option_names_match_the_adapters():
     assert base.check_options("tum", {"camera": "fr2"}) is None and sorted(tum.CAMERAS) == ["fr1", "fr2", "fr3", "ros_default"]
 
 
+def test_the_registry_holds_every_kind_once():
+    """One entry per kind (sources.base.KINDS): the schema's enum of kinds is its keys;
+    every adapter module has the functions its entry promises; a kind whose poses are
+    optional takes require_pose; only synthetic colour matches its depth by default."""
+    import importlib
+
+    schema = yaml.safe_load((REPO / "workflow/schemas/config.schema.yaml").read_text())
+    item = schema["properties"]["sources"]["items"]["properties"]
+    assert sorted(item["kind"]["enum"]) == base.known_kinds() == sorted(base.KINDS)
+    assert item["colour_matches_depth"]["enum"] == ["auto", True, False]
+    for kind, entry in base.KINDS.items():
+        module = importlib.import_module(entry.module)
+        assert callable(module.open_scene) and callable(module.list_scenes), kind
+        assert entry.single_file == hasattr(module, "scene_file"), kind
+        params = inspect.signature(module.open_scene).parameters
+        assert entry.poses_optional == ("require_pose" in params), kind
+    assert {k for k, e in base.KINDS.items() if e.colour_matches_depth} == {"synthetic"}
+    assert {k for k, e in base.KINDS.items() if e.single_file} == {"scannet"}
+    with pytest.raises(ValueError, match="poses_optional needs the option require_pose"):
+        base.SourceKind("depthgt.sources.tum", {}, poses_optional=True)
+
+
+def test_a_registered_kind_is_known_everywhere(tmp_path):
+    """Adding a kind is its module and its entry: the settings, the option checks, the
+    scene opener (lazily importing the module) and the job's poses rule follow."""
+    from depthgt.jobs.common import open_source_scene
+    from depthgt.settings import settings_from_config
+
+    (tmp_path / "flatcam.py").write_text(
+        "import numpy as np\n"
+        "from depthgt.sources.base import Frame\n"
+        "class Flat:\n"
+        "    name, intrinsics, image_size = 'one', np.eye(3), (4, 4)\n"
+        "    has_poses, has_clean_depth = True, False\n"
+        "    def __init__(self, require_pose): self.require_pose = require_pose\n"
+        "    def __len__(self): return 2\n"
+        "    def frame_id(self, i): return str(i)\n"
+        "    def read(self, i): return Frame(np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.float32), np.eye(4))\n"
+        "def open_scene(root, scene, require_pose=True): return Flat(require_pose)\n"
+        "def list_scenes(root): return ['one']\n")
+    sys.path.insert(0, str(tmp_path))
+    try:
+        base.register("flatcam", base.SourceKind("flatcam", {"require_pose": base.OptionCheck("true or false",
+                                                                    lambda v: isinstance(v, bool))}, poses_optional=True))
+        src = {"name": "f", "kind": "flatcam", "scenes": ["one"], "options": {"require_pose": True}}
+        assert settings_from_config({"sources": [src]}).sources[0].kind == "flatcam"
+        with pytest.raises(ConfigError, match=r"sources\[f\]\.options\.bogus: unknown flatcam option"):
+            settings_from_config({"sources": [{**src, "options": {"bogus": 1}}]})
+        assert base.frame_count("flatcam", None, "one") == 2 and base.list_scenes("flatcam", None) == ["one"]
+        scene = open_source_scene({**src, "options": {}}, "one", need_poses=False)
+        assert scene.require_pose is False and scene.colour_matches_depth is False
+        assert open_source_scene({**src, "colour_matches_depth": True}, "one").colour_matches_depth is True
+    finally:
+        base.KINDS.pop("flatcam", None)
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop("flatcam", None)
+
+
+@pytest.mark.parametrize("value,ok", [("auto", True), (True, True), (False, True), ("yes", False), (1, False)])
+def test_colour_matches_depth_setting_names_the_key(value, ok):
+    from depthgt.settings import settings_from_config
+
+    config = {"sources": [{"name": "s", "kind": "scannet", "root": "/x", "colour_matches_depth": value}]}
+    if ok:
+        assert settings_from_config(config).sources[0].colour_matches_depth == value
+    else:
+        with pytest.raises(ConfigError, match=r"sources\[(s|0)\]\.colour_matches_depth: must be"):
+            settings_from_config(config)
+
+
 def test_start_checks_import_neither_torch_nor_opencv():
     code = ("import sys; from depthgt.sources.base import check_options, check_scene_identity; "
             "check_options('synthetic', {'n_frames': 4}); check_options('tum', {'camera': 'fr1'}); "

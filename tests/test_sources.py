@@ -288,6 +288,11 @@ def test_scannet_list_scenes_mixes_layouts(tmp_path):
     (tmp_path / "notes").mkdir()
     assert base.list_scenes("scannet", tmp_path) == ["scene0010_00", "scene0011_00", "scene0012_00"]
     assert len(base.open_scene("scannet", tmp_path, "scene0012_00")) == 2
+    # the one file of a scene (an input of its index): a .sens, not an exported folder
+    assert base.scene_file("scannet", str(tmp_path), "scene0010_00") is None
+    assert base.scene_file("scannet", str(tmp_path), "scene0011_00") == str(tmp_path / "scene0011_00.sens")
+    assert base.scene_file("scannet", str(tmp_path), "scene0012_00") == str(tmp_path / "scene0012_00" / "scene0012_00.sens")
+    assert base.scene_file("sevenscenes", str(tmp_path), "scene0011_00") is None  # not a single-file kind
 
 
 # ------------------------------------------------------------------ 7-Scenes
@@ -753,11 +758,33 @@ def test_frame_count_comes_from_metadata(tmp_path, monkeypatch):
     assert len(base.open_scene("scannet", tmp_path / "scannet", "scene0002_00")) == 3
 
 
-def test_colour_matches_depth_only_for_synthetic_scenes():
+def test_colour_matches_depth_from_the_registry_and_the_config(tmp_path):
     """The registration's photometric refinement term (``photometric: auto``) is used only
-    where colour is the depth's camera at the depth's instant."""
-    from depthgt.sources import scannet, sevenscenes, synthetic
+    where colour is the depth's camera at the depth's instant: every opened scene carries
+    its kind's flag (synthetic only), a config source overrides it (synthetic data in
+    ScanNet's layout), and the frame-set loader sees the override."""
+    from depthgt.gt.build import photometric_for
+    from depthgt.gt.cache import ResizedScene
+    from depthgt.jobs.common import open_source_scene
+    from depthgt.settings import RegistrationSettings
 
-    real = (scannet.ScanNetExportedScene, scannet.ScanNetSensScene, sevenscenes.SevenScenesScene, tum.TumScene)
-    assert not any(cls.colour_matches_depth for cls in real)
-    assert synthetic.SyntheticScene.colour_matches_depth
+    make_exported(tmp_path / "scannet")
+    make_7scenes_seq(tmp_path / "seven" / "seq-01")
+    make_tum(tmp_path / "tum" / "rgbd_dataset_freiburg1_xyz")
+    scenes = {"scannet": ("scene0000_00", tmp_path / "scannet"), "sevenscenes": ("seq-01", tmp_path / "seven"),
+              "tum": ("rgbd_dataset_freiburg1_xyz", tmp_path / "tum")}
+    for kind, (name, root) in scenes.items():
+        assert base.open_scene(kind, str(root), name).colour_matches_depth is False, kind
+    assert base.open_scene("synthetic", None, "room_000", n_frames=2, width=64, height=48).colour_matches_depth is True
+    src = {"name": "s", "kind": "scannet", "root": str(tmp_path / "scannet")}
+    assert open_source_scene(src, "scene0000_00").colour_matches_depth is False
+    assert open_source_scene({**src, "colour_matches_depth": "auto"}, "scene0000_00").colour_matches_depth is False
+    matched = ResizedScene(open_source_scene({**src, "colour_matches_depth": True}, "scene0000_00"), (16, 16))
+    assert matched.colour_matches_depth is True
+    auto = RegistrationSettings(photometric="auto")
+    assert photometric_for(auto, matched.colour_matches_depth).refine_settings.photo_weight > 0
+    assert photometric_for(auto, False).refine_settings.photo_weight == 0
+    syn = {"name": "y", "kind": "synthetic", "options": {"n_frames": 2, "width": 64, "height": 48}}
+    assert open_source_scene({**syn, "colour_matches_depth": False}, "room_000").colour_matches_depth is False
+
+

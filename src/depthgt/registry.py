@@ -9,23 +9,81 @@ the tables print and its kind:
 * ``learned``: a network trained by the workflow (rule ``train_model``) on the patch
   pairs of ``trains_on`` (``depthgt``: depthgt's GT, ``results/dataset``; ``rde``: the
   global-reconstruction GT, ``results/rde``), built by ``builder`` (a key of
-  :data:`depthgt.enhance.train.MODELS`) with ``model_params`` unless the config's
+  :data:`MODELS`) with ``model_params`` unless the config's
   ``enhance.models[settings_key]`` says otherwise, and run by the ``learned`` baseline.
+
+Every trainable architecture is one :class:`Model` entry of :data:`MODELS`: its builder,
+its loss and the loss terms its log records, the functions named by dotted path and
+imported only when a model is built (this module stays torch-free).
 
 The settings (:mod:`depthgt.settings`), the workflow rules (``workflow/rules/enhance.smk``),
 the tables (:mod:`depthgt.eval.tables`), the training (:mod:`depthgt.enhance.train`) and
-the baselines all read this table; ``tests/test_registry.py`` checks that they agree.
-Adding a filter baseline = one entry here + its function in ``enhance/baselines.py``.
+the baselines all read these tables; ``tests/test_registry.py`` checks that they agree.
+Adding a filter baseline = one entry here + its function in ``enhance/baselines.py``;
+adding a learned model = its module (builder and loss) + one :class:`Model` entry + one
+``learned`` :class:`Method` entry (docs/development.md).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-__all__ = ["Method", "METHODS", "KINDS", "TRAINS_ON", "learned", "builders", "label"]
+__all__ = ["Model", "MODELS", "Method", "METHODS", "KINDS", "TRAINS_ON", "learned", "builders", "label", "log_columns"]
 
 KINDS = ("input", "filter", "learned")
 TRAINS_ON = ("depthgt", "rde")
+
+
+@dataclass(frozen=True)
+class Model:
+    """One trainable architecture.
+
+    Attributes:
+        name: its name (a learned method's ``builder``, ``TrainSettings.model``).
+        build: ``"module:function"``: keyword parameters (``model_params``) -> ``nn.Module``
+            mapping depth (B, 1, H, W) metres to a list of depth maps, finest last.
+        loss: ``"module:function"``: ``loss(outputs, batch, **loss_params) -> (total,
+            terms)``, ``terms`` a dict of floats: ``total`` and exactly ``log_terms``.
+        log_terms: the loss terms the loss log records besides ``total`` (its columns,
+            :func:`log_columns`); a loss that reports another term, or not one of these,
+            stops the training with an error (:mod:`depthgt.enhance.train`).
+    """
+
+    name: str
+    build: str
+    loss: str
+    log_terms: tuple[str, ...]
+
+    def __post_init__(self):
+        for what in ("build", "loss"):
+            if getattr(self, what).count(":") != 1:
+                raise ValueError(f"registry model {self.name!r}: {what} must be 'module:function', "
+                                 f"got {getattr(self, what)!r}")
+        if "total" in self.log_terms or len(set(self.log_terms)) != len(self.log_terms):
+            raise ValueError(f"registry model {self.name!r}: log_terms must be distinct and without 'total', "
+                             f"got {self.log_terms}")
+
+
+MODELS: dict[str, Model] = {m.name: m for m in (
+    Model("lapden", build="depthgt.enhance.lapden:build_lapden", loss="depthgt.enhance.losses:lapden_loss_from_params",
+          log_terms=("depth", "grad", "normal", "structure")),
+    Model("ddrnet", build="depthgt.enhance.learned:DDRNetDenoise", loss="depthgt.enhance.learned:ddrnet_loss",
+          log_terms=("depth", "normal")),
+    Model("sdd", build="depthgt.enhance.learned:SDDUNet", loss="depthgt.enhance.learned:sdd_loss",
+          log_terms=("depth", "smooth")),
+)}
+
+
+def log_columns(model: str) -> tuple[str, ...]:
+    """The columns of a model's ``loss_log.csv``: epoch, split, total, its loss terms,
+    batches, seconds.
+
+    >>> log_columns("sdd")
+    ('epoch', 'split', 'total', 'depth', 'smooth', 'batches', 'seconds')
+    """
+    if model not in MODELS:
+        raise KeyError(f"unknown model {model!r}; known: {', '.join(MODELS)}")
+    return ("epoch", "split", "total", *MODELS[model].log_terms, "batches", "seconds")
 
 
 @dataclass(frozen=True)
@@ -38,7 +96,7 @@ class Method:
         kind: ``input``, ``filter`` or ``learned``.
         baseline: the :data:`~depthgt.enhance.baselines.BASELINES` entry that runs it.
         trains_on: learned only: ``depthgt`` or ``rde``.
-        builder: learned only: the model builder (:data:`depthgt.enhance.train.MODELS`).
+        builder: learned only: the trainable model (a key of :data:`MODELS`).
         settings_key: learned only: the ``enhance.models`` entry with its training
             settings (RDE trains LapDEN with LapDEN's entry).
         model_params: learned only: builder parameters when the config gives none.
@@ -59,6 +117,8 @@ class Method:
         learned = self.kind == "learned"
         if learned != (self.trains_on is not None) or learned != (self.builder is not None):
             raise ValueError(f"registry method {self.name!r}: trains_on and builder are set exactly for learned methods")
+        if learned and self.builder not in MODELS:
+            raise ValueError(f"registry method {self.name!r}: builder must be one of {list(MODELS)}, got {self.builder!r}")
         if learned and self.trains_on not in TRAINS_ON:
             raise ValueError(f"registry method {self.name!r}: trains_on must be one of {TRAINS_ON}, got {self.trains_on!r}")
         if learned and self.settings_key is None:

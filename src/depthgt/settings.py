@@ -41,7 +41,8 @@ __all__ = [
     "SPLITS", "DEVICES", "ON_FAILURE", "REGISTRATION_METHODS", "REGISTRATION_PRESETS",
     "FrameSetSettings", "SplitSettings", "PatchSettings", "RenderSettings", "RefineSettings", "PretrainSettings",
     "RegistrationSettings", "TrainSettings", "RDESettings", "EnhanceSettings", "EvaluationSettings", "SourceSettings",
-    "Settings", "settings_from_config", "registration_settings", "check_keys", "build", "check_config",
+    "Settings", "Stage", "STAGES", "stage_config", "stage_settings", "settings_from_config",
+    "registration_settings", "check_keys", "build", "check_config",
     "check_scene_name", "check_workflow",
 ]
 
@@ -759,7 +760,13 @@ def check_scene_name(scene: str, where: str) -> None:
 
 @dataclass(frozen=True)
 class SourceSettings:
-    """One entry of config ``sources``: an RGB-D source of the adapter ``kind``."""
+    """One entry of config ``sources``: an RGB-D source of the adapter ``kind``.
+
+    ``colour_matches_depth``: ``auto`` (the kind's, :data:`depthgt.sources.base.KINDS`:
+    synthetic only), ``true`` or ``false``: whether the source's colour is taken by the
+    depth's camera at the depth's instant, which decides ``registration.photometric:
+    auto`` (e.g. ``true`` for synthetic or pre-registered data in ScanNet's layout).
+    """
 
     name: str
     kind: str
@@ -767,6 +774,7 @@ class SourceSettings:
     scenes: str | tuple[str, ...] = "all"
     split: str = "auto"
     options: dict = field(default_factory=dict)
+    colour_matches_depth: bool | str = "auto"
 
     def __post_init__(self):
         from depthgt.sources.base import known_kinds
@@ -780,6 +788,8 @@ class SourceSettings:
                      "must be 'all' or a non-empty list of scene names")
             for scene in self.scenes:
                 check_scene_name(scene, f"{where}.scenes")
+        _require(isinstance(self.colour_matches_depth, bool) or self.colour_matches_depth == "auto",
+                 f"{where}.colour_matches_depth", f"must be auto, true or false, got {self.colour_matches_depth!r}")
         _require(isinstance(self.options, Mapping), f"{where}.options", "must be a mapping")
         from depthgt.sources.base import check_options  # numpy only
 
@@ -816,8 +826,6 @@ class Settings:
         _require(self.seed >= 0, "seed", f"must be >= 0, got {self.seed}")
         _require(self.device in DEVICES, "device", f"must be auto, cpu or cuda, got {self.device!r}")
         _require(16 <= self.resize <= MAX_RESIZE, "resize", f"must be in [16, {MAX_RESIZE}], got {self.resize}")
-        _require(self.patches.size <= self.resize, "patches.size",
-                 f"{self.patches.size} does not fit in the {self.resize}x{self.resize} working resolution (resize)")
         names = [s.name for s in self.sources]
         dup = sorted({n for n in names if names.count(n) > 1})
         _require(not dup, "sources", f"the name(s) {dup} are used twice; names must be unique")
@@ -846,13 +854,110 @@ class Settings:
                                       else getattr(self, k) for k in names}, default=list))
 
 
+@dataclass(frozen=True)
+class Stage:
+    """The config a workflow stage reads: what its rule passes to its job (the rule's
+    ``config`` param: Snakemake's params rerun trigger re-runs exactly the jobs a change
+    affects) and all its job builds its settings from (:func:`stage_config`).
+
+    Attributes:
+        sections: dotted config paths, in the order the rule's param lists them
+            (``enhance.models.{model}``: the entry of the model the job trains).
+        except_keys: dotted paths inside ``sections`` that do not decide the stage's
+            outputs (``frameset.batch_size``: how the jobs are cut, not what they build).
+    """
+
+    sections: tuple[str, ...]
+    except_keys: tuple[str, ...] = ()
+
+    @property
+    def top(self) -> tuple[str, ...]:
+        """The top-level sections (e.g. for :meth:`Settings.doc`)."""
+        return tuple(dict.fromkeys(p.split(".")[0] for p in self.sections))
+
+
+_FRAMESET_SECTIONS = ("seed", "device", "frameset", "resize", "registration", "render", "patches")
+
+#: The one table of the config sections each stage reads (the Snakefile's rules pass
+#: exactly these to their jobs; the jobs narrow whatever they get to them). The index
+#: reads no frame: neither the registration, the working resolution nor the batch size
+#: decide it. The dataset records the sections that decide the GT in its card.
+STAGES: dict[str, Stage] = {
+    "index": Stage(("seed", "split", "frameset"), except_keys=("frameset.batch_size",)),
+    "frameset": Stage(_FRAMESET_SECTIONS),
+    "pretrain": Stage(_FRAMESET_SECTIONS),
+    "dataset": Stage((*_FRAMESET_SECTIONS, "split")),
+    "rde": Stage(("resize", "enhance.rde")),
+    "train": Stage(("seed", "device", "enhance.train", "enhance.models.{model}")),
+    "evaluate": Stage(("device", "evaluation.split")),
+}
+
+
+def stage_config(config: Mapping[str, Any], stage: str, **names: str) -> dict[str, Any]:
+    """The part of ``config`` that stage ``stage`` reads (:data:`STAGES`), nested as in
+    the config; a path the config does not hold is left out (its default applies).
+
+    Args:
+        names: values of the placeholders of the stage's paths (``model``: the
+            ``enhance.models`` entry of the model a training job trains).
+
+    >>> stage_config({"seed": 1, "resize": 64, "frameset": {"stride": 3, "batch_size": 4}}, "index")
+    {'seed': 1, 'frameset': {'stride': 3}}
+    >>> stage_config({"enhance": {"models": {"sdd": {"epochs": 2}, "ddrnet": {}}}}, "train", model="sdd")
+    {'enhance': {'models': {'sdd': {'epochs': 2}}}}
+    """
+    if stage not in STAGES:
+        raise KeyError(f"unknown stage {stage!r}; known: {', '.join(STAGES)}")
+    if not isinstance(config, Mapping):
+        raise ConfigError(f"the configuration must be a mapping, got {type(config).__name__}")
+    spec = STAGES[stage]
+    out: dict[str, Any] = {}
+    for path in spec.sections:
+        keys = path.format(**names).split(".")
+        node, value = out, config
+        for depth, key in enumerate(keys):
+            if not isinstance(value, Mapping) or key not in value:
+                break
+            value = value[key]
+            if depth == len(keys) - 1:
+                node[key] = value
+            else:
+                node = node.setdefault(key, {})
+    for path in spec.except_keys:
+        out = _without(out, path.split("."))
+    return out
+
+
+def _without(tree: Any, keys: list[str]) -> Any:
+    """A copy of the nested mapping ``tree`` without the key at the path ``keys`` (the
+    config itself is not changed; the other keys keep their order)."""
+    if not isinstance(tree, Mapping) or keys[0] not in tree:
+        return tree
+    if len(keys) == 1:
+        return {k: v for k, v in tree.items() if k != keys[0]}
+    return {**tree, keys[0]: _without(tree[keys[0]], keys[1:])}
+
+
+def stage_settings(config: Mapping[str, Any], stage: str, **names: str) -> "Settings":
+    """The settings a stage's job works with: :func:`settings_from_config` of
+    :func:`stage_config` (the sections the stage reads; every other section takes its
+    defaults, the same whether the job gets the rule's sections or the whole config)."""
+    return settings_from_config(stage_config(config, stage, **names), sections=STAGES[stage].top)
+
+
 TOP_LEVEL_KEYS = ("seed", "device", "resize", "sources", "frameset", "split", "patches", "render", "registration",
                   "enhance", "evaluation")
 
 
-def settings_from_config(config: Mapping[str, Any]) -> Settings:
+def settings_from_config(config: Mapping[str, Any], sections: tuple[str, ...] | None = None) -> Settings:
     """Every stage's settings from a config mapping (the validated config, or the
     sections of it that a rule passes to its job; missing sections take their defaults).
+
+    Args:
+        sections: the top-level sections the caller reads (a stage's,
+            :func:`stage_settings`): a check between two sections runs only when it
+            reads both (the RDE job reads ``resize`` and not ``patches``, whose default
+            size need not fit a small ``resize``); None: every check.
 
     Raises:
         ConfigError: an unknown key (at any level), a bad value or an inconsistency
@@ -866,7 +971,7 @@ def settings_from_config(config: Mapping[str, Any]) -> Settings:
     sources = config.get("sources") or []
     if not isinstance(sources, list):
         _fail("sources", f"must be a list, got {type(sources).__name__}")
-    return Settings(
+    settings = Settings(
         seed=seed,
         device=device,
         resize=_typed(config.get("resize", 256), int, "resize"),
@@ -879,6 +984,11 @@ def settings_from_config(config: Mapping[str, Any]) -> Settings:
         enhance=_enhance_settings(config.get("enhance"), seed, device),
         evaluation=build(EvaluationSettings, config.get("evaluation"), "evaluation"),
     )
+    if sections is None or {"patches", "resize"} <= set(sections):
+        _require(settings.patches.size <= settings.resize, "patches.size",
+                 f"{settings.patches.size} does not fit in the {settings.resize}x{settings.resize} working resolution "
+                 "(resize)")
+    return settings
 
 
 def check_workflow(settings: Settings) -> None:

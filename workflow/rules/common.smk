@@ -1,19 +1,17 @@
 # Config validation, wildcard constraints and input functions. Nothing heavy is
 # imported here: the DAG is built without torch, kornia or OpenEXR.
-from pathlib import Path
-
 from snakemake.utils import validate
 
 from depthgt import runlock  # standard library only
 from depthgt.device import check_device_available  # torch-free
-from depthgt.settings import check_config, check_scene_name, check_workflow, settings_from_config
-from depthgt.sources.base import check_scene_identity  # numpy only
+from depthgt.settings import check_config, check_scene_name, check_workflow, settings_from_config, stage_config
+from depthgt.sources.base import check_scene_identity, scene_file  # numpy only
 
 check_config(config, workflow.source_path("../schemas/config.schema.yaml"))
 validate(config, schema="../schemas/config.schema.yaml", set_default=True)
 # Every stage's settings, checked before any job runs (unknown keys, values, bounds,
 # patches.size <= resize, registration keys whatever the method); jobs rebuild theirs
-# from the config sections their rule passes (depthgt.settings.settings_from_config).
+# from the config sections their rule passes (STAGES below).
 SETTINGS = settings_from_config(config)
 check_workflow(SETTINGS)  # what no single section decides (overfit pretraining needs a train split)
 
@@ -53,15 +51,12 @@ def scene_source(wildcards):
 
 
 def scene_data(wildcards):
-    """The scene's .sens file, when the source is one (an input: Snakemake then re-runs
-    the index when the file changes); folder sources have too many files to list."""
+    """The scene's one file, when its kind may hold a scene in one (ScanNet's .sens; an input:
+    Snakemake then re-runs the index when the file changes); folder sources have too
+    many files to list."""
     src = SOURCES[wildcards.dataset]
-    if src["kind"] == "scannet" and src.get("root"):
-        root = Path(src["root"])
-        for sens in (root / wildcards.scene / f"{wildcards.scene}.sens", root / f"{wildcards.scene}.sens"):
-            if sens.is_file() and not (root / wildcards.scene / "depth").is_dir():
-                return {"sens": str(sens)}
-    return {}
+    path = scene_file(src["kind"], src.get("root"), wildcards.scene, **src.get("options", {}))
+    return {"scene_file": path} if path else {}
 
 
 # The plan: every scene's frame-set batches from its frame count (cheap metadata, see
@@ -100,17 +95,17 @@ def scene_summaries(what="framesets", ext="parquet"):
     return [f"results/scenes/{d}/{s}/{what}.{ext}" for d, s in SCENES]
 
 
-# The sections of the config that decide a stage's outputs; passed as params so that
-# changing one re-runs exactly the jobs it affects (Snakemake's params rerun trigger).
-# Jobs build their settings from the whole (validated) config, snakemake.config, with
-# depthgt.settings.settings_from_config, and use only these sections of it.
-# The index reads no frame: neither the registration (whether poses must be usable the
-# batches check), the working resolution nor the batch size decide it
-INDEX_CONFIG = {"seed": config.get("seed"), "split": config.get("split"),
-                "frameset": {k: v for k, v in config["frameset"].items() if k != "batch_size"}}
-FRAMESET_CONFIG = {k: config.get(k) for k in ("seed", "device", "frameset", "resize", "registration", "render", "patches")}
-# what the dataset card records as the settings that decided the GT
-GT_CONFIG = {**FRAMESET_CONFIG, "split": config.get("split")}
+# The sections of the config that decide a stage's outputs (depthgt.settings.STAGES, the
+# one table of them): passed as the rules' `config` params, so that changing one re-runs
+# exactly the jobs it affects (Snakemake's params rerun trigger), and the only config the
+# jobs get (workflow/scripts pass snakemake.params.config; a job narrows whatever it gets
+# to its stage's sections, depthgt.settings.stage_settings).
+INDEX_CONFIG = stage_config(config, "index")
+FRAMESET_CONFIG = stage_config(config, "frameset")
+PRETRAIN_CONFIG = stage_config(config, "pretrain")
+GT_CONFIG = stage_config(config, "dataset")  # what the dataset card records as the settings that decided the GT
+RDE_CONFIG = stage_config(config, "rde")
+EVALUATE_CONFIG = stage_config(config, "evaluate")
 
 
 # Per-job resources. The rules declare them so that every executor sees one request:

@@ -10,7 +10,7 @@ rule rde_scene:
         patches="results/rde/{dataset}/{scene}/patches.parquet",
     params:
         source=source_of,
-        config={"resize": config["resize"], "enhance": {"rde": ENHANCE.get("rde", {})}},
+        config=RDE_CONFIG,
     conda:
         ENV
     log:
@@ -77,7 +77,7 @@ rule evaluate_method:
         table="results/eval/{method}.parquet",
         predictions=directory("results/eval/predictions/{method}"),
     params:
-        config={"device": config.get("device", "auto"), "evaluation": {"split": SETTINGS.evaluation.split}},
+        config=EVALUATE_CONFIG,
     wildcard_constraints:
         method="|".join(METHODS),
     conda:

@@ -17,7 +17,6 @@ def registration_encoder(wildcards):
     return []
 
 
-ENHANCE = config.get("enhance", {})
 MODELS = list(registry.learned())  # every trainable model of the registry (target `train`)
 METHODS = list(SETTINGS.evaluation.methods)
 EVALUATED_MODELS = SETTINGS.evaluation.models  # trained by the default target
@@ -27,11 +26,8 @@ MANIFESTS = {"depthgt": "results/dataset", "rde": "results/rde"}  # the GT a lea
 
 def train_config(wildcards):
     """The config sections that decide a model's training (its params: a change re-runs
-    exactly this model); the job builds its TrainSettings from the whole config."""
-    key = registry.METHODS[wildcards.model].settings_key
-    models = ENHANCE.get("models", {})
-    return {"seed": config.get("seed", 0), "device": config.get("device", "auto"),
-            "enhance": {"train": ENHANCE.get("train", {}), "models": {key: models[key]} if key in models else {}}}
+    exactly this model; depthgt.settings.STAGES["train"]), the only config its job gets."""
+    return stage_config(config, "train", model=registry.METHODS[wildcards.model].settings_key)
 
 
 def train_manifests(wildcards):

@@ -9,7 +9,7 @@ rule pretrain_registration:
         "results/models/registration/encoder.pt",
     params:
         sources=SOURCES,
-        config=FRAMESET_CONFIG,
+        config=PRETRAIN_CONFIG,
     conda:
         ENV
     log:

@@ -7,5 +7,5 @@ from depthgt.jobs.gt import run_frameset_batch
 torch.set_num_threads(snakemake.threads)
 with logging_to(snakemake.log[0]):
     run_frameset_batch(snakemake.params.source, snakemake.wildcards.scene, int(snakemake.wildcards.first),
-                       int(snakemake.wildcards.last), snakemake.config, snakemake.input.index, snakemake.output.shard,
+                       int(snakemake.wildcards.last), snakemake.params.config, snakemake.input.index, snakemake.output.shard,
                        encoder=snakemake.input.encoder or None)

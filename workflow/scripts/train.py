@@ -9,5 +9,5 @@ resume = Path(snakemake.output.best).parent / "resume"
 with logging_to(snakemake.log[0], keep=resume / "job.log"):
     outputs = {"best": snakemake.output.best, "last": snakemake.output.last, "log": snakemake.output.log,
                "meta": snakemake.output.meta, "resume": str(resume)}
-    run_train(snakemake.wildcards.model, snakemake.config, snakemake.input.train, snakemake.input.val, outputs,
+    run_train(snakemake.wildcards.model, snakemake.params.config, snakemake.input.train, snakemake.input.val, outputs,
               threads=snakemake.threads)

@@ -44,7 +44,7 @@ import torch.nn.functional as F
 
 from depthgt.depth_ops import masked_avg_pool, valid_avg_pool
 
-__all__ = ["LapDENConfig", "LapDEN", "PRESETS", "lapden_from_preset", "push_pull_fill", "count_parameters"]
+__all__ = ["LapDENConfig", "LapDEN", "PRESETS", "lapden_from_preset", "build_lapden", "push_pull_fill", "count_parameters"]
 
 
 @dataclass(frozen=True)
@@ -95,6 +95,12 @@ def lapden_from_preset(name: str, **overrides) -> "LapDEN":
     for key in ("level_convs", "encoder_convs"):
         cfg[key] = tuple(cfg[key])
     return LapDEN(LapDENConfig(**cfg))
+
+
+def build_lapden(preset: str = "default", **overrides) -> "LapDEN":
+    """The registry's builder of ``lapden`` (:data:`depthgt.registry.MODELS`): the
+    config's ``model_params`` (``preset`` and LapDENConfig overrides) as keywords."""
+    return lapden_from_preset(preset, **overrides)
 
 
 def count_parameters(model: nn.Module) -> int:

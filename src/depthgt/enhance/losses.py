@@ -38,6 +38,7 @@ __all__ = [
     "gradient_l1",
     "normal_l1",
     "lapden_loss",
+    "lapden_loss_from_params",
 ]
 
 
@@ -132,3 +133,11 @@ def lapden_loss(outputs: list[torch.Tensor], batch: dict, config: LossConfig = L
             terms[k] += w_l * float(t.detach())
     terms["total"] = float(total.detach())
     return total, terms
+
+
+def lapden_loss_from_params(outputs: list[torch.Tensor], batch: dict, **params):
+    """:func:`lapden_loss` with the config's ``loss_params`` (:class:`LossConfig` fields)
+    as keywords: the registry's loss of ``lapden`` (:data:`depthgt.registry.MODELS`)."""
+    if "scale_weights" in params:
+        params = {**params, "scale_weights": tuple(params["scale_weights"])}
+    return lapden_loss(outputs, batch, LossConfig(**params))

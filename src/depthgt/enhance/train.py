@@ -1,10 +1,10 @@
 """Training and inference of the depth-enhancement networks (small step functions).
 
-A model is chosen by name from :data:`MODELS` (``lapden``, ``ddrnet``, ``sdd``: the
-``builder`` names of the learned methods of :mod:`depthgt.registry`); each entry pairs a builder (plain keyword parameters -> ``nn.Module``) with its loss
-(``loss(outputs, batch, **loss_params) -> (total, terms)``, see
-:mod:`depthgt.enhance.losses`). Every model maps depth (B, 1, H, W) metres to a list
-of depth maps, finest last.
+A model is chosen by name from :data:`depthgt.registry.MODELS` (``lapden``, ``ddrnet``,
+``sdd``: the ``builder`` names of the learned methods); each entry names a builder (plain
+keyword parameters -> ``nn.Module``), its loss (``loss(outputs, batch, **loss_params) ->
+(total, terms)``, see :mod:`depthgt.enhance.losses`) and the loss terms its log records.
+Every model maps depth (B, 1, H, W) metres to a list of depth maps, finest last.
 
 :func:`train` reads the patch manifests (``results/dataset/{train,val}.parquet``: one
 row per kept patch pair with ``frameset`` (its ``patches.npz`` lies there) and ``patch`` (its index
@@ -13,7 +13,8 @@ of :class:`TrainOutputs` (in the workflow: ``results/models/{model}/``)::
 
     last           model + optimiser state after the last finished epoch (resume point)
     best           the checkpoint with the lowest validation loss
-    log            loss_log.csv: epoch, split, loss terms, batches, seconds
+    log            loss_log.csv: epoch, split, total, the model's loss terms, batches,
+                   seconds (:func:`depthgt.registry.log_columns`)
     meta           train.json: resolved settings, parameter count, best epoch, versions
     resume         optional folder of the resume state (``last.pt``, ``best.pt``, written
                    every epoch; ``last`` and ``best`` are then written when training ends)
@@ -28,6 +29,7 @@ Snakemake deletes the outputs of a killed job before it runs the job again.
 from __future__ import annotations
 
 import csv
+import importlib
 import json
 import logging
 import shutil
@@ -43,6 +45,7 @@ import torch
 import torch.nn as nn
 from torch.utils.data import Dataset
 
+from depthgt import registry
 from depthgt.atomic import write_atomic
 from depthgt.data import GTDataset, training_fields
 from depthgt.device import resolve_device
@@ -51,7 +54,6 @@ from depthgt.settings import TrainSettings
 from depthgt.testhook import hold
 
 __all__ = [
-    "MODELS",
     "TrainOutputs",
     "build_model",
     "build_loss",
@@ -69,69 +71,30 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-LOG_COLUMNS = ["epoch", "split", "total", "depth", "grad", "normal", "structure", "smooth", "batches", "seconds"]
 
 
 # --------------------------------------------------------------------------- models
 
 
-def _build_lapden(preset: str = "default", **overrides) -> nn.Module:
-    from depthgt.enhance.lapden import lapden_from_preset
-
-    return lapden_from_preset(preset, **overrides)
-
-
-def _lapden_loss(outputs, batch, **params):
-    from depthgt.enhance.losses import LossConfig, lapden_loss
-
-    if "scale_weights" in params:
-        params = {**params, "scale_weights": tuple(params["scale_weights"])}
-    return lapden_loss(outputs, batch, LossConfig(**params))
+def _function(path: str) -> Callable:
+    module, name = path.split(":")
+    return getattr(importlib.import_module(module), name)
 
 
-def _build_ddrnet(**params) -> nn.Module:
-    from depthgt.enhance.learned import DDRNetDenoise
-
-    return DDRNetDenoise(**params)
-
-
-def _ddrnet_loss(outputs, batch, **params):
-    from depthgt.enhance.learned import ddrnet_loss
-
-    return ddrnet_loss(outputs, batch, **params)
-
-
-def _build_sdd(**params) -> nn.Module:
-    from depthgt.enhance.learned import SDDUNet
-
-    return SDDUNet(**params)
-
-
-def _sdd_loss(outputs, batch, **params):
-    from depthgt.enhance.learned import sdd_loss
-
-    return sdd_loss(outputs, batch, **params)
-
-
-MODELS: dict[str, tuple[Callable[..., nn.Module], Callable]] = {
-    "lapden": (_build_lapden, _lapden_loss),
-    "ddrnet": (_build_ddrnet, _ddrnet_loss),
-    "sdd": (_build_sdd, _sdd_loss),
-}
+def _model(name: str) -> registry.Model:
+    if name not in registry.MODELS:
+        raise ConfigError(f"train.model: unknown model {name!r}; known: {sorted(registry.MODELS)}")
+    return registry.MODELS[name]
 
 
 def build_model(name: str, params: dict | None = None) -> nn.Module:
-    """Model ``name`` from :data:`MODELS` built with keyword ``params``."""
-    if name not in MODELS:
-        raise ConfigError(f"train.model: unknown model {name!r}; known: {sorted(MODELS)}")
-    return MODELS[name][0](**(params or {}))
+    """Model ``name`` of :data:`depthgt.registry.MODELS` built with keyword ``params``."""
+    return _function(_model(name).build)(**(params or {}))
 
 
 def build_loss(name: str, params: dict | None = None) -> Callable:
     """Loss of model ``name``: ``loss(outputs, batch) -> (total, terms)``."""
-    if name not in MODELS:
-        raise ConfigError(f"train.model: unknown model {name!r}; known: {sorted(MODELS)}")
-    return partial(MODELS[name][1], **(params or {}))
+    return partial(_function(_model(name).loss), **(params or {}))
 
 
 class TrainOutputs(NamedTuple):
@@ -288,22 +251,35 @@ def _copy_atomic(src: Path, dst: Path) -> None:
     write_atomic(dst, lambda tmp: shutil.copyfile(src, tmp))
 
 
-def _write_log(path: Path, rows: list[dict]) -> None:
+def _write_log(path: Path, rows: list[dict], columns: tuple[str, ...]) -> None:
     def write(tmp: Path) -> None:
         with tmp.open("w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=LOG_COLUMNS, extrasaction="ignore")
+            w = csv.DictWriter(f, fieldnames=columns, extrasaction="ignore")
             w.writeheader()
             for r in rows:
-                w.writerow({k: r.get(k, "") for k in LOG_COLUMNS})
+                w.writerow({k: r.get(k, "") for k in columns})
 
     write_atomic(path, write)
 
 
-def _log_row(epoch: int, split: str, terms: dict) -> dict:
+def _log_row(epoch: int, split: str, terms: dict, model: str) -> dict:
+    """One row of the loss log of ``model`` (:func:`depthgt.registry.log_columns`).
+
+    Raises:
+        ValueError: the loss reported a term the model's log has no column for (it would
+            be dropped without a word), or not one it has.
+    """
+    columns = registry.log_columns(model)
+    extra = sorted(set(terms) - set(columns))
+    missing = sorted(set(columns[2:]) - set(terms))
+    if extra or missing:
+        raise ValueError(f"model {model!r}: its loss reported the terms {sorted(terms)}; the loss log's columns are "
+                         f"{list(columns[2:])} (depthgt.registry.MODELS[{model!r}].log_terms): "
+                         + "; ".join(f"{what} {names}" for what, names in (("not logged:", extra), ("missing:", missing))
+                                     if names))
     row = {"epoch": epoch, "split": split}
-    for k in LOG_COLUMNS[2:]:
-        if k in terms:
-            row[k] = f"{terms[k]:.6g}" if k != "batches" else int(terms[k])
+    for k in columns[2:]:
+        row[k] = f"{terms[k]:.6g}" if k != "batches" else int(terms[k])
     return row
 
 
@@ -372,10 +348,10 @@ def train(manifest_train: str | Path | pd.DataFrame, manifest_val: str | Path | 
     n_params = sum(p.numel() for p in model.parameters() if p.requires_grad)
     for epoch in range(start, settings.epochs):
         tr = train_epoch(model, loss_fn, optimizer, train_set, settings, epoch, device)
-        rows.append(_log_row(epoch, "train", tr))
+        rows.append(_log_row(epoch, "train", tr, settings.model))
         if val_set is not None:
             va = evaluate(model, loss_fn, val_set, settings.batch_size, device)
-            rows.append(_log_row(epoch, "val", va))
+            rows.append(_log_row(epoch, "val", va, settings.model))
             score = va["total"]
         else:
             score = tr["total"]
@@ -395,13 +371,13 @@ def train(manifest_train: str | Path | pd.DataFrame, manifest_val: str | Path | 
             best_val, best_epoch = score, epoch
             ckpt["best_val"], ckpt["best_epoch"] = best_val, best_epoch
             _save_atomic(ckpt, best_path)
-        _write_log(log_path, rows)
+        _write_log(log_path, rows, registry.log_columns(settings.model))
         _save_atomic(ckpt, last_path)
         hold(f"train:{last_path}:epoch={epoch}")  # a pause point for tests that kill training (depthgt.testhook)
 
     if out.resume is not None:
         if start >= settings.epochs:
-            _write_log(log_path, rows)  # every epoch was done before: the outputs from the state
+            _write_log(log_path, rows, registry.log_columns(settings.model))  # every epoch was done before: the outputs from the state
         _copy_atomic(best_path, out.best)
         _copy_atomic(last_path, out.last)
 
@@ -436,7 +412,7 @@ def predict(model: nn.Module, depth_m: torch.Tensor, chunk: int = 8) -> torch.Te
     """Enhanced depth of full frames.
 
     Args:
-        model: a model of :data:`MODELS` (any input size that is a multiple of its
+        model: a model of :data:`depthgt.registry.MODELS` (any input size that is a multiple of its
             ``size_multiple`` attribute, default 4; other sizes are padded by
             replication and cropped back).
         depth_m: (B, 1, H, W) metres, 0 = invalid; on any device (the model's is used).

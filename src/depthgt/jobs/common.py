@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from depthgt.errors import ConfigError
-from depthgt.sources.base import open_scene
+from depthgt.sources.base import open_scene, source_kind
 from depthgt.testhook import hold
 
 __all__ = ["logging_to", "open_source_scene"]
@@ -59,20 +59,23 @@ def logging_to(path: str | Path | None, level: int = logging.INFO, keep: str | P
         root.setLevel(old)
 
 
-POSE_OPTIONAL_KINDS = ("scannet", "sevenscenes", "tum")
-
-
 def open_source_scene(source: dict[str, Any], scene: str, need_poses: bool = True):
-    """Open ``scene`` of a config source entry (name, kind, root, options).
+    """Open ``scene`` of a config source entry (name, kind, root, options,
+    colour_matches_depth).
 
-    When the registration does not need the source's poses, real sources are opened
-    with ``require_pose=False`` so that frames with non-finite poses (ScanNet has them)
-    stay usable.
+    When the registration does not need the source's poses, a kind whose poses are
+    optional (:class:`depthgt.sources.base.SourceKind`) is opened with
+    ``require_pose=False`` so that frames with non-finite poses (ScanNet has them) stay
+    usable. ``colour_matches_depth: true|false`` overrides the kind's (``auto``).
     """
     options = dict(source.get("options") or {})
-    if not need_poses and source["kind"] in POSE_OPTIONAL_KINDS:
+    if not need_poses and source_kind(source["kind"]).poses_optional:
         options.setdefault("require_pose", False)
     try:
-        return open_scene(source["kind"], source.get("root"), scene, **options)
+        opened = open_scene(source["kind"], source.get("root"), scene, **options)
     except TypeError as err:
         raise ConfigError(f"config sources entry {source.get('name')!r} (kind {source['kind']}): bad options: {err}") from err
+    colour = source.get("colour_matches_depth", "auto")
+    if colour != "auto":
+        opened.colour_matches_depth = bool(colour)
+    return opened

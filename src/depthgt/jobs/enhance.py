@@ -2,7 +2,8 @@
 (global-reconstruction) GT of a scene and of the dataset.
 
 Each Snakemake script calls one of these with its rule's paths (every output path
-explicitly) and config sections; nothing heavy (torch) is imported at module level.
+explicitly) and the config sections of its stage (:data:`depthgt.settings.STAGES`);
+nothing heavy (torch) is imported at module level.
 """
 
 from __future__ import annotations
@@ -14,8 +15,9 @@ from typing import Any, Mapping
 
 import pandas as pd
 
+from depthgt import registry
 from depthgt.jobs.common import open_source_scene
-from depthgt.settings import settings_from_config
+from depthgt.settings import stage_settings
 
 __all__ = ["run_train", "run_rde_scene", "run_rde_dataset"]
 
@@ -25,7 +27,7 @@ log = logging.getLogger("depthgt")
 def run_train(model: str, config: Mapping[str, Any], train_manifest: str, val_manifest: str | None,
               outputs: Mapping[str, str], threads: int = 1) -> dict:
     """Train the registry model ``model`` (its :class:`~depthgt.settings.TrainSettings`
-    from the config's ``enhance`` section).
+    from the config sections of stage ``train``, :data:`depthgt.settings.STAGES`).
 
     Args:
         outputs: the paths ``best``, ``last``, ``log``, ``meta`` and optionally
@@ -38,7 +40,7 @@ def run_train(model: str, config: Mapping[str, Any], train_manifest: str, val_ma
     from depthgt.enhance.train import TrainOutputs, train
 
     torch.set_num_threads(max(1, int(threads)))
-    st = settings_from_config(config).train(model)
+    st = stage_settings(config, "train", model=registry.METHODS[model].settings_key).train(model)
     out = TrainOutputs(**{k: Path(outputs[k]) for k in TrainOutputs._fields if outputs.get(k) is not None})
     result = train(train_manifest, val_manifest, out, st)
     log.info("trained %s (%s) -> %s: best epoch %d (val %.5f), %d epochs run", model, st.model, out.best,
@@ -58,7 +60,7 @@ def run_rde_scene(source: dict[str, Any], scene: str, scene_framesets: str, conf
     from depthgt.gt.cache import ResizedScene
     from depthgt.gt.rde import rde_scene
 
-    all_settings = settings_from_config(config)
+    all_settings = stage_settings(config, "rde")
     sc = ResizedScene(open_source_scene(source, scene, need_poses=True), all_settings.size_hw)
     fs, patches = rde_scene(sc, pd.read_parquet(scene_framesets), all_settings.enhance.rde, out_shard)
     for table, path in ((fs, out_framesets), (patches, out_patches)):

@@ -2,8 +2,8 @@
 registration encoder's pretraining.
 
 Each Snakemake script calls one of these with its rule's paths (every output path
-explicitly) and config sections; the job gets its settings from
-:func:`depthgt.settings.settings_from_config`, calls one library function and writes
+explicitly) and the config sections of its stage (:data:`depthgt.settings.STAGES`); the
+job gets its settings from them (:func:`depthgt.settings.stage_settings`), calls one library function and writes
 the outputs. Every job also runs and is tested without Snakemake.
 """
 
@@ -27,22 +27,21 @@ from depthgt.gt.card import build_card, write_card
 from depthgt.gt.index import build_index, select_pretraining_framesets
 from depthgt.gt.planning import member_problems
 from depthgt.jobs.common import open_source_scene
-from depthgt.settings import settings_from_config
+from depthgt.settings import STAGES, stage_settings
 from depthgt.status import Status
 
 __all__ = ["run_scene_index", "run_frameset_batch", "run_scene_summary", "run_dataset", "run_pretrain_registration"]
 
 log = logging.getLogger("depthgt")
 
-# the settings sections that decide the GT (recorded in the dataset card)
-GT_SECTIONS = ("seed", "device", "resize", "frameset", "split", "patches", "render", "registration")
 
 
 def run_scene_index(source: dict[str, Any], scene: str, config: Mapping[str, Any], out_parquet: str,
                     out_json: str) -> None:
     """List a scene's frames and frame sets from its metadata (no frame is read) and
-    write its index (parquet + json)."""
-    settings = settings_from_config(config)
+    write its index (parquet + json); ``config``: the sections of stage ``index``
+    (:data:`depthgt.settings.STAGES`; a whole config is narrowed to them)."""
+    settings = stage_settings(config, "index")
     sc = open_source_scene(source, scene, need_poses=False)  # reads no frame: poses do not matter here
     index = build_index(sc, source["name"], source.get("split", "auto"), fs_settings=settings.frameset,
                         split_settings=settings.split, seed=settings.seed)
@@ -87,7 +86,7 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
 
     keep_freed_memory()  # a process of its own: no page faults for every large tensor
 
-    settings = settings_from_config(config)
+    settings = stage_settings(config, "frameset")
     need_poses = settings.registration.uses_source_poses
     planned = [t for t in settings.frameset.targets(last + settings.frameset.reach + 1) if first <= t <= last]
     table = pd.read_parquet(index_parquet)
@@ -162,8 +161,9 @@ def run_dataset(scene_framesets: list[str], scene_patches: list[str], scene_qual
             ``summary_md``, ``quality`` (:class:`depthgt.gt.assemble.DatasetOutputs`) and
             ``card``, ``card_md``.
         shards: every frame-set shard of the build (checksummed in the card).
-        config: the config sections that decide the GT (their resolved settings, defaults
-            filled in, are recorded in the card).
+        config: the config sections that decide the GT (stage ``dataset`` of
+            :data:`depthgt.settings.STAGES`; their resolved settings, defaults filled in,
+            are recorded in the card).
     """
     out = DatasetOutputs(**{k: outputs[k] for k in DatasetOutputs._fields})
     summary = assemble(scene_framesets, scene_patches, scene_quality, scene_frames, index_jsons, out)
@@ -172,7 +172,7 @@ def run_dataset(scene_framesets: list[str], scene_patches: list[str], scene_qual
     results = Path(outputs["card"]).parent.parent
     card = build_card(results, summary, pd.read_parquet(out.framesets), pd.read_csv(out.quality),
                       [json.loads(Path(p).read_text()) for p in index_jsons],
-                      settings_from_config(config or {}).doc(*GT_SECTIONS),
+                      stage_settings(config or {}, "dataset").doc(*STAGES["dataset"].top),
                       [*(shards or []), *out])
     write_card(card, outputs["card"], outputs["card_md"])
     log.info("dataset card: %d files checksummed (depthgt %s, commit %s)", len(card["files"]),
@@ -194,7 +194,7 @@ def run_pretrain_registration(sources: Mapping[str, dict[str, Any]], index_jsons
     from depthgt.gt.build import load_frameset
     from depthgt.registration import pretrain_encoder
 
-    settings = settings_from_config(config)
+    settings = stage_settings(config, "pretrain")
     pre = settings.registration.pretrain
     device = resolve_device(settings.device)
     candidates = select_pretraining_framesets(index_jsons, pre.framesets, settings.seed)

@@ -1,7 +1,8 @@
 """Entry points of the report jobs: evaluation of one method, the tables, the figures.
 
 Each Snakemake script calls one of these with its rule's paths (every output path
-explicitly) and config sections; nothing heavy (torch) is imported at module level.
+explicitly) and the config sections of its stage (:data:`depthgt.settings.STAGES`);
+nothing heavy (torch) is imported at module level.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import pandas as pd
 
 from depthgt.device import resolve_device
 from depthgt.eval import figures
-from depthgt.settings import settings_from_config
+from depthgt.settings import stage_settings
 from depthgt.status import Status
 
 __all__ = ["run_evaluate", "run_tables", "run_figures"]
@@ -38,7 +39,7 @@ def run_evaluate(method: str, config: Mapping[str, Any], framesets: str, out_tab
     from depthgt.eval.evaluate import evaluate_frames, method_spec
 
     torch.set_num_threads(max(1, int(threads)))
-    settings = settings_from_config(config)
+    settings = stage_settings(config, "evaluate")
     spec = method_spec(method, checkpoint, device=str(resolve_device(settings.device)) if checkpoint else None)
     split = settings.evaluation.split
     table = evaluate_frames(framesets, {method: spec}, references=("gt", "truth"), split=split,

@@ -9,8 +9,9 @@ presets: :class:`depthgt.settings.RegistrationSettings`,
 
 from depthgt.registration.encoder import build_encoder
 from depthgt.registration.local import refine_source_poses
-from depthgt.registration.overfit import RegistrationResult, pretrain_encoder, register_frameset
+from depthgt.registration.overfit import pretrain_encoder, register_frameset
 from depthgt.registration.refine import refine_poses
+from depthgt.registration.result import RegistrationResult
 
 __all__ = ["RegistrationResult", "build_encoder", "pretrain_encoder", "refine_poses", "refine_source_poses",
            "register_frameset"]

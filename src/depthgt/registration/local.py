@@ -18,8 +18,9 @@ import time
 
 import torch
 
-from depthgt.registration.overfit import RegistrationResult, check_neighbours, set_status
+from depthgt.registration.checks import check_neighbours, set_status
 from depthgt.registration.refine import refine_poses
+from depthgt.registration.result import RegistrationResult
 from depthgt.settings import RegistrationSettings
 
 __all__ = ["refine_source_poses"]
@@ -43,7 +44,7 @@ def refine_source_poses(
         settings: ``refine_settings`` and the neighbour checks.
 
     Returns:
-        :class:`~depthgt.registration.overfit.RegistrationResult` (no correspondences,
+        :class:`~depthgt.registration.result.RegistrationResult` (no correspondences,
         no loss curve); ``diagnostics`` holds the correction per neighbour.
     """
     t_start = time.perf_counter()

@@ -11,7 +11,6 @@ never silently kept.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
@@ -19,79 +18,23 @@ from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Callable, Iterable
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
 from depthgt.metric_vocabulary import pose_delta
+from depthgt.registration.checks import check_neighbours, set_status
 from depthgt.registration.correspondences import find_correspondences, sample_candidates
 from depthgt.geometry import backproject
 from depthgt.registration.encoder import build_encoder, candidate_points
 from depthgt.registration.losses import correspondence_loss, default_render_fn, render_losses
 from depthgt.registration.procrustes import procrustes_random_subsets
 from depthgt.registration.refine import Level, LevelSettings, pair_mean_cost, refine_poses
+from depthgt.registration.result import RegistrationResult
 from depthgt.settings import RegistrationSettings
 
-__all__ = ["RegistrationResult", "register_frameset", "pretrain_encoder", "frameset_loss", "check_neighbours", "set_status"]
+__all__ = ["register_frameset", "pretrain_encoder", "frameset_loss"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class RegistrationResult:
-    """Outcome of :func:`register_frameset`.
-
-    Attributes:
-        T_j_to_t: (F-1, 4, 4) float64, neighbour j's camera points into the target camera.
-        offsets: the frame offsets (``offsets[0] == 0`` is the target).
-        neighbour_status: "ok" | "failed" per neighbour; ``neighbour_reasons`` the why
-            ("" when ok).
-        status, reason: overall "ok" | "failed" and reason.
-        loss_curve: total training loss per iteration.
-        pose_history: per iteration, per neighbour ``{"dt_m", "dr_deg"}`` change of
-            T_j_to_t from the previous iteration.
-        n_correspondences: per neighbour, target-pair matches with weight >=
-            ``confident_weight`` at the final estimate.
-        timings: seconds per phase.
-        diagnostics: refinement cost, inlier fractions, condition numbers, chaining
-            choices, poses before refinement.
-        normals: (F, 3, H, W) the refinement's full-resolution normals of the members
-            (:attr:`RefineResult.normals`; the GT renderer reuses them), or None. Not
-            written to poses.json.
-    """
-
-    T_j_to_t: torch.Tensor
-    offsets: list[int]
-    neighbour_status: list[str]
-    neighbour_reasons: list[str]
-    status: str
-    reason: str
-    loss_curve: list[float] = field(default_factory=list)
-    pose_history: list[list[dict]] = field(default_factory=list)
-    n_correspondences: list[int] = field(default_factory=list)
-    timings: dict[str, float] = field(default_factory=dict)
-    diagnostics: dict = field(default_factory=dict)
-    normals: torch.Tensor | None = None
-
-    def to_dict(self) -> dict:
-        T = self.T_j_to_t.detach().cpu().numpy()
-        return {
-            "status": self.status,
-            "reason": self.reason,
-            "neighbours": [
-                {"offset": int(o), "T_j_to_t": T[i].tolist(), "status": self.neighbour_status[i],
-                 "reason": self.neighbour_reasons[i], "n_correspondences": int(self.n_correspondences[i])}
-                for i, o in enumerate(self.offsets[1:])
-            ],
-            "loss_curve": [float(x) for x in self.loss_curve],
-            "pose_history": self.pose_history,
-            "timings_s": {k: round(float(v), 4) for k, v in self.timings.items()},
-            "diagnostics": self.diagnostics,
-        }
-
-    def to_json(self, indent: int | None = 1) -> str:
-        """poses.json content: poses per neighbour, statuses, loss curve, timings."""
-        return json.dumps(self.to_dict(), indent=indent)
 
 
 # --------------------------------------------------------------------------- inputs
@@ -411,65 +354,6 @@ def _final_estimate(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSett
     n_corr = torch.zeros(Fn, dtype=torch.long)
     n_corr[fs.pairs[tsel, 1].cpu()] = n_conf[tsel].cpu()
     return T_ba, T_paper, n_corr
-
-
-def check_neighbours(T: torch.Tensor, n_corr: torch.Tensor | None, refined, s: RegistrationSettings,
-                     T_start: torch.Tensor | None = None) -> tuple[list[str], list[str]]:
-    """Status ("ok" | "failed") and reasons of every neighbour (see the failure checks of
-    :class:`~depthgt.settings.RegistrationSettings`).
-
-    Args:
-        T: (F, 4, 4) final poses in the target camera; n_corr: (F,) confident matches
-            (None: no correspondence step, e.g. refined source poses); refined: the
-            :class:`~depthgt.registration.refine.RefineResult` or None.
-        T_start: (F, 4, 4) poses the refinement started from when they are a source's
-            (method ``refine``): the correction T_start^-1 T must stay within
-            ``max_correction_m`` / ``max_correction_deg``, else the refinement diverged.
-    """
-    statuses, reasons = [], []
-    dt, dr = pose_delta(T[1:])
-    if T_start is not None:
-        ct, cr = pose_delta(torch.linalg.inv(T_start[1:].to(T.dtype)) @ T[1:])
-    for i in range(T.shape[0] - 1):
-        why = []
-        if n_corr is not None and int(n_corr[i + 1]) < s.min_confident:
-            why.append(f"too_few_confident_correspondences({int(n_corr[i + 1])}<{s.min_confident})")
-        if dt[i] > s.max_translation_m or dr[i] > s.max_rotation_deg:
-            why.append(f"pose_jump({dt[i]:.3f}m,{dr[i]:.1f}deg)")
-        if T_start is not None and not (ct[i] <= s.max_correction_m and cr[i] <= s.max_correction_deg):
-            why.append(f"large_correction({ct[i] * 100:.2f}cm,{cr[i]:.2f}deg)")
-        if refined is not None:
-            fr = float(refined.inlier_fraction[i + 1])
-            cond = float(refined.condition[i + 1])
-            if fr < s.min_inlier_fraction:
-                why.append(f"low_inlier_fraction({fr:.2f})")
-            if not cond < s.max_condition:
-                why.append(f"degenerate_alignment(condition={cond:.3g})")
-            res = float(refined.residual_m[i + 1])
-            res_sig = float(refined.residual_sigmas[i + 1]) if refined.residual_sigmas is not None else float("nan")
-            # NaN: nothing associated (or no noise estimate: the metric bound alone)
-            if not (res <= s.max_residual_m or (s.max_residual_sigmas > 0 and res_sig <= s.max_residual_sigmas)):
-                why.append(f"high_residual({res * 100:.2f}cm,{res_sig:.2f}sigma)")
-        if not torch.isfinite(T[i + 1]).all():
-            why.append("non_finite_pose")
-        statuses.append("failed" if why else "ok")
-        reasons.append(";".join(why))
-    return statuses, reasons
-
-
-def set_status(statuses: list[str], loss_curve: list[float], s: RegistrationSettings) -> tuple[str, str]:
-    """Status of the whole set: failed when too few neighbours registered or (without
-    refinement) when the training loss did not decrease."""
-    n_ok, n = statuses.count("ok"), len(statuses)
-    status, reason = "ok", ""
-    if not s.refine and len(loss_curve) >= 4:
-        k = max(1, len(loss_curve) // 4)
-        if np.mean(loss_curve[-k:]) > np.mean(loss_curve[:k]):
-            status, reason = "failed", "loss_not_decreasing"
-    if n_ok < s.min_ok_fraction * n:
-        status = "failed"
-        reason = ";".join(x for x in [reason, f"only {n_ok} of {n} neighbours registered"] if x)
-    return status, reason
 
 
 def register_frameset(

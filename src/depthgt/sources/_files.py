@@ -78,7 +78,6 @@ class FileScene:
     whether poses are required, and the list of scene-level problems."""
 
     has_clean_depth = False
-    colour_matches_depth = False  # colour from another camera / instant: no sub-pixel photometric term
 
     def _init_files(self, folder: str | Path, name: str, depth_scale: float, require_pose: bool) -> None:
         self.path = Path(folder)

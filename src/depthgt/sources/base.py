@@ -11,16 +11,19 @@ Every adapter opens one *scene* (a single continuous RGB-D stream) and exposes:
   depth's instant (synthetic), so that a photometric residual is exact to the sub-pixel;
   real sensors' colour comes from another camera (7-Scenes, ScanNet) or another instant
   (TUM: 10-20 ms apart), and the registration leaves its photometric refinement term
-  out there (``registration.photometric: auto``);
+  out there (``registration.photometric: auto``). Set by :func:`open_scene` from the
+  kind's registry entry (a config source may override it), not by the adapter;
 * ``scene.has_clean_depth``: whether ``read`` returns noise-free depth (synthetic);
 * ``scene.frame_id(i)``: the source's own id for position ``i`` (file number,
   timestamp, ...), used in manifests;
 * ``scene.read(i) -> Frame``: raises :class:`~depthgt.errors.FrameError` when the
   frame is unusable (the message names the file).
 
-Adapters register themselves with :func:`register` and are imported lazily by
-:func:`open_scene`, so that opening a 7-Scenes folder never imports the ``.sens``
-reader and nothing heavy happens while Snakemake parses the workflow.
+Every source kind is one entry of the registry :data:`KINDS` (:class:`SourceKind`): its
+adapter module, its options and their checks, whether its poses are optional, whether a
+scene may be a single file and whether its colour matches its depth. Adapter modules are
+imported lazily, by the functions below, so that opening a 7-Scenes folder never imports
+the ``.sens`` reader and the workflow's start-up checks import no adapter at all.
 
 Checks that run when the workflow starts, before any data is opened (numpy only):
 :func:`check_options` (the adapter options of a source) and
@@ -79,59 +82,44 @@ class Scene(Protocol):
     def read(self, i: int) -> Frame: ...
 
 
-# kind -> "module:function" that opens a scene: f(root, scene, **options) -> Scene
-# and "module:function" that lists scenes: g(root, **options) -> list[str].
-_ADAPTERS: dict[str, tuple[str, str]] = {
-    "synthetic": ("depthgt.sources.synthetic:open_scene", "depthgt.sources.synthetic:list_scenes"),
-    "scannet": ("depthgt.sources.scannet:open_scene", "depthgt.sources.scannet:list_scenes"),
-    "sevenscenes": ("depthgt.sources.sevenscenes:open_scene", "depthgt.sources.sevenscenes:list_scenes"),
-    "tum": ("depthgt.sources.tum:open_scene", "depthgt.sources.tum:list_scenes"),
-}
-
-
-def register(kind: str, opener: str, lister: str, options: Mapping[str, "OptionCheck"] | None = None) -> None:
-    """Register an adapter by dotted ``module:function`` paths (imported lazily).
-
-    Args:
-        options: name -> :class:`OptionCheck` of every option the adapter takes, checked
-            by :func:`check_options` at workflow start; None: options are not checked
-            before the adapter opens a scene.
-    """
-    _ADAPTERS[kind] = (opener, lister)
-    if options is None:
-        _OPTIONS.pop(kind, None)
-    else:
-        _OPTIONS[kind] = dict(options)
-
-
 def known_kinds() -> list[str]:
-    return sorted(_ADAPTERS)
+    """The registered source kinds, sorted."""
+    return sorted(KINDS)
 
 
-def _resolve(path: str) -> Callable[..., Any]:
-    module, func = path.split(":")
-    return getattr(importlib.import_module(module), func)
+def source_kind(kind: str) -> "SourceKind":
+    """The registry entry of ``kind``.
 
-
-def _adapter(kind: str) -> tuple[str, str]:
-    if kind not in _ADAPTERS:
+    Raises:
+        SourceError: unknown kind (the message lists the known ones).
+    """
+    if kind not in KINDS:
         raise SourceError(f"unknown source kind {kind!r}; known kinds: {', '.join(known_kinds())}")
-    return _ADAPTERS[kind]
+    return KINDS[kind]
+
+
+def _adapter(kind: str):
+    """The adapter module of ``kind``, imported now (lazily: only the kinds in use)."""
+    return importlib.import_module(source_kind(kind).module)
 
 
 def open_scene(kind: str, root: str | None, scene: str, **options: Any) -> Scene:
-    """Open scene ``scene`` of a source of kind ``kind`` under ``root``.
+    """Open scene ``scene`` of a source of kind ``kind`` under ``root``; the scene's
+    ``colour_matches_depth`` is the kind's (:class:`SourceKind`; a config source
+    overrides it, :func:`depthgt.jobs.common.open_source_scene`).
 
     Raises:
         SourceError: unknown kind, unknown scene (the message lists the known ones),
             or a scene that cannot be opened.
     """
-    return _resolve(_adapter(kind)[0])(root, scene, **options)
+    opened = _adapter(kind).open_scene(root, scene, **options)
+    opened.colour_matches_depth = KINDS[kind].colour_matches_depth
+    return opened
 
 
 def list_scenes(kind: str, root: str | None, **options: Any) -> list[str]:
     """Names of the scenes a source holds, sorted."""
-    return _resolve(_adapter(kind)[1])(root, **options)
+    return _adapter(kind).list_scenes(root, **options)
 
 
 def frame_count(kind: str, root: str | None, scene: str, **options: Any) -> int:
@@ -146,11 +134,21 @@ def frame_count(kind: str, root: str | None, scene: str, **options: Any) -> int:
     Raises:
         SourceError: as :func:`open_scene`.
     """
-    module = importlib.import_module(_adapter(kind)[0].split(":")[0])
-    counter = getattr(module, "frame_count", None)
+    counter = getattr(_adapter(kind), "frame_count", None)
     if counter is not None:
         return int(counter(root, scene, **options))
     return len(open_scene(kind, root, scene, **options))
+
+
+def scene_file(kind: str, root: str | None, scene: str, **options: Any) -> str | None:
+    """The one file that holds a scene (ScanNet's ``.sens``), or None: a kind without
+    ``single_file`` (:class:`SourceKind`), or a scene that is a folder. The workflow makes
+    it an input of the scene's index, so that a change of the file re-runs it (a folder
+    has too many files to list)."""
+    if not source_kind(kind).single_file or root is None:
+        return None
+    path = _adapter(kind).scene_file(root, scene, **options)
+    return None if path is None else str(path)
 
 
 # ---------------------------------------------------------------- frame checks
@@ -289,13 +287,59 @@ SYNTHETIC_NOISE_FIELDS = (
 #: Default of the synthetic ``seed`` option (part of a synthetic scene's identity).
 SYNTHETIC_DEFAULT_SEED = 0
 
-# kind -> option name -> check. The values mirror what each adapter accepts (tests keep
-# the names equal to the adapters' signatures); image sizes are bounded so that one
-# synthetic frame cannot exhaust memory.
-_OPTIONS: dict[str, dict[str, OptionCheck]] = {
-    "scannet": {"depth_scale": _DEPTH_SCALE, "require_pose": _BOOL, "intrinsics": _K_ANY},
-    "sevenscenes": {"depth_scale": _DEPTH_SCALE, "require_pose": _BOOL, "intrinsics": _K33},
-    "tum": {
+
+
+@dataclass(frozen=True)
+class SourceKind:
+    """One source kind of the registry :data:`KINDS`: everything the project knows of it.
+
+    Attributes:
+        module: the adapter module, imported lazily (when a scene of the kind is listed,
+            counted or opened): ``open_scene(root, scene, **options) -> Scene`` and
+            ``list_scenes(root, **options) -> list[str]``; optionally
+            ``frame_count(root, scene, **options)`` (planning from cheap metadata, see
+            :func:`frame_count`) and, with ``single_file``, ``scene_file(root, scene,
+            **options)``.
+        options: option name -> :class:`OptionCheck` of every option ``open_scene``
+            takes, checked when the workflow starts (:func:`check_options`, numpy only:
+            the module is not imported); None: not checked before the adapter opens a
+            scene.
+        poses_optional: the source's poses may be missing or unusable (option
+            ``require_pose``): a job whose registration needs no poses opens it with
+            ``require_pose: false`` (:func:`depthgt.jobs.common.open_source_scene`).
+        single_file: a scene may be one file (:func:`scene_file`).
+        colour_matches_depth: colour is taken by the depth's camera at the depth's
+            instant (``Scene.colour_matches_depth``; decides ``registration.photometric:
+            auto``); a source's ``colour_matches_depth: true|false`` in the config
+            overrides it for data that says otherwise (e.g. synthetic data exported in
+            ScanNet's layout).
+    """
+
+    module: str
+    options: Mapping[str, OptionCheck] | None
+    poses_optional: bool = False
+    single_file: bool = False
+    colour_matches_depth: bool = False
+
+    def __post_init__(self):
+        if self.poses_optional and "require_pose" not in (self.options or {}):
+            raise ValueError(f"source kind of {self.module}: poses_optional needs the option require_pose")
+
+
+# The registry: kind -> its entry. Options mirror what each adapter accepts (tests keep
+# the names equal to the adapters' signatures, and the schema's enum of kinds equal to
+# this table's keys); image sizes are bounded so that one synthetic frame cannot exhaust
+# memory. Adding a kind = its module + its entry (docs/development.md).
+KINDS: dict[str, SourceKind] = {
+    "scannet": SourceKind(
+        "depthgt.sources.scannet",
+        {"depth_scale": _DEPTH_SCALE, "require_pose": _BOOL, "intrinsics": _K_ANY},
+        poses_optional=True, single_file=True),  # colour: another camera, calibrated apart
+    "sevenscenes": SourceKind(
+        "depthgt.sources.sevenscenes",
+        {"depth_scale": _DEPTH_SCALE, "require_pose": _BOOL, "intrinsics": _K33},
+        poses_optional=True),  # colour: another camera, not registered to depth
+    "tum": SourceKind("depthgt.sources.tum", {
         "max_dt": _number(0.0, strict=False),
         "camera": OptionCheck("one of fr1, fr2, fr3, ros_default", lambda v: v in ("fr1", "fr2", "fr3", "ros_default")),
         "intrinsics": _K33,
@@ -304,8 +348,8 @@ _OPTIONS: dict[str, dict[str, OptionCheck]] = {
         "undistort": _BOOL,
         "distortion": OptionCheck("5 finite numbers k1, k2, p1, p2, k3", lambda v: _is_seq_of_numbers(v, 5)),
         "interpolate_poses": _BOOL,
-    },
-    "synthetic": {
+    }, poses_optional=True),  # colour: 10-20 ms from the depth's instant
+    "synthetic": SourceKind("depthgt.sources.synthetic", {
         "seed": _int_in(0, 2**63 - 1),
         "n_frames": _int_in(1, 1_000_000),
         "n_scenes": _int_in(1, 1_000_000),
@@ -325,14 +369,22 @@ _OPTIONS: dict[str, dict[str, OptionCheck]] = {
         **{f"noise_{name}": OptionCheck("a number >= 0 (or true/false for round_mm)",
                                         lambda v: isinstance(v, (bool, np.bool_)) or (_is_number(v) and v >= 0))
            for name in SYNTHETIC_NOISE_FIELDS},
-    },
+    }, colour_matches_depth=True),  # rendered from the depth's camera at its instant
 }
+
+
+def register(kind: str, entry: SourceKind) -> None:
+    """Add (or replace) a source kind, e.g. an adapter that lives outside depthgt."""
+    if not isinstance(entry, SourceKind):
+        raise TypeError(f"register({kind!r}, ...): a SourceKind, got {type(entry).__name__}")
+    KINDS[kind] = entry
+
 
 
 def option_names(kind: str) -> list[str] | None:
     """Sorted names of the options of ``kind``, or None when they are not declared."""
-    _adapter(kind)
-    return sorted(_OPTIONS[kind]) if kind in _OPTIONS else None
+    options = source_kind(kind).options
+    return sorted(options) if options is not None else None
 
 
 def check_options(kind: str, options: Mapping[str, Any] | None, where: str = "options") -> None:
@@ -349,14 +401,14 @@ def check_options(kind: str, options: Mapping[str, Any] | None, where: str = "op
             the key, the value and what is expected).
     """
     try:
-        _adapter(kind)
+        entry = source_kind(kind)
     except SourceError as exc:
         raise ConfigError(f"{where}: {exc}") from exc
     if options is None:
         return
     if not isinstance(options, Mapping):
         raise ConfigError(f"{where}: must be a mapping of option names to values, got {type(options).__name__}")
-    spec = _OPTIONS.get(kind)
+    spec = entry.options
     if spec is None:
         return
     for key, value in options.items():

@@ -46,7 +46,7 @@ from depthgt.sources._files import NumberedFrames, require_root
 from depthgt.sources.base import Frame, check_frame, usable_pose
 from depthgt.sources.sens import SensFile, read_header
 
-__all__ = ["ScanNetExportedScene", "ScanNetSensScene", "open_scene", "list_scenes"]
+__all__ = ["ScanNetExportedScene", "ScanNetSensScene", "open_scene", "list_scenes", "frame_count", "scene_file"]
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +138,6 @@ class ScanNetSensScene:
     """One scene stored as a raw ScanNet ``.sens`` file, read lazily."""
 
     has_clean_depth = False
-    colour_matches_depth = False  # colour from another camera / instant: no sub-pixel photometric term
     has_poses = True
 
     def __init__(self, path: str | Path, name: str, require_pose: bool = True, intrinsics: np.ndarray | None = None):
@@ -189,15 +188,25 @@ def list_scenes(root: str | Path | None, **options) -> list[str]:
     return sorted(names)
 
 
+def scene_file(root: str | Path | None, scene: str, **options) -> Path | None:
+    """The ``.sens`` file that holds ``scene``, or None when the scene is an exported
+    folder (preferred, as by :func:`open_scene`) or not found."""
+    path = _root(root)
+    folder = path / scene
+    if folder.is_dir() and _is_exported(folder):
+        return None
+    for sens in (folder / f"{scene}.sens", path / f"{scene}.sens"):
+        if sens.is_file():
+            return sens
+    return None
+
+
 def frame_count(root: str | Path | None, scene: str, **options) -> int:
     """Frames of a scene: the ``.sens`` header's count (no frame record is read), or
     the exported folder's frames (a directory listing)."""
-    path = _root(root)
-    folder = path / scene
-    if not (folder.is_dir() and _is_exported(folder)):
-        for sens in (folder / f"{scene}.sens", path / f"{scene}.sens"):
-            if sens.is_file():
-                return int(read_header(sens).num_frames)
+    sens = scene_file(root, scene)
+    if sens is not None:
+        return int(read_header(sens).num_frames)
     return len(open_scene(root, scene, **options))
 
 

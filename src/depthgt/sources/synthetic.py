@@ -192,7 +192,6 @@ class SyntheticScene:
 
     has_poses = True
     has_clean_depth = True
-    colour_matches_depth = True  # rendered from the same camera at the same instant
 
     def __init__(self, scene: str, **options: Any):
         self.family, self.room = parse_scene_name(scene)
