@@ -6,6 +6,11 @@ default is the GT patch, configurable (``gt`` | ``input`` | ``both``). With
 ``max_gt_sigma_m`` the GT's per-pixel confidence (the ``S`` channel of gt.exr, an
 expected standard deviation in metres) joins the filter: GT pixels less certain than
 that are left out of the patch (set to 0) and count as missing.
+
+A frame set stores its patches as boxes (:func:`patch_record`: crop boxes, missing
+ratios, kept flags and the filter's settings, a few hundred bytes), not as crops: the
+frame set already holds the full images, and a reader cuts the crops from them
+(:func:`cut_patches`), the same arrays :func:`crop_pairs` returned when it was built.
 """
 
 from __future__ import annotations
@@ -13,6 +18,16 @@ from __future__ import annotations
 import numpy as np
 
 from depthgt.settings import PatchSettings
+
+__all__ = ["crop_boxes", "crop", "missing_ratio", "passes_missing_filter", "crop_pairs", "make_patches",
+           "CROPPED", "RECORD_KEYS", "patch_record", "cut_patches"]
+
+#: the crops :func:`crop_pairs` returns, cut again on read by :func:`cut_patches`
+CROPPED = ("input", "gt", "rgb", "truth", "gt_sigma")
+#: what a frame set stores of its patches (patches.npz): boxes, missing ratios, kept
+#: flags, and the filter's ``max_gt_sigma_m`` (NaN: off) and which crops exist
+RECORD_KEYS = ("boxes", "missing_input", "missing_gt", "all_boxes", "all_missing_input", "all_missing_gt", "kept",
+               "max_gt_sigma_m", "has_truth", "has_gt_sigma")
 
 
 def crop_boxes(hw: tuple[int, int], settings: PatchSettings, rng: np.random.Generator) -> np.ndarray:
@@ -120,3 +135,53 @@ def make_patches(input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray, setting
     boxes = crop_boxes(gt_m.shape, settings, rng)
     return crop_pairs(input_m, gt_m, rgb, boxes, settings.max_missing, settings.filter_on, truth_m,
                       gt_sigma_m, settings.max_gt_sigma_m)
+
+
+def patch_record(patches: dict[str, np.ndarray], max_gt_sigma_m: float | None = None) -> dict[str, np.ndarray]:
+    """What a frame set stores of the patches of :func:`crop_pairs` (:data:`RECORD_KEYS`):
+    everything but the crops, which :func:`cut_patches` cuts again from the frame images.
+
+    Args:
+        max_gt_sigma_m: the filter's threshold the patches were cut with (None: off).
+    """
+    record = {k: patches[k] for k in RECORD_KEYS[:7]}
+    record["max_gt_sigma_m"] = np.float64(np.nan if max_gt_sigma_m is None else max_gt_sigma_m)
+    record["has_truth"] = np.bool_("truth" in patches)
+    record["has_gt_sigma"] = np.bool_("gt_sigma" in patches)
+    return record
+
+
+def cut_patches(record: dict[str, np.ndarray], input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray,
+                truth_m: np.ndarray | None = None, gt_sigma_m: np.ndarray | None = None,
+                where: str = "patches") -> dict[str, np.ndarray]:
+    """The arrays :func:`crop_pairs` returned, from a :func:`patch_record` and the frame
+    images it was cut from: the kept crops (``input``, ``gt`` with the sigma filter's
+    pixels at 0, ``rgb``[, ``truth``, ``gt_sigma``]) beside the record's arrays.
+
+    Raises:
+        ValueError: naming ``where``: a record without a key of :data:`RECORD_KEYS`, or
+            a crop it records whose image is not given.
+    """
+    missing = [k for k in RECORD_KEYS if k not in record]
+    if missing:
+        raise ValueError(f"{where}: patch record lacks {missing}")
+    boxes, kept = record["all_boxes"], record["kept"].astype(bool)
+    if bool(record["has_truth"]) and truth_m is None:
+        raise ValueError(f"{where}: the patches have truth crops but the frame set has no truth image")
+    if bool(record["has_gt_sigma"]) and gt_sigma_m is None:
+        raise ValueError(f"{where}: the patches have GT sigma crops but the frame set has no sigma image")
+    threshold = float(record["max_gt_sigma_m"])
+    if np.isfinite(threshold):
+        if gt_sigma_m is None:
+            raise ValueError(f"{where}: the patches were filtered by max_gt_sigma_m but the frame set has no sigma image")
+        gt_m = np.where(gt_sigma_m <= threshold, gt_m, 0).astype(gt_m.dtype)
+    # crop(image, all_boxes)[kept]: the expression crop_pairs uses (shapes also when nothing is kept)
+    out = {k: record[k] for k in RECORD_KEYS[:7]}
+    out["input"] = crop(input_m, boxes)[kept].astype(np.float32)
+    out["gt"] = crop(gt_m, boxes)[kept].astype(np.float32)
+    out["rgb"] = crop(rgb, boxes)[kept].astype(np.uint8)
+    if bool(record["has_truth"]):
+        out["truth"] = crop(truth_m, boxes)[kept].astype(np.float32)
+    if bool(record["has_gt_sigma"]):
+        out["gt_sigma"] = crop(gt_sigma_m, boxes)[kept].astype(np.float32)
+    return out
