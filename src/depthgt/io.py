@@ -22,9 +22,7 @@ from __future__ import annotations
 
 import io
 import json
-import os
 import struct
-import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -382,6 +380,32 @@ def write_exr(path: str | Path, channels: Mapping[str, np.ndarray], fixed: Mappi
         f.write(str(path))
 
 
+def _exr_channels(source: str | io.BytesIO, where: str) -> dict[str, np.ndarray]:
+    """Every channel of an EXR (a path or the bytes in a stream), fixed-point channels
+    divided back (see :func:`read_exr`)."""
+    import OpenEXR  # heavy binding, imported only when EXR is used
+
+    try:
+        # one thread: a 256x256 image decodes faster without a pool (12 against 15 ms for gt.exr)
+        with OpenEXR.File(source, separate_channels=True, num_threads=1) as f:
+            chans = {name: np.array(ch.pixels) for name, ch in f.channels().items()}
+            table = f.header().get(FIXED_POINT_ATTRIBUTE)
+    except (RuntimeError, OSError, ValueError) as exc:
+        raise FrameError(f"{where}: cannot read EXR ({exc})", "unreadable") from exc
+    if table is not None:
+        try:
+            fixed = {str(k): int(v) for k, v in json.loads(table).items()}
+        except (ValueError, TypeError, AttributeError) as exc:
+            raise FrameError(f"{where}: header {FIXED_POINT_ATTRIBUTE} is not a JSON table of units ({exc})",
+                             "unreadable") from exc
+        for name, units in fixed.items():
+            if name not in chans or chans[name].dtype != np.uint32 or units <= 0:
+                raise FrameError(f"{where}: fixed-point channel {name!r} ({units} units per value) is not a UINT channel "
+                                 f"of the file (channels {sorted(chans)})", "unreadable")
+            chans[name] = from_fixed_point(chans[name], units)
+    return chans
+
+
 def read_exr(path: str | Path) -> dict[str, np.ndarray]:
     """Read every channel of an EXR file.
 
@@ -394,47 +418,19 @@ def read_exr(path: str | Path) -> dict[str, np.ndarray]:
         FrameError: missing file ("missing_file") or not a readable EXR, or a
             fixed-point table that does not parse ("unreadable").
     """
-    import OpenEXR
-
     path = Path(path)
     _require_file(path)
-    try:
-        with OpenEXR.File(str(path), separate_channels=True) as f:
-            chans = {name: np.array(ch.pixels) for name, ch in f.channels().items()}
-            table = f.header().get(FIXED_POINT_ATTRIBUTE)
-    except (RuntimeError, OSError, ValueError) as exc:
-        raise FrameError(f"{path}: cannot read EXR ({exc})", "unreadable") from exc
-    if table is not None:
-        try:
-            fixed = {str(k): int(v) for k, v in json.loads(table).items()}
-        except (ValueError, TypeError, AttributeError) as exc:
-            raise FrameError(f"{path}: header {FIXED_POINT_ATTRIBUTE} is not a JSON table of units ({exc})",
-                             "unreadable") from exc
-        for name, units in fixed.items():
-            if name not in chans or chans[name].dtype != np.uint32 or units <= 0:
-                raise FrameError(f"{path}: fixed-point channel {name!r} ({units} units per value) is not a UINT channel "
-                                 f"of the file (channels {sorted(chans)})", "unreadable")
-            chans[name] = from_fixed_point(chans[name], units)
-    return chans
+    return _exr_channels(str(path), str(path))
 
 
 def decode_exr(data: bytes, where: str) -> dict[str, np.ndarray]:
-    """:func:`read_exr` of an EXR held in memory (a shard member): OpenEXR's Python
-    binding reads only from a path, so the bytes go through a temporary file.
+    """:func:`read_exr` of an EXR held in memory (a shard member), read from a stream
+    (OpenEXR >= 3.5).
 
     Raises:
         FrameError: ("unreadable") naming ``where`` when the bytes are not a readable EXR.
     """
-    fd, tmp = tempfile.mkstemp(prefix="depthgt-", suffix=".exr")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        try:
-            return read_exr(tmp)
-        except FrameError as exc:
-            raise FrameError(f"{where}: cannot read EXR ({exc.__cause__ or exc})", "unreadable") from exc
-    finally:
-        os.unlink(tmp)
+    return _exr_channels(io.BytesIO(data), where)
 
 
 def write_json(path: str | Path, obj: Any) -> None:

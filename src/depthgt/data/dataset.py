@@ -174,7 +174,7 @@ class GTDataset(Dataset):
 
     def _read_patches(self, loc: str) -> dict[str, np.ndarray]:
         # the crops are cut from the frame set's images on read (the shard stores the boxes)
-        patches = store.read_patches_at(loc, self._reader)
+        patches = store.read_patches_at(loc, self._reader, with_record=False)
         arrays = {k: patches[k] for k in (*_PATCH_ARRAYS, *_OPTIONAL_ARRAYS) if k in patches}
         doc = json.loads(self._reader.read(f"{loc}/frameset.json"))
         arrays["K"] = self._intrinsics(loc, doc)
