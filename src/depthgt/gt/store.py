@@ -22,7 +22,7 @@ Version 2 stores (version 1, before: float32 images and the patch crops themselv
   ``Z`` the GT depth in units of 2^-15 m (30.5 um, max rounding error 15.3 um),
   ``S`` its expected standard deviation in units of 2^-14 m (61 um), ``N`` the number
   of fused samples (exact), ``W`` their weight sum in units of 1/16;
-* ``input.exr``: ZIP; ``Z`` exactly as the sensor measured it: fixed point in the
+* ``input.exr``: ZIP or HTJ2K, the smaller; ``Z`` exactly as the sensor measured it: fixed point in the
   sensor's units when the depth is a multiple of them (:data:`SENSOR_UNITS`: mm, TUM's
   1/5000 m), float32 otherwise; ``T`` (clean truth) in units of 2^-15 m;
 * ``patches.npz``: the crop boxes, missing ratios and kept flags
@@ -67,13 +67,13 @@ __all__ = ["FRAMESET_FILES", "FrameSetRecord", "location", "shard_path", "write_
            "read_batch_frames", "ShardReader", "member_bytes", "read_json", "read_npz", "read_exr_member",
            "frameset_files", "find_frameset", "read_frameset", "read_frameset_at", "FrameImages", "FRAME_DEPTHS",
            "read_frame_images", "extract_frameset", "FORMAT_VERSION", "GT_UNITS", "TRUTH_UNITS", "SENSOR_UNITS",
-           "shard_format_version", "stored_gt", "stored_input", "write_gt_exr", "write_input_exr", "read_patches_at"]
+           "CHANNELS", "shard_format_version", "rebuild_command", "stored_gt", "stored_input", "write_gt_exr", "write_input_exr", "read_patches_at"]
 
 #: the version of the shard format this code writes and reads (module docstring)
 FORMAT_VERSION = 2
 #: gt.exr's channels as fixed point, units per value: Z and S in units of 2^-15 m and
-#: 2^-14 m (20x and 10x finer than the smallest median GT sigma seen on real data,
-#: 0.6 mm), N exact, W in 1/16
+#: 2^-14 m (steps 20x and 10x finer than the smallest median GT sigma seen on real
+#: data, 0.6 mm), N exact, W in 1/16 (nothing downstream reads W: a diagnostic)
 GT_UNITS = {"Z": 2 ** 15, "S": 2 ** 14, "N": 1, "W": 16}
 #: input.exr's clean truth (synthetic sources), units per metre
 TRUTH_UNITS = 2 ** 15
@@ -164,8 +164,9 @@ def shard_format_version(z: zipfile.ZipFile) -> int:
 
 def rebuild_command(path: str | Path) -> str:
     """How to build a shard again: ``depthgt rebuild DATASET SCENE`` for a frame-set
-    shard (``.../framesets/DATASET/SCENE/*.zip``), the workflow's ``rde`` rule for an RDE
-    shard, else the ``framesets`` target."""
+    shard (``.../framesets/DATASET/SCENE/*.zip``); an RDE shard
+    (``.../rde/DATASET/SCENE/frames.zip``) is removed and built again by name; a frame
+    set elsewhere (a folder) is extracted again from its rebuilt shard."""
     parts = Path(path).parts
     if len(parts) >= 4 and parts[-4] == "framesets":
         return f"depthgt rebuild {parts[-3]} {parts[-2]}"
