@@ -97,7 +97,7 @@ def test_every_manifest_row_comes_out_of_a_dataloader_once(results, split):
 def test_patch_samples_are_the_shards_arrays(results):
     ds = GTDataset(results, "train")
     row = ds.table.iloc[3]
-    npz = store.read_npz(f"{row['frameset']}/patches.npz")
+    npz = store.read_patches_at(row["frameset"])  # the crops, cut from the frame set's images
     K = np.asarray(store.read_json(f"{row['frameset']}/frameset.json")["K"], dtype=np.float32)
     s, j = ds[3], int(row["patch"])
     assert np.array_equal(s["input"][0].numpy(), npz["input"][j]) and np.array_equal(s["gt"][0].numpy(), npz["gt"][j])

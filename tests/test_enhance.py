@@ -195,21 +195,29 @@ from depthgt.enhance.train import (  # noqa: E402
     predict_depth,
     train,
 )
+from depthgt.atomic import save_npz  # noqa: E402
 from depthgt.errors import ConfigError, DepthGTError  # noqa: E402
+from depthgt.gt import store  # noqa: E402
+from depthgt.gt.patches import crop_pairs, patch_record  # noqa: E402
+from depthgt.io import write_rgb_png  # noqa: E402
 from depthgt.settings import TrainSettings  # noqa: E402
 
 
 def _write_frameset(folder, seed, n_patches=4, size=16):
-    """A frame set folder with patches.npz (noisy slanted planes) and frameset.json."""
+    """A frame set folder (store format): a noisy slanted plane (gt.exr, input.exr,
+    rgb.png), ``n_patches`` crop boxes in patches.npz, and frameset.json."""
     rng = np.random.default_rng(seed)
     folder.mkdir(parents=True)
-    yy, xx = np.mgrid[0:size, 0:size]
-    gt = np.stack([(1.5 + rng.random() + 0.01 * xx + 0.005 * yy) for _ in range(n_patches)]).astype(np.float32)
+    yy, xx = np.mgrid[0:48, 0:48]
+    gt = store.stored_gt({"Z": (1.5 + rng.random() + 0.01 * xx + 0.005 * yy).astype(np.float32)})["Z"]
     inp = (gt + rng.normal(0, 0.02, gt.shape)).astype(np.float32)
     inp[rng.random(gt.shape) < 0.05] = 0.0
+    rgb = np.zeros((*gt.shape, 3), np.uint8)
     boxes = np.array([[4 * i, 2 * i, size, size] for i in range(n_patches)])
-    np.savez(folder / "patches.npz", input=inp, gt=gt, rgb=np.zeros((*gt.shape, 3), np.uint8), boxes=boxes,
-             missing_input=(inp <= 0).mean(axis=(1, 2)), missing_gt=np.zeros(n_patches, np.float32))
+    store.write_gt_exr(folder / "gt.exr", {"Z": gt})
+    store.write_input_exr(folder / "input.exr", inp)
+    write_rgb_png(folder / "rgb.png", rgb)
+    save_npz(folder / "patches.npz", patch_record(crop_pairs(inp, gt, rgb, boxes, max_missing=1.0)))
     K = [[100.0, 0.0, 127.5], [0.0, 100.0, 127.5], [0.0, 0.0, 1.0]]
     (folder / "frameset.json").write_text(json.dumps({"K": K}))
     return folder

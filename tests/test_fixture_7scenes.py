@@ -46,3 +46,37 @@ def test_gt_denser_than_input_and_consistent(kitchen):
     loc = ok.iloc[0]["frameset"]  # a location in a shard, relative to the working directory
     doc = store.read_json(f"{loc if Path(loc).is_absolute() else kitchen / loc}/frameset.json")
     assert "leave_target_out" in doc["statistics"] and "gt_vs_truth" not in doc["statistics"]
+
+
+def test_real_frame_sets_stored_compactly_and_read_back(kitchen):
+    """Format 2 on real Kinect depth (issue 29): the input depth stays the sensor's
+    millimetres exactly, the GT sits on its 2^-15 m grid, the patches are cut from the
+    images at the recorded boxes, and a frame set takes a fraction of format 1's 1.7 MB."""
+    import zipfile
+
+    import numpy as np
+    import OpenEXR
+
+    from depthgt import io
+    from depthgt.gt.patches import crop
+
+    fs = pd.read_parquet(kitchen / "results/dataset/framesets.parquet")
+    ok = fs[fs["status"] == "ok"]
+    loc = str(kitchen / ok.iloc[0]["frameset"])
+    rec = store.read_frameset_at(loc)
+    with store.frameset_files(loc) as d, OpenEXR.File(str(d / "input.exr")) as f:
+        assert json.loads(f.header()[io.FIXED_POINT_ATTRIBUTE]) == {"Z": 1000}  # 7-Scenes depth: millimetres
+    np.testing.assert_array_equal(rec.input_m, np.round(rec.input_m.astype(np.float64) * 1000).astype(np.float32) / 1000)
+    z_units = rec.gt_m.astype(np.float64) * store.GT_UNITS["Z"]
+    assert np.array_equal(z_units, np.round(z_units)) and (rec.gt_m > 0).mean() > 0.9
+    p = rec.patches
+    kept = p["all_boxes"][p["kept"]]
+    assert len(kept) == rec.meta["statistics"]["patches_kept"] == len(p["gt"]) > 0
+    np.testing.assert_array_equal(p["gt"], crop(rec.gt_m, kept))
+    np.testing.assert_array_equal(p["input"], crop(rec.input_m, kept))
+    np.testing.assert_array_equal(p["rgb"], crop(rec.rgb, kept))
+    np.testing.assert_array_equal(p["missing_gt"], (p["gt"] <= 0).mean(axis=(1, 2)).astype(np.float32))
+    shard = Path(loc).parent
+    with zipfile.ZipFile(shard) as z:
+        n = sum(name.endswith("/frameset.json") for name in z.namelist())
+    assert shard.stat().st_size / n < 0.45e6  # format 1: 1.7-1.9 MB per frame set on this recording

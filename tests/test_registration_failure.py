@@ -12,6 +12,7 @@ import torch
 
 import depthgt.registration as registration
 from depthgt.errors import ConfigError
+from depthgt.gt import store
 from depthgt.gt.build import FrameSetOutputs, fuse, load_frameset, poses_from_source, process_frameset
 from depthgt.io import read_exr
 from depthgt.jobs.common import open_source_scene
@@ -64,7 +65,7 @@ def test_failed_neighbours_are_dropped_or_the_set_excluded(scene_and_truth, tmp_
     gt = read_exr(tmp_path / "gt.exr")["Z"]
     keep = [0, 2, 3, 4, 5]  # positions of offsets 0, -4, -2, 2, 4
     expected = fuse(data, T_true, settings.render, members=keep).depth[0, 0].numpy()
-    np.testing.assert_allclose(gt, expected, atol=1e-6)
+    np.testing.assert_allclose(gt, expected, atol=1e-6 + 0.5 / store.GT_UNITS["Z"])  # stored on the GT's grid
     T_bad = _fake_registration(T_true, {-6, 6})(None, None, None, [0, -6, -4, -2, 2, 4, 6], None).T_j_to_t
     no_check = replace(settings.render, min_frame_agreement=0.0, min_whole_frame_agreement=0.0)
     with_bad = fuse(data, T_bad, no_check).depth[0, 0].numpy()

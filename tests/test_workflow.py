@@ -83,7 +83,7 @@ def test_layout(built):
             assert doc["split"] == {"syn": "train", "synval": "val", "syntest": "test"}[dataset]
             poses = store.read_json(f"{loc}/poses.json")
             assert sorted(poses["T_j_to_t"], key=int) == ["-6", "-4", "-2", "2", "4", "6"]
-            npz = store.read_npz(f"{loc}/patches.npz")
+            npz = store.read_patches_at(loc)
             assert npz["gt"].shape[1:] == (64, 64) and (npz["missing_gt"] < 0.15).all()
         # the scene's manifest points into the shard
         fs = pd.read_parquet(sdir / "framesets.parquet")

@@ -4,7 +4,7 @@
 demand from its shard (:mod:`depthgt.gt.store`; nothing is extracted):
 
 * ``kind="patches"``: one sample per kept patch pair of ``results/dataset/{split}.parquet``
-  (the crops of ``patches.npz``; 128x128 by default).
+  (cut from the frame set's images at the boxes of ``patches.npz``; 128x128 by default).
 * ``kind="frames"``: one sample per built frame set of the split in
   ``results/dataset/framesets.parquet`` (the full frame at the working resolution,
   256x256 by default: ``gt.exr``, ``input.exr``, ``rgb.png``).
@@ -26,7 +26,6 @@ works with ``DataLoader(num_workers > 0)`` under fork and spawn alike.
 
 from __future__ import annotations
 
-import io as _io
 import json
 from collections import OrderedDict
 from pathlib import Path
@@ -46,7 +45,7 @@ __all__ = ["KINDS", "GTDataset", "manifest_path", "training_fields"]
 
 KINDS = ("patches", "frames")
 ID_COLUMNS = ("dataset", "scene", "split", "target", "patch")
-_PATCH_ARRAYS = ("input", "gt", "rgb", "boxes")  # every patches.npz has these
+_PATCH_ARRAYS = ("input", "gt", "rgb", "boxes")  # every frame set's patches have these
 _OPTIONAL_ARRAYS = ("gt_sigma", "truth")
 _RECENT = 8  # frame sets kept decoded without `cache` (consecutive samples of one frame set)
 
@@ -174,12 +173,9 @@ class GTDataset(Dataset):
         return K
 
     def _read_patches(self, loc: str) -> dict[str, np.ndarray]:
-        member = f"{loc}/patches.npz"
-        with np.load(_io.BytesIO(self._reader.read(member))) as z:
-            missing = [k for k in _PATCH_ARRAYS if k not in z.files]
-            if missing:
-                raise DepthGTError(f"{member}: missing arrays {missing}")
-            arrays = {k: z[k] for k in (*_PATCH_ARRAYS, *_OPTIONAL_ARRAYS) if k in z.files}
+        # the crops are cut from the frame set's images on read (the shard stores the boxes)
+        patches = store.read_patches_at(loc, self._reader, with_record=False)
+        arrays = {k: patches[k] for k in (*_PATCH_ARRAYS, *_OPTIONAL_ARRAYS) if k in patches}
         doc = json.loads(self._reader.read(f"{loc}/frameset.json"))
         arrays["K"] = self._intrinsics(loc, doc)
         return arrays

@@ -21,7 +21,8 @@ from depthgt import geometry, io
 from depthgt.atomic import save_npz, write_atomic
 from depthgt.device import resolve_device
 from depthgt.errors import FrameError
-from depthgt.gt.patches import make_patches
+from depthgt.gt import store
+from depthgt.gt.patches import make_patches, patch_record
 from depthgt.gt.planning import stable_seed
 from depthgt.gt.render import GTRender, cloud_in_target, render_gt
 from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
@@ -323,15 +324,21 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     lap("render")
 
     depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
-    gt_depth = gt.depth[0, 0].detach().cpu().numpy().astype(np.float32)
-    gt_sigma = gt.sigma[0, 0].detach().cpu().numpy().astype(np.float32)
+    gt_raw = gt.depth[0, 0].detach().cpu().numpy().astype(np.float32)
     truth = data.truth_m[0, 0].cpu().numpy().astype(np.float32) if data.truth_m is not None else None
     rgb8 = (data.rgb[0].permute(1, 2, 0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+    # the images as the shard stores them (fixed point, store.GT_UNITS): the statistics
+    # and the patches are those of what every reader gets
+    gt_images = store.stored_gt({"Z": gt_raw, "S": gt.sigma[0, 0].detach().cpu().numpy().astype(np.float32),
+                                 "N": gt.count[0, 0].cpu().numpy().astype(np.float32),
+                                 "W": gt.weight_sum[0, 0].detach().cpu().numpy().astype(np.float32)}, str(out.gt))
+    depth_in, truth = store.stored_input(depth_in, truth, str(out.input))
+    gt_depth, gt_sigma = gt_images["Z"], gt_images["S"]
 
     stats: dict[str, Any] = {
         "input_missing": float((depth_in <= 0).mean()),
         "gt_missing": float((gt_depth <= 0).mean()),
-        "gt_mean_points": float(gt.count[0, 0].float().mean()),
+        "gt_mean_points": float(gt_images["N"].mean()),
         "gt_median_sigma_m": float(np.median(gt_sigma[gt_depth > 0])) if (gt_depth > 0).any() else float("nan"),
         "neighbours_fused": len(fused) - 1,
     }
@@ -354,15 +361,10 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     stats["patches_kept"] = int(patches["kept"].sum())
     lap("patches")
 
-    input_channels = {"Z": depth_in}
-    if truth is not None:
-        input_channels["T"] = truth
-    write_atomic(out.gt, io.write_exr, {"Z": gt_depth, "W": gt.weight_sum[0, 0].detach().cpu().numpy().astype(np.float32),
-                                        "N": gt.count[0, 0].cpu().numpy().astype(np.float32),
-                                        "S": gt_sigma})
-    write_atomic(out.input, io.write_exr, input_channels)
+    write_atomic(out.gt, store.write_gt_exr, gt_images)
+    write_atomic(out.input, store.write_input_exr, depth_in, truth)
     write_atomic(out.rgb, io.write_rgb_png, rgb8)
-    write_atomic(out.patches, save_npz, patches)
+    write_atomic(out.patches, save_npz, patch_record(patches, settings.patches.max_gt_sigma_m))
     T_np = alignment.T_j_to_t.detach().cpu().numpy().astype(np.float64)
     poses_doc = {
         "T_j_to_t": {str(o): T_np[i].tolist() for i, o in enumerate(offsets[1:])},
@@ -376,6 +378,7 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     poses_doc["cpu_s"] = cpu
     write_atomic(out.poses, io.write_json, poses_doc)
     doc = {
+        "format_version": store.FORMAT_VERSION,
         "dataset": dataset,
         "scene": scene.name,
         "target": target,

@@ -13,7 +13,10 @@ card.json holds:
 * ``quality``: GT and input completeness, the GT's confidence (median expected std),
   and the GT quality table (leave-target-out, error against the truth where known);
 * ``files``: bytes and sha256 of every shard and every manifest, paths relative to
-  the results folder.
+  the results folder;
+* ``format_version``: the shards' format (:data:`depthgt.gt.store.FORMAT_VERSION`) and
+  ``encoding``: the unit and precision of every stored channel
+  (:data:`depthgt.gt.store.CHANNELS`).
 
 A results folder verifies when every file of ``files`` has its recorded size and
 checksum; an export (:mod:`depthgt.data.export`) verifies against its ``SHA256SUMS``
@@ -37,6 +40,7 @@ import depthgt
 from depthgt import io
 from depthgt.atomic import write_atomic
 from depthgt.errors import DepthGTError
+from depthgt.gt import store
 from depthgt.settings import SPLITS
 from depthgt.status import Status
 
@@ -131,6 +135,8 @@ def build_card(results: str | Path, summary: Mapping[str, Any], framesets: pd.Da
         file_entries[rel.as_posix()] = {"bytes": f.stat().st_size, "sha256": sha256_file(f)}
     return {
         "card_version": CARD_VERSION,
+        "format_version": store.FORMAT_VERSION,
+        "encoding": store.CHANNELS,
         "depthgt": code_version(),
         "sources": [sources[k] for k in sorted(sources)],
         "splits": splits,
@@ -189,7 +195,11 @@ def card_markdown(card: Mapping[str, Any]) -> str:
         lines += ["Mean over scenes (metres; completeness as a fraction); reference `truth`: the clean depth of "
                   "synthetic sources, `target_raw`: the target's own sensor depth left out of the GT.", "",
                   wide.round(4).to_markdown(), ""]
-    lines += ["## Settings", "", "```yaml", yaml.safe_dump(card["settings"], sort_keys=True).rstrip(), "```", "",
+    lines += ["## Format", "", f"Frame-set shards in format version {card.get('format_version', 1)}; "
+              "what each stored channel holds, its unit and precision:", "", "| file | channel | content |",
+              "|---|---|---|"]
+    lines += [f"| {f} | {c} | {text} |" for f, chans in card.get("encoding", {}).items() for c, text in chans.items()]
+    lines += ["", "## Settings", "", "```yaml", yaml.safe_dump(card["settings"], sort_keys=True).rstrip(), "```", "",
               f"## Files\n\n{len(card['files'])} files (shards and manifests) with their sha256 in card.json; "
               "check a copy with `depthgt verify DIR`.", ""]
     return "\n".join(lines)
@@ -241,6 +251,10 @@ def verify(folder: str | Path) -> Verification:
         if card_path.is_file():
             card = json.loads(card_path.read_text())
             report = Verification(results, "results")
+            version = card.get("format_version", 1)
+            if version != store.FORMAT_VERSION:
+                report.problems.append(f"{card_path}: shards in format version {version}, this depthgt reads version "
+                                       f"{store.FORMAT_VERSION}: rebuild every scene (`depthgt rebuild DATASET SCENE`) and the dataset (`depthgt build dataset`)")
             for rel, entry in card["files"].items():
                 _check_file(results / rel, entry["sha256"], entry.get("bytes"), f"card {card_path}", report)
             return report

@@ -6,13 +6,31 @@ default is the GT patch, configurable (``gt`` | ``input`` | ``both``). With
 ``max_gt_sigma_m`` the GT's per-pixel confidence (the ``S`` channel of gt.exr, an
 expected standard deviation in metres) joins the filter: GT pixels less certain than
 that are left out of the patch (set to 0) and count as missing.
+
+A frame set stores its patches as boxes (:func:`patch_record`: crop boxes, missing
+ratios, kept flags and the filter's settings, a few hundred bytes), not as crops: the
+frame set already holds the full images, and a reader cuts the crops from them
+(:func:`cut_patches`), the same arrays :func:`crop_pairs` returned when it was built.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from depthgt.settings import PatchSettings
+
+__all__ = ["crop_boxes", "crop", "missing_ratio", "passes_missing_filter", "crop_pairs", "make_patches",
+           "CROPPED", "RECORD_KEYS", "CUT_KEYS", "patch_record", "cut_patches"]
+
+#: the crops :func:`crop_pairs` returns, cut again on read by :func:`cut_patches`
+CROPPED = ("input", "gt", "rgb", "truth", "gt_sigma")
+#: what a frame set stores of its patches (patches.npz): boxes, missing ratios, kept
+#: flags, and the filter's ``max_gt_sigma_m`` (NaN: off) and which crops exist
+RECORD_KEYS = ("boxes", "missing_input", "missing_gt", "all_boxes", "all_missing_input", "all_missing_gt", "kept",
+               "max_gt_sigma_m", "has_truth", "has_gt_sigma")
+#: the record's arrays :func:`cut_patches` needs to cut the crops
+CUT_KEYS = ("all_boxes", "kept", "max_gt_sigma_m", "has_truth", "has_gt_sigma")
 
 
 def crop_boxes(hw: tuple[int, int], settings: PatchSettings, rng: np.random.Generator) -> np.ndarray:
@@ -27,15 +45,21 @@ def crop_boxes(hw: tuple[int, int], settings: PatchSettings, rng: np.random.Gene
 
 
 def crop(image: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    """Stack of crops (P, size, size, ...) of ``image`` (H, W, ...) at ``boxes``.
+    """Stack of crops (P, size, size, ...) of ``image`` (H, W, ...) at ``boxes`` (of equal size).
 
-    Vectorised gather: one fancy index instead of a loop over boxes.
+    Vectorised: numpy's sliding-window view of the image indexed at the boxes' corners
+    (one gather, no loop over boxes; 7x faster than indexing rows and columns for a
+    depth image, 40x for colour, which matters as every read cuts its crops).
     """
-    size = int(boxes[0, 2]) if len(boxes) else 0
-    ar = np.arange(size)
-    rows = boxes[:, 0, None] + ar[None]  # (P, s)
-    cols = boxes[:, 1, None] + ar[None]
-    return image[rows[:, :, None], cols[:, None, :]]
+    if not len(boxes):
+        return np.empty((0, 0, 0, *image.shape[2:]), dtype=image.dtype)
+    size = int(boxes[0, 2])
+    windows = sliding_window_view(image, (size, size), axis=(0, 1))  # (H', W', ..., size, size)
+    out = windows[boxes[:, 0], boxes[:, 1]]  # (P, ..., size, size), a copy
+    extra = image.ndim - 2
+    if extra:
+        out = np.moveaxis(out, list(range(1, 1 + extra)), list(range(3, 3 + extra)))
+    return np.ascontiguousarray(out)
 
 
 def missing_ratio(patches_m: np.ndarray) -> np.ndarray:
@@ -120,3 +144,55 @@ def make_patches(input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray, setting
     boxes = crop_boxes(gt_m.shape, settings, rng)
     return crop_pairs(input_m, gt_m, rgb, boxes, settings.max_missing, settings.filter_on, truth_m,
                       gt_sigma_m, settings.max_gt_sigma_m)
+
+
+def patch_record(patches: dict[str, np.ndarray], max_gt_sigma_m: float | None = None) -> dict[str, np.ndarray]:
+    """What a frame set stores of the patches of :func:`crop_pairs` (:data:`RECORD_KEYS`):
+    everything but the crops, which :func:`cut_patches` cuts again from the frame images.
+
+    Args:
+        max_gt_sigma_m: the filter's threshold the patches were cut with (None: off).
+    """
+    record = {k: patches[k] for k in RECORD_KEYS[:7]}
+    record["max_gt_sigma_m"] = np.float64(np.nan if max_gt_sigma_m is None else max_gt_sigma_m)
+    record["has_truth"] = np.bool_("truth" in patches)
+    record["has_gt_sigma"] = np.bool_("gt_sigma" in patches)
+    return record
+
+
+def cut_patches(record: dict[str, np.ndarray], input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray,
+                truth_m: np.ndarray | None = None, gt_sigma_m: np.ndarray | None = None,
+                where: str = "patches") -> dict[str, np.ndarray]:
+    """The arrays :func:`crop_pairs` returned, from a :func:`patch_record` and the frame
+    images it was cut from: the kept crops (``input``, ``gt`` with the sigma filter's
+    pixels at 0, ``rgb``[, ``truth``, ``gt_sigma``]) and their ``boxes``, beside the
+    record's other arrays that ``record`` holds (it needs only :data:`CUT_KEYS`).
+
+    Raises:
+        ValueError: naming ``where``: a record without a key of :data:`CUT_KEYS`, or
+            a crop it records whose image is not given.
+    """
+    missing = [k for k in CUT_KEYS if k not in record]
+    if missing:
+        raise ValueError(f"{where}: patch record lacks {missing}")
+    boxes, kept = record["all_boxes"], record["kept"].astype(bool)
+    if bool(record["has_truth"]) and truth_m is None:
+        raise ValueError(f"{where}: the patches have truth crops but the frame set has no truth image")
+    if bool(record["has_gt_sigma"]) and gt_sigma_m is None:
+        raise ValueError(f"{where}: the patches have GT sigma crops but the frame set has no sigma image")
+    threshold = float(record["max_gt_sigma_m"])
+    if np.isfinite(threshold):
+        if gt_sigma_m is None:
+            raise ValueError(f"{where}: the patches were filtered by max_gt_sigma_m but the frame set has no sigma image")
+        gt_m = np.where(gt_sigma_m <= threshold, gt_m, 0).astype(gt_m.dtype)
+    # crop(image, all_boxes)[kept]: the expression crop_pairs uses (shapes also when nothing is kept)
+    out = {k: record[k] for k in RECORD_KEYS[:7] if k in record}
+    out["boxes"] = boxes[kept]
+    out["input"] = crop(input_m, boxes)[kept].astype(np.float32)
+    out["gt"] = crop(gt_m, boxes)[kept].astype(np.float32)
+    out["rgb"] = crop(rgb, boxes)[kept].astype(np.uint8)
+    if bool(record["has_truth"]):
+        out["truth"] = crop(truth_m, boxes)[kept].astype(np.float32)
+    if bool(record["has_gt_sigma"]):
+        out["gt_sigma"] = crop(gt_sigma_m, boxes)[kept].astype(np.float32)
+    return out

@@ -44,7 +44,7 @@ from depthgt import io
 from depthgt.atomic import save_npz, work_dir, write_atomic
 from depthgt.errors import ConfigError, FrameError
 from depthgt.gt import store
-from depthgt.gt.patches import crop_pairs
+from depthgt.gt.patches import crop_pairs, patch_record
 from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
 from depthgt.settings import SPLITS, RDESettings
 from depthgt.status import Status
@@ -396,11 +396,12 @@ def rde_scene(scene, framesets, settings: RDESettings, out_shard: str | Path, se
     Fuses the scene's stream (every ``settings.frame_step``-th frame, the source's
     poses) into a TSDF, renders it at each frame set's target (the working-resolution K
     of its frameset.json) and writes the shard ``out_shard`` (:mod:`depthgt.gt.store`)
-    with ``{target:06d}/``: ``gt.exr`` (Z),
-    ``patches.npz`` (the frame set's drawn crop boxes applied to (input, RDE GT, rgb) by
+    with ``{target:06d}/``: ``gt.exr`` (Z, fixed point as the frame sets' GT),
+    ``input.exr`` and ``rgb.png`` (the frame set's, copied), ``patches.npz`` (the record
+    of the frame set's drawn crop boxes applied to (input, RDE GT, rgb) by
     :func:`depthgt.gt.patches.crop_pairs`, kept when the RDE GT misses less than
-    ``settings.max_missing``) and ``frameset.json`` (K, split, statistics); the shard is
-    written atomically.
+    ``settings.max_missing``; the crops are cut on read) and ``frameset.json`` (K, split,
+    statistics); the shard is written atomically.
 
     Args:
         scene: the scene's frames (a ResizedScene, or the source).
@@ -454,7 +455,8 @@ def _rde_targets(scene, ok, settings: RDESettings, out: Path, settings_doc: dict
             rows.append(row)
             continue
         d = out / f"{t:06d}"
-        gt, fr = by_target[t], frames[t]
+        fr = frames[t]
+        gt = store.stored_gt({"Z": by_target[t]}, f"{d}/gt.exr")["Z"]  # as the shard stores it
         boxes = store.read_npz(f"{r.frameset}/patches.npz")["all_boxes"]
         arrays = crop_pairs(fr.input_m, gt, fr.rgb, boxes, settings.max_missing, filter_on="gt")
         keep = arrays["kept"]
@@ -462,9 +464,12 @@ def _rde_targets(scene, ok, settings: RDESettings, out: Path, settings_doc: dict
         if fr.truth_m is not None:
             stats["rde_vs_truth"] = depth_errors(gt, fr.truth_m)
         units = {k: METRIC_UNITS[k] for k in sorted(set(stats) - {"rde_vs_truth"} | set(stats.get("rde_vs_truth", {})))}
-        write_atomic(d / "gt.exr", io.write_exr, {"Z": gt})
-        write_atomic(d / "patches.npz", save_npz, arrays)
-        write_atomic(d / "frameset.json", io.write_json, {"dataset": r.dataset, "scene": r.scene, "target": t, "split": r.split,
+        write_atomic(d / "gt.exr", store.write_gt_exr, {"Z": gt})
+        for name in ("input.exr", "rgb.png"):  # the frame set's own: the patches are cut from them on read
+            write_atomic(d / name, Path.write_bytes, store.member_bytes(f"{r.frameset}/{name}"))
+        write_atomic(d / "patches.npz", save_npz, patch_record(arrays))
+        write_atomic(d / "frameset.json", io.write_json, {"format_version": store.FORMAT_VERSION,
+                                                          "dataset": r.dataset, "scene": r.scene, "target": t, "split": r.split,
                                                           "K": docs[t]["K"], "backend": backend, "settings": doc_settings,
                                                           "statistics": stats, "units": units})
         loc = store.location(shard, t)

@@ -9,7 +9,28 @@ batch read with whether it was usable and, if not, the reason and message naming
 file (``frames``). One file per batch instead of six
 per frame set keeps a ScanNet-size build (250k frame sets) at a few thousand files and
 Snakemake metadata records; zip is a standard container every language and tool opens
-(``unzip -l``), and members are stored, not compressed (EXR and PNG already are).
+(``unzip -l``). Image members are stored (EXR and PNG compress themselves), the JSON
+members deflated.
+
+**Format version** :data:`FORMAT_VERSION`, recorded in the archive's comment (read
+with its directory, at no cost), in ``batch.json`` and in each ``frameset.json``. Every
+read checks it: a shard of another version fails with a :class:`DepthGTError` that
+names the shard, its version and the command that rebuilds it (nothing is misread).
+Version 2 stores (version 1, before: float32 images and the patch crops themselves):
+
+* ``gt.exr``: lossless HTJ2K; channels as fixed-point integers (:data:`GT_UNITS`):
+  ``Z`` the GT depth in units of 2^-15 m (30.5 um, max rounding error 15.3 um),
+  ``S`` its expected standard deviation in units of 2^-14 m (61 um), ``N`` the number
+  of fused samples (exact), ``W`` their weight sum in units of 1/16;
+* ``input.exr``: ZIP or HTJ2K, the smaller; ``Z`` exactly as the sensor measured it: fixed point in the
+  sensor's units when the depth is a multiple of them (:data:`SENSOR_UNITS`: mm, TUM's
+  1/5000 m), float32 otherwise; ``T`` (clean truth) in units of 2^-15 m;
+* ``patches.npz``: the crop boxes, missing ratios and kept flags
+  (:func:`depthgt.gt.patches.patch_record`); the crops are cut from the frame images
+  on read (:func:`read_patches_at`), the arrays the build kept.
+
+The readers return what they always returned: float32 metres (0 = invalid), the same
+channel names, the patch crops.
 
 A frame set is addressed by its **location** ``<shard path>/<target:06d>`` (the
 ``frameset`` column of the manifests); a member by ``<location>/<name>``. A location may
@@ -39,13 +60,46 @@ import numpy as np
 from depthgt import io
 from depthgt.atomic import write_atomic
 from depthgt.errors import DepthGTError
+from depthgt.gt.patches import CUT_KEYS, cut_patches
 from depthgt.status import Status
 
 __all__ = ["FRAMESET_FILES", "FrameSetRecord", "location", "shard_path", "write_shard", "shard_targets", "read_batch",
            "read_batch_frames", "ShardReader", "member_bytes", "read_json", "read_npz", "read_exr_member",
            "frameset_files", "find_frameset", "read_frameset", "read_frameset_at", "FrameImages", "FRAME_DEPTHS",
-           "read_frame_images",
-           "extract_frameset"]
+           "read_frame_images", "extract_frameset", "FORMAT_VERSION", "GT_UNITS", "TRUTH_UNITS", "SENSOR_UNITS",
+           "CHANNELS", "shard_format_version", "rebuild_command", "stored_gt", "stored_input", "write_gt_exr", "write_input_exr", "read_patches_at"]
+
+#: the version of the shard format this code writes and reads (module docstring)
+FORMAT_VERSION = 2
+#: gt.exr's channels as fixed point, units per value: Z and S in units of 2^-15 m and
+#: 2^-14 m (steps 20x and 10x finer than the smallest median GT sigma seen on real
+#: data, 0.6 mm), N exact, W in 1/16 (nothing downstream reads W: a diagnostic)
+GT_UNITS = {"Z": 2 ** 15, "S": 2 ** 14, "N": 1, "W": 16}
+#: input.exr's clean truth (synthetic sources), units per metre
+TRUTH_UNITS = 2 ** 15
+#: raw depth units per metre of the sensors whose depth input.exr stores as integers
+#: when it is exactly a multiple of them: millimetres (ScanNet, 7-Scenes, most PNG
+#: depth) and TUM's 1/5000 m
+SENSOR_UNITS = (1000, 5000)
+_COMMENT = b"depthgt frame-set shard, format version "
+#: every stored channel's meaning, unit and precision (the dataset card's ``encoding``)
+CHANNELS = {
+    "gt.exr": {
+        "Z": "GT depth, m, 0 = none; fixed point in units of 2^-15 m (max rounding error 1.53e-05 m)",
+        "S": "expected standard deviation of Z, m; fixed point in units of 2^-14 m (max rounding error 3.05e-05 m)",
+        "N": "number of fused samples, exact integer",
+        "W": "weight sum of the fused samples; fixed point in units of 1/16 (max rounding error 1/32)",
+    },
+    "input.exr": {
+        "Z": "resized raw sensor depth, m, 0 = none; exact (integers in the sensor's units, mm or 1/5000 m, "
+             "or float32)",
+        "T": "clean truth depth of synthetic sources, m, 0 = none; fixed point in units of 2^-15 m "
+             "(max rounding error 1.53e-05 m)",
+    },
+    "rgb.png": {"RGB": "target colour, 8-bit sRGB, lossless"},
+    "patches.npz": {"boxes": "crop boxes (y0, x0, h, w) in pixels, with missing ratios and kept flags; "
+                             "the crops are cut from the images above on read"},
+}
 
 FRAMESET_FILES = ("gt.exr", "input.exr", "rgb.png", "poses.json", "patches.npz", "frameset.json")
 BATCH_MEMBER = "batch.json"
@@ -81,27 +135,63 @@ def write_shard(path: str | Path, built: dict[int, Path], batch: list[dict[str, 
     def member(name: str) -> zipfile.ZipInfo:
         # a fixed time stamp: the same frame sets give the same bytes (reruns compare equal)
         info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))
-        info.compress_type = zipfile.ZIP_STORED
+        # JSON deflates to a third; EXR, PNG and npz compress themselves
+        info.compress_type = zipfile.ZIP_DEFLATED if name.endswith(".json") else zipfile.ZIP_STORED
         return info
 
     def _write(tmp: Path) -> None:
         with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as z:
+            z.comment = _COMMENT + str(FORMAT_VERSION).encode()
             for target in sorted(built):
                 for f in sorted(p for p in Path(built[target]).iterdir() if p.is_file()):
                     z.writestr(member(f"{int(target):06d}/{f.name}"), f.read_bytes())
-            doc = {"framesets": batch} if frames is None else {"framesets": batch, "frames": list(frames)}
+            doc = {"format_version": FORMAT_VERSION, "framesets": batch}
+            if frames is not None:
+                doc["frames"] = list(frames)
             z.writestr(member(BATCH_MEMBER), json.dumps(doc, indent=1, sort_keys=True))
 
     return write_atomic(path, _write)
+
+
+def shard_format_version(z: zipfile.ZipFile) -> int:
+    """The format version an open shard records in its comment (1: written before
+    versions were recorded)."""
+    comment = z.comment
+    if comment.startswith(_COMMENT) and comment[len(_COMMENT):].isdigit():
+        return int(comment[len(_COMMENT):])
+    return 1
+
+
+def rebuild_command(path: str | Path) -> str:
+    """How to build a shard again: ``depthgt rebuild DATASET SCENE`` for a frame-set
+    shard (``.../framesets/DATASET/SCENE/*.zip``); an RDE shard
+    (``.../rde/DATASET/SCENE/frames.zip``) is removed and built again by name; a frame
+    set elsewhere (a folder) is extracted again from its rebuilt shard."""
+    parts = Path(path).parts
+    if len(parts) >= 4 and parts[-4] == "framesets":
+        return f"depthgt rebuild {parts[-3]} {parts[-2]}"
+    if len(parts) >= 4 and parts[-4] == "rde":
+        return f"rm {Path(path)} && depthgt build {Path(path)}"
+    return "depthgt rebuild DATASET SCENE, then depthgt extract DATASET SCENE TARGET DEST"
+
+
+def _old_format(where: str | Path, version: int, shard: str | Path) -> DepthGTError:
+    return DepthGTError(f"{where} is in frame-set format version {version}; this depthgt reads version "
+                        f"{FORMAT_VERSION} only: rebuild it (`{rebuild_command(shard)}`)")
 
 
 def _zip(path: Path) -> zipfile.ZipFile:
     if not path.is_file():
         raise DepthGTError(f"frame-set shard {path} does not exist (not built yet?)")
     try:
-        return zipfile.ZipFile(path)
+        z = zipfile.ZipFile(path)
     except zipfile.BadZipFile as exc:
         raise DepthGTError(f"frame-set shard {path} is not a readable zip archive ({exc}): rebuild it") from exc
+    version = shard_format_version(z)
+    if version != FORMAT_VERSION:
+        z.close()
+        raise _old_format(f"frame-set shard {path}", version, path)
+    return z
 
 
 def _batch_doc(shard: str | Path) -> dict[str, Any]:
@@ -231,9 +321,121 @@ def read_json(member: str | Path) -> Any:
 
 
 def read_npz(member: str | Path) -> dict[str, np.ndarray]:
-    """Every array of an ``.npz`` member, loaded."""
+    """Every array of an ``.npz`` member, loaded (a patches.npz holds the record of the
+    patches, :data:`depthgt.gt.patches.RECORD_KEYS`; the crops: :func:`read_patches_at`)."""
     with np.load(_io.BytesIO(member_bytes(member))) as z:
         return {k: z[k] for k in z.files}
+
+
+def stored_gt(channels: dict[str, np.ndarray], where: str = "gt.exr") -> dict[str, np.ndarray]:
+    """gt.exr's channels (any of ``Z``, ``S``, ``N``, ``W``) as :func:`write_gt_exr`
+    stores them and every reader gets them back: float32 on the grids of
+    :data:`GT_UNITS`. The build cuts its patches from these, so that the crops a reader
+    cuts again are the ones the build kept.
+
+    Raises:
+        ValueError: an unknown channel, or a negative or non-finite value (named).
+    """
+    unknown = sorted(set(channels) - set(GT_UNITS))
+    if unknown:
+        raise ValueError(f"{where}: unknown GT channels {unknown} (known: {sorted(GT_UNITS)})")
+    return {k: io.on_fixed_point_grid(np.asarray(v, dtype=np.float32), GT_UNITS[k], f"{where} channel {k}")
+            for k, v in channels.items()}
+
+
+def write_gt_exr(path: str | Path, channels: dict[str, np.ndarray]) -> None:
+    """Write gt.exr: the channels (:func:`stored_gt`'s names) as fixed point, HTJ2K."""
+    io.write_exr(path, {k: np.asarray(v, dtype=np.float32) for k, v in channels.items()},
+                 fixed={k: GT_UNITS[k] for k in channels}, compression="htj2k")
+
+
+def _sensor_units(depth_m: np.ndarray) -> int | None:
+    """The first of :data:`SENSOR_UNITS` of which every depth value is exactly a
+    multiple (as the depth readers divide raw units); None when there is none."""
+    if not (np.isfinite(depth_m).all() and (depth_m >= 0).all()):
+        return None
+    for units in SENSOR_UNITS:
+        if np.array_equal(io.on_fixed_point_grid(depth_m, units), depth_m):
+            return units
+    return None
+
+
+def stored_input(input_m: np.ndarray, truth_m: np.ndarray | None = None,
+                 where: str = "input.exr") -> tuple[np.ndarray, np.ndarray | None]:
+    """(input depth, clean truth) as :func:`write_input_exr` stores them: the input
+    exactly, the truth on the grid of :data:`TRUTH_UNITS` (float32 metres)."""
+    truth = None if truth_m is None else io.on_fixed_point_grid(np.asarray(truth_m, dtype=np.float32), TRUTH_UNITS,
+                                                                  f"{where} channel T")
+    return np.asarray(input_m, dtype=np.float32), truth
+
+
+def write_input_exr(path: str | Path, input_m: np.ndarray, truth_m: np.ndarray | None = None) -> None:
+    """Write input.exr: ``Z`` the resized raw depth, exactly (integers in the sensor's
+    units when it has them, :data:`SENSOR_UNITS`, else float32), ``T`` the clean truth
+    of synthetic sources in units of 2^-15 m; ZIP or HTJ2K, whichever is smaller (ZIP
+    for sensor depth alone, 37 kB against 54 kB on a TUM frame; HTJ2K beside the smooth
+    truth, which it holds in half ZIP's bytes)."""
+    path = Path(path)
+    channels = {"Z": np.asarray(input_m, dtype=np.float32)}
+    units = _sensor_units(channels["Z"])
+    fixed = {} if units is None else {"Z": units}
+    if truth_m is not None:
+        channels["T"] = np.asarray(truth_m, dtype=np.float32)
+        fixed["T"] = TRUTH_UNITS
+    io.write_exr(path, channels, fixed=fixed, compression="zip")
+    other = path.with_name(f".{path.name}.htj2k")
+    try:
+        io.write_exr(other, channels, fixed=fixed, compression="htj2k")
+        if other.stat().st_size < path.stat().st_size:
+            os.replace(other, path)
+    finally:
+        other.unlink(missing_ok=True)
+
+
+def _patch_record(data: bytes, loc: str | Path, keys: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
+    """patches.npz's record (only ``keys``, when given: each array costs a header parse);
+    a file of the old format (the crops themselves) is refused."""
+    where = f"{loc}/patches.npz"
+    try:
+        with np.load(_io.BytesIO(data)) as z:
+            if "has_truth" not in z.files:
+                if "input" in z.files:  # format 1 stored the crops
+                    raise _old_format(where, 1, _split(loc)[0] or loc)
+                raise DepthGTError(f"{where}: not a patch record (arrays {sorted(z.files)})")
+            return {k: z[k] for k in (z.files if keys is None else keys) if k in z.files}
+    except (ValueError, OSError, zipfile.BadZipFile, EOFError) as exc:
+        raise DepthGTError(f"{where}: not a readable npz file ({exc})") from exc
+
+
+def _cut(record: dict[str, np.ndarray], gt: dict[str, np.ndarray], inp: dict[str, np.ndarray], rgb: np.ndarray,
+         loc: str | Path) -> dict[str, np.ndarray]:
+    try:
+        return cut_patches(record, inp["Z"], gt["Z"], rgb, truth_m=inp.get("T"), gt_sigma_m=gt.get("S"),
+                           where=f"{loc}/patches.npz")
+    except ValueError as exc:
+        raise DepthGTError(str(exc)) from exc
+
+
+def read_patches_at(loc: str | Path, reader: ShardReader | None = None, with_record: bool = True
+                    ) -> dict[str, np.ndarray]:
+    """The patches of the frame set at ``loc``: the crops cut from its images at the
+    recorded boxes (``input``, ``gt``, ``rgb``[, ``gt_sigma``, ``truth``]), their
+    ``boxes``, and with ``with_record`` the rest of the record (``missing_input``,
+    ``missing_gt``, ``all_boxes``, ``all_missing_input``, ``all_missing_gt``, ``kept``,
+    ...): what patches.npz held in format 1.
+
+    Raises:
+        DepthGTError: naming the frame set: a shard or patch file of an old format, a
+            missing member, a record that does not match the images.
+    """
+    if reader is None:
+        with ShardReader(max_open=1) as own:
+            return read_patches_at(loc, own, with_record)
+    record = _patch_record(reader.read(f"{loc}/patches.npz"), loc, None if with_record else CUT_KEYS)
+    gt = io.decode_exr(reader.read(f"{loc}/gt.exr"), f"{loc}/gt.exr")
+    inp = io.decode_exr(reader.read(f"{loc}/input.exr"), f"{loc}/input.exr")
+    rgb = io.decode_color(reader.read(f"{loc}/rgb.png"), f"{loc}/rgb.png", formats=("PNG",))
+    return _cut(record, gt, inp, rgb, loc)
 
 
 @contextlib.contextmanager
@@ -270,7 +472,7 @@ class FrameSetRecord:
         rgb: (H, W, 3) uint8 target colour.
         poses: poses.json's content.
         meta: frameset.json's content (split, frame ids, K, statistics, status).
-        patches: patches.npz's arrays.
+        patches: the patch crops and their record (:func:`read_patches_at`).
     """
 
     gt_m: np.ndarray
@@ -298,15 +500,15 @@ def read_frameset_at(loc: str | Path, reader: ShardReader | None = None) -> Fram
     def member(name: str) -> tuple[bytes, str]:
         return reader.read(f"{loc}/{name}"), f"{loc}/{name}"
 
+    record = _patch_record(member("patches.npz")[0], loc)
     gt = io.decode_exr(*member("gt.exr"))
     inp = io.decode_exr(*member("input.exr"))
-    with np.load(_io.BytesIO(member("patches.npz")[0])) as z:
-        patches = {k: z[k] for k in z.files}
+    rgb = io.decode_color(*member("rgb.png"), formats=("PNG",))
     return FrameSetRecord(
         gt_m=gt["Z"], gt_sigma_m=gt.get("S", np.zeros_like(gt["Z"])), gt_weight=gt["W"], gt_count=gt["N"],
-        input_m=inp["Z"], truth_m=inp.get("T"), rgb=io.decode_color(*member("rgb.png"), formats=("PNG",)),
+        input_m=inp["Z"], truth_m=inp.get("T"), rgb=rgb,
         poses=json.loads(member("poses.json")[0]), meta=json.loads(member("frameset.json")[0]),
-        patches=patches)
+        patches=_cut(record, gt, inp, rgb, loc))
 
 
 class FrameImages(NamedTuple):
