@@ -11,18 +11,23 @@ the strip and the wall's depth are known exactly.
 from __future__ import annotations
 
 import json
+import zipfile
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
 from depthgt import io
 from depthgt.errors import ConfigError
+from depthgt.gt import store
 from depthgt.gt.build import FrameSetOutputs, process_frameset
 from depthgt.gt.coverage import choose_views, fill_maps, view_limits
 from depthgt.gt.planning import block_splits, coverage_candidates, enumerate_framesets
+from depthgt.jobs.gt import run_frameset_batch, run_scene_index
 from depthgt.registration.overfit import RegistrationResult
 from depthgt.settings import FrameSetSettings, SplitSettings, settings_from_config
+from depthgt.sources import synthetic
 from depthgt.sources.base import Frame
 
 HW = (64, 64)
@@ -230,3 +235,43 @@ def test_coverage_settings_name_their_key():
             settings_from_config({"frameset": {key: value}})
     with pytest.raises(ConfigError, match="frameset.selection.*overfit"):
         settings_from_config({"frameset": {"selection": "coverage"}, "registration": {"method": "overfit"}})
+
+
+def test_batch_job_adds_views_of_the_targets_split_reading_each_frame_once(tmp_path, monkeypatch):
+    """The batch job: candidates from the index's split tags (``split: auto`` blocks), the
+    wider span's frames read once per batch (the frame cache keeps them), added views
+    recorded in each frame set's frameset.json and their frames in batch.json."""
+    source = {"name": "syn", "kind": "synthetic", "split": "auto", "scenes": ["room_000"],
+              "options": {"n_frames": 24, "width": 80, "height": 60}}
+    config = {"seed": 1, "device": "cpu", "resize": 32, "sources": [source],
+              "split": {"val_fraction": 0.5, "block_frames": 8},
+              "frameset": {"neighbours": 1, "stride": 1, "batch_size": 32, "selection": "coverage", "coverage_span": 6,
+                           "coverage_views": 2, "coverage_min_fill_px": 1, "coverage_max_angle_deg": 90.0,
+                           "coverage_max_baseline_m": 5.0},
+              "patches": {"count": 1, "size": 16, "max_missing": 1.0}}
+    run_scene_index(source, "room_000", config, str(tmp_path / "index.parquet"), str(tmp_path / "index.json"))
+    table = pd.read_parquet(tmp_path / "index.parquet")
+    tags = dict(zip(table["position"].astype(int), table["split"]))
+    reads = []
+    real_read = synthetic.SyntheticScene.read
+
+    def counting_read(self, i):
+        reads.append(i)
+        return real_read(self, i)
+
+    monkeypatch.setattr(synthetic.SyntheticScene, "read", counting_read)
+    shard = tmp_path / "000001-000022.zip"
+    records = run_frameset_batch(source, "room_000", 1, 22, config, str(tmp_path / "index.parquet"), str(shard))
+    built = [r for r in records if r["status"] == "ok"]
+    assert built and any(r["reason"].startswith("split_guard") for r in records)
+    assert sorted(reads) == sorted(set(reads))  # each frame read once, candidates included
+    added_any = False
+    with zipfile.ZipFile(shard) as z:
+        for r in built:
+            doc = json.loads(z.read(f"{r['target']:06d}/frameset.json"))
+            added = [r["target"] + v["offset"] for v in doc["coverage"]["added"]]
+            added_any |= bool(added)
+            assert all(tags[a] == tags[r["target"]] for a in added), (r["target"], added)
+            assert all(abs(a - r["target"]) <= 6 and a not in r["members"] for a in added)
+    assert added_any
+    assert {f["position"] for f in store.read_batch_frames(shard)} == set(reads)
