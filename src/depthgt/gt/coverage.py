@@ -138,12 +138,16 @@ class CoverageResult:
             and ``leave_target_out_added`` (that check only where the core's neighbours
             alone left the target empty: the added views' own accuracy).
         T_j_to_t: offset -> (4, 4) pose of each added view that entered the render.
+        full: the render of the core with the added views everywhere (its ``left_out``
+            on real data), before it is taken where the core has no GT; None when no
+            view was added.
     """
 
     render: GTRender
     record: dict[str, Any]
     statistics: dict[str, Any] = field(default_factory=dict)
     T_j_to_t: dict[int, list] = field(default_factory=dict)
+    full: GTRender | None = None
 
 
 def _usable(scene: Scene, positions: list[int]) -> tuple[list[int], dict[int, str]]:
@@ -269,4 +273,4 @@ def add_coverage_views(scene: Scene, target: int, candidates: list[int], data: F
         stats["leave_target_out_added"] = depth_errors(lto[::k, ::k], depth_in[::k, ::k],
                                                        mask=core_lto[::k, ::k] <= 0)
     poses = {offsets[1 + k]: T_added[k].detach().cpu().numpy().tolist() for k in ok if views[k]["status"] == Status.OK}
-    return CoverageResult(merged, record, stats, poses)
+    return CoverageResult(merged, record, stats, poses, full)
