@@ -40,6 +40,11 @@ Usage::
     python3 bench/bench_gt_protocol.py --fixture                          # 7-Scenes: GT completeness, leave-target-out
     python3 bench/bench_gt_protocol.py --sets tuning --set rel_sigma=3 --png /tmp/pngs
     python3 bench/bench_gt_protocol.py --sets tuning --added ambiguous_px=0.0   # error of the pixels a variant adds
+    python3 bench/bench_gt_protocol.py --sets evaluation --selection coverage  # frameset.selection: coverage
+
+With ``--selection coverage`` (source poses only) each frame set adds views from its
+40-frame sequence (:mod:`depthgt.gt.coverage`, ``--fs`` sets its ``coverage_*`` limits);
+the candidate frames are generated through a frame cache per sequence (not cached on disk).
 
 Frame sets are generated once and cached (``--cache``, default /tmp/depthgt_protocol);
 registrations are cached there too. Prints Markdown tables and writes a tidy CSV.
@@ -59,9 +64,11 @@ import numpy as np
 import pandas as pd
 import torch
 
-from depthgt.gt.planning import stable_seed
-from depthgt.gt.build import FrameSetData, fuse, load_frameset, poses_from_source
-from depthgt.settings import FrameSetSettings, RenderSettings
+from depthgt.gt.build import Alignment, FrameSetData, fuse, load_frameset, poses_from_source
+from depthgt.gt.cache import ResizedScene
+from depthgt.gt.coverage import add_coverage_views
+from depthgt.gt.planning import coverage_candidates, stable_seed
+from depthgt.settings import FrameSetSettings, RenderSettings, registration_settings
 
 REPO = Path(__file__).resolve().parents[1]
 SIZE = (256, 256)
@@ -269,14 +276,25 @@ def write_png(path: Path, item: dict, inp: np.ndarray, gt: np.ndarray, ref: np.n
 
 def run_set(set_name: str, settings: RenderSettings, cache: Path, registration: str | None,
             png_dir: Path | None, clean: bool, reg_set: list[str] = (), reg_tag: str = "",
-            scenes_per_group: int | None = None, fuse_all: bool = False) -> list[dict]:
+            scenes_per_group: int | None = None, fuse_all: bool = False,
+            coverage: FrameSetSettings | None = None) -> list[dict]:
+    if coverage is not None and registration:
+        raise SystemExit("--selection coverage starts its added views from the source's poses: not with --registration")
     pool, pool_by = Pool(), {}
+    added_views, filled_px, t_cov = [], [], []
     t_render, conf_err, conf_sigma = [], [], []
     pose_rows = []
     for group in SETS[set_name]:
         gname = f"{group['family']}/s{group['seed']}/{group['sensor']}"
         gp = pool_by.setdefault(gname, Pool())
         for k in list(group["scenes"])[:scenes_per_group]:
+            frames = None
+            if coverage is not None:
+                from depthgt.sources.base import open_scene
+
+                frames = ResizedScene(open_scene("synthetic", None, f"{group['family']}_{k:03d}", seed=group["seed"],
+                                                 sensor=group["sensor"], n_frames=N_FRAMES), SIZE,
+                                      keep=2 * coverage.coverage_span + 2, need_pose=True)
             for t in TARGETS:
                 key = _key(group, k, t)
                 item = load_cached(cache, group, k, t)
@@ -294,6 +312,15 @@ def run_set(set_name: str, settings: RenderSettings, cache: Path, registration: 
                 c0 = time.process_time()
                 out = fuse(data, T, settings, members=members)
                 t_render.append(time.process_time() - c0)
+                if frames is not None:
+                    c0 = time.process_time()
+                    cands = coverage_candidates(np.full(N_FRAMES, "train", dtype=object), t, item["members"], coverage)
+                    cov = add_coverage_views(frames, t, cands, data, Alignment(T, list(range(len(item["members"])))),
+                                             out, coverage, registration_settings({"method": "given"}), settings)
+                    t_cov.append(time.process_time() - c0)
+                    added_views.append(sum(v["status"] == "ok" for v in cov.record["added"]))
+                    filled_px.append(cov.record.get("filled_px", 0))
+                    out = cov.render
                 gt = out.depth[0, 0].numpy()
                 inp = data.depth_m[0, 0].numpy()
                 ref = data.truth_m[0, 0].numpy()
@@ -329,10 +356,14 @@ def run_set(set_name: str, settings: RenderSettings, cache: Path, registration: 
               f"translation median {100 * np.median(dt_all):.3f} cm (90th pct {100 * np.quantile(dt_all, 0.9):.3f}, "
               f"max {100 * dt_all.max():.3f}); neighbours fused {int(pr.n_fused.sum())} of {len(dr_all)}\n")
     variant = f"registration={registration}" if registration else "source poses"
+    variant += ", selection coverage" if coverage is not None else ""
     rows = summarise(pool, set_name, variant)
     for gname, gp in pool_by.items():
         rows += summarise(gp, f"{set_name}:{gname}", variant)
     print(f"render CPU time per frame set: median {np.median(t_render):.3f} s over {len(t_render)}", file=sys.stderr)
+    if t_cov:
+        print(f"coverage on {set_name}: {np.mean(added_views):.2f} views added and {np.mean(filled_px):.0f} px filled per "
+              f"frame set; CPU {np.mean(t_cov):.2f} s per frame set (mean; candidates generated and read included)")
     print(confidence_summary(set_name, np.concatenate(conf_err), np.concatenate(conf_sigma)))
     return rows
 
@@ -426,6 +457,8 @@ def main(argv=None) -> None:
                     help="RenderSettings overrides key=value of a more complete variant: the error of the GT pixels it adds")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/depthgt_protocol"))
     ap.add_argument("--png", type=Path, default=None, help="write input | GT | truth images here")
+    ap.add_argument("--selection", choices=["window", "coverage"], default="window", help="frameset.selection")
+    ap.add_argument("--fs", nargs="*", default=[], help="FrameSetSettings overrides key=value (coverage_span, ...)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", type=Path, default=Path("/tmp/bench_gt_protocol.csv"))
     a = ap.parse_args(argv)
@@ -452,9 +485,14 @@ def main(argv=None) -> None:
         print(f"grid over {key}")
         print(df[cols].to_markdown(index=False, floatfmt=".4g"))
         return
+    coverage = None
+    if a.selection == "coverage":
+        coverage = FrameSetSettings(selection="coverage",
+                                    **{k: ast.literal_eval(v) for k, v in (x.split("=", 1) for x in a.fs)})
     rows = []
     for s in a.sets:
-        rows += run_set(s, settings, a.cache, a.registration, a.png, not a.no_clean, a.reg_set, a.reg_tag, a.scenes, a.fuse_all)
+        rows += run_set(s, settings, a.cache, a.registration, a.png, not a.no_clean, a.reg_set, a.reg_tag, a.scenes,
+                        a.fuse_all, coverage)
     pd.set_option("display.width", 250)
     pd.set_option("display.max_columns", 30)
     if rows:

@@ -2,6 +2,7 @@
 
     python3 bench/bench_pipeline.py                       # 7-Scenes fixture and TUM tuning frames, given / refine / fast
     python3 bench/bench_pipeline.py --data synthetic --modes given --framesets 8
+    python3 bench/bench_pipeline.py --data 7scenes --modes given --selection window coverage --repeats 2
 
 As a frame-set batch does it: the scene is wrapped in the batch's frame cache
 (``depthgt.gt.cache.ResizedScene``: each frame read, checked and resized once), then
@@ -10,8 +11,11 @@ each job uses). Stages are those ``process_frameset`` records in ``poses.json``
 (``cpu_s``: process CPU seconds): ``load_resize`` (decode, checks, resize; a frame is
 decoded once per batch, so this is the batch's decode cost spread over its sets),
 ``align`` (registration: nothing for given poses), ``render`` (the GT), ``quality``
-(leave-target-out render or errors against the truth), ``patches``, ``write``. The
-first frame set is left out of the means (warm-up: imports, first allocations).
+(leave-target-out render or errors against the truth), ``patches``, ``write``, and with
+``--selection coverage`` ``coverage`` (the added views: candidates checked, selection,
+their registration, the render with the core). The first frame set is left out of the
+means (warm-up: imports, first allocations). ``--selection window coverage`` alternates
+the two per (recording, mode), ``--repeats`` times.
 
 Data: the 7-Scenes fixture (640x480 JPEG/PNG) and the TUM tuning frames (640x480 PNG) in
 ``../shared/data``, and the default synthetic scene (``--data synthetic``).
@@ -71,12 +75,15 @@ def sources(config: dict) -> dict[str, tuple[dict, str]]:
     }
 
 
-def run(source: dict, scene_name: str, mode: str, n: int, config: dict) -> pd.DataFrame:
+def run(source: dict, scene_name: str, mode: str, n: int, config: dict, selection: str | None = None) -> pd.DataFrame:
+    if selection is not None:
+        config = {**config, "frameset": {**config.get("frameset", {}), "selection": selection}}
     settings = settings_from_config({**config, "registration": MODES[mode], "sources": [source]})
     fs = settings.frameset
     need = getattr(settings.registration, "uses_source_poses", settings.registration.method == "given")
+    span = max(fs.reach, fs.coverage_span) if selection == "coverage" else fs.reach  # as the batch job keeps them
     scene = ResizedScene(open_source_scene(source, scene_name, need_poses=need), settings.size_hw,
-                         keep=2 * fs.reach + 2, need_pose=need)
+                         keep=2 * span + 2, need_pose=need)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for t in range(fs.reach, min(len(scene) - fs.reach, fs.reach + n + 1)):  # consecutive targets, as a batch
@@ -90,7 +97,8 @@ def run(source: dict, scene_name: str, mode: str, n: int, config: dict) -> pd.Da
                 continue
             total = time.process_time() - c0
             cpu = json.loads(out.poses.read_text()).get("cpu_s", {})  # per stage (absent in older checkouts)
-            rows.append(dict(data=source["name"], mode=mode, target=t, total=total, **cpu))
+            rows.append(dict(data=source["name"], mode=mode, selection=selection or "window", target=t, total=total,
+                             **cpu))
     return pd.DataFrame(rows)
 
 
@@ -104,6 +112,8 @@ def main(argv=None) -> None:
     ap.add_argument("--against", help="another checkout (its src/ is used) run on the same frame sets, side by side")
     ap.add_argument("--repeats", type=int, default=1,
                     help="with --against: runs of both checkouts, alternating (this, other, this, ...), per (recording, mode)")
+    ap.add_argument("--selection", nargs="+", default=None, choices=["window", "coverage"],
+                    help="frameset.selection, alternating per (recording, mode) and repeat (not with --against)")
     ap.add_argument("--src", help=argparse.SUPPRESS)  # internal: the library this process runs (see --against)
     ap.add_argument("--csv", help=argparse.SUPPRESS)  # internal: write the per-set rows here
     a = ap.parse_args(argv)
@@ -120,19 +130,20 @@ def main(argv=None) -> None:
     for data in a.data:
         source, scene = sources(config)[data]
         for mode in a.modes:
-            for rep in range(a.repeats if a.against else 1):
-                frames.append(run(source, scene, mode, a.framesets, config).iloc[1:].assign(rep=rep))  # first: warm-up
+            for rep in range(a.repeats if a.against or a.selection else 1):
+                for selection in a.selection or [None]:
+                    frames.append(run(source, scene, mode, a.framesets, config, selection).iloc[1:].assign(rep=rep))  # first: warm-up
                 if a.against:  # the other checkout right after, on the same frames (same machine load)
                     other.append(_run_other(Path(a.against), data, mode, a).assign(rep=rep))
     df = pd.concat(frames)
-    stages = [c for c in df.columns if c not in ("data", "mode", "target", "rep")]
+    stages = [c for c in df.columns if c not in ("data", "mode", "selection", "target", "rep")]
     if a.csv:
         df.to_csv(a.csv, index=False)
         return
     print(f"command: python3 bench/bench_pipeline.py {' '.join(sys.argv[1:] if argv is None else argv)}")
     print(f"library: {Path(depthgt.__file__).parent}")
     print(f"CPU seconds per frame set (process CPU, {a.threads} torch thread(s)), means over {a.framesets} sets after a warm-up")
-    print(df.groupby(["data", "mode"], sort=False)[stages].mean().to_markdown(floatfmt=".3f"))
+    print(df.groupby(["data", "mode", "selection"], sort=False)[stages].mean().to_markdown(floatfmt=".3f"))
     print(f"peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
     if a.against:
         base = pd.concat(other)

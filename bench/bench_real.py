@@ -12,6 +12,15 @@ Real recordings have no clean depth; what they can measure (per pose mode):
 * ``lto_edge_mm`` / ``lto_flat_mm`` / ``lto_edge_gross``: that error split by whether a
   depth edge or hole of the target lies within 2 px (inverse depth range in the 5x5 window
   beyond 2 % of it plus 0.01 /m), and the share of the edge pixels off by more than 30 cm;
+* ``patches_kept``: patch pairs of the frame set kept by the 5 %-missing filter (drawn as
+  the workflow draws them, seed 0), of 6;
+* with ``--selection coverage`` (``frameset.selection``, :mod:`depthgt.gt.coverage`):
+  ``added`` views per frame set, ``lto_all_mae_mm`` the leave-target-out MAE of the core
+  and the added views fused together (``lto_mae_mm`` stays the core's), ``lto_added_mae_mm``
+  that check where the core's neighbours alone have no depth (the added views' own
+  accuracy, ``lto_added_px`` such pixels per frame set) and
+  ``cov_cpu_s`` the CPU seconds of the coverage step (candidates read through a frame
+  cache as a batch job does, selection, the added views' registration, the render);
 * ``reg_rot_deg`` / ``reg_trans_cm``: the mode's poses against the reference poses (the
   recording's own: motion capture for TUM, KinectFusion for 7-Scenes), median and 90th
   percentile over the neighbours;
@@ -35,6 +44,7 @@ Usage::
     python3 bench/bench_real.py                              # both recordings, modes given, refine, fast
     python3 bench/bench_real.py --data tum --modes given --tum-option camera=ros_default
     python3 bench/bench_real.py --data tum --set min_frame_agreement=0.9 --modes given
+    python3 bench/bench_real.py --modes given refine --selection window coverage --fs coverage_views=4
 """
 
 from __future__ import annotations
@@ -54,8 +64,12 @@ import torch.nn.functional as F
 from depthgt.errors import FrameError
 from depthgt.eval.metrics import depth_errors, pose_errors
 from depthgt.gt.build import align, fuse, load_frameset, poses_from_source, quality_statistics
+from depthgt.gt.cache import ResizedScene
+from depthgt.gt.coverage import add_coverage_views
+from depthgt.gt.patches import make_patches
+from depthgt.gt.planning import coverage_candidates, stable_seed
 from depthgt.jobs.common import open_source_scene
-from depthgt.settings import FrameSetSettings, RenderSettings, registration_settings
+from depthgt.settings import FrameSetSettings, PatchSettings, RenderSettings, registration_settings
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = next((p for p in (REPO.parent / "shared", REPO.parents[1] / "shared", Path("/work/shared")) if p.is_dir()),
@@ -86,11 +100,14 @@ def _band_masks(hw: tuple[int, int]) -> list[torch.Tensor]:
 
 
 def run(data: str, mode: str, step: int, render: RenderSettings, options: dict, reg_over: dict, limit: int | None,
-        cache: Path) -> list[dict]:
+        cache: Path, selection: str = "window", fs_over: dict | None = None) -> list[dict]:
     spec = DATA[data]
     source = {"name": data, "kind": spec["kind"], "root": spec["root"], "options": options}
     scene = open_source_scene(source, spec["scene"])
-    fs = FrameSetSettings()
+    fs = FrameSetSettings(**{**(fs_over or {}), "selection": selection})
+    # the coverage candidates are read through a frame cache, as a batch job reads them
+    resized = ResizedScene(scene, SIZE, keep=2 * fs.coverage_span + 2, need_pose=True)
+    splits = np.full(len(scene), "train", dtype=object)
     reg = registration_settings({**MODES[mode], **reg_over})
     targets = list(range(fs.reach, len(scene) - fs.reach, step))[:limit]
     bands = _band_masks(SIZE)
@@ -116,22 +133,43 @@ def run(data: str, mode: str, step: int, render: RenderSettings, options: dict, 
             sec = time.perf_counter() - t0
             torch.save((al, sec), key)
         gt = fuse(data_fs, al.T_j_to_t, render, members=al.fused, leave_target_out=True)
+        core_left_out, extra = gt.left_out, {}
+        if selection == "coverage":
+            c0 = time.process_time()
+            members = [t + o for o in fs.offsets]
+            cov = add_coverage_views(resized, t, coverage_candidates(splits, t, members, fs), data_fs, al, gt, fs, reg,
+                                     render)
+            extra = dict(cov_cpu_s=time.process_time() - c0,
+                         added=sum(v.get("filled_px", 0) > 0 and v["status"] == "ok" for v in cov.record["added"]),
+                         added_failed=sum(v["status"] != "ok" for v in cov.record["added"]),
+                         lto_all_mae_mm=1000 * float(cov.statistics.get("leave_target_out_all_views", {})
+                                                     .get("mae_m", np.nan)),
+                         lto_added_mae_mm=1000 * float(cov.statistics.get("leave_target_out_added", {})
+                                                       .get("mae_m", np.nan)),
+                         lto_added_px=int(cov.statistics.get("leave_target_out_added", {}).get("n_both_px", 0)))
+            gt = cov.render
+        gt_np = gt.depth[0, 0].numpy()
+        depth_in = data_fs.depth_m[0, 0].numpy()
+        rgb8 = (data_fs.rgb[0].permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
+        rng = np.random.default_rng(stable_seed(0, data, scene.name, t, "patches"))
+        patches = make_patches(depth_in, gt_np, rgb8, PatchSettings(), rng, gt_sigma_m=gt.sigma[0, 0].numpy())
         agree = gt.agreement[0].numpy() if gt.agreement.numel() else np.full(len(al.fused), np.nan)
         dropped = np.zeros(len(fs.offsets), bool)
         for k, m in enumerate(al.fused):
             if m > 0 and np.isfinite(agree[k]) and agree[k] < render.min_frame_agreement:
                 dropped[m] = True
         kept = sum(1 for m in al.fused if m > 0 and not dropped[m])
-        stats = quality_statistics(data_fs, al, gt.depth[0, 0].numpy(), render, left_out=gt.left_out)
+        stats = quality_statistics(data_fs, al, gt_np, render, left_out=core_left_out)
         lto = stats.get("leave_target_out", {})
         inp = data_fs.depth_m[0, 0]
         ref = poses_from_source(data_fs)
         err = pose_errors(al.T_j_to_t.numpy(), ref.numpy())
-        row = dict(data=data, mode=mode, target=t, kept=kept, sec=sec,
+        row = dict(data=data, mode=mode, selection=selection, target=t, kept=kept, sec=sec,
+                   patches_kept=int(patches["kept"].sum()), **extra,
                    gt_completeness=float((gt.depth[0, 0] > 0).float().mean()),
                    input_completeness=float((inp > 0).float().mean()),
                    lto_mae_mm=1000 * float(lto.get("mae_m", np.nan)),
-                   **_edge_split(gt.left_out, data_fs.depth_m[0, 0]),
+                   **_edge_split(core_left_out, data_fs.depth_m[0, 0]),
                    agreement_median=float(np.nanmedian(agree[1:])) if np.isfinite(agree[1:]).any() else np.nan,
                    rot=err.rot_err_deg.tolist(), trans=np.asarray(err.trans_err_cm).tolist())
         if getattr(gt, "disagreement", None) is not None:
@@ -162,11 +200,11 @@ def _edge_split(left_out, target: torch.Tensor) -> dict:
 
 def summarise(df: pd.DataFrame) -> pd.DataFrame:
     out = []
-    for (data, mode), g in df.groupby(["data", "mode"], sort=False):
+    for (data, mode, selection), g in df.groupby(["data", "mode", "selection"], sort=False):
         rot = np.concatenate(g.rot.tolist())
         edge, flat = (np.concatenate([np.asarray(e, float) for e in g[c]]) for c in ("edge_err", "flat_err"))
         trans = np.concatenate(g.trans.tolist())
-        r = dict(data=data, mode=mode, framesets=len(g), kept=g.kept.mean(),
+        r = dict(data=data, mode=mode, selection=selection, framesets=len(g), kept=g.kept.mean(),
                  kept_px=g.kept_px.mean() if "kept_px" in g else np.nan,
                  gt_completeness=g.gt_completeness.mean(), input_completeness=g.input_completeness.mean(),
                  lto_mae_mm=g.lto_mae_mm.mean(), lto_edge_mm=np.abs(edge).mean() if edge.size else np.nan,
@@ -175,7 +213,13 @@ def summarise(df: pd.DataFrame) -> pd.DataFrame:
                  agreement_median=g.agreement_median.median(),
                  reg_rot_deg_med=np.median(rot), reg_rot_deg_p90=np.percentile(rot, 90),
                  reg_trans_cm_med=np.median(trans), reg_trans_cm_p90=np.percentile(trans, 90),
-                 sec_per_set=g.sec.mean())
+                 sec_per_set=g.sec.mean(), patches_kept=int(g.patches_kept.sum()),
+                 patches_drawn=PatchSettings().count * len(g))
+        for col in ("added", "added_failed", "lto_all_mae_mm", "lto_added_px", "cov_cpu_s"):
+            if col in g:
+                r[col] = g[col].mean()
+        if "lto_added_px" in g and g.lto_added_px.sum() > 0:  # pooled over pixels: a few per frame set
+            r["lto_added_mae_mm"] = float((g.lto_added_mae_mm.fillna(0) * g.lto_added_px).sum() / g.lto_added_px.sum())
         for _, _, name in BANDS:
             if f"disagree_{name}" in g:
                 r[f"disagree_{name}"] = g[f"disagree_{name}"].mean()
@@ -204,6 +248,9 @@ def main(argv=None) -> None:
     ap.add_argument("--set", nargs="*", default=[], help="RenderSettings overrides key=value")
     ap.add_argument("--reg", nargs="*", default=[], help="registration overrides key=value")
     ap.add_argument("--tum-option", nargs="*", default=[], help="tum source options key=value")
+    ap.add_argument("--selection", nargs="+", default=["window"], choices=["window", "coverage"],
+                    help="frameset.selection: each one runs on the same registrations")
+    ap.add_argument("--fs", nargs="*", default=[], help="FrameSetSettings overrides key=value (coverage_span, ...)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/depthgt_real"),
                     help="registrations are cached here (by recording, mode, target, options); delete it after code changes")
@@ -221,7 +268,9 @@ def main(argv=None) -> None:
         options = _literal(a.tum_option) if data == "tum" else {}
         step = a.tum_step if data == "tum" else a.sevenscenes_step
         for mode in a.modes:
-            rows += run(data, mode, step, render, options, _literal(a.reg), a.limit, a.cache)
+            for selection in a.selection:
+                rows += run(data, mode, step, render, options, _literal(a.reg), a.limit, a.cache, selection,
+                            _literal(a.fs))
     df = pd.DataFrame(rows)
     df.to_pickle(a.out.with_suffix(".pkl"))
     s = summarise(df)

@@ -122,7 +122,9 @@ def test_schema_and_settings_agree_on_the_default_config():
 
 def test_settings_doc_is_json_ready():
     doc = settings_from_config({}).doc("frameset", "registration")
-    assert doc["frameset"] == {"neighbours": 3, "stride": 2, "target_step": 1, "batch_size": 32}
+    assert doc["frameset"] == {"neighbours": 3, "stride": 2, "target_step": 1, "batch_size": 32, "selection": "window",
+                               "coverage_span": 30, "coverage_views": 4, "coverage_max_baseline_m": 0.3,
+                               "coverage_max_angle_deg": 20.0, "coverage_min_fill_px": 50}
     assert doc["registration"]["refine_settings"]["scales"] == [4, 2, 1]
 
 
@@ -175,6 +177,12 @@ def test_schema_defaults_equal_the_dataclass_defaults():
     from depthgt.settings import MAX_FRAMESET_BATCH
 
     assert schema["properties"]["frameset"]["properties"]["batch_size"]["maximum"] == MAX_FRAMESET_BATCH
+    from depthgt.settings import FRAMESET_SELECTIONS, MAX_COVERAGE_SPAN, MAX_NEIGHBOURS
+
+    fs_schema = schema["properties"]["frameset"]["properties"]
+    assert fs_schema["coverage_span"]["maximum"] == MAX_COVERAGE_SPAN
+    assert fs_schema["coverage_views"]["maximum"] == MAX_NEIGHBOURS
+    assert tuple(fs_schema["selection"]["enum"]) == FRAMESET_SELECTIONS
     with pytest.raises(ConfigError, match="frameset.batch_size"):
         FrameSetSettings(batch_size=MAX_FRAMESET_BATCH + 1)
 

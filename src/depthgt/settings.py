@@ -62,6 +62,8 @@ RENDER_PLANES = ("fit", "normals", "none")  # render.plane
 MAX_RESIZE = 4096
 MAX_PATCH_COUNT = 1000
 MAX_NEIGHBOURS = 32
+MAX_COVERAGE_SPAN = 256  # frameset.coverage_span: 2 * span candidate frames are read and held at once
+FRAMESET_SELECTIONS = ("window", "coverage")  # frameset.selection
 MAX_CANDIDATES = 1 << 16
 # frame sets one batch job builds (frameset.batch_size): a job holds one frame set at a
 # time, but its time limit grows with the batch (the schema states the same maximum)
@@ -93,12 +95,29 @@ class FrameSetSettings:
         batch_size: frame sets one job builds in turn (a contiguous slice of one scene's
             targets, written to one shard): process start, imports and model loading are
             paid once per batch (docs/output-layout.md).
+        selection: ``window`` (the paper's members only) or ``coverage``: the window as
+            the core, plus up to ``coverage_views`` views from within
+            +-``coverage_span`` frames chosen for the target's pixels the core leaves
+            without GT (:mod:`depthgt.gt.coverage`); they fill only those pixels.
+        coverage_span: frames on each side of the target a coverage view may come from.
+        coverage_views: most views added per frame set.
+        coverage_max_baseline_m: a candidate farther than this from the target camera
+            (by the source's poses) is not added.
+        coverage_max_angle_deg: nor one whose viewing direction is turned further.
+        coverage_min_fill_px: a view is added only when it would fill at least this
+            many of the still-empty pixels.
     """
 
     neighbours: int = 3
     stride: int = 2
     target_step: int = 1
     batch_size: int = 32
+    selection: str = "window"
+    coverage_span: int = 30
+    coverage_views: int = 4
+    coverage_max_baseline_m: float = 0.3
+    coverage_max_angle_deg: float = 20.0
+    coverage_min_fill_px: int = 50
 
     def __post_init__(self):
         _require(1 <= self.batch_size <= MAX_FRAMESET_BATCH, "frameset.batch_size",
@@ -107,6 +126,18 @@ class FrameSetSettings:
             _require(getattr(self, key) >= 1, f"frameset.{key}", f"must be >= 1, got {getattr(self, key)}")
         _require(self.neighbours <= MAX_NEIGHBOURS, "frameset.neighbours",
                  f"must be <= {MAX_NEIGHBOURS} (every member is held in memory at once), got {self.neighbours}")
+        _require(self.selection in FRAMESET_SELECTIONS, "frameset.selection",
+                 f"must be one of {FRAMESET_SELECTIONS}, got {self.selection!r}")
+        _require(1 <= self.coverage_span <= MAX_COVERAGE_SPAN, "frameset.coverage_span",
+                 f"must be in 1..{MAX_COVERAGE_SPAN} (the candidates are held in memory at once), got {self.coverage_span}")
+        _require(0 <= self.coverage_views <= MAX_NEIGHBOURS, "frameset.coverage_views",
+                 f"must be in 0..{MAX_NEIGHBOURS}, got {self.coverage_views}")
+        _require(self.coverage_max_baseline_m > 0, "frameset.coverage_max_baseline_m",
+                 f"must be > 0, got {self.coverage_max_baseline_m}")
+        _require(0 < self.coverage_max_angle_deg <= 180, "frameset.coverage_max_angle_deg",
+                 f"must be in (0, 180], got {self.coverage_max_angle_deg}")
+        _require(self.coverage_min_fill_px >= 1, "frameset.coverage_min_fill_px",
+                 f"must be >= 1, got {self.coverage_min_fill_px}")
 
     @property
     def offsets(self) -> list[int]:
@@ -988,6 +1019,11 @@ def settings_from_config(config: Mapping[str, Any], sections: tuple[str, ...] | 
         _require(settings.patches.size <= settings.resize, "patches.size",
                  f"{settings.patches.size} does not fit in the {settings.resize}x{settings.resize} working resolution "
                  "(resize)")
+    if ((sections is None or {"frameset", "registration"} <= set(sections))
+            and settings.frameset.selection == "coverage" and not settings.registration.uses_source_poses):
+        _fail("frameset.selection", "coverage chooses and starts its added views with the source's poses; "
+              f"registration.method {settings.registration.method!r} uses none (use given or refine, or "
+              "selection: window)")
     return settings
 
 

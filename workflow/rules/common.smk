@@ -120,7 +120,10 @@ GPUS = 1 if config["device"] == "cuda" else 0
 # in turn needs the memory of one and the time of all.
 _REG = config["registration"]
 _OVERFIT_PAPER = _REG.get("method") == "overfit" and _REG.get("preset") != "fast"
-FRAMESET_MEM_MB = 8000 if _OVERFIT_PAPER else 2000
+# frameset.selection coverage: the batch keeps the span's frames and the candidates' clouds;
+# measured 1.7 GB peak RSS (7-Scenes, given and refine, bench_pipeline.py --selection coverage)
+_COVERAGE = config["frameset"].get("selection") == "coverage"
+FRAMESET_MEM_MB = 8000 if _OVERFIT_PAPER else (4000 if _COVERAGE else 2000)
 FRAMESET_CPU_S = 1800 if _OVERFIT_PAPER else 60
 
 

@@ -23,7 +23,7 @@ from depthgt.device import resolve_device
 from depthgt.errors import FrameError
 from depthgt.gt import store
 from depthgt.gt.patches import make_patches, patch_record
-from depthgt.gt.planning import stable_seed
+from depthgt.gt.planning import coverage_candidates, stable_seed
 from depthgt.gt.render import GTRender, cloud_in_target, render_gt
 from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
 from depthgt.noise_law import depth_sigma_m, noise_sigma_1m_from, second_difference_residuals
@@ -286,7 +286,8 @@ def quality_statistics(data: FrameSetData, alignment: Alignment, gt_m: np.ndarra
 
 
 def process_frameset(scene: Scene, dataset: str, target: int, members: list[int], split: str, out: FrameSetOutputs,
-                     settings: Settings, encoder_state: dict | None = None) -> dict[str, Any]:
+                     settings: Settings, encoder_state: dict | None = None,
+                     candidates: list[int] | None = None) -> dict[str, Any]:
     """Build every output of one frame set and return frameset.json's content.
 
     Args:
@@ -297,6 +298,10 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
         settings: :class:`~depthgt.settings.Settings` (frame set, render, registration,
             patches, seed, device, resize).
         encoder_state: pretrained registration encoder weights, or None.
+        candidates: with ``frameset.selection: coverage``, the frames the views added
+            for coverage may come from (the batch job's
+            :func:`~depthgt.gt.planning.coverage_candidates`); None: every frame within
+            ``coverage_span`` (the scene in one split).
     """
     out = FrameSetOutputs(*(Path(p) for p in out))
     device = resolve_device(settings.device)
@@ -322,6 +327,18 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     gt = fuse(data, alignment.T_j_to_t, settings.render, members=fused if len(fused) < len(members) else slice(None),
               leave_target_out=data.truth_m is None, normals=alignment.normals)
     lap("render")
+
+    coverage = None
+    if settings.frameset.selection == "coverage":
+        # depthgt.gt.coverage builds on this module (load_frameset, fuse): imported here, where it is used
+        from depthgt.gt.coverage import add_coverage_views
+
+        if candidates is None:
+            candidates = coverage_candidates(np.full(len(scene), split, dtype=object), target, members, settings.frameset)
+        coverage = add_coverage_views(scene, target, list(candidates), data, alignment, gt, settings.frameset, reg,
+                                      settings.render)
+        gt = coverage.render  # the core's GT where it has one, the added views' only where it has none
+        lap("coverage")
 
     depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
     gt_raw = gt.depth[0, 0].detach().cpu().numpy().astype(np.float32)
@@ -353,6 +370,8 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
         # share of the neighbours' compared samples that the agreement check kept
         stats["render_kept_share"] = round(float(gt.disagreement[0, 2].sum() / gt.disagreement[0, 0].sum()), 4)
     stats.update(quality_statistics(data, alignment, gt_depth, settings.render, left_out=gt.left_out))
+    if coverage is not None:
+        stats.update(coverage.statistics)
     lap("quality")
 
     rng = np.random.default_rng(stable_seed(settings.seed, dataset, scene.name, target, "patches"))
@@ -373,6 +392,8 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     if data.T_world_cam is not None:
         ref = poses_from_source(data).cpu().numpy()
         poses_doc["T_j_to_t_reference"] = {str(o): ref[i].tolist() for i, o in enumerate(offsets[1:])}
+    if coverage is not None:
+        poses_doc["coverage_T_j_to_t"] = {str(o): T for o, T in coverage.T_j_to_t.items()}
     lap("write")
     poses_doc["timings_s"] = timings
     poses_doc["cpu_s"] = cpu
@@ -394,6 +415,8 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
         "units": _units(stats),
         "settings": settings.doc("seed", "device", "resize", "frameset", "patches", "render", "registration"),
     }
+    if coverage is not None:
+        doc["coverage"] = coverage.record
     doc["settings"]["frameset"].pop("batch_size", None)  # how jobs are cut, not what a frame set is
     write_atomic(out.meta, io.write_json, doc)
     return doc

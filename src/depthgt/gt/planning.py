@@ -17,7 +17,7 @@ import numpy as np
 from depthgt.settings import SPLITS, FrameSetSettings, SplitSettings
 from depthgt.status import Status
 
-__all__ = ["stable_seed", "block_splits", "enumerate_framesets", "member_problems"]
+__all__ = ["stable_seed", "block_splits", "enumerate_framesets", "coverage_candidates", "member_problems"]
 
 
 def stable_seed(*parts: object) -> int:
@@ -71,6 +71,28 @@ def enumerate_framesets(splits: np.ndarray, settings: FrameSetSettings) -> list[
             status, reason = Status.SKIPPED, "split_guard: members span two splits"
         out.append({"target": t, "members": members, "split": splits[t], "status": status, "reason": reason})
     return out
+
+
+def coverage_candidates(splits: np.ndarray, target: int, members: Sequence[int], settings: FrameSetSettings) -> list[int]:
+    """Frames that ``frameset.selection: coverage`` may add to a frame set (none with
+    ``window``): within +-``coverage_span`` of the target, inside the scene, not a
+    member, and of the target's split (the split guard holds for added views too: a
+    frame of another split is never a candidate, so no frame set spans two splits).
+
+    Args:
+        splits: (N,) split tag of each frame position (:func:`block_splits`).
+        target, members: the planned frame set (members target first).
+
+    >>> tags = np.array(["train"] * 10 + ["val"] * 5, dtype=object)
+    >>> coverage_candidates(tags, 7, [7, 5, 9], FrameSetSettings(neighbours=1, selection="coverage", coverage_span=4))
+    [3, 4, 6, 8]
+    """
+    if settings.selection != "coverage":
+        return []
+    n = len(splits)
+    pos = np.arange(max(0, target - settings.coverage_span), min(n, target + settings.coverage_span + 1))
+    pos = pos[~np.isin(pos, np.asarray(members)) & (splits[pos] == splits[target])]
+    return pos.tolist()
 
 
 def member_problems(members: Sequence[int], problems: Mapping[int, str]) -> str:

@@ -25,7 +25,7 @@ from depthgt.gt import store
 from depthgt.gt.assemble import DatasetOutputs, assemble, summarize_scene
 from depthgt.gt.card import build_card, write_card
 from depthgt.gt.index import build_index, select_pretraining_framesets
-from depthgt.gt.planning import member_problems
+from depthgt.gt.planning import coverage_candidates, member_problems
 from depthgt.jobs.common import open_source_scene
 from depthgt.settings import STAGES, stage_settings
 from depthgt.status import Status
@@ -68,7 +68,10 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
     ``registration.method: given`` their poses too): before a planned target is built,
     its member frames are read; a frame set with an unusable member is skipped, its
     reason naming each such frame with its reason and message
-    (:func:`depthgt.gt.planning.member_problems`).
+    (:func:`depthgt.gt.planning.member_problems`). With ``frameset.selection: coverage``
+    each target's candidate views come from the index's split tags
+    (:func:`depthgt.gt.planning.coverage_candidates`); the batch keeps the frames of
+    the wider span in memory, and an unusable candidate is only not added.
 
     Every candidate target of the slice gets a record in the shard's ``batch.json``:
     ``ok`` (or ``failed``: the registration) when built, else ``skipped`` with the
@@ -96,8 +99,11 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
         import torch  # heavy: only with a pretrained encoder
 
         state = torch.load(encoder, map_location="cpu", weights_only=True) or None  # {}: no pretraining
+    fs = settings.frameset
+    span = max(fs.reach, fs.coverage_span) if fs.selection == "coverage" else fs.reach  # frames a target may read
     scene_obj = ResizedScene(open_source_scene(source, scene, need_poses=need_poses), settings.size_hw,
-                             keep=2 * settings.frameset.reach + 2, need_pose=need_poses)
+                             keep=2 * span + 2, need_pose=need_poses)
+    splits = table.sort_values("position")["split"].to_numpy(dtype=object)  # the index's split of every frame
     records: list[dict[str, Any]] = []
     built: dict[int, Path] = {}
     with work_dir(out_shard) as tmp:
@@ -123,7 +129,7 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
                 continue
             out = FrameSetOutputs.in_dir(Path(tmp) / f"{target:06d}")
             doc = process_frameset(scene_obj, source["name"], target, members, row.frameset_split, out, settings,
-                                   encoder_state=state)
+                                   encoder_state=state, candidates=coverage_candidates(splits, target, members, fs))
             built[target] = Path(tmp) / f"{target:06d}"
             records.append({"target": target, "status": doc["status"], "reason": doc["reason"], "members": members,
                             "split": row.frameset_split})

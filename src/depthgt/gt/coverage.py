@@ -1,0 +1,276 @@
+"""Views added for coverage (``frameset.selection: coverage``).
+
+The paper's window (t +- k*stride) shares the target's projector shadows, black and
+specular surfaces and undistortion border, so some of the target's pixels get no GT
+from it however the renderer is set (bench/README "What limits..."). Coverage keeps
+that window as the core, rendered exactly as with ``window``, and adds up to
+``coverage_views`` frames from within +-``coverage_span`` frames:
+
+1. candidates: the scene's frames in the span, outside the core, of the target's split
+   (the planning's split guard, :func:`depthgt.gt.planning.coverage_candidates`), that
+   read fine and lie within the baseline and viewing-angle limits by the source's
+   poses (a view the registration could not align is never chosen);
+2. each candidate's valid depth is projected into the target with those poses; views
+   are chosen greedily by how many of the core's still-empty pixels they would fill
+   (:func:`choose_views`);
+3. the chosen views go through the registration of the frame set's method (``given``:
+   the source's poses; ``refine``: refined on the target and the added views, with the
+   neighbour checks; one that fails is left out with its reason, never fused
+   unaligned);
+4. the core's fused members and the registered views are rendered together by the
+   same renderer (its agreement check, front-surface guard and sigma); the result is
+   taken only where the core has no GT, so every pixel the core decides is the core's,
+   bit for bit (:func:`add_coverage_views`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from depthgt import geometry
+from depthgt.errors import FrameError
+from depthgt.gt.build import Alignment, FrameSetData, fuse, load_frameset, photometric_for
+from depthgt.gt.render import GTRender
+from depthgt.metric_vocabulary import depth_errors
+from depthgt.settings import FrameSetSettings, RegistrationSettings, RenderSettings
+from depthgt.sources.base import Scene, check_frame
+from depthgt.status import Status
+
+__all__ = ["view_limits", "fill_maps", "choose_views", "CoverageResult", "add_coverage_views"]
+
+
+def view_limits(T_c_to_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Baseline (metres) and angle between the viewing directions (degrees) of each
+    candidate camera relative to the target.
+
+    Args:
+        T_c_to_t: (C, 4, 4) poses mapping candidate-camera points into the target camera.
+
+    Returns:
+        baseline_m (C,), angle_deg (C,): the distance between the optical centres and
+        the angle between the optical axes (a roll about the axis does not count).
+    """
+    if T_c_to_t.ndim != 3 or T_c_to_t.shape[1:] != (4, 4):
+        raise ValueError(f"T_c_to_t must be (C, 4, 4), got {tuple(T_c_to_t.shape)}")
+    baseline = T_c_to_t[:, :3, 3].norm(dim=1)
+    angle = torch.rad2deg(torch.arccos(T_c_to_t[:, 2, 2].clamp(-1.0, 1.0)))  # z axis of c seen in t, against t's
+    return baseline, angle
+
+
+def fill_maps(depth_m: torch.Tensor, K: torch.Tensor, T_c_to_t: torch.Tensor, empty: torch.Tensor) -> torch.Tensor:
+    """Which of the target's empty pixels each candidate's valid depth lands on.
+
+    Args:
+        depth_m: (C, 1, H, W) candidates' depth in metres, 0 = invalid.
+        K: (3, 3) intrinsics of every frame at (H, W).
+        T_c_to_t: (C, 4, 4) poses of the candidates in the target camera.
+        empty: (H, W) bool, the target's pixels without GT.
+
+    Returns:
+        (C, H*W) bool: pixel p of the target is empty and some valid point of candidate c
+        projects (nearest pixel, in front of the camera) onto it.
+    """
+    c = depth_m.shape[0]
+    h, w = depth_m.shape[-2:]
+    if depth_m.ndim != 4 or depth_m.shape[1] != 1 or T_c_to_t.shape != (c, 4, 4) or empty.shape != (h, w):
+        raise ValueError(f"fill_maps: depth_m (C, 1, H, W), T_c_to_t (C, 4, 4) and empty (H, W) must agree, got "
+                         f"{tuple(depth_m.shape)}, {tuple(T_c_to_t.shape)}, {tuple(empty.shape)}")
+    dt = depth_m.dtype
+    Kb = K.to(dt)[None].expand(c, 3, 3)
+    pts = geometry.backproject(depth_m, Kb)
+    T = T_c_to_t.to(dt)
+    pts_t = pts @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
+    uv, z = geometry.project(pts_t, Kb)
+    u, v = torch.floor(uv[..., 0] + 0.5), torch.floor(uv[..., 1] + 0.5)
+    ok = (depth_m.reshape(c, -1) > 0) & (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    pix = torch.where(ok, v * w + u, torch.zeros_like(u)).long()
+    slot = torch.arange(c, device=depth_m.device)[:, None] * (h * w) + pix
+    hit = torch.zeros(c * h * w, dtype=torch.bool, device=depth_m.device)
+    hit[slot[ok]] = True
+    return hit.reshape(c, h * w) & empty.reshape(1, -1)
+
+
+def choose_views(fill: torch.Tensor, n_views: int, min_fill_px: int) -> list[tuple[int, int]]:
+    """Greedy set cover: repeatedly the candidate that fills the most still-uncovered
+    pixels, until ``n_views`` are chosen or none would fill ``min_fill_px``.
+
+    Args:
+        fill: (C, P) bool, the pixels each candidate would fill (:func:`fill_maps`).
+
+    Returns:
+        (candidate index, pixels it fills beyond the views chosen before it), in the
+        order chosen.
+
+    >>> choose_views(torch.tensor([[1, 1, 0, 0], [1, 1, 1, 0], [0, 0, 0, 1]], dtype=torch.bool), 3, 1)
+    [(1, 3), (2, 1)]
+    """
+    uncovered = torch.ones(fill.shape[1], dtype=torch.bool, device=fill.device)
+    chosen: list[tuple[int, int]] = []
+    for _ in range(n_views):  # a handful of views: one vectorised count per pick
+        gain = (fill & uncovered).sum(dim=1)
+        if chosen:
+            gain[[i for i, _ in chosen]] = -1
+        best = int(gain.argmax()) if gain.numel() else -1
+        if best < 0 or int(gain[best]) < min_fill_px:
+            break
+        chosen.append((best, int(gain[best])))
+        uncovered &= ~fill[best]
+    return chosen
+
+
+@dataclass
+class CoverageResult:
+    """What :func:`add_coverage_views` made.
+
+    Attributes:
+        render: the GT: the core's render where it has GT, the render of the core with
+            the added views where it has none (``agreement``, ``disagreement`` and
+            ``left_out`` are the core's).
+        record: frameset.json's ``coverage``: the candidates, each added view with why
+            (its planned fill), its status and reason.
+        statistics: on real data ``leave_target_out_all_views`` (the core's neighbours and
+            the added views fused without the target, against the target's raw depth)
+            and ``leave_target_out_added`` (that check only where the core's neighbours
+            alone left the target empty: the added views' own accuracy).
+        T_j_to_t: offset -> (4, 4) pose of each added view that entered the render.
+        full: the render of the core with the added views everywhere (its ``left_out``
+            on real data), before it is taken where the core has no GT; None when no
+            view was added.
+    """
+
+    render: GTRender
+    record: dict[str, Any]
+    statistics: dict[str, Any] = field(default_factory=dict)
+    T_j_to_t: dict[int, list] = field(default_factory=dict)
+    full: GTRender | None = None
+
+
+def _usable(scene: Scene, positions: list[int]) -> tuple[list[int], dict[int, str]]:
+    good, bad = [], {}
+    for p in positions:
+        check = getattr(scene, "check", None)  # a ResizedScene remembers each frame's outcome
+        if check is not None:
+            c = check(p)
+            if c.valid:
+                good.append(p)
+            else:
+                bad[p] = c.problem
+            continue
+        try:
+            check_frame(scene.read(p), scene.image_size, f"{scene.name} frame {scene.frame_id(p)}", need_pose=True)
+            good.append(p)
+        except FrameError as err:
+            bad[p] = f"{err.reason} ({err})"
+    return good, bad
+
+
+def _register(data: FrameSetData, offsets: list[int], T_start: torch.Tensor,
+              reg: RegistrationSettings) -> tuple[torch.Tensor, list[str], list[str]]:
+    """Poses of the added views (target first in ``data``) by the frame set's method."""
+    if reg.method == "given":
+        return T_start, [Status.OK] * len(offsets[1:]), [""] * len(offsets[1:])
+    from depthgt import (
+        registration,  # torch-heavy; looked up at call time so tests can replace it
+    )
+
+    if reg.method != "refine":
+        raise ValueError(f"coverage views need the source's poses (given or refine), not {reg.method!r}")
+    res = registration.refine_source_poses(data.rgb, data.depth_m, data.K, offsets, T_start,
+                                           photometric_for(reg, data.colour_matches_depth))
+    T = torch.as_tensor(res.T_j_to_t, dtype=torch.float64, device=data.depth_m.device)
+    return T, list(res.neighbour_status), list(res.neighbour_reasons)
+
+
+def add_coverage_views(scene: Scene, target: int, candidates: list[int], data: FrameSetData, alignment: Alignment,
+                       core: GTRender, fs: FrameSetSettings, reg: RegistrationSettings,
+                       render: RenderSettings) -> CoverageResult:
+    """Fill the pixels the core left without GT from added views (module docstring).
+
+    Args:
+        scene: the frame set's scene (frames read through it, at ``data``'s size).
+        target: the target's position; ``candidates``: positions the planning allows
+            (:func:`depthgt.gt.planning.coverage_candidates`).
+        data, alignment, core: the core frame set, its registration and its render.
+        fs: the limits and counts (``coverage_*``); reg, render: the frame set's
+            registration and renderer settings.
+    """
+    h, w = data.depth_m.shape[-2:]
+    empty = core.depth[0, 0] <= 0
+    record: dict[str, Any] = {"selection": "coverage", "candidates": len(candidates),
+                              "gt_missing_core": round(float(empty.float().mean()), 6), "added": []}
+
+    def keep() -> GTRender:  # nothing added: the core's render as it is
+        return GTRender(core.depth, core.weight_sum, core.count, core.sigma, core.agreement, core.disagreement,
+                        core.left_out)
+
+    usable, bad = _usable(scene, candidates)
+    record["unusable"] = {str(p - target): why for p, why in bad.items()}
+    if not usable or fs.coverage_views == 0 or not bool(empty.any()):
+        record["beyond_limits"] = 0
+        return CoverageResult(keep(), record)
+    cand = load_frameset(scene, [target, *usable], (h, w), need_poses=True, device=data.depth_m.device)
+    T_c_to_t = torch.linalg.inv(cand.T_world_cam[:1]) @ cand.T_world_cam[1:]
+    baseline, angle = view_limits(T_c_to_t)
+    within = (baseline <= fs.coverage_max_baseline_m) & (angle <= fs.coverage_max_angle_deg)
+    record["beyond_limits"] = int((~within).sum())
+    idx = torch.nonzero(within).flatten()
+    fill = fill_maps(cand.depth_m[1:][idx], data.K, T_c_to_t[idx], empty)
+    picks = choose_views(fill, fs.coverage_views, fs.coverage_min_fill_px)
+    if not picks:
+        return CoverageResult(keep(), record)
+    chosen = [int(idx[i]) for i, _ in picks]  # positions in cand's neighbours
+    offsets = [0, *(usable[c] - target for c in chosen)]
+    sel = [0, *(c + 1 for c in chosen)]
+    added = FrameSetData(cand.rgb[sel], cand.depth_m[sel], cand.K, cand.T_world_cam[sel],
+                         cand.truth_m[sel] if cand.truth_m is not None else None, [cand.frame_ids[i] for i in sel],
+                         cand.src_hw, cand.colour_matches_depth)
+    T_added, status, reasons = _register(added, offsets, T_c_to_t[chosen], reg)
+    views = [{"offset": o, "planned_fill_px": g, "baseline_m": round(float(baseline[c]), 4),
+              "angle_deg": round(float(angle[c]), 2), "status": st, "reason": why}
+             for o, (_, g), c, st, why in zip(offsets[1:], picks, chosen, status, reasons)]
+    record["added"] = views
+    ok = [k for k, v in enumerate(views) if v["status"] == Status.OK]
+    if not ok:
+        return CoverageResult(keep(), record)
+
+    # the core's fused members and the registered views, rendered together
+    n = data.depth_m.shape[0]
+    both = FrameSetData(torch.cat([data.rgb, added.rgb[1:]]), torch.cat([data.depth_m, added.depth_m[1:]]), data.K,
+                        None, torch.cat([data.truth_m, added.truth_m[1:]]) if data.truth_m is not None
+                        and added.truth_m is not None else None, [*data.frame_ids, *added.frame_ids[1:]],
+                        data.src_hw, data.colour_matches_depth)
+    T_both = torch.cat([alignment.T_j_to_t.to(torch.float64), T_added.to(alignment.T_j_to_t.device, torch.float64)])
+    members = [*alignment.fused, *(n + k for k in ok)]
+    full = fuse(both, T_both, render, members=members, leave_target_out=data.truth_m is None)
+    whole = render.min_whole_frame_agreement if render.agreement_tile_px > 0 else render.min_frame_agreement
+    share = full.agreement[0].cpu().numpy() if full.agreement.numel() else np.full(len(members), np.nan)
+    filled = empty & (full.depth[0, 0] > 0)
+    for j, k in enumerate(ok):
+        a = float(share[len(alignment.fused) + j])
+        views[k]["render_agreement"] = round(a, 4) if math.isfinite(a) else None
+        if math.isfinite(a) and a < whole:  # the renderer left it out whole: it fills nothing
+            views[k]["status"], views[k]["reason"] = Status.FAILED, f"render_agreement {a:.3f} < {whole}"
+        planned = fill[picks[k][0]].reshape(h, w)
+        views[k]["filled_px"] = int((planned & filled).sum()) if views[k]["status"] == Status.OK else 0
+    record["filled_px"] = int(filled.sum())
+    m = filled[None, None]
+    merged = GTRender(torch.where(m, full.depth, core.depth), torch.where(m, full.weight_sum, core.weight_sum),
+                      torch.where(m, full.count, core.count), torch.where(m, full.sigma, core.sigma), core.agreement,
+                      core.disagreement, core.left_out)
+    stats: dict[str, Any] = {}
+    if full.left_out is not None:
+        k = render.leave_target_out_stride  # fuse rendered these pixels only
+        lto = full.left_out.depth[0, 0].detach().cpu().numpy().astype(np.float32)
+        depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
+        stats["leave_target_out_all_views"] = depth_errors(lto[::k, ::k], depth_in[::k, ::k])
+        # where the core's neighbours alone left the target empty: the added views' own check
+        core_lto = core.left_out.depth[0, 0].detach().cpu().numpy() if core.left_out is not None else np.zeros_like(lto)
+        stats["leave_target_out_added"] = depth_errors(lto[::k, ::k], depth_in[::k, ::k],
+                                                       mask=core_lto[::k, ::k] <= 0)
+    poses = {offsets[1 + k]: T_added[k].detach().cpu().numpy().tolist() for k in ok if views[k]["status"] == Status.OK}
+    return CoverageResult(merged, record, stats, poses, full)

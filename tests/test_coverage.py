@@ -1,0 +1,277 @@
+"""frameset.selection: coverage -- views added where the paper's window sees nothing.
+
+The scene: a wall at z = 2 m and a plate (x in [-0.2, 0], |y| <= 0.3, z = 1 m) in front
+of it, seen by a camera sliding along x (1 cm and 0.3 deg of yaw per frame) with a
+structured-light projector 20 cm to its right. The plate's projector shadow on the wall
+is a strip the camera sees but cannot measure (~6 px wide); the window's neighbours
+(+-6 cm) share part of it, frames further left see past the plate into all of it. Everything is ray cast, so
+the strip and the wall's depth are known exactly.
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from depthgt import io
+from depthgt.errors import ConfigError
+from depthgt.gt import store
+from depthgt.gt.build import FrameSetOutputs, process_frameset
+from depthgt.gt.coverage import choose_views, fill_maps, view_limits
+from depthgt.gt.planning import block_splits, coverage_candidates, enumerate_framesets
+from depthgt.jobs.gt import run_frameset_batch, run_scene_index
+from depthgt.registration.overfit import RegistrationResult
+from depthgt.settings import FrameSetSettings, SplitSettings, settings_from_config
+from depthgt.sources import synthetic
+from depthgt.sources.base import Frame
+
+HW = (64, 64)
+N_FRAMES, TARGET = 41, 20
+STEP_M, YAW_DEG = 0.01, 0.3
+WALL_Z, PLATE_Z, PLATE_X, PLATE_Y = 2.0, 1.0, (-0.2, 0.0), 0.3
+PROJECTOR_M = 0.2  # a wide baseline: the shadow spans ~6 px at 64x64
+
+
+def _rot_y(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+
+
+def _on_plate(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    return (x >= PLATE_X[0]) & (x <= PLATE_X[1]) & (np.abs(y) <= PLATE_Y)
+
+
+class OccluderScene:
+    """The wall-and-plate scene (module docstring); every frame ray cast at 64x64."""
+
+    name, image_size, has_poses, has_clean_depth, colour_matches_depth = "occluder", HW, True, True, True
+    intrinsics = np.array([[60.0, 0, 31.5], [0, 60.0, 31.5], [0, 0, 1]])
+
+    def __len__(self) -> int:
+        return N_FRAMES
+
+    def frame_id(self, i: int) -> str:
+        return f"{i:03d}"
+
+    def pose(self, i: int) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = _rot_y((i - TARGET) * YAW_DEG)
+        T[0, 3] = (i - TARGET) * STEP_M
+        return T
+
+    def read(self, i: int) -> Frame:
+        T = self.pose(i)
+        v, u = np.mgrid[0:HW[0], 0:HW[1]].astype(np.float64)
+        rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(self.intrinsics).T @ T[:3, :3].T  # world dirs
+        c = T[:3, 3]
+        s_plate = (PLATE_Z - c[2]) / rays[..., 2]
+        p_plate = c + s_plate[..., None] * rays
+        hit_plate = _on_plate(p_plate[..., 0], p_plate[..., 1])
+        s = np.where(hit_plate, s_plate, (WALL_Z - c[2]) / rays[..., 2])
+        p = c + s[..., None] * rays
+        clean = ((p - c) @ T[:3, :3])[..., 2].astype(np.float32)  # z in the camera
+        q = c + T[:3, :3] @ np.array([PROJECTOR_M, 0.0, 0.0])  # the projector
+        t_q = (PLATE_Z - q[2]) / (p[..., 2] - q[2])
+        x_q = q + t_q[..., None] * (p - q)
+        shadow = ~hit_plate & _on_plate(x_q[..., 0], x_q[..., 1])
+        depth = np.where(shadow, 0.0, clean).astype(np.float32)
+        grey = (np.floor(p[..., 0] * 20) + np.floor(p[..., 1] * 20)) % 2 * 120 + 60  # a checker on the surfaces
+        rgb = np.repeat(grey[..., None], 3, axis=-1).astype(np.uint8)
+        return Frame(rgb, depth, T, clean)
+
+
+def _settings(selection: str, **frameset):
+    return settings_from_config({
+        "resize": 64, "patches": {"size": 32},
+        "frameset": {"selection": selection, "coverage_span": 30, "coverage_views": 2, **frameset},
+        "registration": {"method": "given"},
+    })
+
+
+def _build(tmp_path, name: str, settings, candidates=None) -> tuple[dict, dict, dict]:
+    scene = OccluderScene()
+    members = [TARGET + o for o in settings.frameset.offsets]
+    out = FrameSetOutputs.in_dir(tmp_path / name)
+    doc = process_frameset(scene, "synthetic", TARGET, members, "train", out, settings, candidates=candidates)
+    assert json.loads(out.meta.read_text()) == json.loads(json.dumps(doc))
+    return doc, io.read_exr(out.gt), json.loads(out.poses.read_text())
+
+
+@pytest.fixture(scope="module")
+def window(tmp_path_factory):
+    return _build(tmp_path_factory.mktemp("window"), "w", _settings("window"))
+
+
+def test_scene_shadow_is_what_the_window_misses(window):
+    frame = OccluderScene().read(TARGET)
+    strip = (frame.depth_m == 0) & (frame.clean_depth_m > 0)
+    assert 60 < strip.sum() < 600  # the projector's shadow: the target cannot measure it
+    doc, gt, _ = window
+    assert "coverage" not in doc
+    # the window's neighbours (+-6 frames, 6 cm) see only part of it
+    assert (strip & (gt["Z"] == 0)).sum() >= 60
+
+
+def test_coverage_fills_the_occluded_pixels_and_keeps_the_core(window, tmp_path):
+    _, gt_w, poses_w = window
+    doc, gt, poses = _build(tmp_path, "c", _settings("coverage", coverage_max_angle_deg=20.0))
+    frame = OccluderScene().read(TARGET)
+    strip = (frame.depth_m == 0) & (frame.clean_depth_m > 0)
+    cov = doc["coverage"]
+    added = [v for v in cov["added"] if v["status"] == "ok"]
+    assert added and all(v["offset"] < -6 for v in added)  # from the left, past the plate
+    # the occluded pixels are filled, with the wall's depth
+    filled = strip & (gt_w["Z"] == 0) & (gt["Z"] > 0)
+    assert filled.sum() >= 0.9 * (strip & (gt_w["Z"] == 0)).sum()
+    assert np.abs(gt["Z"][filled] - frame.clean_depth_m[filled]).max() < 0.01
+    # every pixel the core decides is the core's, bit for bit (all channels)
+    core = gt_w["Z"] > 0
+    for ch in ("Z", "W", "N", "S"):
+        assert np.array_equal(gt[ch][core], gt_w[ch][core]), ch
+    assert cov["filled_px"] == int(((gt["Z"] > 0) & ~core).sum()) > 0
+    assert doc["statistics"]["gt_missing"] < cov["gt_missing_core"]
+    assert poses["T_j_to_t"] == poses_w["T_j_to_t"]
+    assert set(poses["coverage_T_j_to_t"]) == {str(v["offset"]) for v in added}
+    assert all(v["planned_fill_px"] >= 50 and v["reason"] == "" for v in added)
+
+
+def test_views_beyond_the_angle_limit_are_not_added(window, tmp_path):
+    wide, _, _ = _build(tmp_path, "wide", _settings("coverage", coverage_max_angle_deg=20.0))
+    narrow, _, _ = _build(tmp_path, "narrow", _settings("coverage", coverage_max_angle_deg=4.0, coverage_min_fill_px=5))
+    # the limit binds: without it, the best views are turned further than 4 deg
+    assert max(v["angle_deg"] for v in wide["coverage"]["added"]) > 4.0
+    assert narrow["coverage"]["beyond_limits"] > 0
+    assert narrow["coverage"]["added"] and all(v["angle_deg"] <= 4.0 for v in narrow["coverage"]["added"])
+    assert all(abs(v["offset"]) <= 4.0 / YAW_DEG for v in narrow["coverage"]["added"])
+    wide_far = {v["offset"] for v in wide["coverage"]["added"] if v["angle_deg"] > 4.0}
+    assert wide_far and not wide_far & {v["offset"] for v in narrow["coverage"]["added"]}
+
+
+def test_split_guard_holds_for_added_views(tmp_path):
+    tags = block_splits(N_FRAMES, "auto", SplitSettings(val_fraction=0.5, block_frames=16), 0, "d", "occluder")
+    fs = FrameSetSettings(selection="coverage", coverage_span=30)
+    planned = [s for s in enumerate_framesets(tags, fs) if s["status"] == "planned"]
+    assert planned and len(set(tags)) == 2
+    for s in planned:
+        cands = coverage_candidates(tags, s["target"], s["members"], fs)
+        assert cands and {tags[c] for c in cands} == {s["split"]}
+        assert not set(cands) & set(s["members"])
+        # every frame of the target's split within the span is a candidate, no other
+        span = range(max(0, s["target"] - 30), min(N_FRAMES, s["target"] + 31))
+        assert cands == [c for c in span if tags[c] == s["split"] and c not in s["members"]]
+    assert coverage_candidates(tags, planned[0]["target"], planned[0]["members"], FrameSetSettings()) == []
+    # end to end: the best views (far left) lie in another split, so they are never added
+    tags = np.array(["val"] * 4 + ["train"] * (N_FRAMES - 4), dtype=object)
+    members = [TARGET + o for o in FrameSetSettings().offsets]
+    settings = _settings("coverage", coverage_max_angle_deg=20.0, coverage_min_fill_px=5)
+    doc, _, _ = _build(tmp_path, "split", settings, coverage_candidates(tags, TARGET, members, settings.frameset))
+    added = [TARGET + v["offset"] for v in doc["coverage"]["added"]]
+    assert added and all(tags[a] == "train" for a in added) and doc["coverage"]["candidates"] == 40 - 4 - 6
+    assert -20 in [v["offset"] for v in _build(tmp_path, "nosplit", settings)[0]["coverage"]["added"]]
+
+
+def test_failing_added_view_left_out_with_its_reason(window, tmp_path, monkeypatch):
+    """With ``refine``, an added view whose refinement fails the neighbour checks is not
+    fused: the GT is the window's, the view is recorded with the registration's reason."""
+    from depthgt import registration
+
+    real = registration.refine_source_poses
+    calls = []
+
+    def refine(rgb, depth_m, K, offsets, T_j_to_t, settings):
+        calls.append(list(offsets))
+        if len(calls) == 1:  # the core: refined for real
+            return real(rgb, depth_m, K, offsets, T_j_to_t, settings)
+        n = len(offsets) - 1
+        return RegistrationResult(T_j_to_t.cpu(), list(offsets), ["failed"] * n, ["residual 9.0 noise sigmas > 3"] * n,
+                                  "ok", "", n_correspondences=[0] * n)
+
+    monkeypatch.setattr(registration, "refine_source_poses", refine)
+    settings = settings_from_config({"resize": 64, "patches": {"size": 32}, "registration": {"method": "refine"},
+                                     "frameset": {"selection": "coverage", "coverage_views": 2,
+                                                  "coverage_max_angle_deg": 20.0}})
+    doc, gt, poses = _build(tmp_path, "fail", settings)
+    added = doc["coverage"]["added"]
+    assert len(calls) == 2 and calls[1][0] == 0 and calls[1][1:] == [v["offset"] for v in added]
+    assert added and all(v["status"] == "failed" and v["reason"] == "residual 9.0 noise sigmas > 3" for v in added)
+    assert "filled_px" not in doc["coverage"] and poses["coverage_T_j_to_t"] == {}
+    monkeypatch.setattr(registration, "refine_source_poses", real)
+    settings_w = settings_from_config({"resize": 64, "patches": {"size": 32}, "registration": {"method": "refine"}})
+    _, gt_w, _ = _build(tmp_path, "fail_w", settings_w)
+    for ch in ("Z", "W", "N", "S"):
+        assert np.array_equal(gt[ch], gt_w[ch]), ch
+
+
+def test_selection_parts():
+    T = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+    T[1, :3, :3] = torch.from_numpy(_rot_y(30.0))
+    T[1, 0, 3] = 0.3
+    base, angle = view_limits(T)
+    assert torch.allclose(base, torch.tensor([0.0, 0.3], dtype=torch.float64))
+    assert torch.allclose(angle, torch.tensor([0.0, 30.0], dtype=torch.float64))
+    # a fronto-parallel plane seen from the target's own pose fills exactly the empty pixels
+    depth = torch.full((1, 1, 8, 8), 2.0)
+    empty = torch.zeros(8, 8, dtype=torch.bool)
+    empty[2:4, 3:6] = True
+    K = torch.tensor([[8.0, 0, 3.5], [0, 8.0, 3.5], [0, 0, 1]], dtype=torch.float64)
+    fill = fill_maps(depth, K, T[:1], empty)
+    assert torch.equal(fill[0].reshape(8, 8), empty)
+    depth[0, 0, 2, 3] = 0  # invalid depth fills nothing
+    assert int(fill_maps(depth, K, T[:1], empty).sum()) == 5
+    with pytest.raises(ValueError, match=r"\(C, 4, 4\)"):
+        fill_maps(depth, K, T, empty)
+    assert choose_views(torch.zeros(3, 5, dtype=torch.bool), 2, 1) == []
+
+
+def test_coverage_settings_name_their_key():
+    for key, value in (("selection", "best"), ("coverage_span", 0), ("coverage_views", -1),
+                       ("coverage_max_baseline_m", 0.0), ("coverage_max_angle_deg", 200.0), ("coverage_min_fill_px", 0)):
+        with pytest.raises(ConfigError, match=f"frameset.{key}"):
+            settings_from_config({"frameset": {key: value}})
+    with pytest.raises(ConfigError, match="frameset.selection.*overfit"):
+        settings_from_config({"frameset": {"selection": "coverage"}, "registration": {"method": "overfit"}})
+
+
+def test_batch_job_adds_views_of_the_targets_split_reading_each_frame_once(tmp_path, monkeypatch):
+    """The batch job: candidates from the index's split tags (``split: auto`` blocks), the
+    wider span's frames read once per batch (the frame cache keeps them), added views
+    recorded in each frame set's frameset.json and their frames in batch.json."""
+    source = {"name": "syn", "kind": "synthetic", "split": "auto", "scenes": ["room_000"],
+              "options": {"n_frames": 24, "width": 80, "height": 60}}
+    config = {"seed": 1, "device": "cpu", "resize": 32, "sources": [source],
+              "split": {"val_fraction": 0.5, "block_frames": 8},
+              "frameset": {"neighbours": 1, "stride": 1, "batch_size": 32, "selection": "coverage", "coverage_span": 6,
+                           "coverage_views": 2, "coverage_min_fill_px": 1, "coverage_max_angle_deg": 90.0,
+                           "coverage_max_baseline_m": 5.0},
+              "patches": {"count": 1, "size": 16, "max_missing": 1.0}}
+    run_scene_index(source, "room_000", config, str(tmp_path / "index.parquet"), str(tmp_path / "index.json"))
+    table = pd.read_parquet(tmp_path / "index.parquet")
+    tags = dict(zip(table["position"].astype(int), table["split"]))
+    reads = []
+    real_read = synthetic.SyntheticScene.read
+
+    def counting_read(self, i):
+        reads.append(i)
+        return real_read(self, i)
+
+    monkeypatch.setattr(synthetic.SyntheticScene, "read", counting_read)
+    shard = tmp_path / "000001-000022.zip"
+    records = run_frameset_batch(source, "room_000", 1, 22, config, str(tmp_path / "index.parquet"), str(shard))
+    built = [r for r in records if r["status"] == "ok"]
+    assert built and any(r["reason"].startswith("split_guard") for r in records)
+    assert sorted(reads) == sorted(set(reads))  # each frame read once, candidates included
+    added_any = False
+    with zipfile.ZipFile(shard) as z:
+        for r in built:
+            doc = json.loads(z.read(f"{r['target']:06d}/frameset.json"))
+            added = [r["target"] + v["offset"] for v in doc["coverage"]["added"]]
+            added_any |= bool(added)
+            assert all(tags[a] == tags[r["target"]] for a in added), (r["target"], added)
+            assert all(abs(a - r["target"]) <= 6 and a not in r["members"] for a in added)
+    assert added_any
+    assert {f["position"] for f in store.read_batch_frames(shard)} == set(reads)
