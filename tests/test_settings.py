@@ -77,6 +77,20 @@ def test_presets_validate():
     assert real.registration.method == "refine"
 
 
+def test_paper_preset_plans(tmp_path):
+    """The GPU profile plans (dry run, nothing built, no GPU needed to plan): every
+    frame-set batch of its 60 rooms, the four models, the seven methods."""
+    import shutil
+
+    from conftest import snakemake
+
+    shutil.copytree(REPO / "config", tmp_path / "config")
+    proc = snakemake(tmp_path, "-n", "--configfile", str(tmp_path / "config/presets/paper.yaml"))
+    stats = dict(line.split()[:2] for line in proc.stdout.split("Job stats:")[1].splitlines()[3:15] if line.strip())
+    assert stats["scene_index"] == "60" and stats["train_model"] == "4" and stats["evaluate_method"] == "7"
+    assert int(stats["frameset_batch"]) >= 96  # 48 rooms x 2 batches of 32, 12 test rooms x 1 (108 planned)
+
+
 def test_missing_sections_take_defaults():
     s = settings_from_config({})
     assert s.patches.count == 6 and s.render.m == 64 and s.registration.refine_settings.iters == (10, 8, 6)
