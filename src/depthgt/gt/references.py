@@ -85,7 +85,8 @@ def fused_neighbours(meta: Mapping[str, Any], poses: Mapping[str, Any], where: s
 
 
 def neighbours_only_render(scene: Scene, meta: Mapping[str, Any], poses: Mapping[str, Any], settings: RenderSettings,
-                           size_hw: tuple[int, int], where: str = "frame set") -> np.ndarray:
+                           size_hw: tuple[int, int], where: str = "frame set",
+                           device: torch.device = torch.device("cpu")) -> np.ndarray:
     """The target's neighbours-only render (H, W) float32 metres, 0 where no neighbour
     sees: the build's fused neighbours with its stored poses (:func:`fused_neighbours`)
     rendered into the target view by :func:`depthgt.gt.build.fuse` without the target.
@@ -95,19 +96,22 @@ def neighbours_only_render(scene: Scene, meta: Mapping[str, Any], poses: Mapping
             (:class:`depthgt.gt.cache.ResizedScene`, as the batch job read it).
         settings: the renderer's settings of the build.
         size_hw: the working resolution.
+        where: the frame set's location, named in errors.
+        device: where the render runs.
     """
     neighbours, T_j_to_t = fused_neighbours(meta, poses, where)
     h, w = int(size_hw[0]), int(size_hw[1])
     if not neighbours:
         return np.zeros((h, w), np.float32)
     members = [int(m) for m in meta["members"]]
-    data = load_frameset(scene, members, (h, w), need_poses=False, device=torch.device("cpu"))
+    data = load_frameset(scene, members, (h, w), need_poses=False, device=device)
     out = fuse(data, T_j_to_t.to(data.depth_m.device), settings, members=neighbours)
     return out.depth[0, 0].detach().cpu().numpy().astype(np.float32)
 
 
 def scene_references(scene: Scene, framesets: pd.DataFrame, rde_framesets: pd.DataFrame | None,
-                     settings: RenderSettings, size_hw: tuple[int, int], split: str, out_npz: str | Path) -> pd.DataFrame:
+                     settings: RenderSettings, size_hw: tuple[int, int], split: str, out_npz: str | Path,
+                     device: torch.device = torch.device("cpu")) -> pd.DataFrame:
     """Build the references of one scene's ``split`` frame sets (status ok) and write
     them to ``out_npz`` (:func:`reference_key` -> (H, W) float32 metres).
 
@@ -115,6 +119,7 @@ def scene_references(scene: Scene, framesets: pd.DataFrame, rde_framesets: pd.Da
         framesets: the scene's frame-set table (``results/scenes/.../framesets.parquet``).
         rde_framesets: the scene's RDE table (``frameset``, ``rde``: location of the
             TSDF GT), or None: no ``tsdf`` reference.
+        device: where the neighbours-only renders run.
 
     Returns:
         The table of what was written (:data:`REFERENCE_COLUMNS`; ``file`` is
@@ -136,7 +141,8 @@ def scene_references(scene: Scene, framesets: pd.DataFrame, rde_framesets: pd.Da
     for rec in ok.itertuples():
         meta = store.read_json(f"{rec.frameset}/frameset.json")
         poses = store.read_json(f"{rec.frameset}/poses.json")
-        images = {"neighbours": neighbours_only_render(scene, meta, poses, settings, size_hw, where=rec.frameset)}
+        images = {"neighbours": neighbours_only_render(scene, meta, poses, settings, size_hw, where=rec.frameset,
+                                                           device=device)}
         if rec.frameset in tsdf:
             images["tsdf"] = store.read_exr_member(f"{tsdf[rec.frameset]}/gt.exr")["Z"].astype(np.float32)
         for name, img in images.items():

@@ -153,7 +153,8 @@ def run_scene_references(source: dict[str, Any], scene: str, scene_framesets: st
     sc = ResizedScene(open_source_scene(source, scene, need_poses=False), settings.size_hw,
                       keep=2 * settings.frameset.reach + 2)
     table = scene_references(sc, pd.read_parquet(scene_framesets), pd.read_parquet(rde_framesets), settings.render,
-                             settings.size_hw, settings.evaluation.split, out_npz)
+                             settings.size_hw, settings.evaluation.split, out_npz,
+                             device=resolve_device(settings.device))
     Path(out_table).parent.mkdir(parents=True, exist_ok=True)
     table.to_parquet(out_table, index=False)
     log.info("%s/%s: %d reference images of the %s frame sets", source["name"], scene, len(table),
