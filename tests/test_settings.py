@@ -44,6 +44,53 @@ def test_default_config_builds_every_stage():
     assert s.enhance.rde.backend == "torch" and s.evaluation.models == ["ddrnet", "sdd", "rde", "lapden"]
 
 
+def _merged(base: dict, preset: dict) -> dict:
+    """``preset`` over ``base`` as Snakemake merges a --configfile: mappings key by key,
+    anything else (lists: the sources) replaced."""
+    out = dict(base)
+    for k, v in preset.items():
+        out[k] = _merged(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
+    return out
+
+
+def test_presets_validate():
+    """Every preset over the default config passes the schema and builds every stage;
+    the paper profile has the paper's sizes, Table 2's preset one real recording per split."""
+    from snakemake.utils import validate
+
+    base = yaml.safe_load((REPO / "config/config.yaml").read_text())
+    built = {}
+    for path in sorted((REPO / "config/presets").glob("*.yaml")):
+        config = _merged(base, yaml.safe_load(path.read_text()))
+        check_config(config, str(REPO / "workflow/schemas/config.schema.yaml"))
+        validate(config, schema=str(REPO / "workflow/schemas/config.schema.yaml"), set_default=True)
+        built[path.stem] = settings_from_config(config)
+    paper = built["paper"]
+    assert paper.train("lapden").model_params == {"preset": "paper"} and paper.train("rde").model_params == {"preset": "paper"}
+    assert all(paper.train(m).epochs == 100 for m in ("lapden", "ddrnet", "sdd", "rde"))
+    train_rooms = next(src for src in paper.sources if src.name == "synthetic")
+    planned = len(train_rooms.scenes) * len(paper.frameset.targets(train_rooms.options["n_frames"]))
+    assert 2900 <= planned <= 3100  # the paper's ~3,000 frame sets
+    real = built["table2-real"]
+    assert {src.name: (src.kind, src.split) for src in real.sources} == {"tum": ("tum", "auto"),
+                                                                          "kitchen": ("sevenscenes", "test")}
+    assert real.registration.method == "refine"
+
+
+def test_paper_preset_plans(tmp_path):
+    """The GPU profile plans (dry run, nothing built, no GPU needed to plan): every
+    frame-set batch of its 60 rooms, the four models, the seven methods."""
+    import shutil
+
+    from conftest import snakemake
+
+    shutil.copytree(REPO / "config", tmp_path / "config")
+    proc = snakemake(tmp_path, "-n", "--configfile", str(tmp_path / "config/presets/paper.yaml"))
+    stats = dict(line.split()[:2] for line in proc.stdout.split("Job stats:")[1].splitlines()[3:15] if line.strip())
+    assert stats["scene_index"] == "60" and stats["train_model"] == "4" and stats["evaluate_method"] == "7"
+    assert int(stats["frameset_batch"]) >= 96  # 48 rooms x 2 batches of 32, 12 test rooms x 1 (108 planned)
+
+
 def test_missing_sections_take_defaults():
     s = settings_from_config({})
     assert s.patches.count == 6 and s.render.m == 64 and s.registration.refine_settings.iters == (10, 8, 6)

@@ -123,6 +123,29 @@ def test_table2_real_only_and_note_without_real_source():
     assert "note" in tables.table3(_ev([]), KINDS).columns
 
 
+def test_table2_one_block_per_reference():
+    """Real frames scored against depthgt's GT, the neighbours-only render and the TSDF
+    GT: one block each (column ``reference``, Table 2's order), each with its own means,
+    intervals and paired differences; a reference without values has no block."""
+    rows = []
+    for target in range(3):
+        for ref, (inp, lap) in (("tsdf", (0.05, 0.04)), ("gt", (0.02, 0.01)), ("neighbours", (0.03, 0.02 + 0.001 * target))):
+            for method, v in (("input", inp), ("lapden", lap)):
+                rows.append(("kitchen", ".", target, method, ref, "rmse_missing_counted_m", "m", v))
+    t2 = tables.table2(_ev(rows), KINDS)
+    assert list(t2["reference"]) == ["depthgt GT"] * 2 + ["neighbours only"] * 2 + ["TSDF GT"] * 2
+    by = t2.set_index(["reference", "method"])[RMSE]
+    assert by["neighbours only", registry.label("lapden")] == pytest.approx(0.021)
+    assert by["TSDF GT", registry.label("input")] == pytest.approx(0.05)
+    assert (t2["frames"] == 3).all()
+    paired = tables.table2_paired(_ev(rows), KINDS)
+    assert list(paired["reference"]) == ["depthgt GT", "neighbours only", "TSDF GT"]
+    assert paired.set_index("reference").loc["neighbours only", RMSE] == pytest.approx(-0.009)
+    only_gt = tables.table2(_ev([r for r in rows if r[4] == "gt"]), KINDS)
+    assert list(only_gt["reference"]) == ["depthgt GT"] * 2
+    assert "neighbours only" in tables.TABLE2_CAPTION and "favours" in tables.TABLE2_PAIRED_CAPTION
+
+
 def test_conflicting_units_and_duplicates_raise():
     ev = _ev([("syn", "r", 0, "input", "truth", "rmse_missing_counted_m", "m", 0.1),
               ("syn", "r", 1, "input", "truth", "rmse_missing_counted_m", "mm", 100.0)])

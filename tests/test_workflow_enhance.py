@@ -5,7 +5,8 @@
   source is configured, the figures and the HTML report are made.
 * With the 7-Scenes fixture (skipped when ../shared/data/7scenes-kitchen is absent):
   the filters and LapDEN (trained for two steps); Table 2 is built from the real
-  kitchen frames, Table 3 from the synthetic test scene.
+  kitchen frames against its three references (depthgt's GT, the neighbours-only render,
+  the TSDF GT), Table 3 from the synthetic test scene.
 """
 
 from __future__ import annotations
@@ -142,13 +143,23 @@ def test_table2_from_7scenes_fixture(tmp_path):
     wd = make_workdir(tmp_path / "kitchen", cfg)
     snakemake(wd, "tables")
     t2 = _table(wd, "table2")
-    assert set(t2["dataset"]) == {"kitchen"} and len(t2) == 4
+    # one block per reference: depthgt's GT, the neighbours-only render, the TSDF GT
+    refs = ["depthgt GT", "neighbours only", "TSDF GT"]
+    assert set(t2["dataset"]) == {"kitchen"} and list(t2["reference"]) == [r for r in refs for _ in range(4)]
     assert t2["RMSE, filling (m)"].notna().all() and t2["MAE, denoising (m)"].notna().all()
     filters = t2[t2["method"].isin(["Input (raw depth)", "RGF", "JF"])]
-    assert len(filters) == 3 and (filters["RMSE, denoising (m)"] < 0.5).all()  # the models had two training steps only
+    assert len(filters) == 9 and (filters["RMSE, denoising (m)"] < 0.5).all()  # the models had two training steps only
+    # the raw input against the neighbours-only render: a real error (the render never saw the target's depth)
+    inp = t2[t2["method"] == "Input (raw depth)"].set_index("reference")
+    assert 0.002 < inp.loc["neighbours only", "MAE, denoising (m)"] < 0.02
+    assert inp.loc["neighbours only", "MAE, denoising (m)"] > inp.loc["depthgt GT", "MAE, denoising (m)"]
     paired = _table(wd, "table2_paired")
-    assert set(paired["dataset"]) == {"kitchen"} and len(paired) == 3  # LapDEN against input, RGF, JF
+    assert set(paired["dataset"]) == {"kitchen"} and len(paired) == 9  # LapDEN against input, RGF, JF per reference
+    assert list(paired["reference"]) == [r for r in refs for _ in range(3)]
     assert (paired["frames"] == t2["frames"].iloc[0]).all()
+    refs_table = pd.read_parquet(wd / "results/references/kitchen/7scenes-kitchen/references.parquet")
+    assert set(refs_table["reference"]) == {"neighbours", "tsdf"}
+    assert len(refs_table) == 2 * t2["frames"].iloc[0]
     t3 = _table(wd, "table3")
     assert set(t3["dataset"]) == {"syntest"} and len(t3) == 4
     t1 = _table(wd, "table1")

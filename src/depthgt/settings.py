@@ -921,6 +921,9 @@ STAGES: dict[str, Stage] = {
     "rde": Stage(("resize", "enhance.rde")),
     "train": Stage(("seed", "device", "enhance.train", "enhance.models.{model}")),
     "evaluate": Stage(("device", "evaluation.split")),
+    # Table 2's independent references of real test frame sets: the frame sets' sections
+    # (the neighbours-only render re-renders with the build's settings) and the split evaluated
+    "references": Stage((*_FRAMESET_SECTIONS, "evaluation.split")),
 }
 
 

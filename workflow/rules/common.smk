@@ -106,6 +106,7 @@ PRETRAIN_CONFIG = stage_config(config, "pretrain")
 GT_CONFIG = stage_config(config, "dataset")  # what the dataset card records as the settings that decided the GT
 RDE_CONFIG = stage_config(config, "rde")
 EVALUATE_CONFIG = stage_config(config, "evaluate")
+REFERENCES_CONFIG = stage_config(config, "references")
 
 
 # Per-job resources. The rules declare them so that every executor sees one request:

@@ -39,6 +39,27 @@ rule rde_dataset:
         "../scripts/rde_dataset.py"
 
 
+rule scene_references:
+    input:
+        framesets="results/scenes/{dataset}/{scene}/framesets.parquet",
+        rde="results/rde/{dataset}/{scene}/framesets.parquet",
+    output:
+        images="results/references/{dataset}/{scene}/references.npz",
+        table="results/references/{dataset}/{scene}/references.parquet",
+    params:
+        source=source_of,
+        config=REFERENCES_CONFIG,
+    conda:
+        ENV
+    log:
+        "logs/references/{dataset}/{scene}.log",
+    benchmark:
+        "benchmarks/references/{dataset}/{scene}.tsv"
+    threads: 1
+    script:
+        "../scripts/references.py"
+
+
 rule train_model:
     input:
         unpack(train_manifests),
@@ -73,6 +94,7 @@ rule evaluate_method:
     input:
         unpack(method_inputs),
         framesets="results/dataset/framesets.parquet",
+        references=REFERENCE_TABLES,
     output:
         table="results/eval/{method}.parquet",
         predictions=directory("results/eval/predictions/{method}"),

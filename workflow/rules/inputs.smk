@@ -24,6 +24,14 @@ KINDS = {name: src["kind"] for name, src in SOURCES.items()}
 MANIFESTS = {"depthgt": "results/dataset", "rde": "results/rde"}  # the GT a learned method trains on
 
 
+# Real scenes whose frame sets may be evaluated (source split = evaluation.split, or
+# auto): Table 2 scores them also against references no method was trained to imitate,
+# built per scene by rule scene_references (depthgt.gt.references).
+REFERENCE_SCENES = [(d, s) for d, s in SCENES if KINDS[d] != "synthetic"
+                    and SOURCES[d].get("split", "auto") in ("auto", SETTINGS.evaluation.split)]
+REFERENCE_TABLES = [f"results/references/{d}/{s}/references.parquet" for d, s in REFERENCE_SCENES]
+
+
 def train_config(wildcards):
     """The config sections that decide a model's training (its params: a change re-runs
     exactly this model; depthgt.settings.STAGES["train"]), the only config its job gets."""

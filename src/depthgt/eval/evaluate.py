@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -27,6 +27,7 @@ from depthgt import registry
 from depthgt.enhance.baselines import run_baseline
 from depthgt.eval.metrics import depth_metrics, unit_of
 from depthgt.gt import store
+from depthgt.gt.references import REFERENCES
 from depthgt.status import Status
 
 __all__ = ["run_method", "method_spec", "evaluate_frames", "score_rows", "EVAL_COLUMNS"]
@@ -80,7 +81,9 @@ def method_spec(name: str, checkpoint: str | Path | None = None, device: str | N
 
 def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Mapping],
                     references: Sequence[str] = ("gt", "truth"), split: str | None = "test",
-                    pred_dirs: Mapping[str, str | Path] | None = None) -> pd.DataFrame:
+                    pred_dirs: Mapping[str, str | Path] | None = None,
+                    reference_files: Mapping[tuple[str, str, int], Mapping[str, tuple[str, str]]] | None = None
+                    ) -> pd.DataFrame:
     """Run every method on every frame set and score it against each reference.
 
     The one evaluation of the project: the workflow's ``evaluate_method`` job calls it
@@ -91,12 +94,17 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
             ``scene``, ``target``, ``frameset`` and optionally ``split`` and
             ``status`` (only "ok" rows with a frame-set folder are used when present).
         methods: name -> method mapping (see module docstring; :func:`method_spec`).
-        references: images scored against, among ``gt``, ``truth`` and ``input``; a
-            frame without one (e.g. a real frame and ``truth``) is not scored against it.
+        references: images scored against, among ``gt``, ``truth`` and ``input`` of the
+            frame set and the references of real frames built apart
+            (:data:`depthgt.gt.references.REFERENCES`: ``neighbours``, ``tsdf``, found
+            through ``reference_files``); a frame without one (e.g. a real frame and
+            ``truth``) is not scored against it.
         split: keep only this split (None: all rows).
         pred_dirs: method name -> folder; each prediction is saved as
             ``{pred_dirs[name]}/{dataset}/{scene}/{target:06d}.npy`` (float32 m) for the
             figures. Methods not in it are not saved.
+        reference_files: (dataset, scene, target) -> {reference: (npz file, key)}
+            (:func:`depthgt.gt.references.read_reference_table`).
 
     Returns:
         Long table with columns :data:`EVAL_COLUMNS` (metrics of
@@ -107,20 +115,34 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
     missing = {"dataset", "scene", "target", "frameset"} - set(table.columns)
     if missing:
         raise ValueError(f"frame table {frames if not isinstance(frames, pd.DataFrame) else ''}: missing columns {sorted(missing)}")
-    bad = [r for r in references if r not in ("gt", "truth", "input")]
+    known = (*store.FRAME_DEPTHS, *REFERENCES)
+    bad = [r for r in references if r not in known]
     if bad or not references:
-        raise ValueError(f"reference must be gt, truth or input, got {list(references)}")
+        raise ValueError(f"reference must be among {', '.join(known)}, got {list(references)}")
     if split is not None and "split" in table.columns:
         table = table[table["split"] == split]
     if "status" in table.columns:
         table = table[table["status"] == Status.OK]
     table = table[table["frameset"] != ""]
     pred_dirs = dict(pred_dirs or {})
+    reference_files = reference_files or {}
+    npz: dict[str, Any] = {}  # open reference files (numpy reads each member when asked)
     rows = []
     seconds = {name: 0.0 for name in methods}
     for rec in table.itertuples():
         frame = store.read_frame_images(rec.frameset)
-        refs = [r for r in references if frame.depth(r) is not None]
+        ref_images = {r: frame.depth(r) for r in references if r in store.FRAME_DEPTHS and frame.depth(r) is not None}
+        for r, (file, key) in reference_files.get((str(rec.dataset), str(rec.scene), int(rec.target)), {}).items():
+            if r in references:
+                if file not in npz:
+                    npz[file] = np.load(file)
+                if key not in npz[file].files:
+                    raise ValueError(f"{file}: no reference image {key!r} (reference {r} of {rec.frameset})")
+                ref_images[r] = np.asarray(npz[file][key], dtype=np.float32)
+                if ref_images[r].shape != frame.input_m.shape:
+                    raise ValueError(f"{file}[{key}]: shape {ref_images[r].shape}, the frame's input has "
+                                     f"{frame.input_m.shape}")
+        refs = [r for r in references if r in ref_images]
         if not refs:
             log.info("%s: none of the references %s, skipped", rec.frameset, list(references))
             continue
@@ -133,8 +155,10 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
                 out.parent.mkdir(parents=True, exist_ok=True)
                 np.save(out, pred.astype(np.float32))
             rows += score_rows(rec.dataset, rec.scene, int(rec.target), name, pred, frame.input_m,
-                               {r: frame.depth(r) for r in refs})
+                               {r: ref_images[r] for r in refs})
     for name, s in seconds.items():
         log.info("method %s: %.2f s on %d frame sets (wall clock, not in the table: results stay deterministic)",
                  name, s, len(table))
+    for f in npz.values():
+        f.close()
     return pd.DataFrame(rows, columns=EVAL_COLUMNS)

@@ -8,8 +8,11 @@ Markdown file:
 
 * ``table1``: SSIM and L_S between a GT and the input depth, for depthgt's GT and the
   global-reconstruction (TSDF) GT (paper Table 1).
-* ``table2``: every method on held-out *real* frames against depthgt's GT (paper
-  Table 2); when no real source is configured it holds one row saying so.
+* ``table2``: every method on held-out *real* frames, one block (column
+  ``reference``) per reference: depthgt's GT (paper Table 2's protocol), the
+  neighbours-only render of the target and the global-reconstruction (TSDF) GT
+  (:mod:`depthgt.gt.references`); when no real source is configured it holds one row
+  saying so.
 * ``table3``: every method on held-out *synthetic* frames against the true clean
   depth (paper Table 3's role), input with Kinect-style noise.
 * ``table2_paired``, ``table3_paired``: LapDEN against every other method of those
@@ -62,6 +65,8 @@ __all__ = [
     "TABLE3_PAIRED_CAPTION",
     "GT_QUALITY_CAPTION",
     "PAIRED_BASE",
+    "REAL_REFERENCES",
+    "REFERENCE_LABELS",
     "LOW",
     "HIGH",
 ]
@@ -113,18 +118,31 @@ _PAIRED = (
     "has the lower error, for SSIM and completeness a positive one that LapDEN scores higher; an interval that "
     "excludes 0 separates the two methods on these frames. Pixel sets, units and averaging as in the method table. "
 )
+# Table 2's references (real data), in the order of its blocks
+REAL_REFERENCES = ("gt", "neighbours", "tsdf")
+REFERENCE_LABELS = {"gt": "depthgt GT", "neighbours": "neighbours only", "tsdf": "TSDF GT"}
+_REAL_REFERENCES_TEXT = (
+    "One block per reference (column 'reference'). 'depthgt GT': the frame set's GT, the paper's protocol; it "
+    "favours LapDEN, which was trained to reproduce depthgt's GT (of other scenes), and it fuses the target's own "
+    "depth, so it also favours methods that keep the input. 'neighbours only': the frame set's fused neighbours "
+    "rendered into the target with the build's poses, without the target's own depth (the leave-target-out check "
+    "at every pixel): independent of the target's sensor noise, no method was trained on it; empty where no "
+    "neighbour sees. 'TSDF GT': the global reconstruction of the whole recording ray-cast at the target (the GT "
+    "RDE is trained on, of other scenes; it holds the target's depth among all the frames'), so it favours RDE as "
+    "depthgt's GT favours LapDEN. "
+)
 TABLE1_CAPTION = (
     "Table 1: similarity of a GT to the input depth (paper Table 1): SSIM (depth/10 m, data_range 1, 11x11 Gaussian "
     "window, sigma 1.5) and L_S (paper eq. 6, 5x5 window, m^2/px^2), over pixels valid in both, mean over all runnable "
     "frame sets. depthgt's GT fuses the 7-frame local set; the global-reconstruction GT is a TSDF of the whole "
     "stream (global poses) ray-cast at each frame. Higher SSIM / lower L_S = closer in structure to the input."
 )
-TABLE2_CAPTION = ("Table 2 (real data): methods on held-out real test frames against depthgt's GT (the paper's "
-                  "protocol). " + _CONVENTIONS)
+TABLE2_CAPTION = ("Table 2 (real data): methods on held-out real test frames against three references. "
+                  + _REAL_REFERENCES_TEXT + _CONVENTIONS)
 TABLE3_CAPTION = ("Table 3 (synthetic data): methods on held-out synthetic test frames against the true clean depth; "
                   "the input carries Kinect-style noise. " + _CONVENTIONS)
-TABLE2_PAIRED_CAPTION = ("Table 2, paired (real data, reference: depthgt's GT): LapDEN minus every other method. "
-                         + _PAIRED)
+TABLE2_PAIRED_CAPTION = ("Table 2, paired (real data, each reference of Table 2): LapDEN minus every other method. "
+                         + _REAL_REFERENCES_TEXT + _PAIRED)
 TABLE3_PAIRED_CAPTION = ("Table 3, paired (synthetic data, reference: the true clean depth): LapDEN minus every other "
                          "method. " + _PAIRED)
 GT_QUALITY_CAPTION = (
@@ -282,9 +300,27 @@ def _kind_datasets(ev: pd.DataFrame, kinds: Mapping[str, str], synthetic: bool) 
     return [d for d in names if (kinds.get(d) == "synthetic") == synthetic]
 
 
+def _per_reference(build, ev: pd.DataFrame, datasets: list[str]) -> pd.DataFrame:
+    """``build(ev, datasets, reference, note)`` for each of :data:`REAL_REFERENCES`
+    that has values, stacked with a column ``reference`` (its label) after
+    ``dataset``; the depthgt-GT table (or its note) when none has."""
+    blocks = []
+    for ref in REAL_REFERENCES:
+        t = build(ev, datasets, ref, NO_REAL_NOTE)
+        if "note" in t.columns:
+            continue
+        t.insert(1, "reference", REFERENCE_LABELS[ref])
+        blocks.append(t)
+    if not blocks:
+        return build(ev, datasets, "gt", NO_REAL_NOTE)
+    return pd.concat(blocks, ignore_index=True)
+
+
 def table2(ev: pd.DataFrame, kinds: Mapping[str, str]) -> pd.DataFrame:
-    """Paper Table 2: real test frames, reference = depthgt's GT. ``kinds``: dataset -> source kind."""
-    return method_table(ev, _kind_datasets(ev, kinds, synthetic=False), "gt", NO_REAL_NOTE)
+    """Paper Table 2: real test frames, one block per reference of
+    :data:`REAL_REFERENCES` present (depthgt's GT, the neighbours-only render, the TSDF
+    GT). ``kinds``: dataset -> source kind."""
+    return _per_reference(method_table, ev, _kind_datasets(ev, kinds, synthetic=False))
 
 
 def table3(ev: pd.DataFrame, kinds: Mapping[str, str]) -> pd.DataFrame:
@@ -293,8 +329,9 @@ def table3(ev: pd.DataFrame, kinds: Mapping[str, str]) -> pd.DataFrame:
 
 
 def table2_paired(ev: pd.DataFrame, kinds: Mapping[str, str]) -> pd.DataFrame:
-    """Table 2's frames and reference, LapDEN minus every other method (:func:`paired_table`)."""
-    return paired_table(ev, _kind_datasets(ev, kinds, synthetic=False), "gt", NO_REAL_NOTE)
+    """Table 2's frames, LapDEN minus every other method (:func:`paired_table`), one
+    block per reference."""
+    return _per_reference(paired_table, ev, _kind_datasets(ev, kinds, synthetic=False))
 
 
 def table3_paired(ev: pd.DataFrame, kinds: Mapping[str, str]) -> pd.DataFrame:

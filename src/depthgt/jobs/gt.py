@@ -30,7 +30,7 @@ from depthgt.jobs.common import open_source_scene
 from depthgt.settings import STAGES, stage_settings
 from depthgt.status import Status
 
-__all__ = ["run_scene_index", "run_frameset_batch", "run_scene_summary", "run_dataset", "run_pretrain_registration"]
+__all__ = ["run_scene_references", "run_scene_index", "run_frameset_batch", "run_scene_summary", "run_dataset", "run_pretrain_registration"]
 
 log = logging.getLogger("depthgt")
 
@@ -142,6 +142,28 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
     n_bad = sum(not f["valid"] for f in frames)
     log.info("%s/%s %06d-%06d: %d frames read, %d unusable", source["name"], scene, first, last, len(frames), n_bad)
     return records
+
+
+def run_scene_references(source: dict[str, Any], scene: str, scene_framesets: str, rde_framesets: str,
+                         config: Mapping[str, Any], out_npz: str, out_table: str) -> None:
+    """The references of a real scene's ``evaluation.split`` frame sets that no method
+    was trained to imitate (:func:`depthgt.gt.references.scene_references`): the
+    neighbours-only render of each target with the build's poses, and the TSDF GT
+    (from ``rde_framesets``). Writes ``out_npz`` and its table ``out_table``."""
+    # heavy (torch): only this job needs them
+    from depthgt.gt.cache import ResizedScene
+    from depthgt.gt.references import scene_references
+
+    settings = stage_settings(config, "references")
+    sc = ResizedScene(open_source_scene(source, scene, need_poses=False), settings.size_hw,
+                      keep=2 * settings.frameset.reach + 2)
+    table = scene_references(sc, pd.read_parquet(scene_framesets), pd.read_parquet(rde_framesets), settings.render,
+                             settings.size_hw, settings.evaluation.split, out_npz,
+                             device=resolve_device(settings.device))
+    Path(out_table).parent.mkdir(parents=True, exist_ok=True)
+    table.to_parquet(out_table, index=False)
+    log.info("%s/%s: %d reference images of the %s frame sets", source["name"], scene, len(table),
+             settings.evaluation.split)
 
 
 def run_scene_summary(index_parquet: str, shards: list[str], out_framesets: str, out_patches: str,

@@ -24,26 +24,30 @@ log = logging.getLogger("depthgt")
 
 
 def run_evaluate(method: str, config: Mapping[str, Any], framesets: str, out_table: str, pred_dir: str,
-                 checkpoint: str | None = None, threads: int = 1) -> None:
+                 checkpoint: str | None = None, threads: int = 1, reference_tables: list[str] = ()) -> None:
     """Run the registry method ``method`` on the ``evaluation.split`` frame sets and
-    score it against depthgt's GT and, where present, the clean truth
-    (:func:`depthgt.eval.evaluate.evaluate_frames`). Writes the tidy long table
-    ``out_table`` and the predictions under ``pred_dir``.
+    score it against depthgt's GT, where present the clean truth, and for real frames
+    the references built apart (``neighbours``, ``tsdf``:
+    :mod:`depthgt.gt.references`) (:func:`depthgt.eval.evaluate.evaluate_frames`).
+    Writes the tidy long table ``out_table`` and the predictions under ``pred_dir``.
 
     Args:
         checkpoint: the trained model of a learned method.
+        reference_tables: the real scenes' reference tables
+            (:func:`depthgt.gt.references.scene_references`).
     """
     # heavy (torch): only this job needs them
     import torch
 
     from depthgt.eval.evaluate import evaluate_frames, method_spec
+    from depthgt.gt.references import REFERENCES, read_reference_table
 
     torch.set_num_threads(max(1, int(threads)))
     settings = stage_settings(config, "evaluate")
     spec = method_spec(method, checkpoint, device=str(resolve_device(settings.device)) if checkpoint else None)
     split = settings.evaluation.split
-    table = evaluate_frames(framesets, {method: spec}, references=("gt", "truth"), split=split,
-                            pred_dirs={method: pred_dir})
+    table = evaluate_frames(framesets, {method: spec}, references=("gt", "truth", *REFERENCES), split=split,
+                            pred_dirs={method: pred_dir}, reference_files=read_reference_table(list(reference_tables)))
     Path(pred_dir).mkdir(parents=True, exist_ok=True)
     Path(out_table).parent.mkdir(parents=True, exist_ok=True)
     table.to_parquet(out_table, index=False)
