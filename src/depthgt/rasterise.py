@@ -148,8 +148,9 @@ def _visited(ok: torch.Tensor, point_order: torch.Tensor | None) -> torch.Tensor
     return point_order.index_select(0, ok.index_select(0, point_order).nonzero().squeeze(1))
 
 
-def _candidates_on_grid(uv_f: torch.Tensor, z_f: torch.Tensor, valid: torch.Tensor, *, bnhw: tuple[int, int, int, int],
-                        radius_px: float, min_depth: float, grid_uv: tuple[torch.Tensor, torch.Tensor],
+def _candidates_on_grid(uv_f: torch.Tensor, z_f: torch.Tensor, valid: torch.Tensor, *,
+                        bnhw: tuple[int, int, int, int], radius_px: float, min_depth: float,
+                        grid_uv: tuple[torch.Tensor, torch.Tensor],
                         point_order: torch.Tensor | None = None) -> tuple[Candidates, torch.Tensor]:
     """:func:`candidates` for sample positions ``grid_uv`` off the pixel centres, from the
     flattened projections ``uv_f`` (B*N, 2) px and depths ``z_f`` (B*N,) m; ``bnhw``:

@@ -771,6 +771,7 @@ def cloud_in_target(
     depth_m: torch.Tensor,
     K: torch.Tensor,
     T_j_to_t: torch.Tensor,
+    *,
     normal_max_jump_rel: float = 0.05,
     src_hw: tuple[int, int] | None = None,
     noise_sigma_1m: float | None = None,
