@@ -253,7 +253,11 @@ def _segment_sums(index: torch.Tensor, values: list[torch.Tensor], n: int) -> li
 def _choose_surfaces(c: RenderCandidates, st: RenderSettings, target_frame: int | None = None) -> _Surfaces:
     """Group each pixel's candidates into surfaces by gaps in inverse depth and pick the
     visible one (see :class:`RenderSettings`), on the candidates ``c`` (sorted by pixel
-    and, within a pixel, front first; used detached)."""
+    and, within a pixel, front first; used detached).
+
+    Longer than most functions here: its steps (clusters, support, front and behind,
+    reach, the choice) share a dozen per-cluster tensors, and passing them between
+    smaller functions read worse than one function in the order of the rule."""
     pixel, frame, s_iz = c.pixel, c.frame, c.s
     iz, ox, oy, d2 = c.iz.detach(), c.ox.detach(), c.oy.detach(), c.d2.detach()
     n_pix = c.size[0] * c.size[1] * c.size[2]
