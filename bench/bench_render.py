@@ -1,6 +1,8 @@
 """Benchmark of the renderers in :mod:`depthgt.gt.render`: time, peak memory, GT accuracy.
 
-* Speed: ``render_gt`` on the merged cloud of a 7-frame set (7 x 256x256 points) and
+* Speed: ``render_gt`` on the merged cloud of a 7-frame set (7 x 256x256 points), its
+  two parts alone (``rasterise_gt``: the candidates; ``composite_gt``: the GT from
+  candidates made once beforehand) and
   ``splat_soft`` of 7 views x 65,536 points with RGB features (forward, and forward +
   backward), on the CPU with 1 and 2 threads (median wall time and process CPU time of
   ``--repeat`` runs) and on CUDA when available. Peak memory: the growth of the peak
@@ -41,7 +43,7 @@ import pandas as pd
 import torch
 
 from depthgt.geometry import resize_depth_nearest, scale_intrinsics
-from depthgt.gt.render import cloud_in_target, render_gt, splat_soft
+from depthgt.gt.render import cloud_in_target, composite_gt, rasterise_gt, render_gt, splat_soft
 from depthgt.settings import RenderSettings
 
 SIZE = (256, 256)
@@ -78,8 +80,8 @@ def render_case(data: dict, frames: list[int], depth_kind: str, exact_pos: bool,
     src_hw = data["hw"] if exact_pos else None
     cloud = cloud_in_target(d, data["K"].to(device).expand(len(frames), 3, 3), data["T"][frames].to(device), src_hw=src_hw,
                             noise_sigma_1m=settings.noise_sigma_1m, noise_sigma_abs_m=settings.noise_sigma_abs_m)
-    return render_gt(cloud.points, data["K"][None].to(device), SIZE, cloud.valid, settings, cloud.normals, cloud.sigma_m,
-                     cloud.frame, src_hw).depth[0, 0].cpu()
+    return render_gt(cloud.points, data["K"][None].to(device), SIZE, cloud.valid, settings, normals_cam=cloud.normals,
+                     sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=src_hw).depth[0, 0].cpu()
 
 
 def mae_mm(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -134,7 +136,15 @@ def speed_inputs(device: str):
 
 def run_one(fn: str, x: dict):
     if fn == "render_gt":
-        return render_gt(x["points"], x["K"][None], SIZE, x["valid"], RenderSettings(), x["normals"], x["sigma"], x["frame"])
+        return render_gt(x["points"], x["K"][None], SIZE, x["valid"], RenderSettings(), normals_cam=x["normals"],
+                         sigma_m=x["sigma"], frame=x["frame"])
+    if fn == "rasterise_gt":
+        return rasterise_gt(x["points"], x["K"][None], SIZE, RenderSettings(), valid=x["valid"], normals_cam=x["normals"],
+                            sigma_m=x["sigma"], frame=x["frame"])
+    if fn == "composite_gt":
+        if "cands" not in x:  # made once: the compositor alone is timed
+            x["cands"] = run_one("rasterise_gt", x)
+        return composite_gt(x["cands"], RenderSettings())
     if fn == "splat_soft":
         return splat_soft(x["per_view"], x["feats"], x["K"].expand(7, 3, 3), SIZE)
     if fn == "splat_soft_fwd_bwd":
@@ -150,7 +160,7 @@ def timing(device: str, threads: int, repeat: int) -> list[dict]:
     torch.set_num_threads(threads)
     x = speed_inputs(device)
     rows = []
-    for fn in ["render_gt", "splat_soft", "splat_soft_fwd_bwd"]:
+    for fn in ["render_gt", "rasterise_gt", "composite_gt", "splat_soft", "splat_soft_fwd_bwd"]:
         run_one(fn, x)  # warm-up
         walls, cpus = [], []
         for _ in range(repeat):

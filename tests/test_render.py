@@ -11,8 +11,8 @@ import torch
 
 from depthgt.geometry import resize_depth_nearest, scale_intrinsics
 from depthgt.errors import ConfigError
-from depthgt.gt.render import (GTRender, SoftSplat, cloud_in_target, estimate_noise_sigma_1m, render_gt, resampled_positions,
-                               splat_soft)
+from depthgt.gt.render import (GTRender, SoftSplat, cloud_in_target, composite_gt, estimate_noise_sigma_1m, rasterise_gt,
+                               render_gt, resampled_positions, splat_soft)
 from depthgt.settings import RenderSettings
 from render_reference import render_gt_reference, splat_soft_reference
 
@@ -165,7 +165,8 @@ def _two_layer_cloud(seed: int, n_bg: int = 900, n_fg: int = 250):
 
 
 def _compare_with_reference(p, nrm, valid, K, frame, sigma, st, src_hw, target_frame=None):
-    out = render_gt(p, K, (16, 16), valid, st, nrm, sigma, frame, src_hw, target_frame)
+    out = render_gt(p, K, (16, 16), valid, st, normals_cam=nrm, sigma_m=sigma, frame=frame, src_hw=src_hw,
+                    target_frame=target_frame)
     assert isinstance(out, GTRender)
     rd, rw, rc, rs, ra = render_gt_reference(p[0].numpy(), K[0].numpy(), (16, 16), valid[0].numpy(), st,
                                              None if nrm is None else nrm[0].numpy(), None if sigma is None else sigma[0].numpy(),
@@ -209,7 +210,8 @@ def test_render_gt_matches_reference(seed, src_hw, variant):
     out, rd, rc, rs = _compare_with_reference(p, nrm, valid, K, frame, sigma, st, src_hw,
                                               target_frame=7 if variant in ("strict", "resolve") else None)
     if variant == "resolve":  # the target's samples decided pixels the default leaves empty
-        plain = render_gt(p, K, (16, 16), valid, RenderSettings(m=5, radius_px=1.3, min_points=2), nrm, sigma, frame, src_hw, 7)
+        plain = render_gt(p, K, (16, 16), valid, RenderSettings(m=5, radius_px=1.3, min_points=2), normals_cam=nrm,
+                          sigma_m=sigma, frame=frame, src_hw=src_hw, target_frame=7)
         assert ((rd > 0) & (plain.depth[0, 0].numpy() == 0)).any()
         return
     # the case exercises both surfaces, the cap and min_points
@@ -303,7 +305,7 @@ def test_render_gt_min_points_and_empty():
 def test_render_gt_gradients_reach_points():
     p, nrm, valid, K, frame, sigma = _two_layer_cloud(0, n_bg=200, n_fg=50)
     p = p.clone().requires_grad_()
-    out = render_gt(p, K, (16, 16), valid, RenderSettings(), nrm, sigma, frame)
+    out = render_gt(p, K, (16, 16), valid, RenderSettings(), normals_cam=nrm, sigma_m=sigma, frame=frame)
     out.depth.sum().backward()
     assert torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0
 
@@ -338,6 +340,61 @@ def test_render_gt_bad_input():
     with pytest.raises(ValueError, match=r"\(B, N, 3\)"):
         render_gt(torch.ones(4, 3), K, (9, 9))
 
+
+
+def test_rasterised_candidates_are_sorted_by_pixel_front_first():
+    """The rasteriser's record: candidates by pixel, front first within a pixel, each
+    within radius_px of its point's projection, with the shapes its docstring states."""
+    p, nrm, valid, K, frame, sigma = _two_layer_cloud(4)
+    st = RenderSettings(radius_px=1.3)
+    c = rasterise_gt(p, K, (16, 16), st, valid=valid, normals_cam=nrm, sigma_m=sigma, frame=frame, src_hw=(32, 32))
+    n_c = c.pixel.numel()
+    assert n_c > p.shape[1] and c.size == (1, 16, 16) and c.n_frames == 4 and c.grad.shape == (p.shape[1], 2)
+    assert all(t.shape == (n_c,) for t in (c.point, c.ox, c.oy, c.d2, c.iz, c.s, c.frame))
+    assert (c.pixel.diff() >= 0).all()
+    same = c.pixel[1:] == c.pixel[:-1]
+    assert (c.iz[1:][same] <= c.iz[:-1][same]).all()  # front first within a pixel
+    assert torch.equal(c.iz, 1.0 / p[0, c.point, 2]) and torch.equal(c.frame, frame[0, c.point])
+    assert valid[0, c.point].all() and (c.d2 < st.radius_px**2).all() and torch.equal(c.d2, c.ox**2 + c.oy**2)
+    assert torch.allclose(c.s, sigma[0, c.point] / p[0, c.point, 2] ** 2)
+
+
+def test_leave_one_frame_out_is_the_compositor_over_fewer_candidates():
+    """The leave-target-out render (compositor over the candidates without frame 0, with
+    their own sigmas) equals rendering the cloud without frame 0's points bit for bit;
+    on a pixel grid (stride 3) the same at the grid's pixels (depth to float rounding)
+    and empty elsewhere."""
+    p, nrm, valid, K, frame, sigma = _two_layer_cloud(5)
+    st = RenderSettings(m=6, radius_px=1.3, min_points=2)
+    cands = rasterise_gt(p, K, (16, 16), st, valid=valid, normals_cam=nrm, sigma_m=sigma, frame=frame, src_hw=(32, 32))
+    full = composite_gt(cands, st, target_frame=0)
+    assert torch.equal(full.depth, render_gt(p, K, (16, 16), valid, st, normals_cam=nrm, sigma_m=sigma, frame=frame,
+                                             src_hw=(32, 32), target_frame=0).depth)
+    other_sigma = sigma * 1.7
+    without = valid & (frame != 0)
+    alone = render_gt(p, K, (16, 16), without, st, normals_cam=nrm, sigma_m=other_sigma, frame=frame, src_hw=(32, 32))
+    for stride in (1, 3):
+        left = composite_gt(cands.without_frame(0, stride=stride, sigma_m=other_sigma), st, with_sigma=False)
+        assert not (left.sigma.any() or (left.disagreement is not None)) and torch.isnan(left.agreement).all()
+        on = torch.zeros(16, 16, dtype=torch.bool)
+        on[::stride, ::stride] = True
+        for name in ("depth", "weight_sum", "count"):
+            got, want = getattr(left, name)[0, 0], getattr(alone, name)[0, 0]
+            assert not got[~on].any(), (name, stride)
+            if stride == 1 or name != "depth":
+                assert torch.equal(got[on], want[on]), (name, stride)
+            else:  # the weights' common scale (the kept samples' median sigma) differs: float rounding
+                assert torch.allclose(got[on], want[on], rtol=1e-12, atol=0)
+        assert (left.depth > 0).sum() > 0.5 * on.sum()
+    # its own sigmas matter: the weights move with them
+    same_sigma = composite_gt(cands.without_frame(0), st, with_sigma=False)
+    assert not torch.equal(same_sigma.depth, composite_gt(cands.without_frame(0, sigma_m=other_sigma ** 0.9), st).depth)
+    with pytest.raises(ValueError, match="frame ids"):
+        rasterise_gt(p, K, (16, 16), st).without_frame(0)
+    with pytest.raises(ValueError, match="one sigma per point"):
+        cands.without_frame(0, sigma_m=sigma[:, :10])
+    empty = composite_gt(rasterise_gt(p[:, :0], K, (16, 16), st, frame=frame[:, :0]).without_frame(0), st)
+    assert not empty.depth.any() and empty.agreement.shape == (1, 0)
 
 def test_front_to_back_sorts_by_decreasing_inverse_depth_exactly():
     """The bit-pattern sort equals a stable float sort, ties in index order, in each float type."""
@@ -378,9 +435,10 @@ def test_candidates_in_point_order_are_the_same_candidates():
     grid = (resampled_positions(64, 32, dtype=torch.float64), resampled_positions(48, 24, dtype=torch.float64))
     iz = 1.0 / pts[0, :, 2]
     for grid_uv in (None, grid):
-        plain, _ = candidates(pts, K, valid, (24, 32), 1.25, 0.1, grid_uv)
+        plain, _ = candidates(pts, K, valid, (24, 32), radius_px=1.25, min_depth=0.1, grid_uv=grid_uv)
         order = front_to_back(iz)
-        made, _ = candidates(pts, K, valid, (24, 32), 1.25, 0.1, grid_uv, point_order=order)
+        made, _ = candidates(pts, K, valid, (24, 32), radius_px=1.25, min_depth=0.1, grid_uv=grid_uv,
+                             point_order=order)
         pairs = lambda c: sorted(zip(c.point.tolist(), c.pixel.tolist(), c.d2.tolist()))  # noqa: E731
         assert pairs(made) == pairs(plain) and len(plain.point) > 3000
         rank = torch.empty_like(order)
@@ -455,8 +513,8 @@ def test_slanted_far_plane_stays_one_surface(incidence_deg, distance_m):
     depth = _plane_frames(K, n_plane, d, poses, (96, 96), 0.0012, 0)
     exact = _plane_frames(K, n_plane, d, poses[3:4], (96, 96), 0.0, 0)[0, 0]
     cloud = cloud_in_target(depth, K.float().expand(7, 3, 3), poses.float())
-    out = render_gt(cloud.points, K.float()[None], (96, 96), cloud.valid, RenderSettings(), cloud.normals, cloud.sigma_m,
-                    cloud.frame)
+    out = render_gt(cloud.points, K.float()[None], (96, 96), cloud.valid, RenderSettings(), normals_cam=cloud.normals,
+                    sigma_m=cloud.sigma_m, frame=cloud.frame)
     gt = out.depth[0, 0]
     ok = exact > 0
     assert float((gt[ok] > 0).float().mean()) > 0.97
@@ -489,8 +547,8 @@ def test_render_gt_edge_where_most_frames_put_it():
     cloud = cloud_in_target(depth, K.float().expand(7, 3, 3), poses)
 
     def gt(**kw):
-        return render_gt(cloud.points, K.float()[None], (h, w), cloud.valid, RenderSettings(**kw), cloud.normals,
-                         cloud.sigma_m, cloud.frame).depth[0, 0]
+        return render_gt(cloud.points, K.float()[None], (h, w), cloud.valid, RenderSettings(**kw),
+                         normals_cam=cloud.normals, sigma_m=cloud.sigma_m, frame=cloud.frame).depth[0, 0]
 
     voted, union = gt(), gt(edge_vote=0.0)
     assert torch.allclose(voted[:, 4:25], torch.tensor(1.5), atol=1e-3)  # the foreground up to its true edge
@@ -517,8 +575,8 @@ def test_thin_pole_seen_by_several_frames_is_kept():
         poses.append(T)
     depth, poses = torch.stack(frames)[:, None].float(), torch.stack(poses).float()
     cloud = cloud_in_target(depth, K.float().expand(7, 3, 3), poses)
-    gt = render_gt(cloud.points, K.float()[None], (h, w), cloud.valid, RenderSettings(), cloud.normals, cloud.sigma_m,
-                   cloud.frame).depth[0, 0]
+    gt = render_gt(cloud.points, K.float()[None], (h, w), cloud.valid, RenderSettings(), normals_cam=cloud.normals,
+                   sigma_m=cloud.sigma_m, frame=cloud.frame).depth[0, 0]
     target_pole = depth[3, 0] < 2
     assert int(target_pole.sum()) == 2 * h
     assert torch.allclose(gt[target_pole], torch.tensor(1.5), atol=1e-3)
@@ -581,8 +639,8 @@ def _render_frames(clean256, K256, T_j_to_t, frames, src_hw=(480, 640), noise=0.
         g = torch.Generator().manual_seed(0)
         d = d * (1 + noise * d * torch.randn(d.shape, generator=g))  # sigma = noise * z^2 (Kinect-like)
     cloud = cloud_in_target(d, K256.expand(len(frames), 3, 3), T_j_to_t[frames], src_hw=src_hw)
-    return render_gt(cloud.points, K256[None], (256, 256), cloud.valid, settings, cloud.normals, cloud.sigma_m, cloud.frame,
-                     src_hw).depth[0, 0]
+    return render_gt(cloud.points, K256[None], (256, 256), cloud.valid, settings, normals_cam=cloud.normals,
+                     sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=src_hw).depth[0, 0]
 
 
 def _mae_mm(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -636,8 +694,8 @@ def test_render_gt_on_synthetic_room():
     cloud = cloud_in_target(clean[nb], K.expand(6, 3, 3), T[nb], src_hw=hw)
 
     def render(st):
-        return render_gt(cloud.points, K[None], (256, 256), cloud.valid, st, cloud.normals, cloud.sigma_m, cloud.frame,
-                         hw).depth[0, 0]
+        return render_gt(cloud.points, K[None], (256, 256), cloud.valid, st, normals_cam=cloud.normals,
+                         sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=hw).depth[0, 0]
 
     gt = render(RenderSettings())
     assert float((gt > 0).float().mean()) > 0.97  # edge pixels of undecidable side are left empty

@@ -62,6 +62,7 @@ def candidates(
     K: torch.Tensor,
     valid: torch.Tensor,
     size_hw: tuple[int, int],
+    *,
     radius_px: float,
     min_depth: float,
     grid_uv: tuple[torch.Tensor, torch.Tensor] | None = None,
@@ -83,7 +84,8 @@ def candidates(
     z_f = z.reshape(-1)
     r = float(radius_px)
     if grid_uv is not None:
-        return candidates_on_grid(uv_f, z_f, valid, b, n, h, w, r, min_depth, grid_uv, point_order)
+        return _candidates_on_grid(uv_f, z_f, valid, bnhw=(b, n, h, w), radius_px=r, min_depth=min_depth,
+                                   grid_uv=grid_uv, point_order=point_order)
     with torch.no_grad():
         u, v = uv_f[:, 0], uv_f[:, 1]
         ok = valid.reshape(-1) & (z_f > min_depth) & torch.isfinite(u) & torch.isfinite(v)
@@ -146,8 +148,15 @@ def _visited(ok: torch.Tensor, point_order: torch.Tensor | None) -> torch.Tensor
     return point_order.index_select(0, ok.index_select(0, point_order).nonzero().squeeze(1))
 
 
-def candidates_on_grid(uv_f, z_f, valid, b, n, h, w, r, min_depth, grid_uv, point_order=None):
-    """:func:`candidates` for sample positions ``grid_uv`` off the pixel centres."""
+def _candidates_on_grid(uv_f: torch.Tensor, z_f: torch.Tensor, valid: torch.Tensor, *,
+                        bnhw: tuple[int, int, int, int], radius_px: float, min_depth: float,
+                        grid_uv: tuple[torch.Tensor, torch.Tensor],
+                        point_order: torch.Tensor | None = None) -> tuple[Candidates, torch.Tensor]:
+    """:func:`candidates` for sample positions ``grid_uv`` off the pixel centres, from the
+    flattened projections ``uv_f`` (B*N, 2) px and depths ``z_f`` (B*N,) m; ``bnhw``:
+    (B, N, H, W)."""
+    b, n, h, w = bnhw
+    r = radius_px
     gu, gv = (g.to(uv_f.dtype) for g in grid_uv)
     if gu.shape != (w,) or gv.shape != (h,):
         raise ValueError(f"grid_uv must hold ({w},) and ({h},) sample positions, got {tuple(gu.shape)}, {tuple(gv.shape)}")

@@ -87,7 +87,7 @@ def splat_soft(
     h, w = int(size_hw[0]), int(size_hw[1])
     c = features.shape[-1]
     n_pix = b * h * w
-    cand, z_all = candidates(points_cam, K, valid, (h, w), radius_px, min_depth)
+    cand, z_all = candidates(points_cam, K, valid, (h, w), radius_px=radius_px, min_depth=min_depth)
     z = z_all[cand.point]
     pixel = cand.pixel
     if depth_band_rel is not None:

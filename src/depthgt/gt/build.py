@@ -24,7 +24,7 @@ from depthgt.errors import FrameError
 from depthgt.gt import store
 from depthgt.gt.patches import make_patches, patch_record
 from depthgt.gt.planning import coverage_candidates, stable_seed
-from depthgt.gt.render import GTRender, cloud_in_target, render_gt
+from depthgt.gt.render import GTRender, cloud_in_target, composite_gt, rasterise_gt
 from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
 from depthgt.noise_law import depth_sigma_m, noise_sigma_1m_from, second_difference_residuals
 from depthgt.settings import RegistrationSettings, RenderSettings, Settings
@@ -244,17 +244,20 @@ def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, d
                             normals=normals)
     h, w = data.depth_m.shape[-2:]
     with_target = bool(chosen) and chosen[0] == 0  # the target's own depth is fused, as frame 0 of the cloud
+    cands = rasterise_gt(cloud.points, data.K[None].to(depth.dtype), (h, w), settings, valid=cloud.valid,
+                         normals_cam=cloud.normals, sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=data.src_hw)
+    gt = composite_gt(cands, settings, target_frame=0 if with_target else None)
+    if not (with_target and leave_target_out and len(chosen) > 1):
+        return gt
     lo_sigma = None
-    leave_out = with_target and leave_target_out and len(chosen) > 1
-    if leave_out and settings.noise_sigma_1m is None:
+    if settings.noise_sigma_1m is None:
         # the noise law as fusing the neighbours alone estimates it (without the target's depth)
         sigma_1m = noise_sigma_1m_from(residuals, frames=slice(1, None))
         lo_sigma = torch.cat([torch.zeros_like(depth[:1]), depth_sigma_m(depth[1:], sigma_1m, settings.noise_sigma_abs_m)])
         lo_sigma = lo_sigma.reshape(1, -1).to(cloud.sigma_m.dtype)
-    return render_gt(cloud.points, data.K[None].to(depth.dtype), (h, w), cloud.valid, settings, normals_cam=cloud.normals,
-                     sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=data.src_hw, target_frame=0 if with_target else None,
-                     leave_out_frame=0 if leave_out else None, leave_out_sigma_m=lo_sigma,
-                     leave_out_stride=settings.leave_target_out_stride)
+    # the leave-target-out render: the same compositor over the same candidates minus the target's
+    neighbours = cands.without_frame(0, stride=settings.leave_target_out_stride, sigma_m=lo_sigma)
+    return gt._replace(left_out=composite_gt(neighbours, settings, with_sigma=False))
 
 
 def quality_statistics(data: FrameSetData, alignment: Alignment, gt_m: np.ndarray, settings: RenderSettings,

@@ -1,15 +1,18 @@
 """The GT renderer of paper eq. 5: the merged frame-set cloud fused into the target view.
 
-It composes the shared rasteriser (:mod:`depthgt.rasterise`: every point paired with
-the pixels whose sample positions lie within ``radius_px`` of its projection; the soft
-splat of the registration, :mod:`depthgt.splatting`, uses it too) with its own
-compositor: the candidates made front first (the points sorted by inverse depth) and
-sorted once by pixel (a stable int32 sort), grouped into surfaces by gaps in inverse
-depth scaled to the sensor's noise
-(:mod:`depthgt.noise_law`), the visible surface picked by its support and its sampled
-footprint, frames (or regions of them) that disagree with the target left out, and a
-weighted plane fitted in inverse depth per pixel (closed-form 2x2 solves), with a
-per-pixel confidence. No Python loop runs over points or pixels;
+Two parts, as PyTorch3D's points renderer: a rasteriser, :func:`rasterise_gt` (the
+shared point rasteriser of :mod:`depthgt.rasterise`, which the registration's soft
+splat uses too: every point paired with the pixels whose sample positions lie within
+``radius_px`` of its projection; the candidates made front first, the points sorted by
+inverse depth, and sorted once by pixel, a stable int32 sort), whose output is a typed
+record, :class:`RenderCandidates`; and a compositor, :func:`composite_gt`, that turns
+candidates into a :class:`GTRender`: frames (or regions of them) that disagree with the
+target left out, the candidates grouped into surfaces by gaps in inverse depth scaled
+to the sensor's noise (:mod:`depthgt.noise_law`), the visible surface picked by its
+support and its sampled footprint, and a weighted plane fitted in inverse depth per
+pixel (closed-form 2x2 solves), with a per-pixel confidence. :func:`render_gt` is the
+two in a row; the leave-target-out render is the same compositor over the same
+candidates without the target's (:meth:`RenderCandidates.without_frame`). No Python loop runs over points or pixels;
 ``tests/render_reference.py`` holds the plain loop versions (test oracles).
 
 Measured (bench/bench_gt_protocol.py, evaluation set of 45 synthetic frame sets never
@@ -39,7 +42,8 @@ from depthgt.rasterise import candidates, check_points, front_to_back, rank_in_p
 from depthgt.settings import RenderSettings
 from depthgt.splatting import SoftSplat, splat_soft  # re-exported: the renderer's public names
 
-__all__ = ["SoftSplat", "splat_soft", "GTRender", "render_gt", "TargetCloud", "cloud_in_target",
+__all__ = ["SoftSplat", "splat_soft", "GTRender", "RenderCandidates", "render_gt", "rasterise_gt", "composite_gt",
+           "TargetCloud", "cloud_in_target",
            "depth_sigma_m", "estimate_noise_sigma_1m", "resampled_positions", "KINECT_SIGMA_1M"]
 
 
@@ -63,7 +67,7 @@ _MIN_TILE_COMPARED = 50
 
 
 class GTRender(NamedTuple):
-    """Output of :func:`render_gt`.
+    """Output of :func:`render_gt` (:func:`composite_gt`).
 
     depth: (B, 1, H, W) GT depth in metres, 0 = no GT.
     weight_sum: (B, 1, H, W) sum of the spatial weights exp(-d / R^2) of the kept samples.
@@ -78,9 +82,11 @@ class GTRender(NamedTuple):
     disagreement: (B, 3, H, W) float per pixel, over the other frames' samples compared
         with the target's: compared, disagreeing, and kept by the agreement check (a
         diagnostic of where frames disagree); None when nothing was judged.
-    left_out: with ``leave_out_frame``, the render of the other frames alone (no
-        agreement check; the leave-target-out check of real data; with
-        ``leave_out_stride`` only at those pixels), else None. Its ``sigma`` is zero
+    left_out: the render of the other frames alone, or None: the leave-target-out
+        check of real data, set by :func:`depthgt.gt.build.fuse` (the same compositor
+        over the same candidates without the target's,
+        :meth:`RenderCandidates.without_frame`, no agreement check; only at the pixels
+        of every ``leave_target_out_stride``-th row and column). Its ``sigma`` is zero
         unless ``max_sigma_m`` needs it (the check uses the depth only).
     """
 
@@ -91,6 +97,80 @@ class GTRender(NamedTuple):
     agreement: torch.Tensor
     disagreement: torch.Tensor | None = None
     left_out: "GTRender | None" = None
+
+
+class RenderCandidates(NamedTuple):
+    """The GT rasteriser's output (:func:`rasterise_gt`), the compositor's input
+    (:func:`composite_gt`): every (point, pixel) pair whose projection lies strictly
+    within ``radius_px`` of the pixel's sample position, sorted by pixel and, within a
+    pixel, front first (decreasing inverse depth; ties in point order).
+
+    Per candidate (C = their number):
+        pixel: (C,) long index into the flattened (B*H*W) output pixels, ascending.
+        point: (C,) long index into the flattened (B*N) points.
+        ox, oy: (C,) the projection minus the pixel's sample position, px
+            (differentiable w.r.t. the points).
+        d2: (C,) ox^2 + oy^2, px^2 (differentiable).
+        iz: (C,) the point's inverse depth 1/z, 1/m (differentiable).
+        s: (C,) the point's expected std in inverse depth, 1/m (detached).
+        frame: (C,) long frame index of the point, or None (no frame ids: each point
+            counts as its own frame).
+    Per point and per image:
+        grad: (B*N, 2) screen-space gradient (d(1/z)/du, d(1/z)/dv) of each point's
+            tangent plane (zero rows: no correction), or None (no normals).
+        iz_point: (B*N,) inverse depth of every point, detached (other sigmas for the
+            same candidates, :meth:`without_frame`).
+        size: (B, H, W) of the output.
+        n_frames: J = the largest frame id + 1 (0 without frame ids): the width of
+            :attr:`GTRender.agreement`.
+    """
+
+    pixel: torch.Tensor
+    point: torch.Tensor
+    ox: torch.Tensor
+    oy: torch.Tensor
+    d2: torch.Tensor
+    iz: torch.Tensor
+    s: torch.Tensor
+    frame: torch.Tensor | None
+    grad: torch.Tensor | None
+    iz_point: torch.Tensor
+    size: tuple[int, int, int]
+    n_frames: int
+
+    def select(self, index: torch.Tensor) -> "RenderCandidates":
+        """The candidates at ``index`` (C',) long (ascending keeps the sort)."""
+        names = ("pixel", "point", "ox", "oy", "d2", "iz", "s")
+        picked = {k: getattr(self, k).index_select(0, index) for k in names}
+        return self._replace(**picked, frame=None if self.frame is None else self.frame.index_select(0, index))
+
+    def without_frame(self, frame: int, *, stride: int = 1, sigma_m: torch.Tensor | None = None) -> "RenderCandidates":
+        """The candidates of every frame but ``frame`` (the leave-target-out render's).
+
+        Args:
+            frame: the frame id to leave out (the candidates need frame ids).
+            stride: keep only the pixels of every ``stride``-th row and column.
+            sigma_m: (B, N) the points' depth sigmas in metres for these candidates
+                (e.g. the noise law estimated without the left-out frame), or None
+                (keep their sigmas).
+        """
+        if self.frame is None:
+            raise ValueError("without_frame needs candidates with frame ids (render with frame=...)")
+        b, h, w = self.size
+        if sigma_m is not None and sigma_m.numel() != self.iz_point.numel():
+            raise ValueError(f"sigma_m must hold one sigma per point ({self.iz_point.numel()}), "
+                             f"got {tuple(sigma_m.shape)}")
+        with torch.no_grad():
+            keep = self.frame != frame
+            if stride > 1:
+                on_grid = torch.zeros(b, h, w, dtype=torch.bool, device=self.pixel.device)
+                on_grid[:, ::stride, ::stride] = True
+                keep &= on_grid.reshape(-1).index_select(0, self.pixel)
+            out = self.select(keep.nonzero().squeeze(1))
+            if sigma_m is not None:
+                s_point = _inverse_depth_std(sigma_m.detach().reshape(-1).to(self.iz_point.dtype), self.iz_point)
+                out = out._replace(s=s_point.index_select(0, out.point))
+        return out
 
 
 def _inverse_depth_planes(points_cam, normals_cam, K, st: RenderSettings) -> torch.Tensor:
@@ -114,7 +194,8 @@ def _inverse_depth_planes(points_cam, normals_cam, K, st: RenderSettings) -> tor
     return (grad * ok[..., None]).reshape(-1, 2)
 
 
-def _keep_m_nearest(pixel: torch.Tensor, d2: torch.Tensor, keep: torch.Tensor, m: int, r2: float, n_pix: int) -> torch.Tensor:
+def _keep_m_nearest(pixel: torch.Tensor, d2: torch.Tensor, keep: torch.Tensor, *, m: int, r2: float,
+                    n_pix: int) -> torch.Tensor:
     """Restrict ``keep`` to the m kept candidates of smallest d2 in every pixel.
 
     Avoids sorting all candidates: a per-pixel histogram of d2 in ``nb`` bins finds the
@@ -169,11 +250,17 @@ def _segment_sums(index: torch.Tensor, values: list[torch.Tensor], n: int) -> li
     return [torch.segment_reduce(v, "sum", lengths=lengths, unsafe=True) for v in values]
 
 
-def _choose_surfaces(pixel, iz, s_iz, frame, ox, oy, d2, n_pix: int, st: RenderSettings,
-                     target_frame: int | None = None) -> _Surfaces:
+def _choose_surfaces(c: RenderCandidates, st: RenderSettings, target_frame: int | None = None) -> _Surfaces:
     """Group each pixel's candidates into surfaces by gaps in inverse depth and pick the
-    visible one (see :class:`RenderSettings`). All inputs (C,), detached, sorted by
-    pixel and, within a pixel, by decreasing inverse depth (front first)."""
+    visible one (see :class:`RenderSettings`), on the candidates ``c`` (sorted by pixel
+    and, within a pixel, front first; used detached).
+
+    Longer than most functions here: its steps (clusters, support, front and behind,
+    reach, the choice) share a dozen per-cluster tensors, and passing them between
+    smaller functions read worse than one function in the order of the rule."""
+    pixel, frame, s_iz = c.pixel, c.frame, c.s
+    iz, ox, oy, d2 = c.iz.detach(), c.ox.detach(), c.oy.detach(), c.d2.detach()
+    n_pix = c.size[0] * c.size[1] * c.size[2]
     dev = pixel.device
     apart = torch.hypot(ox[1:] - ox[:-1], oy[1:] - oy[:-1])  # px
     tol = st.gap_sigmas * torch.hypot(s_iz[:-1], s_iz[1:]) + st.gap_slope_rel * iz[:-1] * apart
@@ -256,20 +343,111 @@ def _choose_surfaces(pixel, iz, s_iz, frame, ox, oy, d2, n_pix: int, st: RenderS
     return _Surfaces(cluster, keep, ambiguous & use, step)
 
 
+def _inverse_depth_std(sigma_m: torch.Tensor, iz: torch.Tensor) -> torch.Tensor:
+    """(N,) std in inverse depth s = sigma_z / z^2 = sigma_z iz^2 (floored at 1e-12) of
+    depth stds ``sigma_m`` (N,) metres at inverse depths ``iz`` (N,) 1/m."""
+    return (sigma_m * iz**2).clamp_min(1e-12)
+
+
+def rasterise_gt(
+    points_cam: torch.Tensor,
+    K: torch.Tensor,
+    size_hw: tuple[int, int],
+    settings: RenderSettings = RenderSettings(),
+    *,
+    valid: torch.Tensor | None = None,
+    normals_cam: torch.Tensor | None = None,
+    sigma_m: torch.Tensor | None = None,
+    frame: torch.Tensor | None = None,
+    src_hw: tuple[int, int] | None = None,
+) -> RenderCandidates:
+    """Step 1 of :func:`render_gt`: the candidates of every pixel, with their inverse
+    depths, sigmas and frames, sorted by pixel and front first (the points sorted by
+    inverse depth once, :func:`depthgt.rasterise.front_to_back`, and the candidates made
+    in that order, then one stable sort by pixel).
+
+    Args: as :func:`render_gt`. Returns: :class:`RenderCandidates`.
+    """
+    valid = check_points(points_cam, K, valid, size_hw)
+    b, n = points_cam.shape[:2]
+    for name, t, shape in (("normals_cam", normals_cam, (b, n, 3)), ("sigma_m", sigma_m, (b, n)),
+                           ("frame", frame, (b, n))):
+        if t is not None and tuple(t.shape) != shape:
+            raise ValueError(f"{name} must be {shape} to match points_cam {tuple(points_cam.shape)}, "
+                             f"got {tuple(t.shape)}")
+    st = settings
+    h, w = int(size_hw[0]), int(size_hw[1])
+    dev, dt = points_cam.device, points_cam.dtype
+    grid = None
+    if src_hw is not None:
+        grid = (resampled_positions(int(src_hw[1]), w, dev, dt), resampled_positions(int(src_hw[0]), h, dev, dt))
+    z_all = points_cam[..., 2].reshape(-1)
+    iz_all = 1.0 / z_all.clamp_min(st.min_depth_m)
+    with torch.no_grad():  # the candidates come front first: one sort of the points, not of the candidates
+        by_depth = front_to_back(iz_all)
+    cand, _ = candidates(points_cam, K, valid, (h, w), radius_px=st.radius_px, min_depth=st.min_depth_m, grid_uv=grid,
+                         point_order=by_depth)
+    n_frames = 0 if frame is None or frame.numel() == 0 else int(frame.max()) + 1
+    with torch.no_grad():
+        if sigma_m is None:
+            sig_1m = KINECT_SIGMA_1M if st.noise_sigma_1m is None else st.noise_sigma_1m
+            sz = depth_sigma_m(z_all.detach(), sig_1m, st.noise_sigma_abs_m)
+        else:
+            sz = sigma_m.detach().reshape(-1).to(dt)
+        s_all = _inverse_depth_std(sz, iz_all.detach())
+    grad = None if normals_cam is None else _inverse_depth_planes(points_cam, normals_cam, K, st)
+    with torch.no_grad():
+        pixel, order = sort_by_pixel(cand.pixel)  # by pixel, front first (stable: the candidates' order)
+    point = cand.point.index_select(0, order)
+    # projection minus sample position, px
+    ox, oy = (-cand.dx).index_select(0, order), (-cand.dy).index_select(0, order)
+    d2 = ox * ox + oy * oy  # as the rasteriser computes it (dx^2 + dy^2, dx = -ox): bit for bit, cheaper than a gather
+    fr = None if frame is None else frame.reshape(-1).index_select(0, point)
+    return RenderCandidates(pixel, point, ox, oy, d2, iz=iz_all.index_select(0, point), s=s_all.index_select(0, point),
+                            frame=fr, grad=grad, iz_point=iz_all.detach(), size=(b, h, w), n_frames=n_frames)
+
+
+def composite_gt(cands: RenderCandidates, settings: RenderSettings = RenderSettings(), *,
+                 target_frame: int | None = None, with_sigma: bool = True) -> GTRender:
+    """Steps 2-5 of :func:`render_gt` on the rasteriser's candidates: with
+    ``target_frame`` the frames (or regions) that disagree with the target's own depth
+    are left out first (:attr:`GTRender.agreement`); then surfaces, visibility, the
+    ``m`` nearest samples, the plane fit and the confidence (with ``with_sigma`` or
+    ``max_sigma_m``, else ``sigma`` is zero).
+
+    The leave-target-out render is this compositor over the same candidates without the
+    target's (:meth:`RenderCandidates.without_frame`), no ``target_frame``.
+    """
+    st = settings
+    b = cands.size[0]
+    dev = cands.pixel.device
+    agreement = torch.full((b, cands.n_frames), float("nan"), device=dev)
+    if cands.pixel.numel() == 0:
+        return _empty_render(cands, agreement)
+    disagreement = None
+    if cands.frame is not None and target_frame is not None:
+        with torch.no_grad():
+            bad, agreement, disagreement = _frame_agreement(cands, st, target_frame)
+            if bad.any():  # a frame (or a region of it) that disagrees with the target stays out
+                slot = _agreement_slot(cands.pixel, cands.frame, size=cands.size, n_frames=cands.n_frames,
+                                       tile_px=st.agreement_tile_px)
+                cands = cands.select((~bad[slot]).nonzero().squeeze(1))
+    return _estimate(cands, st, target_frame=target_frame, agreement=agreement, disagreement=disagreement,
+                     with_sigma=with_sigma)
+
+
 def render_gt(
     points_cam: torch.Tensor,
     K: torch.Tensor,
     size_hw: tuple[int, int],
     valid: torch.Tensor | None = None,
     settings: RenderSettings = RenderSettings(),
+    *,
     normals_cam: torch.Tensor | None = None,
     sigma_m: torch.Tensor | None = None,
     frame: torch.Tensor | None = None,
     src_hw: tuple[int, int] | None = None,
     target_frame: int | None = None,
-    leave_out_frame: int | None = None,
-    leave_out_sigma_m: torch.Tensor | None = None,
-    leave_out_stride: int = 1,
 ) -> GTRender:
     """GT depth from a merged point cloud (paper eq. 5 with a geometric surface choice).
 
@@ -306,6 +484,11 @@ def render_gt(
     the plane fit; the selection is piecewise constant. Vectorised: one stable sort of
     the candidates, scatter reductions, a closed-form 2x2 solve per pixel.
 
+    Composed of parts, as PyTorch3D's points renderer: the rasteriser
+    :func:`rasterise_gt` (step 1, a :class:`RenderCandidates` record) and the compositor
+    :func:`composite_gt` (steps 2-5); a caller that renders the same cloud twice (the
+    leave-target-out render of :func:`depthgt.gt.build.fuse`) calls them itself.
+
     Args:
         points_cam: (B, N, 3) points in metres in the target camera (the caller
             concatenates the frames of the frame set, see :func:`cloud_in_target`).
@@ -325,125 +508,45 @@ def render_gt(
             surface with a target sample within 0.05 px of a pixel's position is seen
             there, so it qualifies as front surface whatever ``min_frames`` says (a
             thin pole that only the target caught stays).
-        leave_out_frame: also render the cloud without this frame's points, and
-            without the agreement check, into ``left_out`` (the leave-target-out
-            render, sharing the projection and the sort with the main one).
-        leave_out_sigma_m: (B, N) the points' sigmas for that second render (the noise
-            estimated without the left-out frame), or None (``sigma_m``).
-        leave_out_stride: that second render only at the pixels of every this-th row and
-            column (others empty); each holds what the full render gives it (to float
-            rounding: the weights' common scale is the median sigma of the kept samples).
-
     Returns:
         :class:`GTRender` (depth, weight_sum, count, sigma), each (B, 1, H, W).
     """
-    valid = check_points(points_cam, K, valid, size_hw)
-    b, n = points_cam.shape[:2]
-    for name, t, shape in (("normals_cam", normals_cam, (b, n, 3)), ("sigma_m", sigma_m, (b, n)), ("frame", frame, (b, n)),
-                           ("leave_out_sigma_m", leave_out_sigma_m, (b, n))):
-        if t is not None and tuple(t.shape) != shape:
-            raise ValueError(f"{name} must be {shape} to match points_cam {tuple(points_cam.shape)}, got {tuple(t.shape)}")
-    st = settings
-    h, w = int(size_hw[0]), int(size_hw[1])
-    n_pix = b * h * w
-    r2 = st.radius_px**2
-    dev, dt = points_cam.device, points_cam.dtype
-    grid = None
-    if src_hw is not None:
-        grid = (resampled_positions(int(src_hw[1]), w, dev, dt), resampled_positions(int(src_hw[0]), h, dev, dt))
-    z_all = points_cam[..., 2].reshape(-1)
-    iz_all = 1.0 / z_all.clamp_min(st.min_depth_m)
-    with torch.no_grad():  # the candidates come front first: one sort of the points, not of the candidates
-        by_depth = front_to_back(iz_all)
-    cand, _ = candidates(points_cam, K, valid, (h, w), st.radius_px, st.min_depth_m, grid, point_order=by_depth)
-    pixel = cand.pixel
-    zeros_img = torch.zeros(b, 1, h, w, dtype=dt, device=dev)
-    if pixel.numel() == 0:
-        n_fr = 0 if frame is None else int(frame.max()) + 1 if frame.numel() else 0
-        empty = GTRender(zeros_img, zeros_img.clone(), torch.zeros(b, 1, h, w, dtype=torch.int64, device=dev), zeros_img.clone(),
-                         torch.full((b, n_fr), float("nan"), device=dev))
-        return empty._replace(left_out=empty) if leave_out_frame is not None and frame is not None else empty
-    with torch.no_grad():
-        if sigma_m is None:
-            sig_1m = KINECT_SIGMA_1M if st.noise_sigma_1m is None else st.noise_sigma_1m
-            sz = depth_sigma_m(z_all.detach(), sig_1m, st.noise_sigma_abs_m)
-        else:
-            sz = sigma_m.detach().reshape(-1).to(dt)
-        s_all = (sz * iz_all.detach() ** 2).clamp_min(1e-12)  # std in inverse depth
-        s_all_lo = None
-        if leave_out_sigma_m is not None:
-            s_all_lo = (leave_out_sigma_m.detach().reshape(-1).to(dt) * iz_all.detach() ** 2).clamp_min(1e-12)
-    grad = None if normals_cam is None else _inverse_depth_planes(points_cam, normals_cam, K, st)
-    ox, oy = -cand.dx, -cand.dy  # projection minus sample position, px
-    with torch.no_grad():
-        pixel, order = sort_by_pixel(pixel)  # by pixel, front first (stable: the candidates' order)
-    point = cand.point.index_select(0, order)
-    ox, oy = ox.index_select(0, order), oy.index_select(0, order)
-    d2 = ox * ox + oy * oy  # as the rasteriser computes it (dx^2 + dy^2, dx = -ox): bit for bit, cheaper than a gather
-    iz, s = iz_all.index_select(0, point), s_all.index_select(0, point)
-    fr = None if frame is None else frame.reshape(-1).index_select(0, point)
-    pixel_all, d2_all, ox_all, oy_all, point_all, s_pre, fr_all = pixel, d2, ox, oy, point, s, fr
-    agreement = torch.zeros(b, 0, device=dev)
-    disagreement = None
-    if fr is not None:
-        n_fr = int(frame.max()) + 1
-        agreement = torch.full((b, n_fr), float("nan"), device=dev)
-        if target_frame is not None:
-            with torch.no_grad():
-                bad, agreement, disagreement = _frame_agreement(pixel, iz.detach(), s, fr, d2.detach(), b, n_fr, (h, w), st,
-                                                                target_frame)
-                if bad.any():  # a frame (or a region of it) that disagrees with the target stays out
-                    ok = ~bad[_agreement_slot(pixel, fr, b, n_fr, (h, w), st.agreement_tile_px)]
-                    sel = ok.nonzero().squeeze(1)
-                    pixel, d2, ox, oy, point, iz, s, fr = (x.index_select(0, sel) for x in (pixel, d2, ox, oy, point, iz, s, fr))
-    out = _estimate(pixel, d2, ox, oy, point, iz, s, fr, grad, (b, h, w), st, target_frame, agreement, disagreement)
-    if leave_out_frame is not None and frame is not None:
-        # the leave-target-out render (the neighbours alone, no agreement check) from the
-        # same candidates: the projection, the sort and the clouds are shared
-        with torch.no_grad():
-            lo = fr_all != leave_out_frame
-            if leave_out_stride > 1:  # only the pixels of every leave_out_stride-th row and column
-                on_grid = torch.zeros(b, h, w, dtype=torch.bool, device=dev)
-                on_grid[:, ::leave_out_stride, ::leave_out_stride] = True
-                lo &= on_grid.reshape(-1).index_select(0, pixel_all)
-            lo = lo.nonzero().squeeze(1)
-        pixel_lo, d2_lo, ox_lo, oy_lo, point_lo, s_lo, fr_lo = (
-            x.index_select(0, lo) for x in (pixel_all, d2_all, ox_all, oy_all, point_all, s_pre, fr_all))
-        if s_all_lo is not None:  # the sigmas of the noise estimated without the left-out frame
-            s_lo = s_all_lo.index_select(0, point_lo)
-        left = _estimate(pixel_lo, d2_lo, ox_lo, oy_lo, point_lo, iz_all.index_select(0, point_lo), s_lo, fr_lo, grad,
-                         (b, h, w), st, None, torch.full((b, agreement.shape[1]), float("nan"), device=dev), None,
-                         with_sigma=False)
-        out = out._replace(left_out=left)
-    return out
+    cands = rasterise_gt(points_cam, K, size_hw, settings, valid=valid, normals_cam=normals_cam, sigma_m=sigma_m,
+                         frame=frame, src_hw=src_hw)
+    return composite_gt(cands, settings, target_frame=target_frame)
 
 
-def _estimate(pixel, d2, ox, oy, point, iz, s, fr, grad, bhw, st: RenderSettings, target_frame, agreement,
-              disagreement, with_sigma: bool = True) -> GTRender:
-    """Steps 2-5 of :func:`render_gt` on the candidates (C,) sorted by pixel, front first:
-    surfaces, visibility, the m nearest samples, the plane fit and the confidence (with
+def _empty_render(c: RenderCandidates, agreement: torch.Tensor, disagreement: torch.Tensor | None = None) -> GTRender:
+    """The :class:`GTRender` of no candidates: zero depth, weights, counts and sigmas."""
+    b, h, w = c.size
+    zeros_img = torch.zeros(b, 1, h, w, dtype=c.iz_point.dtype, device=c.pixel.device)
+    return GTRender(zeros_img, zeros_img.clone(), torch.zeros(b, 1, h, w, dtype=torch.int64, device=zeros_img.device),
+                    zeros_img.clone(), agreement, disagreement)
+
+
+def _estimate(c: RenderCandidates, st: RenderSettings, *, target_frame: int | None, agreement: torch.Tensor,
+              disagreement: torch.Tensor | None, with_sigma: bool = True) -> GTRender:
+    """Steps 2-5 of :func:`render_gt` on the candidates ``c``: surfaces,
+    visibility, the m nearest samples, the plane fit and the confidence (with
     ``with_sigma`` or ``max_sigma_m``; else ``sigma`` is zero)."""
-    b, h, w = bhw
+    if c.pixel.numel() == 0:  # every candidate left out by the agreement check
+        return _empty_render(c, agreement, disagreement)
+    b, h, w = c.size
     n_pix = b * h * w
     r2 = st.radius_px**2
-    dt, dev = iz.dtype, iz.device
-    zeros_img = torch.zeros(b, 1, h, w, dtype=dt, device=dev)
-    if pixel.numel() == 0:
-        return GTRender(zeros_img, zeros_img.clone(), torch.zeros(b, 1, h, w, dtype=torch.int64, device=dev), zeros_img.clone(),
-                        agreement, disagreement)
+    dt, dev = c.iz.dtype, c.iz.device
     with torch.no_grad():
-        surf = _choose_surfaces(pixel, iz.detach(), s, fr, ox.detach(), oy.detach(), d2.detach(), n_pix, st, target_frame)
-        keep = _keep_m_nearest(pixel, d2, surf.keep, st.m, r2, n_pix)
-        sub = keep.nonzero().squeeze(1)  # from here on, only the kept samples
-    pixel, d2, iz, s, ox, oy, point = (x.index_select(0, sub) for x in (pixel, d2, iz, s, ox, oy, point))
-    fr = None if fr is None else fr.index_select(0, sub)
+        surf = _choose_surfaces(c, st, target_frame)
+        keep = _keep_m_nearest(c.pixel, c.d2, surf.keep, m=st.m, r2=r2, n_pix=n_pix)
+    kept = c.select(keep.nonzero().squeeze(1))  # from here on, only the kept samples
+    pixel, d2, iz, s, ox, oy = kept.pixel, kept.d2, kept.iz, kept.s, kept.ox, kept.oy
     w_sp = torch.exp(-d2 / r2)
     s_ref = s.median() if s.numel() else torch.ones((), dtype=dt, device=dev)
     wt = w_sp * (s_ref / s) ** 2  # inverse-variance weights (scaled: only ratios matter)
-    if grad is None or st.plane == "none":
+    if c.grad is None or st.plane == "none":
         gx = gy = torch.zeros_like(iz)
     else:
-        g = grad.index_select(0, point)
+        g = c.grad.index_select(0, kept.point)
         gx, gy = g[:, 0], g[:, 1]
     sw, s_iz, s_x, s_y, s_gx, s_gy, wsum = _segment_sums(pixel, [wt, wt * iz, wt * ox, wt * oy, wt * gx, wt * gy, w_sp], n_pix)
     has = sw > 0
@@ -479,8 +582,9 @@ def _estimate(pixel, d2, ox, oy, point, iz, s, fr, grad, bhw, st: RenderSettings
     depth = torch.where(good, 1.0 / torch.where(good, iz_hat, torch.ones_like(iz_hat)), torch.zeros_like(iz_hat))
     with torch.no_grad():
         if with_sigma or st.max_sigma_m is not None:
-            sigma = _confidence(pixel, wt.detach(), s, resid.detach(), fr, depth.detach(), sw_safe.detach(), surf, n_pix,
-                                (mean_x.detach(), mean_y.detach(), cxx.detach(), cyy.detach(), cxy.detach()), st)
+            moments = (mean_x.detach(), mean_y.detach(), cxx.detach(), cyy.detach(), cxy.detach())
+            sigma = _confidence(kept, st, wt=wt.detach(), resid=resid.detach(), depth=depth.detach(),
+                                sw=sw_safe.detach(), moments=moments, surf=surf)
             sigma = torch.where(good, sigma, torch.zeros_like(sigma))
         else:
             sigma = torch.zeros_like(depth.detach())
@@ -498,11 +602,14 @@ def _tile_grid(hw: tuple[int, int], tile_px: int) -> tuple[int, int]:
     return -(-hw[0] // tile_px), -(-hw[1] // tile_px)
 
 
-def _agreement_slot(pixel: torch.Tensor, fr: torch.Tensor, b: int, n_fr: int, hw: tuple[int, int], tile_px: int) -> torch.Tensor:
+def _agreement_slot(pixel: torch.Tensor, fr: torch.Tensor, *, size: tuple[int, int, int], n_frames: int,
+                    tile_px: int) -> torch.Tensor:
     """Index of each sample's (image, frame, tile) in the flat decisions of
     :func:`_frame_agreement`: ((image * J + frame) * tiles + tile), from a per-pixel
-    table (one gather, no integer division per sample)."""
-    h, w = hw
+    table (one gather, no integer division per sample). ``pixel``, ``fr``: (C,) long;
+    ``size``: (B, H, W); ``n_frames``: J."""
+    b, h, w = size
+    hw, n_fr = (h, w), n_frames
     ty, tx = _tile_grid(hw, tile_px)
     n_t = ty * tx
     img = torch.arange(b, device=pixel.device)[:, None, None]
@@ -514,7 +621,7 @@ def _agreement_slot(pixel: torch.Tensor, fr: torch.Tensor, b: int, n_fr: int, hw
     return table.index_select(0, pixel) + fr * n_t
 
 
-def _frame_agreement(pixel, iz, s, fr, d2, b, n_fr, hw, st, target_frame):
+def _frame_agreement(c: RenderCandidates, st: RenderSettings, target_frame: int):
     """Which frames, or regions of frames, disagree with the target's own depth (a
     misregistered neighbour; a region that a rigid pose does not explain: lens
     distortion at the border, a moving object).
@@ -537,7 +644,9 @@ def _frame_agreement(pixel, iz, s, fr, d2, b, n_fr, hw, st, target_frame):
         comparisons, e.g. the target itself) and the (B, 3, H, W) diagnostic counts of
         :class:`GTRender`.
     """
-    h, w = hw
+    pixel, s, fr, iz, d2 = c.pixel, c.s, c.frame, c.iz.detach(), c.d2.detach()
+    b, h, w = c.size
+    hw, n_fr = (h, w), c.n_frames
     h_w = h * w
     n_pix = b * h_w
     tgt = ((fr == target_frame) & (d2 <= _HIT_PX**2)).nonzero().squeeze(1)
@@ -569,7 +678,7 @@ def _frame_agreement(pixel, iz, s, fr, d2, b, n_fr, hw, st, target_frame):
     bad = share < st.min_frame_agreement  # (NaN: not judged)
     if st.agreement_tile_px > 0:
         ty, tx = _tile_grid(hw, st.agreement_tile_px)
-        tslot = _agreement_slot(p, f, b, n_fr, hw, st.agreement_tile_px)
+        tslot = _agreement_slot(p, f, size=c.size, n_frames=n_fr, tile_px=st.agreement_tile_px)
         counts = torch.stack([torch.bincount(tslot, minlength=b * n_fr * ty * tx),
                               torch.bincount(tslot[agree], minlength=b * n_fr * ty * tx)]).to(torch.float32)
         # comparisons pooled over each tile's 3x3 neighbourhood (sums: average x 9)
@@ -578,14 +687,22 @@ def _frame_agreement(pixel, iz, s, fr, d2, b, n_fr, hw, st, target_frame):
         judged = n_cmp_t >= _MIN_TILE_COMPARED
         bad_t = torch.where(judged, n_ok_t < st.min_frame_agreement * n_cmp_t, bad[..., None, None])
         bad = bad_t | (share < st.min_whole_frame_agreement)[..., None, None]
-    kept = ~bad.reshape(-1)[_agreement_slot(p, f, b, n_fr, hw, st.agreement_tile_px)]
+    kept = ~bad.reshape(-1)[_agreement_slot(p, f, size=c.size, n_frames=n_fr, tile_px=st.agreement_tile_px)]
     diag = torch.stack([torch.bincount(p, minlength=n_pix), torch.bincount(p[~agree], minlength=n_pix),
                         torch.bincount(p[kept], minlength=n_pix)]).to(torch.float32)
     return bad.reshape(-1), share.to(torch.float32), diag.reshape(3, b, h, w).transpose(0, 1)
 
 
-def _confidence(pixel, wt, s, resid, fr, depth, sw, surf: _Surfaces, n_pix, moments, st) -> torch.Tensor:
-    """(P,) expected std of the fused depth in metres (see :func:`render_gt`, step 5)."""
+def _confidence(kept: RenderCandidates, st: RenderSettings, *, wt: torch.Tensor, resid: torch.Tensor,
+                depth: torch.Tensor, sw: torch.Tensor, moments: tuple[torch.Tensor, ...],
+                surf: _Surfaces) -> torch.Tensor:
+    """(P,) expected std of the fused depth in metres (see :func:`render_gt`, step 5) from
+    the ``kept`` samples, their weights ``wt`` (C,) and plane-fit residuals ``resid`` (C,),
+    the fused ``depth`` (P,), the weight sums ``sw`` (P,), the samples' weighted
+    ``moments`` (mean offsets x, y and covariances xx, yy, xy about them, each (P,), px)
+    and the ``surf`` choice."""
+    pixel, s, fr = kept.pixel, kept.s, kept.frame
+    n_pix = kept.size[0] * kept.size[1] * kept.size[2]
     dt = wt.dtype
     model, res2 = (v / sw for v in _segment_sums(pixel, [wt * s * s, wt * resid * resid], n_pix))
     # distinct frames among the kept samples (each point its own frame without frame ids)
@@ -658,6 +775,7 @@ def cloud_in_target(
     depth_m: torch.Tensor,
     K: torch.Tensor,
     T_j_to_t: torch.Tensor,
+    *,
     normal_max_jump_rel: float = 0.05,
     src_hw: tuple[int, int] | None = None,
     noise_sigma_1m: float | None = None,
