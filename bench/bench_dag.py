@@ -60,25 +60,46 @@ def plan(sizes: list[int]) -> None:
         n_frames, step = 1650, 10
         per_scene = len(range(6, n_frames - 6, step))
         n_scenes = max(1, round(size / per_scene))
-        config = {"sources": [{"name": "scan", "kind": "synthetic", "split": "auto",
-                               "scenes": [f"room_{i:04d}" for i in range(n_scenes)],
-                               "options": {"n_frames": n_frames}}],
-                  "frameset": {"target_step": step}}
+        config = {
+            "sources": [
+                {
+                    "name": "scan",
+                    "kind": "synthetic",
+                    "split": "auto",
+                    "scenes": [f"room_{i:04d}" for i in range(n_scenes)],
+                    "options": {"n_frames": n_frames},
+                }
+            ],
+            "frameset": {"target_step": step},
+        }
         with tempfile.TemporaryDirectory() as tmp:
             wd = _write_config(Path(tmp), config)
             proc = _snakemake(REPO, wd, "framesets", "-n", "--quiet", "rules", time_it=True)
         out = proc.stdout + proc.stderr
         wall, rss = re.search(r"TIME ([\d.]+) s (\d+) KiB", out).groups()
         jobs = re.search(r"^frameset_batch\s+(\d+)$", out, re.M)
-        print(f"| {n_scenes * per_scene:,} | {n_scenes:,} x {n_frames:,} | {int(jobs.group(1)) if jobs else 0:,} | "
-              f"{float(wall):.1f} | {int(rss) / 1024:.0f} |", flush=True)
+        print(
+            f"| {n_scenes * per_scene:,} | {n_scenes:,} x {n_frames:,} | {int(jobs.group(1)) if jobs else 0:,} | "
+            f"{float(wall):.1f} | {int(rss) / 1024:.0f} |",
+            flush=True,
+        )
 
 
 def _small_config(n_frames: int, scenes: list[str], batch_size: int | None = None) -> dict:
-    config = {"sources": [{"name": "syn", "kind": "synthetic", "split": "train", "scenes": scenes,
-                           "options": {"n_frames": n_frames, "width": 320, "height": 240}}],
-              "frameset": {"target_step": 1}, "resize": 128,
-              "patches": {"count": 6, "size": 64, "max_missing": 0.15}}
+    config = {
+        "sources": [
+            {
+                "name": "syn",
+                "kind": "synthetic",
+                "split": "train",
+                "scenes": scenes,
+                "options": {"n_frames": n_frames, "width": 320, "height": 240},
+            }
+        ],
+        "frameset": {"target_step": 1},
+        "resize": 128,
+        "patches": {"count": 6, "size": 64, "max_missing": 0.15},
+    }
     if batch_size:
         config["frameset"]["batch_size"] = batch_size
     return config
@@ -89,11 +110,15 @@ def files(n_frames: int) -> None:
         wd = _write_config(Path(tmp), _small_config(n_frames, ["room_000", "room_001"]))
         _snakemake(REPO, wd, "dataset")
         n_fs = int((pd.read_parquet(wd / "results/dataset/framesets.parquet")["status"] == "ok").sum())
-        counts = {d: sum(1 for p in (wd / d).rglob("*") if p.is_file()) for d in
-                  ("results", "logs", "benchmarks", ".snakemake/metadata")}
+        counts = {
+            d: sum(1 for p in (wd / d).rglob("*") if p.is_file())
+            for d in ("results", "logs", "benchmarks", ".snakemake/metadata")
+        }
     total = sum(counts.values())
-    print(f"{n_fs} frame sets (2 scenes x {n_frames} frames, target_step 1, batch_size 32): files {counts}, "
-          f"{total} in all = {total / n_fs:.2f} per frame set")
+    print(
+        f"{n_fs} frame sets (2 scenes x {n_frames} frames, target_step 1, batch_size 32): files {counts}, "
+        f"{total} in all = {total / n_fs:.2f} per frame set"
+    )
 
 
 def _cpu_of(checkout: Path, config: dict) -> tuple[float, int]:
@@ -116,8 +141,9 @@ def cpu(n_scenes: int, old: Path | None) -> None:
     config = dict(default, sources=[src])
     rows = []
     if old is not None:  # the old layout knows no batch_size
-        c, n = _cpu_of(old, dict(config, frameset={k: v for k, v in config.get("frameset", {}).items()
-                                                   if k != "batch_size"}))
+        c, n = _cpu_of(
+            old, dict(config, frameset={k: v for k, v in config.get("frameset", {}).items() if k != "batch_size"})
+        )
         rows.append(("old layout (one job per frame set)", c, n))
     for batch in (1, 32):
         c, n = _cpu_of(REPO, dict(config, frameset=dict(config.get("frameset", {}), batch_size=batch)))

@@ -49,8 +49,10 @@ def _bytes(workdir: Path) -> None:
         total_sets += len(sets)
         total_bytes += size
         print(f"{shard.relative_to(workdir)}: {len(sets)} frame sets, {size / max(len(sets), 1) / 1e6:.3f} MB per set")
-    print(f"all: {total_sets} frame sets, {total_bytes / total_sets / 1e6:.3f} MB ({total_bytes / total_sets / 2**20:.3f} "
-          f"MiB) per set")
+    print(
+        f"all: {total_sets} frame sets, {total_bytes / total_sets / 1e6:.3f} MB ({total_bytes / total_sets / 2**20:.3f} "
+        f"MiB) per set"
+    )
     for name, b in sorted(members.items()):
         print(f"  {name}: {b / total_sets / 1e3:.1f} kB per set")
 
@@ -67,8 +69,10 @@ def _loader(workdir: Path, split: str, kind: str, workers: int, batch: int, epoc
         t, cpu = time.perf_counter(), time.process_time()
         n = sum(len(b["patch"]) for b in loader)
         wall, cpu = time.perf_counter() - t, time.process_time() - cpu
-        print(f"{kind} {split} epoch {epoch}: {n} samples in {wall:.2f} s = {n / wall:.1f} samples/s "
-              f"({workers} workers, batch {batch})" + ("" if workers else f"; CPU {cpu / n * 1e3:.2f} ms per sample"))
+        print(
+            f"{kind} {split} epoch {epoch}: {n} samples in {wall:.2f} s = {n / wall:.1f} samples/s "
+            f"({workers} workers, batch {batch})" + ("" if workers else f"; CPU {cpu / n * 1e3:.2f} ms per sample")
+        )
 
 
 def _export(workdir: Path, split: str, kind: str, workers: int) -> None:
@@ -79,8 +83,10 @@ def _export(workdir: Path, split: str, kind: str, workers: int) -> None:
         t = time.perf_counter()
         index = export_dataset(Path("results"), Path(dest), "png16", [split], kind, workers=workers, progress=False)
         wall = time.perf_counter() - t
-    print(f"export {kind} {split} png16: {len(index)} samples in {wall:.2f} s = {len(index) / wall:.1f} samples/s "
-          f"({workers} workers)")
+    print(
+        f"export {kind} {split} png16: {len(index)} samples in {wall:.2f} s = {len(index) / wall:.1f} samples/s "
+        f"({workers} workers)"
+    )
 
 
 def _dump(workdir: Path, split: str, kind: str, out: Path) -> None:
@@ -90,8 +96,11 @@ def _dump(workdir: Path, split: str, kind: str, out: Path) -> None:
     os.chdir(workdir)
     ds = GTDataset(Path("results"), split, kind)
     samples = [ds[i] for i in range(len(ds))]
-    arrays = {k: np.stack([s[k].numpy() for s in samples]) for k in ("input", "gt", "sigma", "truth", "rgb", "K")
-              if k in samples[0]}
+    arrays = {
+        k: np.stack([s[k].numpy() for s in samples])
+        for k in ("input", "gt", "sigma", "truth", "rgb", "K")
+        if k in samples[0]
+    }
     arrays["ids"] = np.array([f"{s['dataset']}/{s['scene']}/{s['target']}/{s['patch']}" for s in samples])
     np.savez(out, **arrays)
     print(f"{len(samples)} samples of {kind} {split} -> {out}")
@@ -106,8 +115,10 @@ def _compare(a: Path, b: Path) -> None:
                 continue
             d = np.abs(x[k].astype(np.float64) - y[k].astype(np.float64))
             same = np.array_equal(x[k], y[k])
-            print(f"{k}: identical {same}, max abs diff {d.max():.3g}, differing elements {(d > 0).mean():.4f}"
-                  + (f", validity equal {np.array_equal(x[k] > 0, y[k] > 0)}" if k in ("input", "gt", "truth") else ""))
+            print(
+                f"{k}: identical {same}, max abs diff {d.max():.3g}, differing elements {(d > 0).mean():.4f}"
+                + (f", validity equal {np.array_equal(x[k] > 0, y[k] > 0)}" if k in ("input", "gt", "truth") else "")
+            )
 
 
 def main() -> None:

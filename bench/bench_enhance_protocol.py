@@ -118,8 +118,9 @@ def manifests(dataset_dir: Path, rooms: list[str]) -> tuple[pd.DataFrame, pd.Dat
 # ---------------------------------------------------------------------------- training
 
 
-def train_stages(cfg: dict, dataset_dir: Path, n_rooms: int, epochs: list[int], work: Path, device: str,
-                 model: str = "lapden") -> dict[int, Path]:
+def train_stages(
+    cfg: dict, dataset_dir: Path, n_rooms: int, epochs: list[int], work: Path, device: str, model: str = "lapden"
+) -> dict[int, Path]:
     """``best.pt`` of a ``model`` run on the first ``n_rooms`` rooms after each epoch count
     (cached: ``work/models/rooms{N}/e{E}/`` for LapDEN, ``work/models/{model}/rooms{N}/...``
     for the others)."""
@@ -140,9 +141,12 @@ def train_stages(cfg: dict, dataset_dir: Path, n_rooms: int, epochs: list[int], 
         snap.mkdir(parents=True, exist_ok=True)
         for p in run:
             shutil.copy2(p, snap / p.name)
-        print(f"trained {model} rooms={n_rooms} to epoch {e}: {res['epochs_run']} epochs in {time.perf_counter() - t0:.0f} s, "
-              f"{len(train_m)} train / {len(val_m)} val patches, best epoch {res['best_epoch'] + 1} "
-              f"(val loss {res['best_val']:.5f})", flush=True)
+        print(
+            f"trained {model} rooms={n_rooms} to epoch {e}: {res['epochs_run']} epochs in {time.perf_counter() - t0:.0f} s, "
+            f"{len(train_m)} train / {len(val_m)} val patches, best epoch {res['best_epoch'] + 1} "
+            f"(val loss {res['best_val']:.5f})",
+            flush=True,
+        )
         snaps[e] = snap / "best.pt"
     return snaps
 
@@ -154,8 +158,9 @@ def _digest(path: Path) -> str:
     return hashlib.sha1(path.read_bytes()).hexdigest()[:16]
 
 
-def score(frames: pd.DataFrame, split: str, checkpoint: Path | None, work: Path, device: str,
-          model: str = "lapden") -> pd.DataFrame:
+def score(
+    frames: pd.DataFrame, split: str, checkpoint: Path | None, work: Path, device: str, model: str = "lapden"
+) -> pd.DataFrame:
     """Long evaluation table of ``model``'s ``checkpoint`` (None: the raw input) on the
     ``split`` frames of ``frames``, against the truth (cached by checkpoint content)."""
     tag = _digest(checkpoint) if checkpoint is not None else "input"
@@ -197,6 +202,7 @@ def choose(table: pd.DataFrame, tolerance: float, primary: str = PRIMARY) -> pd.
 
 def _markdown(table: pd.DataFrame) -> str:
     """Markdown with integers as integers and other numbers to 4 decimals."""
+
     def cell(v):
         return f"{v:.4f}" if isinstance(v, float) else str(v)
 
@@ -210,27 +216,56 @@ def _pair(text: str) -> tuple[int, int]:
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--rooms", type=int, nargs="+", default=[3, 5, 8], help="training room counts (first N of room_000..007)")
-    ap.add_argument("--model", default="lapden", choices=["lapden", "ddrnet", "sdd"],
-                    help="the trained model whose epochs (and with --rooms, training rooms) are chosen")
+    ap.add_argument(
+        "--rooms", type=int, nargs="+", default=[3, 5, 8], help="training room counts (first N of room_000..007)"
+    )
+    ap.add_argument(
+        "--model",
+        default="lapden",
+        choices=["lapden", "ddrnet", "sdd"],
+        help="the trained model whose epochs (and with --rooms, training rooms) are chosen",
+    )
     ap.add_argument("--epochs", type=int, nargs="+", default=[10, 20, 30, 45], help="epoch candidates")
-    ap.add_argument("--extra", nargs="*", default=[], metavar="ROOMS:EPOCHS",
-                    help="candidates beyond the grid --rooms x --epochs (e.g. 8:45 when time allows one long run)")
-    ap.add_argument("--score", default=PRIMARY, choices=SCORES[:4],
-                    help="the validation score chosen on (lower is better). The default, RMSE with missing pixels "
-                         "counted, suits methods that fill holes; for one that keeps the input's holes (DDRNet) it "
-                         "equals the input's whatever the training, so use rmse_m, the RMSE where it has depth")
-    ap.add_argument("--tolerance", type=float, default=0.01,
-                    help="prefer the cheapest candidate within this relative margin of the best validation score")
-    ap.add_argument("--also-report", nargs="*", default=None, metavar="ROOMS:EPOCHS",
-                    help="settings reported on test next to the choice (not chosen on); default: 8:30 for LapDEN "
-                         "(its previous default), none for the others (the config default is always reported)")
-    ap.add_argument("--train-only", action="store_true", help="train and cache the checkpoints of --rooms, score nothing")
+    ap.add_argument(
+        "--extra",
+        nargs="*",
+        default=[],
+        metavar="ROOMS:EPOCHS",
+        help="candidates beyond the grid --rooms x --epochs (e.g. 8:45 when time allows one long run)",
+    )
+    ap.add_argument(
+        "--score",
+        default=PRIMARY,
+        choices=SCORES[:4],
+        help="the validation score chosen on (lower is better). The default, RMSE with missing pixels "
+        "counted, suits methods that fill holes; for one that keeps the input's holes (DDRNet) it "
+        "equals the input's whatever the training, so use rmse_m, the RMSE where it has depth",
+    )
+    ap.add_argument(
+        "--tolerance",
+        type=float,
+        default=0.01,
+        help="prefer the cheapest candidate within this relative margin of the best validation score",
+    )
+    ap.add_argument(
+        "--also-report",
+        nargs="*",
+        default=None,
+        metavar="ROOMS:EPOCHS",
+        help="settings reported on test next to the choice (not chosen on); default: 8:30 for LapDEN "
+        "(its previous default), none for the others (the config default is always reported)",
+    )
+    ap.add_argument(
+        "--train-only", action="store_true", help="train and cache the checkpoints of --rooms, score nothing"
+    )
     ap.add_argument("--work", type=Path, default=Path("/tmp/depthgt_enhance_protocol"))
     ap.add_argument("--threads", type=int, default=2, help="torch threads (the train rule's 2)")
     ap.add_argument("--device", default="cpu")
     a = ap.parse_args(argv)
-    print(f"command: python3 bench/bench_enhance_protocol.py {' '.join(sys.argv[1:] if argv is None else argv)}", flush=True)
+    print(
+        f"command: python3 bench/bench_enhance_protocol.py {' '.join(sys.argv[1:] if argv is None else argv)}",
+        flush=True,
+    )
     torch.set_num_threads(a.threads)
     if max(a.rooms) > len(ROOMS) or min(a.rooms) < 1:
         raise SystemExit(f"--rooms must be in 1..{len(ROOMS)}")
@@ -252,13 +287,17 @@ def main(argv=None) -> None:
         for n in dict.fromkeys(a.rooms):
             train_stages(cfg, dataset_dir, n, sorted(stages[n]), a.work, a.device, a.model)
         return
-    checkpoints = {(n, e): p for n in sorted(stages)
-                   for e, p in train_stages(cfg, dataset_dir, n, sorted(stages[n]), a.work, a.device, a.model).items()}
+    checkpoints = {
+        (n, e): p
+        for n in sorted(stages)
+        for e, p in train_stages(cfg, dataset_dir, n, sorted(stages[n]), a.work, a.device, a.model).items()
+    }
 
     # ---- validation: the val frame sets of every candidate room, nothing else
     fs = pd.read_parquet(dataset_dir / "framesets.parquet")
-    val_frames = fs[(fs["dataset"] == SOURCE) & fs["scene"].isin(ROOMS[:max(n for n, _ in candidates)])
-                    & (fs["split"] == "val")]
+    val_frames = fs[
+        (fs["dataset"] == SOURCE) & fs["scene"].isin(ROOMS[: max(n for n, _ in candidates)]) & (fs["split"] == "val")
+    ]
     rows, per_room = [], []
     inp = frame_means(score(val_frames, "val", None, a.work, a.device))
     for n, e in candidates:
@@ -267,23 +306,31 @@ def main(argv=None) -> None:
         best_epoch = torch.load(ckpt, map_location="cpu", weights_only=False)["best_epoch"] + 1
         rows.append({"rooms": n, "epochs": e, "best_epoch": best_epoch, **frame_means(ev).iloc[0].to_dict()})
         room = frame_means(ev, ["scene"]).set_index("scene")[a.score]
-        per_room.append({"rooms": n, "epochs": e, **{sc: f"{v:.4f}{'*' if sc in ROOMS[:n] else ''}" for sc, v in room.items()}})
+        per_room.append(
+            {"rooms": n, "epochs": e, **{sc: f"{v:.4f}{'*' if sc in ROOMS[:n] else ''}" for sc, v in room.items()}}
+        )
     val = pd.DataFrame(rows).astype({"rooms": int, "epochs": int, "best_epoch": int, "frames": int})
     pd.set_option("display.width", 250)
     scenes = sorted(val_frames["scene"].unique())
-    print(f"\nVALIDATION ({len(val_frames[val_frames['status'] == 'ok'])} val frame sets of {', '.join(scenes)}; "
-          f"full 256x256 frames vs the clean truth; means over frames; best_epoch: the epoch of best.pt, "
-          f"chosen by the patch validation loss as in the workflow). Raw input: RMSE missing counted "
-          f"{inp[PRIMARY].iloc[0]:.4f} m, MAE missing counted {inp['mae_missing_counted_m'].iloc[0]:.4f} m, "
-          f"RMSE {inp['rmse_m'].iloc[0]:.4f} m")
+    print(
+        f"\nVALIDATION ({len(val_frames[val_frames['status'] == 'ok'])} val frame sets of {', '.join(scenes)}; "
+        f"full 256x256 frames vs the clean truth; means over frames; best_epoch: the epoch of best.pt, "
+        f"chosen by the patch validation loss as in the workflow). Raw input: RMSE missing counted "
+        f"{inp[PRIMARY].iloc[0]:.4f} m, MAE missing counted {inp['mae_missing_counted_m'].iloc[0]:.4f} m, "
+        f"RMSE {inp['rmse_m'].iloc[0]:.4f} m"
+    )
     print(_markdown(val))
-    print(f"\nvalidation {a.score} (m) per room (* = the candidate trained on that room's train blocks; "
-          "rooms without a column have no val block):")
+    print(
+        f"\nvalidation {a.score} (m) per room (* = the candidate trained on that room's train blocks; "
+        "rooms without a column have no val block):"
+    )
     print(_markdown(pd.DataFrame(per_room)))
     pick = choose(val, a.tolerance, a.score)
     chosen = (int(pick["rooms"]), int(pick["epochs"]))
-    print(f"\nCHOICE (lowest validation {a.score}, cheapest within {a.tolerance:.0%}): rooms={chosen[0]} "
-          f"(room_000..{ROOMS[chosen[0] - 1]}), {a.model} epochs={chosen[1]} ({pick[a.score]:.4f} m)")
+    print(
+        f"\nCHOICE (lowest validation {a.score}, cheapest within {a.tolerance:.0%}): rooms={chosen[0]} "
+        f"(room_000..{ROOMS[chosen[0] - 1]}), {a.model} epochs={chosen[1]} ({pick[a.score]:.4f} m)"
+    )
 
     # ---- test, reported once, after the choice
     tests = {d["name"]: d["kind"] for d in cfg["sources"] if d.get("split") == "test"}
@@ -291,7 +338,8 @@ def main(argv=None) -> None:
     default = (default_rooms, default_epochs)
     settings = [(chosen, "chosen on validation" + (" (= config default)" if chosen == default else ""))] + [
         (r, "config default, reported not chosen" if r == default else "reported, not chosen")
-        for r in sorted(reported - {chosen})]
+        for r in sorted(reported - {chosen})
+    ]
     out = []
     for (n, e), label in settings:
         ev = score(test_frames, "test", checkpoints[(n, e)], a.work, a.device, a.model)
@@ -299,8 +347,10 @@ def main(argv=None) -> None:
         out.append(t3.assign(setting=label))
     inp_t = table3(score(test_frames, "test", None, a.work, a.device).assign(method="input"), tests)
     out.append(inp_t.assign(setting="raw input"))
-    print(f"\nTEST (Table 3 style: {', '.join(sorted(test_frames['scene'].unique()))} vs the clean truth; "
-          f"reported, never used for the choice)")
+    print(
+        f"\nTEST (Table 3 style: {', '.join(sorted(test_frames['scene'].unique()))} vs the clean truth; "
+        f"reported, never used for the choice)"
+    )
     print(_markdown(pd.concat(out, ignore_index=True)))
 
 

@@ -111,8 +111,14 @@ def load_cached(cache: Path, group: dict, k: int, t: int) -> dict:
         from depthgt.geometry import _centre_indices
         from depthgt.sources.base import open_scene
 
-        scene = open_scene("synthetic", None, f"{group['family']}_{k:03d}", seed=group["seed"], sensor=group["sensor"],
-                           n_frames=N_FRAMES)
+        scene = open_scene(
+            "synthetic",
+            None,
+            f"{group['family']}_{k:03d}",
+            seed=group["seed"],
+            sensor=group["sensor"],
+            n_frames=N_FRAMES,
+        )
         members = [t + o for o in FrameSetSettings().offsets]
         data = load_frameset(scene, members, SIZE, True, torch.device("cpu"))
         # the exact geometry at the source's pixels, nearest-resized like the depth: the
@@ -122,15 +128,29 @@ def load_cached(cache: Path, group: dict, k: int, t: int) -> dict:
         ix = _centre_indices(scene.image_size[1], SIZE[1], torch.device("cpu")).numpy()
         view = type(view)(*(a[iy][:, ix] for a in view))
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(path, rgb=(data.rgb.numpy() * 255 + 0.5).astype(np.uint8), depth=data.depth_m.numpy(),
-                            truth=data.truth_m.numpy(), K=data.K.numpy(), T=data.T_world_cam.numpy(),
-                            src_hw=np.array(data.src_hw), exact=view.depth_m, cos=view.cos_incidence, thin=view.thin,
-                            members=np.array(members))
+        np.savez_compressed(
+            path,
+            rgb=(data.rgb.numpy() * 255 + 0.5).astype(np.uint8),
+            depth=data.depth_m.numpy(),
+            truth=data.truth_m.numpy(),
+            K=data.K.numpy(),
+            T=data.T_world_cam.numpy(),
+            src_hw=np.array(data.src_hw),
+            exact=view.depth_m,
+            cos=view.cos_incidence,
+            thin=view.thin,
+            members=np.array(members),
+        )
     z = np.load(path)
-    data = FrameSetData(rgb=torch.from_numpy(z["rgb"]).float() / 255.0, depth_m=torch.from_numpy(z["depth"]),
-                        K=torch.from_numpy(z["K"]), T_world_cam=torch.from_numpy(z["T"]),
-                        truth_m=torch.from_numpy(z["truth"]), frame_ids=[str(m) for m in z["members"]],
-                        src_hw=tuple(int(x) for x in z["src_hw"]))
+    data = FrameSetData(
+        rgb=torch.from_numpy(z["rgb"]).float() / 255.0,
+        depth_m=torch.from_numpy(z["depth"]),
+        K=torch.from_numpy(z["K"]),
+        T_world_cam=torch.from_numpy(z["T"]),
+        truth_m=torch.from_numpy(z["truth"]),
+        frame_ids=[str(m) for m in z["members"]],
+        src_hw=tuple(int(x) for x in z["src_hw"]),
+    )
     return dict(data=data, exact=z["exact"], cos=z["cos"], thin=z["thin"], members=[int(m) for m in z["members"]])
 
 
@@ -148,11 +168,14 @@ def registration_section(preset: str, overrides: list[str]) -> dict:
     return section
 
 
-def registered_poses(cache: Path, item: dict, key: str, preset: str, overrides: list[str] = (),
-                     tag: str = "") -> tuple[torch.Tensor, list[int]]:
+def registered_poses(
+    cache: Path, item: dict, key: str, preset: str, overrides: list[str] = (), tag: str = ""
+) -> tuple[torch.Tensor, list[int]]:
     """T_j_to_t (F-1, 4, 4) of the overfit registration (cached per preset, overrides
     and ``tag``) and the fused member positions."""
-    name = preset + "".join(f"__{o}" for o in overrides).replace("/", "_").replace(" ", "") + (f"__{tag}" if tag else "")
+    name = (
+        preset + "".join(f"__{o}" for o in overrides).replace("/", "_").replace(" ", "") + (f"__{tag}" if tag else "")
+    )
     path = cache / "registration" / name / f"{key}.json"
     if not path.exists():
         from depthgt.registration import register_frameset
@@ -160,14 +183,27 @@ def registered_poses(cache: Path, item: dict, key: str, preset: str, overrides: 
 
         data = item["data"]
         offsets = FrameSetSettings().offsets
-        res = register_frameset(data.rgb, data.depth_m, data.K, list(offsets),
-                                registration_settings(registration_section(preset, list(overrides))),
-                                seed=stable_seed(0, "protocol", key))
+        res = register_frameset(
+            data.rgb,
+            data.depth_m,
+            data.K,
+            list(offsets),
+            registration_settings(registration_section(preset, list(overrides))),
+            seed=stable_seed(0, "protocol", key),
+        )
         fused = [0] + [i + 1 for i, st in enumerate(res.neighbour_status) if st == "ok"]
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps({"T_j_to_t": np.asarray(res.T_j_to_t, dtype=np.float64).tolist(), "fused": fused,
-                                    "status": res.neighbour_status, "reasons": res.neighbour_reasons,
-                                    "seconds": res.timings.get("total")}))
+        path.write_text(
+            json.dumps(
+                {
+                    "T_j_to_t": np.asarray(res.T_j_to_t, dtype=np.float64).tolist(),
+                    "fused": fused,
+                    "status": res.neighbour_status,
+                    "reasons": res.neighbour_reasons,
+                    "seconds": res.timings.get("total"),
+                }
+            )
+        )
     doc = json.loads(path.read_text())
     return torch.tensor(doc["T_j_to_t"], dtype=torch.float64), doc["fused"]
 
@@ -202,8 +238,13 @@ def categories(item: dict) -> dict[str, np.ndarray]:
     exact, cos, thin = item["exact"], item["cos"], item["thin"]
     grazing = (cos < GRAZING_COS) & (exact > 0)
     far = exact > FAR_M
-    return {"all": exact > 0, "grazing": grazing, "far": far, "thin": thin & (exact > 0),
-            "rest": (exact > 0) & ~grazing & ~far & ~thin}
+    return {
+        "all": exact > 0,
+        "grazing": grazing,
+        "far": far,
+        "thin": thin & (exact > 0),
+        "rest": (exact > 0) & ~grazing & ~far & ~thin,
+    }
 
 
 def score(pool: Pool, cats: dict[str, np.ndarray], estimates: dict[str, np.ndarray], ref: np.ndarray) -> None:
@@ -251,33 +292,50 @@ def _colour(z: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return img * (z > 0)[..., None]
 
 
-def write_png(path: Path, item: dict, inp: np.ndarray, gt: np.ndarray, ref: np.ndarray, conf: np.ndarray | None) -> None:
+def write_png(
+    path: Path, item: dict, inp: np.ndarray, gt: np.ndarray, ref: np.ndarray, conf: np.ndarray | None
+) -> None:
     """input | GT | truth on one depth colour scale; |GT - truth| and |input - truth| (0-5 cm); categories."""
     import cv2
 
     lo, hi = float(np.quantile(ref[ref > 0], 0.01)), float(np.quantile(ref[ref > 0], 0.99))
+
     def err(e):
         v = np.where((e > 0) & (ref > 0), np.abs(e - ref), 0)
         img = cv2.applyColorMap((np.clip(v / 0.05, 0, 1) * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
         img[(e <= 0) & (ref > 0)] = (255, 255, 255)  # missing: white
         return img
+
     cats = categories(item)
     cat_img = np.zeros(ref.shape + (3,), np.uint8)
     cat_img[cats["grazing"]] = (0, 160, 0)
     cat_img[cats["far"]] += np.array((160, 0, 0), np.uint8)
     cat_img[cats["thin"]] = (0, 0, 255)
     row1 = np.concatenate([_colour(inp, lo, hi), _colour(gt, lo, hi), _colour(ref, lo, hi)], 1)
-    extra = cat_img if conf is None else cv2.applyColorMap((np.clip(conf / 0.03, 0, 1) * 255).astype(np.uint8),
-                                                            cv2.COLORMAP_VIRIDIS) * (conf > 0)[..., None]
+    extra = (
+        cat_img
+        if conf is None
+        else cv2.applyColorMap((np.clip(conf / 0.03, 0, 1) * 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)
+        * (conf > 0)[..., None]
+    )
     row2 = np.concatenate([err(inp), err(gt), extra if conf is not None else cat_img], 1)
     path.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(path), np.concatenate([row1, row2], 0))
 
 
-def run_set(set_name: str, settings: RenderSettings, cache: Path, registration: str | None,
-            png_dir: Path | None, clean: bool, reg_set: list[str] = (), reg_tag: str = "",
-            scenes_per_group: int | None = None, fuse_all: bool = False,
-            coverage: FrameSetSettings | None = None) -> list[dict]:
+def run_set(
+    set_name: str,
+    settings: RenderSettings,
+    cache: Path,
+    registration: str | None,
+    png_dir: Path | None,
+    clean: bool,
+    reg_set: list[str] = (),
+    reg_tag: str = "",
+    scenes_per_group: int | None = None,
+    fuse_all: bool = False,
+    coverage: FrameSetSettings | None = None,
+) -> list[dict]:
     if coverage is not None and registration:
         raise SystemExit("--selection coverage starts its added views from the source's poses: not with --registration")
     pool, pool_by = Pool(), {}
@@ -292,9 +350,19 @@ def run_set(set_name: str, settings: RenderSettings, cache: Path, registration: 
             if coverage is not None:
                 from depthgt.sources.base import open_scene
 
-                frames = ResizedScene(open_scene("synthetic", None, f"{group['family']}_{k:03d}", seed=group["seed"],
-                                                 sensor=group["sensor"], n_frames=N_FRAMES), SIZE,
-                                      keep=2 * coverage.coverage_span + 2, need_pose=True)
+                frames = ResizedScene(
+                    open_scene(
+                        "synthetic",
+                        None,
+                        f"{group['family']}_{k:03d}",
+                        seed=group["seed"],
+                        sensor=group["sensor"],
+                        n_frames=N_FRAMES,
+                    ),
+                    SIZE,
+                    keep=2 * coverage.coverage_span + 2,
+                    need_pose=True,
+                )
             for t in TARGETS:
                 key = _key(group, k, t)
                 item = load_cached(cache, group, k, t)
@@ -302,9 +370,16 @@ def run_set(set_name: str, settings: RenderSettings, cache: Path, registration: 
                 if registration:
                     T, fused = registered_poses(cache, item, key, registration, reg_set, reg_tag)
                     dr, dt = pose_errors_vs_source(T, data)
-                    pose_rows.append(dict(frameset=key, n_fused=len(fused) - 1, rot_med_deg=float(np.median(dr)),
-                                          rot_max_deg=float(dr.max()), trans_med_cm=100 * float(np.median(dt)),
-                                          trans_max_cm=100 * float(dt.max())))
+                    pose_rows.append(
+                        dict(
+                            frameset=key,
+                            n_fused=len(fused) - 1,
+                            rot_med_deg=float(np.median(dr)),
+                            rot_max_deg=float(dr.max()),
+                            trans_med_cm=100 * float(np.median(dt)),
+                            trans_max_cm=100 * float(dt.max()),
+                        )
+                    )
                     pose_rows[-1]["_dr"], pose_rows[-1]["_dt"] = dr, dt
                     members = fused if len(fused) < len(item["members"]) and not fuse_all else slice(None)
                 else:
@@ -315,8 +390,17 @@ def run_set(set_name: str, settings: RenderSettings, cache: Path, registration: 
                 if frames is not None:
                     c0 = time.process_time()
                     cands = coverage_candidates(np.full(N_FRAMES, "train", dtype=object), t, item["members"], coverage)
-                    cov = add_coverage_views(frames, t, cands, data, Alignment(T, list(range(len(item["members"])))),
-                                             out, coverage, registration_settings({"method": "given"}), settings)
+                    cov = add_coverage_views(
+                        frames,
+                        t,
+                        cands,
+                        data,
+                        Alignment(T, list(range(len(item["members"])))),
+                        out,
+                        coverage,
+                        registration_settings({"method": "given"}),
+                        settings,
+                    )
                     t_cov.append(time.process_time() - c0)
                     added_views.append(sum(v["status"] == "ok" for v in cov.record["added"]))
                     filled_px.append(cov.record.get("filled_px", 0))
@@ -343,18 +427,26 @@ def run_set(set_name: str, settings: RenderSettings, cache: Path, registration: 
                             p.add(cat, "clean", "sum_valid", np.abs(g.astype(np.float64) - exact)[ok].sum())
                 if png_dir is not None:
                     conf = getattr(out, "sigma", None)
-                    write_png(png_dir / set_name / f"{key}.png", item, inp, gt, ref,
-                              None if conf is None else conf[0, 0].numpy())
+                    write_png(
+                        png_dir / set_name / f"{key}.png",
+                        item,
+                        inp,
+                        gt,
+                        ref,
+                        None if conf is None else conf[0, 0].numpy(),
+                    )
     if pose_rows:
         pr = pd.DataFrame(pose_rows)
         dr_all = np.concatenate(list(pr.pop("_dr")))
         dt_all = np.concatenate(list(pr.pop("_dt")))
         print(f"\nregistration error vs the source's poses on {set_name}, per frame set:")
         print(pr.to_markdown(index=False, floatfmt=".3g"))
-        print(f"registration error on {set_name} over all {len(dr_all)} neighbours: rotation median "
-              f"{np.median(dr_all):.3f} deg (90th pct {np.quantile(dr_all, 0.9):.3f}, max {dr_all.max():.3f}), "
-              f"translation median {100 * np.median(dt_all):.3f} cm (90th pct {100 * np.quantile(dt_all, 0.9):.3f}, "
-              f"max {100 * dt_all.max():.3f}); neighbours fused {int(pr.n_fused.sum())} of {len(dr_all)}\n")
+        print(
+            f"registration error on {set_name} over all {len(dr_all)} neighbours: rotation median "
+            f"{np.median(dr_all):.3f} deg (90th pct {np.quantile(dr_all, 0.9):.3f}, max {dr_all.max():.3f}), "
+            f"translation median {100 * np.median(dt_all):.3f} cm (90th pct {100 * np.quantile(dt_all, 0.9):.3f}, "
+            f"max {100 * dt_all.max():.3f}); neighbours fused {int(pr.n_fused.sum())} of {len(dr_all)}\n"
+        )
     variant = f"registration={registration}" if registration else "source poses"
     variant += ", selection coverage" if coverage is not None else ""
     rows = summarise(pool, set_name, variant)
@@ -362,8 +454,10 @@ def run_set(set_name: str, settings: RenderSettings, cache: Path, registration: 
         rows += summarise(gp, f"{set_name}:{gname}", variant)
     print(f"render CPU time per frame set: median {np.median(t_render):.3f} s over {len(t_render)}", file=sys.stderr)
     if t_cov:
-        print(f"coverage on {set_name}: {np.mean(added_views):.2f} views added and {np.mean(filled_px):.0f} px filled per "
-              f"frame set; CPU {np.mean(t_cov):.2f} s per frame set (mean; candidates generated and read included)")
+        print(
+            f"coverage on {set_name}: {np.mean(added_views):.2f} views added and {np.mean(filled_px):.0f} px filled per "
+            f"frame set; CPU {np.mean(t_cov):.2f} s per frame set (mean; candidates generated and read included)"
+        )
     print(confidence_summary(set_name, np.concatenate(conf_err), np.concatenate(conf_sigma)))
     return rows
 
@@ -372,10 +466,12 @@ def confidence_summary(set_name: str, err: np.ndarray, sigma: np.ndarray) -> str
     """How well the GT's sigma (gt.exr channel S) predicts its actual error, over all GT pixels."""
     keep = sigma <= np.quantile(sigma, 0.8)
     rho = pd.Series(sigma).corr(pd.Series(err), method="spearman")
-    return (f"confidence on {set_name}: Spearman(sigma, |error|) {rho:.3f}; "
-            f"|error| <= sigma for {(err <= sigma).mean():.3f}, <= 2 sigma for {(err <= 2 * sigma).mean():.3f} of GT pixels; "
-            f"median |error| / sigma {np.median(err / sigma):.3f}; MAE over all GT pixels {1000 * err.mean():.2f} mm, "
-            f"over the 80 % most certain {1000 * err[keep].mean():.2f} mm (sigma <= {1000 * np.quantile(sigma, 0.8):.1f} mm)")
+    return (
+        f"confidence on {set_name}: Spearman(sigma, |error|) {rho:.3f}; "
+        f"|error| <= sigma for {(err <= sigma).mean():.3f}, <= 2 sigma for {(err <= 2 * sigma).mean():.3f} of GT pixels; "
+        f"median |error| / sigma {np.median(err / sigma):.3f}; MAE over all GT pixels {1000 * err.mean():.2f} mm, "
+        f"over the 80 % most certain {1000 * err[keep].mean():.2f} mm (sigma <= {1000 * np.quantile(sigma, 0.8):.1f} mm)"
+    )
 
 
 def added_pixels(set_name: str, base: RenderSettings, variant: RenderSettings, cache: Path) -> str:
@@ -403,10 +499,12 @@ def added_pixels(set_name: str, base: RenderSettings, variant: RenderSettings, c
     e, e0, sg = np.concatenate(added), np.concatenate(shared), np.concatenate(sig)
     if not e.size:
         return f"{set_name}: the variant adds no GT pixel"
-    return (f"{set_name}: completeness {n_base / n_ref:.4f} -> {(n_base + e.size) / n_ref:.4f} ({e.size} pixels added); "
-            f"added pixels: MAE {1000 * e.mean():.1f} mm, median {1000 * np.median(e):.1f} mm, beyond 5 cm {np.mean(e > 0.05):.3f}, "
-            f"|e| <= 2 sigma {np.mean(e <= 2 * sg):.2f}; the defaults' pixels: MAE {1000 * e0.mean():.2f} mm, median "
-            f"{1000 * np.median(e0):.2f} mm, beyond 5 cm {np.mean(e0 > 0.05):.4f}")
+    return (
+        f"{set_name}: completeness {n_base / n_ref:.4f} -> {(n_base + e.size) / n_ref:.4f} ({e.size} pixels added); "
+        f"added pixels: MAE {1000 * e.mean():.1f} mm, median {1000 * np.median(e):.1f} mm, beyond 5 cm {np.mean(e > 0.05):.3f}, "
+        f"|e| <= 2 sigma {np.mean(e <= 2 * sg):.2f}; the defaults' pixels: MAE {1000 * e0.mean():.2f} mm, median "
+        f"{1000 * np.median(e0):.2f} mm, beyond 5 cm {np.mean(e0 > 0.05):.4f}"
+    )
 
 
 # -------------------------------------------------------------------------- 7-Scenes
@@ -415,8 +513,8 @@ def added_pixels(set_name: str, base: RenderSettings, variant: RenderSettings, c
 def run_fixture(fixture: Path, settings: RenderSettings, step: int) -> list[dict]:
     """GT completeness and leave-target-out consistency on the real fixture (reference
     poses), as the workflow computes them (pipeline.fuse, quality.error_stats)."""
-    from depthgt.jobs.common import open_source_scene
     from depthgt.eval.metrics import depth_errors
+    from depthgt.jobs.common import open_source_scene
 
     scene = open_source_scene({"kind": "sevenscenes", "root": str(fixture)}, fixture.name)
     fs = FrameSetSettings()
@@ -428,8 +526,15 @@ def run_fixture(fixture: Path, settings: RenderSettings, step: int) -> list[dict
         lto = fuse(data, T, settings, members=slice(1, None)).depth[0, 0].numpy()
         inp = data.depth_m[0, 0].numpy()
         s = depth_errors(lto, inp)
-        rows.append(dict(target=t, gt_completeness=float((gt > 0).mean()), input_completeness=float((inp > 0).mean()),
-                         lto_mae_valid_mm=1000 * s["mae_m"], lto_completeness=s["completeness"]))
+        rows.append(
+            dict(
+                target=t,
+                gt_completeness=float((gt > 0).mean()),
+                input_completeness=float((inp > 0).mean()),
+                lto_mae_valid_mm=1000 * s["mae_m"],
+                lto_completeness=s["completeness"],
+            )
+        )
     return rows
 
 
@@ -439,22 +544,56 @@ def run_fixture(fixture: Path, settings: RenderSettings, step: int) -> list[dict
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sets", nargs="*", default=[], choices=list(SETS))
-    ap.add_argument("--registration", default=None, help="overfit registration preset (e.g. fast) instead of the source's poses")
-    ap.add_argument("--reg-set", nargs="*", default=[],
-                    help="registration overrides key=value or section.key=value (python literals), "
-                         "e.g. refine_settings.iters=(8,5,3); cached separately")
-    ap.add_argument("--scenes", type=int, default=None,
-                    help="a subset: only the first N scenes of each group of a set (default all)")
-    ap.add_argument("--fuse-all", action="store_true",
-                    help="diagnostic: fuse every neighbour, also those the registration's checks failed")
+    ap.add_argument(
+        "--registration", default=None, help="overfit registration preset (e.g. fast) instead of the source's poses"
+    )
+    ap.add_argument(
+        "--reg-set",
+        nargs="*",
+        default=[],
+        help="registration overrides key=value or section.key=value (python literals), "
+        "e.g. refine_settings.iters=(8,5,3); cached separately",
+    )
+    ap.add_argument(
+        "--scenes",
+        type=int,
+        default=None,
+        help="a subset: only the first N scenes of each group of a set (default all)",
+    )
+    ap.add_argument(
+        "--fuse-all",
+        action="store_true",
+        help="diagnostic: fuse every neighbour, also those the registration's checks failed",
+    )
     ap.add_argument("--reg-tag", default="", help="extra name of the registration cache (e.g. a code version)")
     ap.add_argument("--no-clean", action="store_true", help="skip the clean-neighbours (renderer's own error) case")
-    ap.add_argument("--fixture", nargs="?", const=str(next((p for p in (REPO.parent / "shared/data/7scenes-kitchen", REPO.parents[1] / "shared/data/7scenes-kitchen") if p.is_dir()), REPO.parent / "shared/data/7scenes-kitchen")), default=None)
+    ap.add_argument(
+        "--fixture",
+        nargs="?",
+        const=str(
+            next(
+                (
+                    p
+                    for p in (
+                        REPO.parent / "shared/data/7scenes-kitchen",
+                        REPO.parents[1] / "shared/data/7scenes-kitchen",
+                    )
+                    if p.is_dir()
+                ),
+                REPO.parent / "shared/data/7scenes-kitchen",
+            )
+        ),
+        default=None,
+    )
     ap.add_argument("--fixture-step", type=int, nargs="+", default=[9, 4])
     ap.add_argument("--set", nargs="*", default=[], help="RenderSettings overrides key=value (python literals)")
     ap.add_argument("--grid", default=None, help="key=v1;v2;... : one RenderSettings field over values (compact table)")
-    ap.add_argument("--added", nargs="*", default=[],
-                    help="RenderSettings overrides key=value of a more complete variant: the error of the GT pixels it adds")
+    ap.add_argument(
+        "--added",
+        nargs="*",
+        default=[],
+        help="RenderSettings overrides key=value of a more complete variant: the error of the GT pixels it adds",
+    )
     ap.add_argument("--cache", type=Path, default=Path("/tmp/depthgt_protocol"))
     ap.add_argument("--png", type=Path, default=None, help="write input | GT | truth images here")
     ap.add_argument("--selection", choices=["window", "coverage"], default="window", help="frameset.selection")
@@ -476,7 +615,9 @@ def main(argv=None) -> None:
         for value in values.split(";"):
             st = replace(settings, **{key: ast.literal_eval(value)})
             for s in a.sets:
-                for r in run_set(s, st, a.cache, a.registration, None, not a.no_clean, a.reg_set, a.reg_tag, a.scenes, a.fuse_all):
+                for r in run_set(
+                    s, st, a.cache, a.registration, None, not a.no_clean, a.reg_set, a.reg_tag, a.scenes, a.fuse_all
+                ):
                     if ":" not in r["set"]:
                         compact.append(dict(value=value, **r))
         df = pd.DataFrame(compact)
@@ -487,29 +628,54 @@ def main(argv=None) -> None:
         return
     coverage = None
     if a.selection == "coverage":
-        coverage = FrameSetSettings(selection="coverage",
-                                    **{k: ast.literal_eval(v) for k, v in (x.split("=", 1) for x in a.fs)})
+        coverage = FrameSetSettings(
+            selection="coverage", **{k: ast.literal_eval(v) for k, v in (x.split("=", 1) for x in a.fs)}
+        )
     rows = []
     for s in a.sets:
-        rows += run_set(s, settings, a.cache, a.registration, a.png, not a.no_clean, a.reg_set, a.reg_tag, a.scenes,
-                        a.fuse_all, coverage)
+        rows += run_set(
+            s,
+            settings,
+            a.cache,
+            a.registration,
+            a.png,
+            not a.no_clean,
+            a.reg_set,
+            a.reg_tag,
+            a.scenes,
+            a.fuse_all,
+            coverage,
+        )
     pd.set_option("display.width", 250)
     pd.set_option("display.max_columns", 30)
     if rows:
         df = pd.DataFrame(rows)
         df.to_csv(a.out, index=False)
-        cols = ["set", "category", "pixels", "input_completeness", "gt_completeness", "input_mae_counted_mm",
-                "gt_mae_counted_mm", "ratio_counted", "input_mae_both_mm", "gt_mae_both_mm", "ratio_both"]
+        cols = [
+            "set",
+            "category",
+            "pixels",
+            "input_completeness",
+            "gt_completeness",
+            "input_mae_counted_mm",
+            "gt_mae_counted_mm",
+            "ratio_counted",
+            "input_mae_both_mm",
+            "gt_mae_both_mm",
+            "ratio_both",
+        ]
         cols += [c for c in ("clean_own_mae_mm", "clean_own_completeness") if c in df]
         print(f"\nreference: the pipeline's truth (nearest-resized clean target); {df['variant'].iloc[0]}")
         print(df[cols].to_markdown(index=False, floatfmt=".4g"))
     if a.fixture:
         for step in a.fixture_step:
             fx = pd.DataFrame(run_fixture(Path(a.fixture), settings, step))
-            print(f"\n7-Scenes fixture, reference poses, targets every {step} frames ({len(fx)} frame sets): "
-                  f"GT completeness {fx.gt_completeness.mean():.4f} (input {fx.input_completeness.mean():.4f}), "
-                  f"leave-target-out MAE where both valid {fx.lto_mae_valid_mm.mean():.2f} mm, "
-                  f"completeness {fx.lto_completeness.mean():.4f}")
+            print(
+                f"\n7-Scenes fixture, reference poses, targets every {step} frames ({len(fx)} frame sets): "
+                f"GT completeness {fx.gt_completeness.mean():.4f} (input {fx.input_completeness.mean():.4f}), "
+                f"leave-target-out MAE where both valid {fx.lto_mae_valid_mm.mean():.2f} mm, "
+                f"completeness {fx.lto_completeness.mean():.4f}"
+            )
 
 
 if __name__ == "__main__":

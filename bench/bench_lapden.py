@@ -44,12 +44,12 @@ class RandomPatches(Dataset):
         return len(self.gt)
 
     def __getitem__(self, i):
-        return {"input": self.input[i], "gt": self.gt[i], "K": self.K,
-                "rgb": torch.zeros(3, *self.gt.shape[-2:])}
+        return {"input": self.input[i], "gt": self.gt[i], "K": self.K, "rgb": torch.zeros(3, *self.gt.shape[-2:])}
 
 
-def bench_one(preset: str, device: torch.device, data: RandomPatches, batch_size: int, max_batches: int | None,
-              warmup: int) -> dict:
+def bench_one(
+    preset: str, device: torch.device, data: RandomPatches, batch_size: int, max_batches: int | None, warmup: int
+) -> dict:
     torch.manual_seed(0)
     model = lapden_from_preset(preset).to(device).to(memory_format=memory_layout(device))  # as train() does
     loss_fn = build_loss("lapden", {})
@@ -95,8 +95,12 @@ def main(argv=None) -> int:
     ap.add_argument("--presets", nargs="+", default=["default", "paper"])
     ap.add_argument("--devices", nargs="+", default=["cpu", "cuda"], help="cuda is skipped when absent")
     ap.add_argument("--threads", type=int, default=2, help="CPU threads")
-    ap.add_argument("--max-batches", type=int, default=None,
-                    help="time only this many steps and extrapolate (default: 20 on CPU, full epoch on CUDA)")
+    ap.add_argument(
+        "--max-batches",
+        type=int,
+        default=None,
+        help="time only this many steps and extrapolate (default: 20 on CPU, full epoch on CUDA)",
+    )
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--json", default=None, help="write the rows here")
     args = ap.parse_args(argv)
@@ -113,10 +117,13 @@ def main(argv=None) -> int:
             mb = args.max_batches if args.max_batches is not None else (20 if dev_name == "cpu" else None)
             row = bench_one(preset, device, data, args.batch_size, mb, args.warmup)
             rows.append(row)
-            extra = " (extrapolated from %d steps)" % row["batches_measured"] if row["extrapolated"] else ""
-            print(f"{preset:8s} {row['device']:5s} {row['parameters']:>9,d} params  "
-                  f"{row['seconds_per_batch']*1e3:8.1f} ms/step  {row['seconds_per_epoch']:9.1f} s/epoch "
-                  f"of {row['pairs']} pairs{extra}", flush=True)
+            extra = f" (extrapolated from {row['batches_measured']} steps)" if row["extrapolated"] else ""
+            print(
+                f"{preset:8s} {row['device']:5s} {row['parameters']:>9,d} params  "
+                f"{row['seconds_per_batch'] * 1e3:8.1f} ms/step  {row['seconds_per_epoch']:9.1f} s/epoch "
+                f"of {row['pairs']} pairs{extra}",
+                flush=True,
+            )
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=2)

@@ -69,7 +69,10 @@ MODES = {"given": {"method": "given"}, "refine": {"method": "refine"}, "fast": {
 def sources(config: dict) -> dict[str, tuple[dict, str]]:
     default = config["sources"][0]
     return {
-        "7scenes": ({"name": "7scenes", "kind": "sevenscenes", "root": str(SHARED / "data/7scenes-kitchen")}, "7scenes-kitchen"),
+        "7scenes": (
+            {"name": "7scenes", "kind": "sevenscenes", "root": str(SHARED / "data/7scenes-kitchen")},
+            "7scenes-kitchen",
+        ),
         "tum": ({"name": "tum", "kind": "tum", "root": str(SHARED / "data/tum-fr1-xyz-0-239")}, "."),
         "synthetic": (default, default["scenes"][0]),
     }
@@ -82,8 +85,9 @@ def run(source: dict, scene_name: str, mode: str, n: int, config: dict, selectio
     fs = settings.frameset
     need = getattr(settings.registration, "uses_source_poses", settings.registration.method == "given")
     span = max(fs.reach, fs.coverage_span) if selection == "coverage" else fs.reach  # as the batch job keeps them
-    scene = ResizedScene(open_source_scene(source, scene_name, need_poses=need), settings.size_hw,
-                         keep=2 * span + 2, need_pose=need)
+    scene = ResizedScene(
+        open_source_scene(source, scene_name, need_poses=need), settings.size_hw, keep=2 * span + 2, need_pose=need
+    )
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for t in range(fs.reach, min(len(scene) - fs.reach, fs.reach + n + 1)):  # consecutive targets, as a batch
@@ -97,8 +101,9 @@ def run(source: dict, scene_name: str, mode: str, n: int, config: dict, selectio
                 continue
             total = time.process_time() - c0
             cpu = json.loads(out.poses.read_text()).get("cpu_s", {})  # per stage (absent in older checkouts)
-            rows.append(dict(data=source["name"], mode=mode, selection=selection or "window", target=t, total=total,
-                             **cpu))
+            rows.append(
+                dict(data=source["name"], mode=mode, selection=selection or "window", target=t, total=total, **cpu)
+            )
     return pd.DataFrame(rows)
 
 
@@ -110,10 +115,19 @@ def main(argv=None) -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads (a frame-set job uses one)")
     ap.add_argument("--config", default=str(ROOT / "config/config.yaml"))
     ap.add_argument("--against", help="another checkout (its src/ is used) run on the same frame sets, side by side")
-    ap.add_argument("--repeats", type=int, default=1,
-                    help="with --against: runs of both checkouts, alternating (this, other, this, ...), per (recording, mode)")
-    ap.add_argument("--selection", nargs="+", default=None, choices=["window", "coverage"],
-                    help="frameset.selection, alternating per (recording, mode) and repeat (not with --against)")
+    ap.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="with --against: runs of both checkouts, alternating (this, other, this, ...), per (recording, mode)",
+    )
+    ap.add_argument(
+        "--selection",
+        nargs="+",
+        default=None,
+        choices=["window", "coverage"],
+        help="frameset.selection, alternating per (recording, mode) and repeat (not with --against)",
+    )
     ap.add_argument("--src", help=argparse.SUPPRESS)  # internal: the library this process runs (see --against)
     ap.add_argument("--csv", help=argparse.SUPPRESS)  # internal: write the per-set rows here
     a = ap.parse_args(argv)
@@ -121,8 +135,10 @@ def main(argv=None) -> None:
     config = yaml.safe_load(Path(a.config).read_text())
     config["device"] = "cpu"
     import depthgt
+
     try:  # as the frame-set batch job does (absent in older checkouts)
         from depthgt.device import keep_freed_memory
+
         keep_freed_memory()
     except ImportError:
         pass
@@ -132,7 +148,9 @@ def main(argv=None) -> None:
         for mode in a.modes:
             for rep in range(a.repeats if a.against or a.selection else 1):
                 for selection in a.selection or [None]:
-                    frames.append(run(source, scene, mode, a.framesets, config, selection).iloc[1:].assign(rep=rep))  # first: warm-up
+                    frames.append(
+                        run(source, scene, mode, a.framesets, config, selection).iloc[1:].assign(rep=rep)
+                    )  # first: warm-up
                 if a.against:  # the other checkout right after, on the same frames (same machine load)
                     other.append(_run_other(Path(a.against), data, mode, a).assign(rep=rep))
     df = pd.concat(frames)
@@ -142,20 +160,30 @@ def main(argv=None) -> None:
         return
     print(f"command: python3 bench/bench_pipeline.py {' '.join(sys.argv[1:] if argv is None else argv)}")
     print(f"library: {Path(depthgt.__file__).parent}")
-    print(f"CPU seconds per frame set (process CPU, {a.threads} torch thread(s)), means over {a.framesets} sets after a warm-up")
+    print(
+        f"CPU seconds per frame set (process CPU, {a.threads} torch thread(s)), means over {a.framesets} sets after a warm-up"
+    )
     print(df.groupby(["data", "mode", "selection"], sort=False)[stages].mean().to_markdown(floatfmt=".3f"))
     print(f"peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
     if a.against:
         base = pd.concat(other)
-        side = pd.DataFrame({"this": df.groupby(["data", "mode"], sort=False)["total"].mean(),
-                             "against": base.groupby(["data", "mode"], sort=False)["total"].mean()})
+        side = pd.DataFrame(
+            {
+                "this": df.groupby(["data", "mode"], sort=False)["total"].mean(),
+                "against": base.groupby(["data", "mode"], sort=False)["total"].mean(),
+            }
+        )
         side["against / this"] = side["against"] / side["this"]
         if a.repeats > 1:  # the ratio of each alternating pair of runs: how much the machine's load moved it
-            per = (base.groupby(["data", "mode", "rep"], sort=False)["total"].mean()
-                   / df.groupby(["data", "mode", "rep"], sort=False)["total"].mean()).groupby(["data", "mode"], sort=False)
+            per = (
+                base.groupby(["data", "mode", "rep"], sort=False)["total"].mean()
+                / df.groupby(["data", "mode", "rep"], sort=False)["total"].mean()
+            ).groupby(["data", "mode"], sort=False)
             side["ratio min"], side["ratio max"] = per.min(), per.max()
-        print(f"side by side, total CPU per frame set: this checkout vs {a.against}/src "
-              f"({a.repeats} alternating run(s) of each, {a.framesets} frame sets per run)")
+        print(
+            f"side by side, total CPU per frame set: this checkout vs {a.against}/src "
+            f"({a.repeats} alternating run(s) of each, {a.framesets} frame sets per run)"
+        )
         print(side.to_markdown(floatfmt=".3f"))
 
 
@@ -163,9 +191,24 @@ def _run_other(checkout: Path, data: str, mode: str, a: argparse.Namespace) -> p
     """The same (recording, mode) with ``checkout/src`` and its own default config, in a fresh process; its rows."""
     with tempfile.TemporaryDirectory() as tmp:
         csv = Path(tmp) / "rows.csv"
-        cmd = [sys.executable, __file__, "--src", str(checkout / "src"), "--data", data, "--modes", mode,
-               "--framesets", str(a.framesets), "--threads", str(a.threads), "--config", str(checkout / "config/config.yaml"),
-               "--csv", str(csv)]
+        cmd = [
+            sys.executable,
+            __file__,
+            "--src",
+            str(checkout / "src"),
+            "--data",
+            data,
+            "--modes",
+            mode,
+            "--framesets",
+            str(a.framesets),
+            "--threads",
+            str(a.threads),
+            "--config",
+            str(checkout / "config/config.yaml"),
+            "--csv",
+            str(csv),
+        ]
         env = {**os.environ, "PYTHONPATH": str(checkout / "src")}
         subprocess.run(cmd, check=True, env=env, cwd=str(checkout))
         return pd.read_csv(csv)

@@ -62,7 +62,7 @@ import torch
 import torch.nn.functional as F
 
 from depthgt.errors import FrameError
-from depthgt.eval.metrics import depth_errors, pose_errors
+from depthgt.eval.metrics import pose_errors
 from depthgt.gt.build import align, fuse, load_frameset, poses_from_source, quality_statistics
 from depthgt.gt.cache import ResizedScene
 from depthgt.gt.coverage import add_coverage_views
@@ -72,8 +72,10 @@ from depthgt.jobs.common import open_source_scene
 from depthgt.settings import FrameSetSettings, PatchSettings, RenderSettings, registration_settings
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = next((p for p in (REPO.parent / "shared", REPO.parents[1] / "shared", Path("/work/shared")) if p.is_dir()),
-              REPO.parent / "shared")
+SHARED = next(
+    (p for p in (REPO.parent / "shared", REPO.parents[1] / "shared", Path("/work/shared")) if p.is_dir()),
+    REPO.parent / "shared",
+)
 SIZE = (256, 256)
 DATA = {
     "tum": {"kind": "tum", "root": str(SHARED / "data/tum-fr1-xyz-0-239"), "scene": "."},
@@ -99,8 +101,18 @@ def _band_masks(hw: tuple[int, int]) -> list[torch.Tensor]:
     return [(r >= lo) & (r < hi) for lo, hi, _ in BANDS]
 
 
-def run(data: str, mode: str, step: int, render: RenderSettings, options: dict, reg_over: dict, limit: int | None,
-        cache: Path, selection: str = "window", fs_over: dict | None = None) -> list[dict]:
+def run(
+    data: str,
+    mode: str,
+    step: int,
+    render: RenderSettings,
+    options: dict,
+    reg_over: dict,
+    limit: int | None,
+    cache: Path,
+    selection: str = "window",
+    fs_over: dict | None = None,
+) -> list[dict]:
     spec = DATA[data]
     source = {"name": data, "kind": spec["kind"], "root": spec["root"], "options": options}
     scene = open_source_scene(source, spec["scene"])
@@ -137,16 +149,17 @@ def run(data: str, mode: str, step: int, render: RenderSettings, options: dict, 
         if selection == "coverage":
             c0 = time.process_time()
             members = [t + o for o in fs.offsets]
-            cov = add_coverage_views(resized, t, coverage_candidates(splits, t, members, fs), data_fs, al, gt, fs, reg,
-                                     render)
-            extra = dict(cov_cpu_s=time.process_time() - c0,
-                         added=sum(v.get("filled_px", 0) > 0 and v["status"] == "ok" for v in cov.record["added"]),
-                         added_failed=sum(v["status"] != "ok" for v in cov.record["added"]),
-                         lto_all_mae_mm=1000 * float(cov.statistics.get("leave_target_out_all_views", {})
-                                                     .get("mae_m", np.nan)),
-                         lto_added_mae_mm=1000 * float(cov.statistics.get("leave_target_out_added", {})
-                                                       .get("mae_m", np.nan)),
-                         lto_added_px=int(cov.statistics.get("leave_target_out_added", {}).get("n_both_px", 0)))
+            cov = add_coverage_views(
+                resized, t, coverage_candidates(splits, t, members, fs), data_fs, al, gt, fs, reg, render
+            )
+            extra = dict(
+                cov_cpu_s=time.process_time() - c0,
+                added=sum(v.get("filled_px", 0) > 0 and v["status"] == "ok" for v in cov.record["added"]),
+                added_failed=sum(v["status"] != "ok" for v in cov.record["added"]),
+                lto_all_mae_mm=1000 * float(cov.statistics.get("leave_target_out_all_views", {}).get("mae_m", np.nan)),
+                lto_added_mae_mm=1000 * float(cov.statistics.get("leave_target_out_added", {}).get("mae_m", np.nan)),
+                lto_added_px=int(cov.statistics.get("leave_target_out_added", {}).get("n_both_px", 0)),
+            )
             gt = cov.render
         gt_np = gt.depth[0, 0].numpy()
         depth_in = data_fs.depth_m[0, 0].numpy()
@@ -164,14 +177,23 @@ def run(data: str, mode: str, step: int, render: RenderSettings, options: dict, 
         inp = data_fs.depth_m[0, 0]
         ref = poses_from_source(data_fs)
         err = pose_errors(al.T_j_to_t.numpy(), ref.numpy())
-        row = dict(data=data, mode=mode, selection=selection, target=t, kept=kept, sec=sec,
-                   patches_kept=int(patches["kept"].sum()), **extra,
-                   gt_completeness=float((gt.depth[0, 0] > 0).float().mean()),
-                   input_completeness=float((inp > 0).float().mean()),
-                   lto_mae_mm=1000 * float(lto.get("mae_m", np.nan)),
-                   **_edge_split(core_left_out, data_fs.depth_m[0, 0]),
-                   agreement_median=float(np.nanmedian(agree[1:])) if np.isfinite(agree[1:]).any() else np.nan,
-                   rot=err.rot_err_deg.tolist(), trans=np.asarray(err.trans_err_cm).tolist())
+        row = dict(
+            data=data,
+            mode=mode,
+            selection=selection,
+            target=t,
+            kept=kept,
+            sec=sec,
+            patches_kept=int(patches["kept"].sum()),
+            **extra,
+            gt_completeness=float((gt.depth[0, 0] > 0).float().mean()),
+            input_completeness=float((inp > 0).float().mean()),
+            lto_mae_mm=1000 * float(lto.get("mae_m", np.nan)),
+            **_edge_split(core_left_out, data_fs.depth_m[0, 0]),
+            agreement_median=float(np.nanmedian(agree[1:])) if np.isfinite(agree[1:]).any() else np.nan,
+            rot=err.rot_err_deg.tolist(),
+            trans=np.asarray(err.trans_err_cm).tolist(),
+        )
         if getattr(gt, "disagreement", None) is not None:
             dis = gt.disagreement[0]  # (2, H, W): compared, disagreeing samples of the neighbours
             for mask, (_, _, name) in zip(bands, BANDS):
@@ -204,17 +226,28 @@ def summarise(df: pd.DataFrame) -> pd.DataFrame:
         rot = np.concatenate(g.rot.tolist())
         edge, flat = (np.concatenate([np.asarray(e, float) for e in g[c]]) for c in ("edge_err", "flat_err"))
         trans = np.concatenate(g.trans.tolist())
-        r = dict(data=data, mode=mode, selection=selection, framesets=len(g), kept=g.kept.mean(),
-                 kept_px=g.kept_px.mean() if "kept_px" in g else np.nan,
-                 gt_completeness=g.gt_completeness.mean(), input_completeness=g.input_completeness.mean(),
-                 lto_mae_mm=g.lto_mae_mm.mean(), lto_edge_mm=np.abs(edge).mean() if edge.size else np.nan,
-                 lto_flat_mm=np.abs(flat).mean() if flat.size else np.nan,
-                 lto_edge_gross=(np.abs(edge) > 300).mean() if edge.size else np.nan,
-                 agreement_median=g.agreement_median.median(),
-                 reg_rot_deg_med=np.median(rot), reg_rot_deg_p90=np.percentile(rot, 90),
-                 reg_trans_cm_med=np.median(trans), reg_trans_cm_p90=np.percentile(trans, 90),
-                 sec_per_set=g.sec.mean(), patches_kept=int(g.patches_kept.sum()),
-                 patches_drawn=PatchSettings().count * len(g))
+        r = dict(
+            data=data,
+            mode=mode,
+            selection=selection,
+            framesets=len(g),
+            kept=g.kept.mean(),
+            kept_px=g.kept_px.mean() if "kept_px" in g else np.nan,
+            gt_completeness=g.gt_completeness.mean(),
+            input_completeness=g.input_completeness.mean(),
+            lto_mae_mm=g.lto_mae_mm.mean(),
+            lto_edge_mm=np.abs(edge).mean() if edge.size else np.nan,
+            lto_flat_mm=np.abs(flat).mean() if flat.size else np.nan,
+            lto_edge_gross=(np.abs(edge) > 300).mean() if edge.size else np.nan,
+            agreement_median=g.agreement_median.median(),
+            reg_rot_deg_med=np.median(rot),
+            reg_rot_deg_p90=np.percentile(rot, 90),
+            reg_trans_cm_med=np.median(trans),
+            reg_trans_cm_p90=np.percentile(trans, 90),
+            sec_per_set=g.sec.mean(),
+            patches_kept=int(g.patches_kept.sum()),
+            patches_drawn=PatchSettings().count * len(g),
+        )
         for col in ("added", "added_failed", "lto_all_mae_mm", "lto_added_px", "cov_cpu_s"):
             if col in g:
                 r[col] = g[col].mean()
@@ -248,12 +281,21 @@ def main(argv=None) -> None:
     ap.add_argument("--set", nargs="*", default=[], help="RenderSettings overrides key=value")
     ap.add_argument("--reg", nargs="*", default=[], help="registration overrides key=value")
     ap.add_argument("--tum-option", nargs="*", default=[], help="tum source options key=value")
-    ap.add_argument("--selection", nargs="+", default=["window"], choices=["window", "coverage"],
-                    help="frameset.selection: each one runs on the same registrations")
+    ap.add_argument(
+        "--selection",
+        nargs="+",
+        default=["window"],
+        choices=["window", "coverage"],
+        help="frameset.selection: each one runs on the same registrations",
+    )
     ap.add_argument("--fs", nargs="*", default=[], help="FrameSetSettings overrides key=value (coverage_span, ...)")
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--cache", type=Path, default=Path("/tmp/depthgt_real"),
-                    help="registrations are cached here (by recording, mode, target, options); delete it after code changes")
+    ap.add_argument(
+        "--cache",
+        type=Path,
+        default=Path("/tmp/depthgt_real"),
+        help="registrations are cached here (by recording, mode, target, options); delete it after code changes",
+    )
     ap.add_argument("--out", type=Path, default=Path("/tmp/bench_real.csv"))
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
@@ -269,8 +311,9 @@ def main(argv=None) -> None:
         step = a.tum_step if data == "tum" else a.sevenscenes_step
         for mode in a.modes:
             for selection in a.selection:
-                rows += run(data, mode, step, render, options, _literal(a.reg), a.limit, a.cache, selection,
-                            _literal(a.fs))
+                rows += run(
+                    data, mode, step, render, options, _literal(a.reg), a.limit, a.cache, selection, _literal(a.fs)
+                )
     df = pd.DataFrame(rows)
     df.to_pickle(a.out.with_suffix(".pkl"))
     s = summarise(df)

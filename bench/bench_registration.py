@@ -26,8 +26,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
 import logging
+import os
 import resource
 import time
 from pathlib import Path
@@ -36,14 +36,16 @@ import numpy as np
 import pandas as pd
 import torch
 
-from depthgt.geometry import resize_depth_nearest, resize_rgb, scale_intrinsics
 from depthgt.eval.metrics import pose_errors
+from depthgt.geometry import resize_depth_nearest, resize_rgb, scale_intrinsics
 from depthgt.registration.overfit import register_frameset
 from depthgt.settings import registration_settings
 
 # the shared fixture beside the checkout (main) or two levels up (a git worktree under wt/)
-SEVEN = next((p for p in (Path(__file__).resolve().parents[i] / "shared/data/7scenes-kitchen" for i in (2, 3)) if p.is_dir()),
-             Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen")
+SEVEN = next(
+    (p for p in (Path(__file__).resolve().parents[i] / "shared/data/7scenes-kitchen" for i in (2, 3)) if p.is_dir()),
+    Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen",
+)
 OFFSETS = [0, -6, -4, -2, 2, 4, 6]
 SIZE = (256, 256)
 COLUMNS = ["dataset", "target", "offset", "method", "metric", "unit", "value"]
@@ -81,8 +83,9 @@ def run_open3d(rgb, depth, K, kind: str) -> np.ndarray:
     def rgbd(i):
         col = o3d.geometry.Image(np.ascontiguousarray((rgb[i].permute(1, 2, 0).cpu().numpy() * 255).astype(np.uint8)))
         dep = o3d.geometry.Image(np.ascontiguousarray(depth[i, 0].cpu().numpy().astype(np.float32)))
-        return o3d.geometry.RGBDImage.create_from_color_and_depth(col, dep, depth_scale=1.0, depth_trunc=10.0,
-                                                                  convert_rgb_to_intensity=(kind == "o3d_odom"))
+        return o3d.geometry.RGBDImage.create_from_color_and_depth(
+            col, dep, depth_scale=1.0, depth_trunc=10.0, convert_rgb_to_intensity=(kind == "o3d_odom")
+        )
 
     tgt = rgbd(0)
     out = []
@@ -90,7 +93,8 @@ def run_open3d(rgb, depth, K, kind: str) -> np.ndarray:
         opt = o3d.pipelines.odometry.OdometryOption()
         for j in range(1, rgb.shape[0]):
             ok, T, _ = o3d.pipelines.odometry.compute_rgbd_odometry(
-                rgbd(j), tgt, intr, np.eye(4), o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm(), opt)
+                rgbd(j), tgt, intr, np.eye(4), o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm(), opt
+            )
             out.append(T if ok else np.full((4, 4), np.nan))
         return np.stack(out)
     pc_t = o3d.geometry.PointCloud.create_from_rgbd_image(tgt, intr)
@@ -104,8 +108,13 @@ def run_open3d(rgb, depth, K, kind: str) -> np.ndarray:
                 pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=voxel * 2, max_nn=30))
             try:
                 res = o3d.pipelines.registration.registration_colored_icp(
-                    s, t, voxel, T, o3d.pipelines.registration.TransformationEstimationForColoredICP(),
-                    o3d.pipelines.registration.ICPConvergenceCriteria(1e-6, 1e-6, it))
+                    s,
+                    t,
+                    voxel,
+                    T,
+                    o3d.pipelines.registration.TransformationEstimationForColoredICP(),
+                    o3d.pipelines.registration.ICPConvergenceCriteria(1e-6, 1e-6, it),
+                )
                 T = res.transformation
             except RuntimeError:
                 break
@@ -115,12 +124,14 @@ def run_open3d(rgb, depth, K, kind: str) -> np.ndarray:
 
 def gt_mae(rgb, depth, K, T_j_to_t, clean_t):
     """MAE (m) of the frame-set GT against the clean target depth: valid-only and missing-counted."""
+    from depthgt.geometry import backproject
     from depthgt.gt.render import render_gt
     from depthgt.settings import RenderSettings
-    from depthgt.geometry import backproject
 
     Fn = depth.shape[0]
-    T = torch.cat([torch.eye(4, dtype=torch.float64)[None], torch.as_tensor(T_j_to_t, dtype=torch.float64)]).to(depth.device)
+    T = torch.cat([torch.eye(4, dtype=torch.float64)[None], torch.as_tensor(T_j_to_t, dtype=torch.float64)]).to(
+        depth.device
+    )
     pts = backproject(depth, K.expand(Fn, 3, 3))
     pts_t = (pts.double() @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]).float()
     valid = (depth > 0).flatten(1)
@@ -145,7 +156,12 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--gt", action="store_true", help="also the GT's MAE against clean depth (synthetic)")
     ap.add_argument("--out", default="/tmp/bench_registration.csv")
-    ap.add_argument("--set", nargs="*", default=[], help="setting overrides key=value (python literal); refine.key=value for RefineSettings")
+    ap.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        help="setting overrides key=value (python literal); refine.key=value for RefineSettings",
+    )
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     torch.set_num_threads(a.threads)
@@ -159,7 +175,7 @@ def main(argv=None):
 
     kvs = [kv.split("=", 1) for kv in a.set]
     overrides = {k: ast.literal_eval(v) for k, v in kvs if not k.startswith("refine.")}
-    refine_over = {k[len("refine."):]: ast.literal_eval(v) for k, v in kvs if k.startswith("refine.")}
+    refine_over = {k[len("refine.") :]: ast.literal_eval(v) for k, v in kvs if k.startswith("refine.")}
     rows = []
     for tgt in a.targets:
         rgb, depth, K, T_true, clean_t = load_frameset(scene, tgt, OFFSETS, a.device)
@@ -188,26 +204,37 @@ def main(argv=None):
             cpu = time.process_time() - c0
             r, t = pose_errors(T_est, T_true)
             for o, ri, ti in zip(OFFSETS[1:], r, t):
-                rows += [(a.data, tgt, o, method, "rot_err", "deg", float(ri)),
-                         (a.data, tgt, o, method, "trans_err", "cm", float(ti))]
+                rows += [
+                    (a.data, tgt, o, method, "rot_err", "deg", float(ri)),
+                    (a.data, tgt, o, method, "trans_err", "cm", float(ti)),
+                ]
             if not method.startswith("o3d") and (st.refine or st.chaining):
                 # the same run's poses before chaining and refinement (the paper's output)
                 r0, t0_ = pose_errors(np.array(res.diagnostics["poses_paper"]), T_true)
                 for o, ri, ti in zip(OFFSETS[1:], r0, t0_):
-                    rows += [(a.data, tgt, o, method + ":before_refine", "rot_err", "deg", float(ri)),
-                             (a.data, tgt, o, method + ":before_refine", "trans_err", "cm", float(ti))]
+                    rows += [
+                        (a.data, tgt, o, method + ":before_refine", "rot_err", "deg", float(ri)),
+                        (a.data, tgt, o, method + ":before_refine", "trans_err", "cm", float(ti)),
+                    ]
             rows.append((a.data, tgt, 0, method, "time", "s", dt))
             rows.append((a.data, tgt, 0, method, "cpu_time", "s", cpu))
-            mem = (torch.cuda.max_memory_allocated() / 2**20 if a.device.startswith("cuda")
-                   else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+            mem = (
+                torch.cuda.max_memory_allocated() / 2**20
+                if a.device.startswith("cuda")
+                else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+            )
             rows.append((a.data, tgt, 0, method, "peak_mem", "MiB", mem))
             line = f"{a.data} t={tgt} {method:10s} {dt:6.1f}s (cpu {cpu:6.1f}s, load {os.getloadavg()[0]:.1f}) rot med {np.median(r):.3f} deg trans med {np.median(t):.3f} cm  [{status}]"
             if a.gt and clean_t is not None and a.data == "synthetic":
                 v_est, m_est = gt_mae(rgb, depth, K, T_est, clean_t)
                 v_true, m_true = gt_mae(rgb, depth, K, T_true, clean_t)
-                rows += [(a.data, tgt, 0, method, "gt_mae_valid", "m", v_est), (a.data, tgt, 0, method, "gt_mae_missing", "m", m_est),
-                         (a.data, tgt, 0, "true_poses", "gt_mae_valid", "m", v_true), (a.data, tgt, 0, "true_poses", "gt_mae_missing", "m", m_true)]
-                line += f" GT MAE valid {v_est*1000:.2f} mm (true poses {v_true*1000:.2f}), missing-counted {m_est*1000:.2f} ({m_true*1000:.2f})"
+                rows += [
+                    (a.data, tgt, 0, method, "gt_mae_valid", "m", v_est),
+                    (a.data, tgt, 0, method, "gt_mae_missing", "m", m_est),
+                    (a.data, tgt, 0, "true_poses", "gt_mae_valid", "m", v_true),
+                    (a.data, tgt, 0, "true_poses", "gt_mae_missing", "m", m_true),
+                ]
+                line += f" GT MAE valid {v_est * 1000:.2f} mm (true poses {v_true * 1000:.2f}), missing-counted {m_est * 1000:.2f} ({m_true * 1000:.2f})"
             print(line, flush=True)
             pd.DataFrame(rows, columns=COLUMNS).to_csv(a.out, index=False)  # partial results survive a kill
     df = pd.DataFrame(rows, columns=COLUMNS)
@@ -219,7 +246,11 @@ def main(argv=None):
     print("\nmedian over all neighbours:")
     print(err.pivot_table(index="method", columns="metric", values="value", aggfunc="median").round(3))
     print("\nmedian time per frame set (s):")
-    print(df[df.metric.isin(["time", "cpu_time"])].pivot_table(index="method", columns="metric", values="value", aggfunc="median").round(2))
+    print(
+        df[df.metric.isin(["time", "cpu_time"])]
+        .pivot_table(index="method", columns="metric", values="value", aggfunc="median")
+        .round(2)
+    )
 
 
 if __name__ == "__main__":

@@ -74,14 +74,34 @@ def load_room(room: str) -> dict:
     }
 
 
-def render_case(data: dict, frames: list[int], depth_kind: str, exact_pos: bool, settings: RenderSettings,
-                device: str = "cpu") -> torch.Tensor:
+def render_case(
+    data: dict, frames: list[int], depth_kind: str, exact_pos: bool, settings: RenderSettings, device: str = "cpu"
+) -> torch.Tensor:
     d = data[depth_kind][frames].to(device)
     src_hw = data["hw"] if exact_pos else None
-    cloud = cloud_in_target(d, data["K"].to(device).expand(len(frames), 3, 3), data["T"][frames].to(device), src_hw=src_hw,
-                            noise_sigma_1m=settings.noise_sigma_1m, noise_sigma_abs_m=settings.noise_sigma_abs_m)
-    return render_gt(cloud.points, data["K"][None].to(device), SIZE, cloud.valid, settings, normals_cam=cloud.normals,
-                     sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=src_hw).depth[0, 0].cpu()
+    cloud = cloud_in_target(
+        d,
+        data["K"].to(device).expand(len(frames), 3, 3),
+        data["T"][frames].to(device),
+        src_hw=src_hw,
+        noise_sigma_1m=settings.noise_sigma_1m,
+        noise_sigma_abs_m=settings.noise_sigma_abs_m,
+    )
+    return (
+        render_gt(
+            cloud.points,
+            data["K"][None].to(device),
+            SIZE,
+            cloud.valid,
+            settings,
+            normals_cam=cloud.normals,
+            sigma_m=cloud.sigma_m,
+            frame=cloud.frame,
+            src_hw=src_hw,
+        )
+        .depth[0, 0]
+        .cpu()
+    )
 
 
 def mae_mm(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -91,14 +111,31 @@ def mae_mm(a: torch.Tensor, b: torch.Tensor) -> float:
 
 def accuracy(rooms: list[str], settings: RenderSettings) -> list[dict]:
     rows = []
-    naive = RenderSettings(m=10_000, radius_px=settings.radius_px, gap_sigmas=1e9, gap_slope_rel=0.0, min_frames=1,
-                             plane="none", drop_ambiguous=False, extend_uncovered=True)
+    naive = RenderSettings(
+        m=10_000,
+        radius_px=settings.radius_px,
+        gap_sigmas=1e9,
+        gap_slope_rel=0.0,
+        min_frames=1,
+        plane="none",
+        drop_ambiguous=False,
+        extend_uncovered=True,
+    )
     for room in rooms:
         data = load_room(room)
         near, exact = data["clean"][TARGET, 0], data["exact"]
-        rows.append(dict(bench="accuracy", case=f"{room}/reference", metric="ref_own", unit="mm", value=mae_mm(near, exact)))
-        rows.append(dict(bench="accuracy", case=f"{room}/input_noisy", metric="input", unit="mm",
-                         value=mae_mm(data["noisy"][TARGET, 0], near)))
+        rows.append(
+            dict(bench="accuracy", case=f"{room}/reference", metric="ref_own", unit="mm", value=mae_mm(near, exact))
+        )
+        rows.append(
+            dict(
+                bench="accuracy",
+                case=f"{room}/input_noisy",
+                metric="input",
+                unit="mm",
+                value=mae_mm(data["noisy"][TARGET, 0], near),
+            )
+        )
         cases = [
             ("6nb/clean/exact_pos", NEIGHBOURS, "clean", True, settings),
             ("6nb/clean/centre_pos", NEIGHBOURS, "clean", False, settings),
@@ -113,8 +150,15 @@ def accuracy(rooms: list[str], settings: RenderSettings) -> list[dict]:
             case = f"{room}/{name}"
             rows.append(dict(bench="accuracy", case=case, metric="near", unit="mm", value=mae_mm(gt, near)))
             rows.append(dict(bench="accuracy", case=case, metric="exact", unit="mm", value=mae_mm(gt, exact)))
-            rows.append(dict(bench="accuracy", case=case, metric="coverage", unit="fraction",
-                             value=float(((gt > 0) & (exact > 0)).sum() / (exact > 0).sum())))
+            rows.append(
+                dict(
+                    bench="accuracy",
+                    case=case,
+                    metric="coverage",
+                    unit="fraction",
+                    value=float(((gt > 0) & (exact > 0)).sum() / (exact > 0).sum()),
+                )
+            )
     return rows
 
 
@@ -130,17 +174,44 @@ def speed_inputs(device: str):
     cloud = cloud_in_target(depth, K.expand(7, 3, 3), T)
     feats = torch.rand(7, 256 * 256, 3, generator=g)
     per_view = cloud.points.reshape(7, -1, 3)
-    return {k: v.to(device) for k, v in dict(K=K, points=cloud.points, normals=cloud.normals, valid=cloud.valid,
-                                             sigma=cloud.sigma_m, frame=cloud.frame, per_view=per_view, feats=feats).items()}
+    return {
+        k: v.to(device)
+        for k, v in dict(
+            K=K,
+            points=cloud.points,
+            normals=cloud.normals,
+            valid=cloud.valid,
+            sigma=cloud.sigma_m,
+            frame=cloud.frame,
+            per_view=per_view,
+            feats=feats,
+        ).items()
+    }
 
 
 def run_one(fn: str, x: dict):
     if fn == "render_gt":
-        return render_gt(x["points"], x["K"][None], SIZE, x["valid"], RenderSettings(), normals_cam=x["normals"],
-                         sigma_m=x["sigma"], frame=x["frame"])
+        return render_gt(
+            x["points"],
+            x["K"][None],
+            SIZE,
+            x["valid"],
+            RenderSettings(),
+            normals_cam=x["normals"],
+            sigma_m=x["sigma"],
+            frame=x["frame"],
+        )
     if fn == "rasterise_gt":
-        return rasterise_gt(x["points"], x["K"][None], SIZE, RenderSettings(), valid=x["valid"], normals_cam=x["normals"],
-                            sigma_m=x["sigma"], frame=x["frame"])
+        return rasterise_gt(
+            x["points"],
+            x["K"][None],
+            SIZE,
+            RenderSettings(),
+            valid=x["valid"],
+            normals_cam=x["normals"],
+            sigma_m=x["sigma"],
+            frame=x["frame"],
+        )
     if fn == "composite_gt":
         if "cands" not in x:  # made once: the compositor alone is timed
             x["cands"] = run_one("rasterise_gt", x)
@@ -181,8 +252,15 @@ def timing(device: str, threads: int, repeat: int) -> list[dict]:
             torch.cuda.reset_peak_memory_stats()
             base = torch.cuda.memory_allocated()
             run_one(fn, x)
-            rows.append(dict(bench="memory", case=case, metric="peak_alloc", unit="MiB",
-                             value=(torch.cuda.max_memory_allocated() - base) / 2**20))
+            rows.append(
+                dict(
+                    bench="memory",
+                    case=case,
+                    metric="peak_alloc",
+                    unit="MiB",
+                    value=(torch.cuda.max_memory_allocated() - base) / 2**20,
+                )
+            )
     return rows
 
 
@@ -234,8 +312,15 @@ def main(argv=None) -> None:
             rows += timing("cuda", 1, a.repeat)
         for fn in ["render_gt", "splat_soft", "splat_soft_fwd_bwd"]:
             out = subprocess.run([sys.executable, __file__, "--child", fn], capture_output=True, text=True, check=True)
-            rows.append(dict(bench="memory", case=f"{fn}/cpu", metric="peak_rss_growth", unit="MiB",
-                             value=float(out.stdout.strip().splitlines()[-1])))
+            rows.append(
+                dict(
+                    bench="memory",
+                    case=f"{fn}/cpu",
+                    metric="peak_rss_growth",
+                    unit="MiB",
+                    value=float(out.stdout.strip().splitlines()[-1]),
+                )
+            )
     if not a.skip_accuracy:
         torch.set_num_threads(min(a.threads))
         rows += accuracy(a.rooms, settings)

@@ -65,16 +65,30 @@ def spread(per_seed: pd.DataFrame) -> pd.DataFrame:
     for (dataset, method), g in per_seed.groupby(["dataset", "method"], sort=False):
         for c in value_cols:
             v = g[c].astype(float)
-            rows.append({"dataset": dataset, "method": method, "column": c, "seeds": len(v), "mean": v.mean(),
-                         "sd": v.std(ddof=1) if len(v) > 1 else float("nan"), "min": v.min(), "max": v.max(),
-                         "range": v.max() - v.min()})
+            rows.append(
+                {
+                    "dataset": dataset,
+                    "method": method,
+                    "column": c,
+                    "seeds": len(v),
+                    "mean": v.mean(),
+                    "sd": v.std(ddof=1) if len(v) > 1 else float("nan"),
+                    "min": v.min(),
+                    "max": v.max(),
+                    "range": v.max() - v.min(),
+                }
+            )
     return pd.DataFrame(rows)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("-d", "--workdir", required=True, help="a build with results/dataset, results/rde (train/val) "
-                    "and results/dataset/framesets.parquet")
+    ap.add_argument(
+        "-d",
+        "--workdir",
+        required=True,
+        help="a build with results/dataset, results/rde (train/val) and results/dataset/framesets.parquet",
+    )
     ap.add_argument("--configfile", default=str(REPO / "config/config.yaml"), help="the build's config")
     ap.add_argument("--models", nargs="+", default=["lapden", "rde"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
@@ -91,8 +105,12 @@ def main(argv=None) -> int:
     out = Path(args.out).resolve()
     os.chdir(args.workdir)  # the manifests' locations are relative to the build's folder
     kinds = {src.name: src.kind for src in settings.sources}
-    frames = test_frames(Path("results/dataset/framesets.parquet"), settings.evaluation.split,
-                         {d for d, k in kinds.items() if k == "synthetic"}, args.max_frames)
+    frames = test_frames(
+        Path("results/dataset/framesets.parquet"),
+        settings.evaluation.split,
+        {d for d, k in kinds.items() if k == "synthetic"},
+        args.max_frames,
+    )
     if frames.empty:
         print(f"{args.workdir}: no {settings.evaluation.split} frame sets of a synthetic source", file=sys.stderr)
         return 1
@@ -101,31 +119,43 @@ def main(argv=None) -> int:
         d = MANIFESTS[registry.METHODS[model].trains_on]
         base = settings.train(model)
         for seed in args.seeds:
-            ts = replace(base, seed=seed, progress=False, device="cpu",
-                         epochs=args.epochs if args.epochs is not None else base.epochs,
-                         max_batches_per_epoch=args.max_batches if args.max_batches is not None
-                         else base.max_batches_per_epoch)
+            ts = replace(
+                base,
+                seed=seed,
+                progress=False,
+                device="cpu",
+                epochs=args.epochs if args.epochs is not None else base.epochs,
+                max_batches_per_epoch=args.max_batches if args.max_batches is not None else base.max_batches_per_epoch,
+            )
             run = out / model / f"seed{seed}"
             t0 = time.process_time()
             res = train(f"{d}/train.parquet", f"{d}/val.parquet", TrainOutputs.in_dir(run, resume=True), ts)
             t_train = time.process_time() - t0
-            ev = evaluate_frames(frames, {model: method_spec(model, res["best"], device="cpu")}, references=("truth",),
-                                 split=settings.evaluation.split)
+            ev = evaluate_frames(
+                frames,
+                {model: method_spec(model, res["best"], device="cpu")},
+                references=("truth",),
+                split=settings.evaluation.split,
+            )
             t3 = tables.table3(ev, kinds)
             t3.insert(2, "seed", seed)
             rows.append(t3)
-            print(f"{model} seed {seed}: best epoch {res['best_epoch']}, {len(frames)} test frames, "
-                  f"train {t_train:.0f} CPU s, RMSE filling {t3[tables.METHOD_LABELS['rmse_missing_counted_m']].iloc[0]:.5f} m",
-                  flush=True)
+            print(
+                f"{model} seed {seed}: best epoch {res['best_epoch']}, {len(frames)} test frames, "
+                f"train {t_train:.0f} CPU s, RMSE filling {t3[tables.METHOD_LABELS['rmse_missing_counted_m']].iloc[0]:.5f} m",
+                flush=True,
+            )
     per_seed = pd.concat(rows, ignore_index=True)
     out.mkdir(parents=True, exist_ok=True)
     per_seed.to_csv(out / "per_seed.csv", index=False)
     sp = spread(per_seed)
     sp.to_csv(out / "spread.csv", index=False)
     means = sp[~sp["column"].str.endswith((tables.LOW, tables.HIGH))]
-    caption = (f"Seed spread of Table 3 ({', '.join(args.models)}; seeds {args.seeds}; {len(frames)} test frames; "
-               f"epochs {args.epochs or 'the config'}): per column the mean over seeds of the per-seed means, their "
-               "sample sd, min, max and range (interval bounds in spread.csv).")
+    caption = (
+        f"Seed spread of Table 3 ({', '.join(args.models)}; seeds {args.seeds}; {len(frames)} test frames; "
+        f"epochs {args.epochs or 'the config'}): per column the mean over seeds of the per-seed means, their "
+        "sample sd, min, max and range (interval bounds in spread.csv)."
+    )
     (out / "spread.md").write_text(caption + "\n\n" + means.to_markdown(index=False, floatfmt=".4g") + "\n")
     print((out / "spread.md").read_text())
     return 0

@@ -84,7 +84,9 @@ def main(argv=None) -> int:
         fmt[col] = [f"{v * 1000:.2f} mm" if u == "m" else f"{v * 100:.2f} %" for v, u in zip(table[col], table["unit"])]
     fmt["ratio"] = table["ratio"].round(3)
     print(fmt.drop(columns=["unit"]).to_string(index=False))
-    print(f"real: {args.fixture} ({t1 - t0:.1f} s); synthetic: {args.scenes} rooms x {args.frames} frames, seed {args.seed} ({t2 - t1:.1f} s)")
+    print(
+        f"real: {args.fixture} ({t1 - t0:.1f} s); synthetic: {args.scenes} rooms x {args.frames} frames, seed {args.seed} ({t2 - t1:.1f} s)"
+    )
     bad = table[table["comparable"] & ~table["within_1.5"]]
     print("all comparable ratios within a factor 1.5" if bad.empty else f"{len(bad)} ratio(s) outside a factor 1.5")
     if args.csv:

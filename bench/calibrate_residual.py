@@ -52,18 +52,24 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--targets", type=int, nargs="+", default=[10, 20, 30])
     ap.add_argument("--offsets-cm", type=float, nargs="+", default=[0, 1, 2, 3, 5])
-    ap.add_argument("--preset", default="fast", help="registration preset whose refinement settings and bounds are used")
+    ap.add_argument(
+        "--preset", default="fast", help="registration preset whose refinement settings and bounds are used"
+    )
     a = ap.parse_args(argv)
     s = registration_settings({"preset": a.preset})
     gen = np.random.default_rng(0)
     n = max(a.targets) + 7
-    data = [("synthetic", open_scene("synthetic", None, "room_000", n_frames=n)),
-            ("syn_stereo", open_scene("synthetic", None, "room_000", n_frames=n, sensor="coarse_stereo"))]
+    data = [
+        ("synthetic", open_scene("synthetic", None, "room_000", n_frames=n)),
+        ("syn_stereo", open_scene("synthetic", None, "room_000", n_frames=n, sensor="coarse_stereo")),
+    ]
     if SEVEN.exists():
         data.append(("7scenes", open_scene("sevenscenes", str(SEVEN), ".")))
     print(f"bounds: max_residual_m {s.max_residual_m * 1000:g} mm, max_residual_sigmas {s.max_residual_sigmas:g}")
-    print("data       offset  median residual (mm): min / median / max | in noise sigmas: min / median / max"
-          " | failed: metric bound alone / both bounds")
+    print(
+        "data       offset  median residual (mm): min / median / max | in noise sigmas: min / median / max"
+        " | failed: metric bound alone / both bounds"
+    )
     for name, scene in data:
         for off in a.offsets_cm:
             vals = []
@@ -85,9 +91,11 @@ def main(argv=None):
             q = np.concatenate([x for _, x in vals])
             fixed = ~(v <= s.max_residual_m * 1000)
             both = fixed & ~(q <= s.max_residual_sigmas)
-            print(f"{name:10s} {off:4.1f}cm  {np.nanmin(v):6.2f} / {np.nanmedian(v):6.2f} / {np.nanmax(v):6.2f} | "
-                  f"{np.nanmin(q):5.2f} / {np.nanmedian(q):5.2f} / {np.nanmax(q):5.2f} | "
-                  f"{fixed.mean() * 100:3.0f} % / {both.mean() * 100:3.0f} %  ({len(v)} neighbours)")
+            print(
+                f"{name:10s} {off:4.1f}cm  {np.nanmin(v):6.2f} / {np.nanmedian(v):6.2f} / {np.nanmax(v):6.2f} | "
+                f"{np.nanmin(q):5.2f} / {np.nanmedian(q):5.2f} / {np.nanmax(q):5.2f} | "
+                f"{fixed.mean() * 100:3.0f} % / {both.mean() * 100:3.0f} %  ({len(v)} neighbours)"
+            )
 
 
 if __name__ == "__main__":

@@ -34,8 +34,13 @@ def main() -> int:
     ap.add_argument("--images", type=int, default=0, help="mutants of each image kind (jpeg, png, depth_png)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cap-mib", type=int, default=512)
-    ap.add_argument("--bombs-mib", type=int, nargs="*", default=[6, 1024, 3072],
-                    help="inflated sizes of the crafted zlib bombs (6 MiB fits the payload bound of the test geometry)")
+    ap.add_argument(
+        "--bombs-mib",
+        type=int,
+        nargs="*",
+        default=[6, 1024, 3072],
+        help="inflated sizes of the crafted zlib bombs (6 MiB fits the payload bound of the test geometry)",
+    )
     ap.add_argument("--json", type=Path, help="write every case's record here")
     args = ap.parse_args()
 
@@ -46,10 +51,14 @@ def main() -> int:
     cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     s = summarise(records)
 
-    print(f"command: python3 bench/fuzz_readers.py --sens {args.sens} --images {args.images} --seed {args.seed} "
-          f"--cap-mib {args.cap_mib} --bombs-mib {' '.join(map(str, args.bombs_mib))}")
-    print(f"cases: {s['cases']} ({', '.join(f'{k} {v}' for k, v in counts.items())} mutants, "
-          f"{len(cases) - sum(counts.values())} crafted)")
+    print(
+        f"command: python3 bench/fuzz_readers.py --sens {args.sens} --images {args.images} --seed {args.seed} "
+        f"--cap-mib {args.cap_mib} --bombs-mib {' '.join(map(str, args.bombs_mib))}"
+    )
+    print(
+        f"cases: {s['cases']} ({', '.join(f'{k} {v}' for k, v in counts.items())} mutants, "
+        f"{len(cases) - sum(counts.values())} crafted)"
+    )
     by_kind = Counter((r["kind"], r["outcome"]) for r in records)
     for kind in sorted({k for k, _ in by_kind}):
         print(f"  {kind:10s} " + ", ".join(f"{o} {n}" for (k, o), n in sorted(by_kind.items()) if k == kind))
@@ -59,14 +68,18 @@ def main() -> int:
     print(f"exceptions other than the project's (incl. timeouts, dead workers): {len(s['failures'])}")
     for f in s["failures"][:20]:
         print(f"  {f['case']}: {f['outcome']}: {f['message']}")
-    print(f"peak resident memory of one case: {s['peak_mib_max']} MiB ({s['peak_case']}); "
-          f"cases above 512 MiB: {s['cases_over_512_mib']}")
+    print(
+        f"peak resident memory of one case: {s['peak_mib_max']} MiB ({s['peak_case']}); "
+        f"cases above 512 MiB: {s['cases_over_512_mib']}"
+    )
     print(f"frames lost without a recorded reason: {s['frames_lost_unrecorded']}")
     print("crafted:")
     for r in records:
         if r["kind"] == "crafted":
-            print(f"  {r['case']:34s} {r['outcome']:13s} ok {r['frames_ok']} errors {r['frame_errors']} "
-                  f"problems {r['problems']} peak {r['peak_mib']} MiB | {r['message'][:110]}")
+            print(
+                f"  {r['case']:34s} {r['outcome']:13s} ok {r['frames_ok']} errors {r['frame_errors']} "
+                f"problems {r['problems']} peak {r['peak_mib']} MiB | {r['message'][:110]}"
+            )
     cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
     print(f"CPU (user+sys of the workers): {cpu:.1f} s; wall {time.time() - t0:.1f} s (noisy: shared machine)")
     if args.json:

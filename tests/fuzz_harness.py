@@ -68,8 +68,17 @@ def _colour(k: int) -> np.ndarray:
     y, x = np.mgrid[0:h, 0:w]
     rng = np.random.default_rng(k)
     tex = rng.integers(0, 40, (h, w, 1))
-    img = np.concatenate([120 + 80 * np.sin(x / 9 + k)[..., None], 100 + 60 * np.cos(y / 7)[..., None],
-                          60 + 0.5 * (x + y)[..., None]], axis=2) + tex
+    img = (
+        np.concatenate(
+            [
+                120 + 80 * np.sin(x / 9 + k)[..., None],
+                100 + 60 * np.cos(y / 7)[..., None],
+                60 + 0.5 * (x + y)[..., None],
+            ],
+            axis=2,
+        )
+        + tex
+    )
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
@@ -94,8 +103,15 @@ def write_base_sens(path: Path, poses: list[np.ndarray] | None = None, **kw) -> 
     n = N_SENS_FRAMES
     K_color = K_DEPTH * np.array([[2, 1, 2], [1, 2, 2], [1, 1, 1]])
     kw.setdefault("imu_frames", 3)
-    return write_sens(path, [_colour(k) for k in range(n)], [_depth(k) for k in range(n)],
-                      poses or [_pose(k) for k in range(n)], K_color, K_DEPTH, **kw)
+    return write_sens(
+        path,
+        [_colour(k) for k in range(n)],
+        [_depth(k) for k in range(n)],
+        poses or [_pose(k) for k in range(n)],
+        K_color,
+        K_DEPTH,
+        **kw,
+    )
 
 
 def write_base_sequence(folder: Path, color_ext: str) -> Path:
@@ -113,7 +129,7 @@ def write_base_sequence(folder: Path, color_ext: str) -> Path:
 def sens_fields(path: Path) -> list[tuple[int, int]]:
     """(offset, size) of the integer fields of a ``.sens`` file that steer its parsing:
     name length, compressions, sizes, frame count, and each frame's payload sizes."""
-    from depthgt.sources.sens import read_header, SensFile
+    from depthgt.sources.sens import SensFile, read_header
 
     h = read_header(path)
     name_end = 12 + len(h.sensor_name.encode())
@@ -127,8 +143,22 @@ def sens_fields(path: Path) -> list[tuple[int, int]]:
 
 # ------------------------------------------------------------------ mutations
 
-_INTERESTING = (0, 1, 2, 0x7F, 0xFF, 0x7FFF, 0xFFFF, 0x7FFFFFFF, 0x80000000, 0xFFFFFFFF, 1 << 32, 1 << 62, 1 << 63,
-                (1 << 64) - 1)
+_INTERESTING = (
+    0,
+    1,
+    2,
+    0x7F,
+    0xFF,
+    0x7FFF,
+    0xFFFF,
+    0x7FFFFFFF,
+    0x80000000,
+    0xFFFFFFFF,
+    1 << 32,
+    1 << 62,
+    1 << 63,
+    (1 << 64) - 1,
+)
 
 
 def mutate(data: bytes, rng: np.random.Generator, fields: list[tuple[int, int]] | None = None) -> bytes:
@@ -149,21 +179,21 @@ def mutate(data: bytes, rng: np.random.Generator, fields: list[tuple[int, int]] 
                 buf[p] ^= 1 << int(rng.integers(0, 8))
         elif op == 1:
             k = int(rng.integers(1, 17))
-            buf[pos:pos + k] = rng.integers(0, 256, min(k, n - pos), dtype=np.uint8).tobytes()
+            buf[pos : pos + k] = rng.integers(0, 256, min(k, n - pos), dtype=np.uint8).tobytes()
         elif op == 2 and fields:
             off, size = fields[int(rng.integers(0, len(fields)))]
             if off + size <= n:
-                old = int.from_bytes(buf[off:off + size], "little")
+                old = int.from_bytes(buf[off : off + size], "little")
                 choices = [*_INTERESTING, old + 1, max(old - 1, 0), old * 2, old // 2, int(rng.integers(0, 1 << 31))]
                 value = choices[int(rng.integers(0, len(choices)))] % (1 << (8 * size))
-                buf[off:off + size] = value.to_bytes(size, "little")
+                buf[off : off + size] = value.to_bytes(size, "little")
         elif op == 3:
-            del buf[int(rng.integers(0, n)):]
+            del buf[int(rng.integers(0, n)) :]
         elif op == 4:
-            del buf[pos:pos + int(rng.integers(1, 257))]
+            del buf[pos : pos + int(rng.integers(1, 257))]
         elif op == 5:
             k = int(rng.integers(1, 257))
-            buf[pos:pos] = buf[pos:pos + k]
+            buf[pos:pos] = buf[pos : pos + k]
         elif op == 6:
             buf[pos:pos] = rng.integers(0, 256, int(rng.integers(1, 33)), dtype=np.uint8).tobytes()
         else:
@@ -178,11 +208,11 @@ def fix_png_crcs(data: bytes) -> bytes:
     buf = bytearray(data)
     pos = 8
     while pos + 12 <= len(buf):
-        length = int.from_bytes(buf[pos:pos + 4], "big")
+        length = int.from_bytes(buf[pos : pos + 4], "big")
         end = pos + 8 + length
         if end + 4 > len(buf):
             break
-        buf[end:end + 4] = zlib.crc32(bytes(buf[pos + 4:end])).to_bytes(4, "big")
+        buf[end : end + 4] = zlib.crc32(bytes(buf[pos + 4 : end])).to_bytes(4, "big")
         pos = end + 4
     return bytes(buf)
 
@@ -196,8 +226,8 @@ def jpeg_with_size(data: bytes, w: int, h: int) -> bytes:
     m = re.search(rb"\xff[\xc0-\xc2]", bytes(buf))
     assert m is not None, "no SOF marker"
     i = m.start()
-    buf[i + 5:i + 7] = h.to_bytes(2, "big")
-    buf[i + 7:i + 9] = w.to_bytes(2, "big")
+    buf[i + 5 : i + 7] = h.to_bytes(2, "big")
+    buf[i + 7 : i + 9] = w.to_bytes(2, "big")
     return bytes(buf)
 
 
@@ -226,13 +256,30 @@ def _encode(img: np.ndarray, ext: str) -> bytes:
 
 
 CRAFTED_SENS = (
-    "sens_empty_colour_payload", "sens_jpeg_declares_60000x60000", "sens_jpeg_declares_40000x26000",
-    "sens_jpeg_declares_16000x16000", "sens_jpeg_declares_8000x6000", "sens_jpeg_declares_256x192",
-    "sens_jpeg_truncated_half", "sens_png16_colour", "sens_rgba_colour", "sens_png_truncated_half",
-    "sens_tiff_colour", "sens_png_in_jpeg_file", "sens_grey_colour", "sens_lowered_frame_count",
-    "sens_frame_count_2^64-1", "sens_no_imu_block", "sens_garbage_after_frames", "sens_colour_size_2^63",
-    "sens_name_length_2^60", "sens_header_colour_60000x60000", "sens_pose_bottom_row_0000",
-    "sens_pose_bottom_row_0002", "sens_pose_reflection", "sens_zlib_bomb",
+    "sens_empty_colour_payload",
+    "sens_jpeg_declares_60000x60000",
+    "sens_jpeg_declares_40000x26000",
+    "sens_jpeg_declares_16000x16000",
+    "sens_jpeg_declares_8000x6000",
+    "sens_jpeg_declares_256x192",
+    "sens_jpeg_truncated_half",
+    "sens_png16_colour",
+    "sens_rgba_colour",
+    "sens_png_truncated_half",
+    "sens_tiff_colour",
+    "sens_png_in_jpeg_file",
+    "sens_grey_colour",
+    "sens_lowered_frame_count",
+    "sens_frame_count_2^64-1",
+    "sens_no_imu_block",
+    "sens_garbage_after_frames",
+    "sens_colour_size_2^63",
+    "sens_name_length_2^60",
+    "sens_header_colour_60000x60000",
+    "sens_pose_bottom_row_0000",
+    "sens_pose_bottom_row_0002",
+    "sens_pose_reflection",
+    "sens_zlib_bomb",
 )
 
 
@@ -245,9 +292,13 @@ def crafted_sens_kwargs(name: str, param: int = 0) -> dict:
 
     def colour_of_frame_2(payload: bytes, fmt: str = "jpeg") -> dict:
         ext = {"jpeg": ".jpg", "png": ".png"}[fmt]
-        return {"color_compression": fmt,
-                "color_payloads": [payload if k == 2 else _encode(cv2.cvtColor(_colour(k), cv2.COLOR_RGB2BGR), ext)
-                                   for k in range(N_SENS_FRAMES)]}
+        return {
+            "color_compression": fmt,
+            "color_payloads": [
+                payload if k == 2 else _encode(cv2.cvtColor(_colour(k), cv2.COLOR_RGB2BGR), ext)
+                for k in range(N_SENS_FRAMES)
+            ],
+        }
 
     def pose_of_frame_3(edit) -> dict:
         poses = [_pose(k) for k in range(N_SENS_FRAMES)]
@@ -294,11 +345,11 @@ def _patch_sens(path: Path, how: str) -> None:
         data += bytes(range(256)) * 3
     elif how == "colour_size_huge":
         start = int(SensFile(path).color_offsets[2]) - 96
-        data[start + 80:start + 88] = (1 << 63).to_bytes(8, "little")
+        data[start + 80 : start + 88] = (1 << 63).to_bytes(8, "little")
     elif how == "name_length_huge":
         data[4:12] = (1 << 60).to_bytes(8, "little")
     elif how == "header_colour_size":
-        data[tail + 8:tail + 16] = struct.pack("<II", 60000, 60000)
+        data[tail + 8 : tail + 16] = struct.pack("<II", 60000, 60000)
     path.write_bytes(bytes(data))
 
 
@@ -323,7 +374,10 @@ def crafted_image_cases() -> dict[str, tuple[str, bytes]]:
         "depth_png_declares_16000x16000": ("depth_png", png_with_size(dpng, 16000, 16000)),
         "depth_png_truncated_half": ("depth_png", dpng[: len(dpng) // 2]),
         "depth_png_8bit": ("depth_png", _encode(_depth(1).astype(np.uint8), ".png")),
-        "depth_png_other_size": ("depth_png", _encode(cv2.resize(_depth(1), (32, 24), interpolation=cv2.INTER_NEAREST), ".png")),
+        "depth_png_other_size": (
+            "depth_png",
+            _encode(cv2.resize(_depth(1), (32, 24), interpolation=cv2.INTER_NEAREST), ".png"),
+        ),
         "depth_jpeg_named_png": ("depth_png", jpg),
     }
 
@@ -411,8 +465,16 @@ def run_case(case: Case, base: Path, work: Path, timeout_s: int = 30) -> dict:
     from depthgt.errors import DepthGTError, FrameError
     from depthgt.sources.base import check_frame, open_scene
 
-    out = {"case": case.label, "kind": case.kind, "frames_ok": 0, "frame_errors": {}, "outcome": "ok",
-           "message": "", "lost_unrecorded": 0, "problems": 0}
+    out = {
+        "case": case.label,
+        "kind": case.kind,
+        "frames_ok": 0,
+        "frame_errors": {},
+        "outcome": "ok",
+        "message": "",
+        "lost_unrecorded": 0,
+        "problems": 0,
+    }
     if case.kind == "control":  # checks the harness itself: an allocation beyond the cap must fail
         kind, root, name, n_true = "control", None, case.name, 0
     else:
@@ -471,7 +533,7 @@ def prepare_base(base: Path) -> None:
 def _worker(args) -> None:
     cv2.setNumThreads(1)
     base, work = Path(args.base), Path(args.work)
-    cases = [Case(**c) for c in json.loads(Path(args.cases).read_text())][args.start:]
+    cases = [Case(**c) for c in json.loads(Path(args.cases).read_text())][args.start :]
     limit = _status_kib("VmSize") * 1024 + args.cap_mib * (1 << 20)
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     with open(args.out, "a", encoding="utf-8") as out:
@@ -492,16 +554,40 @@ def run_fuzz(cases: list[Case], cap_mib: int = 512, timeout_s: int = 30, tmp: Pa
         env = dict(os.environ, MALLOC_ARENA_MAX="2", OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
         done = 0
         while done < len(cases):
-            cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--base", str(tmp / "base"),
-                   "--work", str(tmp / "work"), "--cases", str(tmp / "cases.json"), "--start", str(done),
-                   "--out", str(results_path), "--cap-mib", str(cap_mib), "--timeout", str(timeout_s)]
+            cmd = [
+                sys.executable,
+                str(Path(__file__).resolve()),
+                "--worker",
+                "--base",
+                str(tmp / "base"),
+                "--work",
+                str(tmp / "work"),
+                "--cases",
+                str(tmp / "cases.json"),
+                "--start",
+                str(done),
+                "--out",
+                str(results_path),
+                "--cap-mib",
+                str(cap_mib),
+                "--timeout",
+                str(timeout_s),
+            ]
             proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
             lines = results_path.read_text().splitlines()
             done = len(lines)
             if done < len(cases) and proc.returncode != 0:
-                rec = {"case": cases[done].label, "kind": cases[done].kind, "outcome": "worker_died",
-                       "message": f"exit {proc.returncode}: {proc.stderr[-300:]}", "frames_ok": 0, "frame_errors": {},
-                       "lost_unrecorded": 0, "problems": 0, "peak_mib": None}
+                rec = {
+                    "case": cases[done].label,
+                    "kind": cases[done].kind,
+                    "outcome": "worker_died",
+                    "message": f"exit {proc.returncode}: {proc.stderr[-300:]}",
+                    "frames_ok": 0,
+                    "frame_errors": {},
+                    "lost_unrecorded": 0,
+                    "problems": 0,
+                    "peak_mib": None,
+                }
                 with results_path.open("a") as f:
                     f.write(json.dumps(rec) + "\n")
                 done += 1

@@ -23,8 +23,9 @@ def _project(points_cam: np.ndarray, K: np.ndarray):
     return u, v, z
 
 
-def splat_soft_reference(points_cam, features, K, size_hw, valid=None, radius_px=2.0, max_points=16,
-                         depth_band_rel=0.05, min_depth=1e-3):
+def splat_soft_reference(
+    points_cam, features, K, size_hw, valid=None, radius_px=2.0, max_points=16, depth_band_rel=0.05, min_depth=1e-3
+):
     """Loop version of ``splat_soft`` for one image: points (N, 3), features (N, C), K (3, 3).
 
     Returns features (C, H, W), depth (H, W), weight (H, W) as float64 arrays.
@@ -66,8 +67,18 @@ def _resampled(n_src: int, n_dst: int) -> np.ndarray:
     return (i + 0.5) * n_dst / n_src - 0.5
 
 
-def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, normals_cam=None, sigma_m=None, frame=None,
-                        src_hw=None, target_frame=None):
+def render_gt_reference(
+    points_cam,
+    K,
+    size_hw,
+    valid=None,
+    settings=None,
+    normals_cam=None,
+    sigma_m=None,
+    frame=None,
+    src_hw=None,
+    target_frame=None,
+):
     """Loop version of ``render_gt`` for one image: points (N, 3), K (3, 3), normals (N, 3),
     sigma_m (N,), frame (N,), written from the rules of its docstring and of
     ``RenderSettings``.
@@ -105,6 +116,7 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
             cos = abs(d0) / max(np.linalg.norm(N[i]) * np.linalg.norm(P[i]), 1e-12)
             if cos >= st.min_cos_incidence and z[i] * np.linalg.norm(g) * R <= st.max_correction_rel:
                 grads[i] = g
+
     def pixel_candidates(y, x, use):
         out = []
         for i in range(n):
@@ -138,7 +150,7 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
                 for x in range(w):
                     if not judged_at[y, x]:
                         continue
-                    win = t_iz[max(0, y - e):y + e + 1, max(0, x - e):x + e + 1]
+                    win = t_iz[max(0, y - e) : y + e + 1, max(0, x - e) : x + e + 1]
                     tol = st.gap_sigmas * math.sqrt(2.0) * t_s[y, x] + st.gap_slope_rel * t_iz[y, x] * 2 * e
                     judged_at[y, x] = bool(np.isfinite(win).all()) and win.max() - win.min() <= tol
         tile = st.agreement_tile_px
@@ -150,7 +162,9 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
                     continue
                 for c in cands_at[y, x]:
                     if c["f"] != target_frame and c["d2"] <= 0.5**2:
-                        tol = st.gap_sigmas * np.hypot(c["s"], t_s[y, x]) + st.gap_slope_rel * c["iz"] * math.sqrt(c["d2"])
+                        tol = st.gap_sigmas * np.hypot(c["s"], t_s[y, x]) + st.gap_slope_rel * c["iz"] * math.sqrt(
+                            c["d2"]
+                        )
                         k = (c["f"], y // tile, x // tile) if tile > 0 else (c["f"], 0, 0)
                         n_cmp_t[k] += 1
                         n_ok_t[k] += abs(c["iz"] - t_iz[y, x]) <= tol
@@ -165,8 +179,8 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
             for f in range(n_fr):
                 for i in range(ty):
                     for j in range(tx):
-                        nc = n_cmp_t[f, max(0, i - 1):i + 2, max(0, j - 1):j + 2].sum()
-                        no = n_ok_t[f, max(0, i - 1):i + 2, max(0, j - 1):j + 2].sum()
+                        nc = n_cmp_t[f, max(0, i - 1) : i + 2, max(0, j - 1) : j + 2].sum()
+                        no = n_ok_t[f, max(0, i - 1) : i + 2, max(0, j - 1) : j + 2].sum()
                         bad_t[f, i, j] = no < st.min_frame_agreement * nc if nc >= 50 else bad[f]
                 bad_t[f] |= agreement[f] < st.min_whole_frame_agreement
         else:
@@ -175,8 +189,10 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
         def dropped(i, y, x):  # a sample of a frame whose tile at this pixel disagrees
             return bool(bad_t[int(frame[i]), y // tile, x // tile] if tile > 0 else bad_t[int(frame[i]), 0, 0])
     else:
+
         def dropped(i, y, x):
             return False
+
     depth = np.zeros((h, w))
     wsum = np.zeros((h, w))
     count = np.zeros((h, w), int)
@@ -197,17 +213,25 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
             cands = sorted(cands, key=lambda c: -c["iz"])
             clusters = [[cands[0]]]
             for a, b in zip(cands[:-1], cands[1:]):
-                tol = st.gap_sigmas * np.hypot(a["s"], b["s"]) + st.gap_slope_rel * a["iz"] * np.linalg.norm(a["o"] - b["o"])
+                tol = st.gap_sigmas * np.hypot(a["s"], b["s"]) + st.gap_slope_rel * a["iz"] * np.linalg.norm(
+                    a["o"] - b["o"]
+                )
                 if a["iz"] - b["iz"] > tol:
                     clusters.append([])
                 clusters[-1].append(b)
-            qualified = [len({c["f"] for c in cl}) >= st.min_frames
-                         or (target_frame is not None and frame is not None
-                             and any(c["f"] == target_frame and c["d2"] <= 0.05**2 for c in cl)) for cl in clusters]
+            qualified = [
+                len({c["f"] for c in cl}) >= st.min_frames
+                or (
+                    target_frame is not None
+                    and frame is not None
+                    and any(c["f"] == target_frame and c["d2"] <= 0.05**2 for c in cl)
+                )
+                for cl in clusters
+            ]
             fi = qualified.index(True) if any(qualified) else 0
             bi = next((k for k in range(fi + 1, len(clusters)) if qualified[k]), None)
 
-            def geometry(ci):
+            def geometry(ci, clusters=clusters):  # called within this iteration only
                 cl = clusters[ci]
                 offs = np.array([c["o"] for c in cl])
                 cen = offs.mean(0)
@@ -217,8 +241,15 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
                     # each frame's own reach (-inf: a frame seen only behind this surface);
                     # the k-th largest (k = ceil(edge_vote x voters)) plus the slack
                     voters = {c["f"] for later in clusters[ci:] for c in later}
-                    per_frame = sorted((-min(np.array([c["o"] for c in cl if c["f"] == f]) @ (cen / norm))
-                                        if any(c["f"] == f for c in cl) else -np.inf for f in voters), reverse=True)
+                    per_frame = sorted(
+                        (
+                            -min(np.array([c["o"] for c in cl if c["f"] == f]) @ (cen / norm))
+                            if any(c["f"] == f for c in cl)
+                            else -np.inf
+                            for f in voters
+                        ),
+                        reverse=True,
+                    )
                     k = min(max(math.ceil(st.edge_vote * len(per_frame)), 1), len(per_frame))
                     reach = min(reach, per_frame[k - 1] + st.edge_vote_slack_px)
                 d_near = min(c["d2"] for c in cl)
@@ -234,10 +265,19 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
             ambiguous = bi is not None and not hit_f and abs(reach_f - st.edge_margin_px) < st.ambiguous_px
             if not (cov_f or bi is not None or st.extend_uncovered) or (ambiguous and st.drop_ambiguous):
                 chosen = None
-            if st.target_resolves_ambiguous and target_frame is not None and frame is not None and (chosen is None or ambiguous):
+            if (
+                st.target_resolves_ambiguous
+                and target_frame is not None
+                and frame is not None
+                and (chosen is None or ambiguous)
+            ):
                 # the target's own sample at the position decides, on a surface of >= min_frames frames
-                own = [k for k, cl in enumerate(clusters) if any(c["f"] == target_frame and c["d2"] <= 0.05**2 for c in cl)
-                       and len({c["f"] for c in cl}) >= st.min_frames]
+                own = [
+                    k
+                    for k, cl in enumerate(clusters)
+                    if any(c["f"] == target_frame and c["d2"] <= 0.05**2 for c in cl)
+                    and len({c["f"] for c in cl}) >= st.min_frames
+                ]
                 if own:
                     chosen, ambiguous = own[0], False
             if chosen is None:
@@ -256,7 +296,9 @@ def render_gt_reference(points_cam, K, size_hw, valid=None, settings=None, norma
             if st.plane == "fit":
                 lam = st.slope_prior
                 A = C + lam * np.eye(2)
-                b = (wt[:, None] * cen * (izs - (wt * izs).sum() / sw)[:, None]).sum(0) / sw + lam * (wt[:, None] * g).sum(0) / sw
+                b = (wt[:, None] * cen * (izs - (wt * izs).sum() / sw)[:, None]).sum(0) / sw + lam * (
+                    wt[:, None] * g
+                ).sum(0) / sw
                 slope = np.linalg.solve(A, b) if np.linalg.det(A) > 1e-12 else np.zeros(2)
                 iz_hat = (wt * izs).sum() / sw - slope @ mean_o
                 resid = izs - (iz_hat + offs @ slope)

@@ -21,7 +21,7 @@ def _plane(n=64, seed=0, noise=0.02, slope=(0.01, 0.005), z0=2.0):
     truth = (z0 + slope[0] * xx + slope[1] * yy).astype(np.float32)
     noisy = truth + rng.normal(0.0, noise, truth.shape).astype(np.float32)
     holes = np.zeros_like(truth, dtype=bool)
-    holes[n // 3:n // 3 + 6, n // 2:n // 2 + 6] = True
+    holes[n // 3 : n // 3 + 6, n // 2 : n // 2 + 6] = True
     holes |= rng.random(truth.shape) < 0.05
     noisy[holes] = 0.0
     rgb = np.full((n, n, 3), 128, np.uint8)
@@ -117,14 +117,14 @@ def _jf_kornia64(depth_m, rgb, r=3, eps_I=1e-4, eps_G=5e-4, lambda_I=1.0, lambda
     valid = d > 0
     scale = float(d[valid].max())
     I0 = box_fill(d / scale, valid).double()
-    G0 = (torch.from_numpy(rgb).permute(2, 0, 1)[None].float() / 255.0)
+    G0 = torch.from_numpy(rgb).permute(2, 0, 1)[None].float() / 255.0
     G0 = (0.299 * G0[:, 0:1] + 0.587 * G0[:, 1:2] + 0.114 * G0[:, 2:3]).double()
     lam = lambda_I * valid.double()
 
     def box(x):
         return box_blur(x, 2 * r + 1, border_type="reflect")
 
-    I, G = I0.clone(), G0.clone()
+    I, G = I0.clone(), G0.clone()  # noqa: E741 (the paper's names)
     for _ in range(iterations):
         mI, mG = box(I), box(G)
         cov = box(I * G) - mI * mG
@@ -134,7 +134,7 @@ def _jf_kornia64(depth_m, rgb, r=3, eps_I=1e-4, eps_G=5e-4, lambda_I=1.0, lambda
         p11, p22, p12 = box(a * a) + 1 + lam, 1 + box(c * c) + lambda_G, -(box(a) + box(c))
         q1, q2 = -box(a * b) + box(e) + lam * I0, box(b) - box(c * e) + lambda_G * G0
         det = p11 * p22 - p12 * p12
-        I, G = (p22 * q1 - p12 * q2) / det, (p11 * q2 - p12 * q1) / det
+        I, G = (p22 * q1 - p12 * q2) / det, (p11 * q2 - p12 * q1) / det  # noqa: E741
     return (I * scale).clamp_min(0)[0, 0].numpy()
 
 
@@ -226,10 +226,12 @@ def test_evaluate_frames_on_a_synthetic_frame_set(tmp_path):
     io.write_exr(d / "input.exr", {"Z": noisy, "T": truth})
     io.write_exr(d / "gt.exr", {"Z": truth + 0.001, "W": np.ones_like(truth), "N": np.ones_like(truth)})
     io.write_rgb_png(d / "rgb.png", rgb)
-    frames = pd.DataFrame([{"dataset": "synth", "scene": "s0", "target": 10, "frameset": str(d), "split": "test",
-                            "status": "ok"},
-                           {"dataset": "synth", "scene": "s0", "target": 12, "frameset": str(d), "split": "train",
-                            "status": "ok"}])
+    frames = pd.DataFrame(
+        [
+            {"dataset": "synth", "scene": "s0", "target": 10, "frameset": str(d), "split": "test", "status": "ok"},
+            {"dataset": "synth", "scene": "s0", "target": 12, "frameset": str(d), "split": "train", "status": "ok"},
+        ]
+    )
     methods = {"input": {"baseline": "input"}, "rgf": {"baseline": "rgf"}, "gt": {"image": "gt"}}
     table = evaluate_frames(frames, methods, references=["truth"], pred_dirs={"rgf": tmp_path / "pred" / "rgf"})
     wide = table.pivot_table(index="method", columns="metric", values="value")

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from depthgt.errors import FrameError
-from depthgt.gt.cache import ResizedScene
 from depthgt.gt.build import load_frameset
+from depthgt.gt.cache import ResizedScene
 from depthgt.jobs.common import open_source_scene
 from depthgt.sources.base import Scene
 
@@ -39,7 +39,9 @@ class Counting:
 @pytest.fixture(scope="module")
 def scenes():
     torch.set_num_threads(1)
-    source = open_source_scene({"kind": "synthetic", "options": {"n_frames": 9, "width": 160, "height": 120}}, "room_001")
+    source = open_source_scene(
+        {"kind": "synthetic", "options": {"n_frames": 9, "width": 160, "height": 120}}, "room_001"
+    )
     return source, Counting(source)
 
 

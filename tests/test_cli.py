@@ -8,15 +8,22 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from conftest import REPO, make_workdir
+
 from depthgt.cli import scene_outputs
 
 TINY = {
     "seed": 1,
     "device": "cpu",
-    "sources": [{"name": "syn", "kind": "synthetic", "scenes": ["room_000", "room_001"], "split": "train",
-                 "options": {"n_frames": 9, "width": 160, "height": 120}}],
+    "sources": [
+        {
+            "name": "syn",
+            "kind": "synthetic",
+            "scenes": ["room_000", "room_001"],
+            "split": "train",
+            "options": {"n_frames": 9, "width": 160, "height": 120},
+        }
+    ],
     "frameset": {"neighbours": 1, "stride": 2, "target_step": 2},
     "resize": 64,
     "patches": {"count": 2, "size": 32, "max_missing": 0.5, "filter_on": "gt"},
@@ -25,11 +32,17 @@ SUBCOMMANDS = ("build", "rebuild", "show", "extract", "report", "bench", "evalua
 
 
 def depthgt(*args: str, check: bool = True, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    proc = subprocess.run([sys.executable, "-m", "depthgt.cli", *args], capture_output=True, text=True,
-                          cwd=cwd, env=dict(os.environ, OMP_NUM_THREADS="1"))
+    proc = subprocess.run(
+        [sys.executable, "-m", "depthgt.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=dict(os.environ, OMP_NUM_THREADS="1"),
+    )
     if check and proc.returncode != 0:
-        raise AssertionError(f"depthgt {' '.join(args)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n"
-                             f"{proc.stderr[-5000:]}")
+        raise AssertionError(
+            f"depthgt {' '.join(args)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+        )
     return proc
 
 
@@ -110,10 +123,14 @@ def test_rebuild_names_an_unknown_scene(built):
 
 
 def test_scene_outputs_matches_whole_folders_only():
-    summary = "output_file\tdate\nresults/scenes/syn/room_1/a\t-\nresults/scenes/syn/room_10/a\t-\n" \
-              "results/framesets/syn/room_1/000002/gt.exr\t-\nresults/syn/x\t-\n"
-    assert scene_outputs(summary, "syn", "room_1") == ["results/scenes/syn/room_1/a",
-                                                      "results/framesets/syn/room_1/000002/gt.exr"]
+    summary = (
+        "output_file\tdate\nresults/scenes/syn/room_1/a\t-\nresults/scenes/syn/room_10/a\t-\n"
+        "results/framesets/syn/room_1/000002/gt.exr\t-\nresults/syn/x\t-\n"
+    )
+    assert scene_outputs(summary, "syn", "room_1") == [
+        "results/scenes/syn/room_1/a",
+        "results/framesets/syn/room_1/000002/gt.exr",
+    ]
 
 
 def test_report_of_an_unfinished_build_says_what_to_run(built, tmp_path):

@@ -66,7 +66,7 @@ class OccluderScene:
 
     def read(self, i: int) -> Frame:
         T = self.pose(i)
-        v, u = np.mgrid[0:HW[0], 0:HW[1]].astype(np.float64)
+        v, u = np.mgrid[0 : HW[0], 0 : HW[1]].astype(np.float64)
         rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(self.intrinsics).T @ T[:3, :3].T  # world dirs
         c = T[:3, 3]
         s_plate = (PLATE_Z - c[2]) / rays[..., 2]
@@ -86,11 +86,14 @@ class OccluderScene:
 
 
 def _settings(selection: str, **frameset):
-    return settings_from_config({
-        "resize": 64, "patches": {"size": 32},
-        "frameset": {"selection": selection, "coverage_span": 30, "coverage_views": 2, **frameset},
-        "registration": {"method": "given"},
-    })
+    return settings_from_config(
+        {
+            "resize": 64,
+            "patches": {"size": 32},
+            "frameset": {"selection": selection, "coverage_span": 30, "coverage_views": 2, **frameset},
+            "registration": {"method": "given"},
+        }
+    )
 
 
 def _build(tmp_path, name: str, settings, candidates=None) -> tuple[dict, dict, dict]:
@@ -188,13 +191,25 @@ def test_failing_added_view_left_out_with_its_reason(window, tmp_path, monkeypat
         if len(calls) == 1:  # the core: refined for real
             return real(rgb, depth_m, K, offsets, T_j_to_t, settings)
         n = len(offsets) - 1
-        return RegistrationResult(T_j_to_t.cpu(), list(offsets), ["failed"] * n, ["residual 9.0 noise sigmas > 3"] * n,
-                                  "ok", "", n_correspondences=[0] * n)
+        return RegistrationResult(
+            T_j_to_t.cpu(),
+            list(offsets),
+            ["failed"] * n,
+            ["residual 9.0 noise sigmas > 3"] * n,
+            "ok",
+            "",
+            n_correspondences=[0] * n,
+        )
 
     monkeypatch.setattr(registration, "refine_source_poses", refine)
-    settings = settings_from_config({"resize": 64, "patches": {"size": 32}, "registration": {"method": "refine"},
-                                     "frameset": {"selection": "coverage", "coverage_views": 2,
-                                                  "coverage_max_angle_deg": 20.0}})
+    settings = settings_from_config(
+        {
+            "resize": 64,
+            "patches": {"size": 32},
+            "registration": {"method": "refine"},
+            "frameset": {"selection": "coverage", "coverage_views": 2, "coverage_max_angle_deg": 20.0},
+        }
+    )
     doc, gt, poses = _build(tmp_path, "fail", settings)
     added = doc["coverage"]["added"]
     assert len(calls) == 2 and calls[1][0] == 0 and calls[1][1:] == [v["offset"] for v in added]
@@ -229,8 +244,14 @@ def test_selection_parts():
 
 
 def test_coverage_settings_name_their_key():
-    for key, value in (("selection", "best"), ("coverage_span", 0), ("coverage_views", -1),
-                       ("coverage_max_baseline_m", 0.0), ("coverage_max_angle_deg", 200.0), ("coverage_min_fill_px", 0)):
+    for key, value in (
+        ("selection", "best"),
+        ("coverage_span", 0),
+        ("coverage_views", -1),
+        ("coverage_max_baseline_m", 0.0),
+        ("coverage_max_angle_deg", 200.0),
+        ("coverage_min_fill_px", 0),
+    ):
         with pytest.raises(ConfigError, match=f"frameset.{key}"):
             settings_from_config({"frameset": {key: value}})
     with pytest.raises(ConfigError, match="frameset.selection.*overfit"):
@@ -241,14 +262,32 @@ def test_batch_job_adds_views_of_the_targets_split_reading_each_frame_once(tmp_p
     """The batch job: candidates from the index's split tags (``split: auto`` blocks), the
     wider span's frames read once per batch (the frame cache keeps them), added views
     recorded in each frame set's frameset.json and their frames in batch.json."""
-    source = {"name": "syn", "kind": "synthetic", "split": "auto", "scenes": ["room_000"],
-              "options": {"n_frames": 24, "width": 80, "height": 60}}
-    config = {"seed": 1, "device": "cpu", "resize": 32, "sources": [source],
-              "split": {"val_fraction": 0.5, "block_frames": 8},
-              "frameset": {"neighbours": 1, "stride": 1, "batch_size": 32, "selection": "coverage", "coverage_span": 6,
-                           "coverage_views": 2, "coverage_min_fill_px": 1, "coverage_max_angle_deg": 90.0,
-                           "coverage_max_baseline_m": 5.0},
-              "patches": {"count": 1, "size": 16, "max_missing": 1.0}}
+    source = {
+        "name": "syn",
+        "kind": "synthetic",
+        "split": "auto",
+        "scenes": ["room_000"],
+        "options": {"n_frames": 24, "width": 80, "height": 60},
+    }
+    config = {
+        "seed": 1,
+        "device": "cpu",
+        "resize": 32,
+        "sources": [source],
+        "split": {"val_fraction": 0.5, "block_frames": 8},
+        "frameset": {
+            "neighbours": 1,
+            "stride": 1,
+            "batch_size": 32,
+            "selection": "coverage",
+            "coverage_span": 6,
+            "coverage_views": 2,
+            "coverage_min_fill_px": 1,
+            "coverage_max_angle_deg": 90.0,
+            "coverage_max_baseline_m": 5.0,
+        },
+        "patches": {"count": 1, "size": 16, "max_missing": 1.0},
+    }
     run_scene_index(source, "room_000", config, str(tmp_path / "index.parquet"), str(tmp_path / "index.json"))
     table = pd.read_parquet(tmp_path / "index.parquet")
     tags = dict(zip(table["position"].astype(int), table["split"]))

@@ -17,10 +17,11 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from conftest import make_workdir, snakemake
+from test_workflow import TINY
 from torch.utils.data import DataLoader
 
 import depthgt
-from conftest import make_workdir, snakemake
 from depthgt.cli import main as cli_main
 from depthgt.data import GTDataset, export_dataset, training_fields
 from depthgt.data import export as export_mod
@@ -30,7 +31,6 @@ from depthgt.gt import store
 from depthgt.gt.card import code_version, verify
 from depthgt.io import read_exr, read_rgb
 from depthgt.settings import SPLITS, TrainSettings
-from test_workflow import TINY
 
 PATCH = TINY["patches"]["size"]
 FRAME = TINY["resize"]  # 256 in the default config
@@ -90,7 +90,9 @@ def test_every_manifest_row_comes_out_of_a_dataloader_once(results, split):
         assert ((batch["sigma"] > 0) == (batch["gt"] > 0)).all()  # 0 = no GT, positive wherever there is
         assert set(batch["split"]) == {split}
         seen.update(zip(batch["dataset"], batch["scene"], batch["target"].tolist(), batch["patch"].tolist()))
-    want = Counter(zip(manifest["dataset"], manifest["scene"], manifest["target"].astype(int), manifest["patch"].astype(int)))
+    want = Counter(
+        zip(manifest["dataset"], manifest["scene"], manifest["target"].astype(int), manifest["patch"].astype(int))
+    )
     assert seen == want and set(seen.values()) == {1}
 
 
@@ -200,9 +202,15 @@ def test_the_trainer_reads_its_patches_through_gtdataset(results, tmp_path, monk
         return original(self, i)
 
     monkeypatch.setattr(GTDataset, "__getitem__", counted)
-    st = TrainSettings(model="lapden", model_params={"preset": "default", "channels": 4, "level_convs": [2, 2, 2],
-                                                     "encoder_convs": [0, 0]},
-                       epochs=1, batch_size=8, lr=1e-3, seed=3, progress=False)
+    st = TrainSettings(
+        model="lapden",
+        model_params={"preset": "default", "channels": 4, "level_convs": [2, 2, 2], "encoder_convs": [0, 0]},
+        epochs=1,
+        batch_size=8,
+        lr=1e-3,
+        seed=3,
+        progress=False,
+    )
     out = train("results/dataset/train.parquet", "results/dataset/val.parquet", TrainOutputs.in_dir(tmp_path / "m"), st)
     assert out["epochs_run"] == 1
     n_train, n_val = (len(pd.read_parquet(results / f"dataset/{s}.parquet")) for s in ("train", "val"))
@@ -223,15 +231,22 @@ def test_export_png16_round_trip(results, tmp_path):
     assert json.loads((dest / "card.json").read_text()) == json.loads((results / "dataset/card.json").read_text())
     ds = {s: GTDataset(results, s) for s in SPLITS}
     for row in index.iloc[[0, len(index) // 2, len(index) - 1]].itertuples():
-        i = next(i for i in range(len(ds[row.split])) if ds[row.split].ids(i)["target"] == row.target
-                 and ds[row.split].ids(i)["patch"] == row.patch and ds[row.split].ids(i)["scene"] == row.scene)
+        i = next(
+            i
+            for i in range(len(ds[row.split]))
+            if ds[row.split].ids(i)["target"] == row.target
+            and ds[row.split].ids(i)["patch"] == row.patch
+            and ds[row.split].ids(i)["scene"] == row.scene
+        )
         s = ds[row.split][i]
         for m in ("input", "gt", "truth"):
             back, want = export_mod.read_depth(dest / getattr(row, m), m), s[m][0].numpy()
             assert np.array_equal(back > 0, want > 0), m
             assert np.abs(back - want).max() <= 0.0005 + 1e-6, m  # 1 mm steps: within half a step
         assert np.abs(export_mod.read_depth(dest / row.sigma, "sigma") - s["sigma"][0].numpy()).max() <= 0.00005 + 1e-7
-        assert np.array_equal(read_rgb(dest / row.rgb), np.round(s["rgb"].permute(1, 2, 0).numpy() * 255).astype(np.uint8))
+        assert np.array_equal(
+            read_rgb(dest / row.rgb), np.round(s["rgb"].permute(1, 2, 0).numpy() * 255).astype(np.uint8)
+        )
     assert verify(dest).ok
 
 
@@ -307,7 +322,8 @@ def test_card_describes_the_build(results):
         assert card["splits"][split]["pairs"] == len(pd.read_parquet(results / f"dataset/{split}.parquet"))
         assert card["splits"][split]["framesets"] == ((fs["split"] == split) & (fs["status"] == "ok")).sum()
     assert {s["name"]: sorted(s["scenes"]) for s in card["sources"]} == {
-        src["name"]: src["scenes"] for src in TINY["sources"]}
+        src["name"]: src["scenes"] for src in TINY["sources"]
+    }
     shards = sorted(p.relative_to(results).as_posix() for p in (results / "framesets").rglob("*.zip"))
     assert shards and set(shards) <= set(card["files"])
     assert card["framesets"]["kept"] == (fs["status"] == "ok").sum() and card["framesets"]["skipped"] == 0
@@ -339,5 +355,7 @@ def test_verify_names_the_changed_shard(built, tmp_path, capsys):
     with pytest.raises(DepthGTError, match="holds no dataset card"):
         verify(tmp_path / "nothing")
     env = dict(os.environ)
-    proc = subprocess.run([sys.executable, "-m", "depthgt.cli", "verify", str(wd)], capture_output=True, text=True, env=env)
+    proc = subprocess.run(
+        [sys.executable, "-m", "depthgt.cli", "verify", str(wd)], capture_output=True, text=True, env=env
+    )
     assert proc.returncode == 1 and shard.name in proc.stdout

@@ -73,8 +73,9 @@ def imported_modules(path: Path) -> set[str]:
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
             names.add(node.module.split(".")[0])
         elif isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
-            method = next((k.value.value for k in node.keywords
-                           if k.arg == "method" and isinstance(k.value, ast.Constant)), None)
+            method = next(
+                (k.value.value for k in node.keywords if k.arg == "method" and isinstance(k.value, ast.Constant)), None
+            )
             for key in ((node.func.attr, None), (node.func.attr, method)):
                 if key in USED_THROUGH:
                     names.add(USED_THROUGH[key])
@@ -108,8 +109,10 @@ def undeclared(root: Path, scope: tuple[str, ...], requirements: dict[str, set[s
     for path in sorted(root.rglob("*.py")):
         for module in sorted(third_party(path)):
             if distribution(module) not in allowed:
-                missing.append(f"{path.relative_to(root.parent)}: {module} (distribution {distribution(module)}) "
-                               f"is in none of {', '.join(scope)} of pyproject.toml")
+                missing.append(
+                    f"{path.relative_to(root.parent)}: {module} (distribution {distribution(module)}) "
+                    f"is in none of {', '.join(scope)} of pyproject.toml"
+                )
     return missing
 
 
@@ -123,7 +126,8 @@ def test_the_check_finds_an_undeclared_import(tmp_path):
     (tmp_path / "helper.py").write_text("X = 1\n")
     (tmp_path / "mod.py").write_text(
         "import os\nimport helper\nfrom depthgt import io\n\ndef f(t):\n    import sklearn.linear_model  # heavy\n"
-        "    return t.corr(t, method='spearman')\n")
+        "    return t.corr(t, method='spearman')\n"
+    )
     assert third_party(tmp_path / "mod.py") == {"sklearn", "scipy"}
     req = {"dependencies": {"numpy"}}
     assert distribution("sklearn") == "scikit-learn" and distribution("cv2") == "opencv-python-headless"

@@ -42,8 +42,12 @@ def test_keep_freed_memory_stops_the_page_faults_of_large_blocks():
     """Blocks of tens of MiB freed and allocated again (the renderer's candidates, per
     frame set) page-fault anew each time under glibc's defaults; kept in the heap they do
     not (the results are the same: the frame-set job just spends no system time)."""
-    runs = {mode: subprocess.run([sys.executable, "-c", _FAULTS, mode], capture_output=True, text=True, check=True)
-            .stdout.split() for mode in ("default", "keep")}
+    runs = {
+        mode: subprocess.run(
+            [sys.executable, "-c", _FAULTS, mode], capture_output=True, text=True, check=True
+        ).stdout.split()
+        for mode in ("default", "keep")
+    }
     if runs["keep"][0] != "True":
         pytest.skip("not glibc: mallopt is not available")
     default, kept = int(runs["default"][1]), int(runs["keep"][1])

@@ -6,26 +6,37 @@ import json
 
 import numpy as np
 import pandas as pd
-
 from conftest import make_workdir, snakemake
-from depthgt.gt.assemble import FRAMESET_COLUMNS, scenes_without_framesets
 from sens_writer import write_sens
+
+from depthgt.gt.assemble import FRAMESET_COLUMNS, scenes_without_framesets
 
 
 def test_scenes_without_framesets_reasons():
-    fs = pd.DataFrame([
-        {"dataset": "a", "scene": "ok", "status": "ok", "reason": ""},
-        {"dataset": "a", "scene": "skipped", "status": "skipped", "reason": "invalid_frame: depth 3 empty"},
-        {"dataset": "a", "scene": "skipped", "status": "skipped", "reason": "invalid_frame: depth 4 empty"},
-        {"dataset": "a", "scene": "skipped", "status": "skipped", "reason": "split_guard"},
-    ], columns=FRAMESET_COLUMNS)
-    metas = [{"dataset": "a", "scene": s, "n_frames": n, "problems": p, "source": {"root": "/data"}}
-             for s, n, p in [("ok", 20, []), ("skipped", 20, []), ("empty", 0, ["scene_too_short: 0 frames"]),
-                             ("short", 4, ["scene_too_short: 4 frames, a frame set needs 7"])]]
+    fs = pd.DataFrame(
+        [
+            {"dataset": "a", "scene": "ok", "status": "ok", "reason": ""},
+            {"dataset": "a", "scene": "skipped", "status": "skipped", "reason": "invalid_frame: depth 3 empty"},
+            {"dataset": "a", "scene": "skipped", "status": "skipped", "reason": "invalid_frame: depth 4 empty"},
+            {"dataset": "a", "scene": "skipped", "status": "skipped", "reason": "split_guard"},
+        ],
+        columns=FRAMESET_COLUMNS,
+    )
+    metas = [
+        {"dataset": "a", "scene": s, "n_frames": n, "problems": p, "source": {"root": "/data"}}
+        for s, n, p in [
+            ("ok", 20, []),
+            ("skipped", 20, []),
+            ("empty", 0, ["scene_too_short: 0 frames"]),
+            ("short", 4, ["scene_too_short: 4 frames, a frame set needs 7"]),
+        ]
+    ]
     got = {r["scene"]: r["reason"] for r in scenes_without_framesets(fs, metas)}
-    assert got == {"skipped": "every frame set skipped: invalid_frame (2), split_guard (1)",
-                   "empty": "empty_scene: the source yields no frame (root /data)",
-                   "short": "scene_too_short: 4 frames, a frame set needs 7"}
+    assert got == {
+        "skipped": "every frame set skipped: invalid_frame (2), split_guard (1)",
+        "empty": "empty_scene: the source yields no frame (root /data)",
+        "short": "scene_too_short: 4 frames, a frame set needs 7",
+    }
 
 
 def test_empty_sens_is_named_in_summary(tmp_path):
@@ -33,15 +44,32 @@ def test_empty_sens_is_named_in_summary(tmp_path):
     data = tmp_path / "data"
     data.mkdir()
     K = np.array([[60.0, 0, 40], [0, 60, 30], [0, 0, 1]])
-    write_sens(data / "scene0000_00.sens", [np.zeros((60, 80, 3), np.uint8)], [np.zeros((60, 80), np.uint16)], [], K, K,
-               num_frames=0)
-    config = {"seed": 0, "device": "cpu", "resize": 32,
-              "sources": [{"name": "scan", "kind": "scannet", "root": str(data), "scenes": ["scene0000_00"],
-                           "split": "train"},
-                          {"name": "syn", "kind": "synthetic", "scenes": ["room_000"], "split": "train",
-                           "options": {"n_frames": 6, "width": 80, "height": 60}}],
-              "frameset": {"neighbours": 1, "stride": 1, "target_step": 1, "batch_size": 4},
-              "patches": {"count": 1, "size": 16, "max_missing": 1.0}}
+    write_sens(
+        data / "scene0000_00.sens",
+        [np.zeros((60, 80, 3), np.uint8)],
+        [np.zeros((60, 80), np.uint16)],
+        [],
+        K,
+        K,
+        num_frames=0,
+    )
+    config = {
+        "seed": 0,
+        "device": "cpu",
+        "resize": 32,
+        "sources": [
+            {"name": "scan", "kind": "scannet", "root": str(data), "scenes": ["scene0000_00"], "split": "train"},
+            {
+                "name": "syn",
+                "kind": "synthetic",
+                "scenes": ["room_000"],
+                "split": "train",
+                "options": {"n_frames": 6, "width": 80, "height": 60},
+            },
+        ],
+        "frameset": {"neighbours": 1, "stride": 1, "target_step": 1, "batch_size": 4},
+        "patches": {"count": 1, "size": 16, "max_missing": 1.0},
+    }
     wd = make_workdir(tmp_path / "wd", config)
     snakemake(wd, "dataset")
     md = (wd / "results/dataset/summary.md").read_text()

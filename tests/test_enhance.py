@@ -185,6 +185,7 @@ import json  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from depthgt.atomic import save_npz  # noqa: E402
 from depthgt.enhance.train import (  # noqa: E402
     TrainOutputs,
     collate,
@@ -195,7 +196,6 @@ from depthgt.enhance.train import (  # noqa: E402
     predict_depth,
     train,
 )
-from depthgt.atomic import save_npz  # noqa: E402
 from depthgt.errors import ConfigError, DepthGTError  # noqa: E402
 from depthgt.gt import store  # noqa: E402
 from depthgt.gt.patches import crop_pairs, patch_record  # noqa: E402
@@ -226,7 +226,11 @@ def _write_frameset(folder, seed, n_patches=4, size=16):
 @pytest.fixture()
 def manifests(tmp_path):
     paths = [_write_frameset(tmp_path / "fs" / f"{i:06d}", i) for i in range(3)]
-    rows = [{"frameset": str(p), "patch": j, "split": "train" if i < 2 else "val"} for i, p in enumerate(paths) for j in range(4)]
+    rows = [
+        {"frameset": str(p), "patch": j, "split": "train" if i < 2 else "val"}
+        for i, p in enumerate(paths)
+        for j in range(4)
+    ]
     table = pd.DataFrame(rows)
     table[table.split == "train"].to_parquet(tmp_path / "train.parquet")
     table[table.split == "val"].to_parquet(tmp_path / "val.parquet")
@@ -234,9 +238,15 @@ def manifests(tmp_path):
 
 
 def _settings(epochs):
-    return TrainSettings(model="lapden", model_params={"preset": "default", "channels": 4, "level_convs": [2, 2, 2],
-                                                       "encoder_convs": [0, 0]},
-                         epochs=epochs, batch_size=3, lr=1e-3, seed=3, progress=False)
+    return TrainSettings(
+        model="lapden",
+        model_params={"preset": "default", "channels": 4, "level_convs": [2, 2, 2], "encoder_convs": [0, 0]},
+        epochs=epochs,
+        batch_size=3,
+        lr=1e-3,
+        seed=3,
+        progress=False,
+    )
 
 
 def test_patch_dataset_shifts_intrinsics_by_crop(manifests):
@@ -279,7 +289,9 @@ def test_train_resume_equals_uninterrupted(manifests, tmp_path):
     assert train(*manifests, TrainOutputs.in_dir(tmp_path / "part"), _settings(3))["epochs_run"] == 0
 
     with pytest.raises(ConfigError, match="other settings"):
-        train(*manifests, TrainOutputs.in_dir(tmp_path / "part"), TrainSettings(**{**_settings(3).__dict__, "lr": 5e-4}))
+        train(
+            *manifests, TrainOutputs.in_dir(tmp_path / "part"), TrainSettings(**{**_settings(3).__dict__, "lr": 5e-4})
+        )
 
     model = load_model(full["best"])
     depth = 1.0 + torch.rand(2, 1, 30, 34)
@@ -305,8 +317,9 @@ def test_train_resumes_from_its_resume_folder_when_the_outputs_are_gone(manifest
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert torch.load(out.best, weights_only=False)["best_epoch"] == full["best_epoch"]
     # the loss log of the epochs before the kill came back from the resume state
-    pd.testing.assert_frame_equal(pd.read_csv(out.log).drop(columns="seconds"),
-                                  pd.read_csv(full["log"]).drop(columns="seconds"))
+    pd.testing.assert_frame_equal(
+        pd.read_csv(out.log).drop(columns="seconds"), pd.read_csv(full["log"]).drop(columns="seconds")
+    )
     # resume state of other settings is not an error here: training starts anew
     other = train(*manifests, out, TrainSettings(**{**_settings(1).__dict__, "lr": 5e-4}))
     assert other["epochs_run"] == 1

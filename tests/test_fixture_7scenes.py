@@ -8,8 +8,8 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
-
 from conftest import make_workdir, snakemake
+
 from depthgt.gt import store
 
 FIXTURE = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
@@ -66,7 +66,9 @@ def test_real_frame_sets_stored_compactly_and_read_back(kitchen):
     rec = store.read_frameset_at(loc)
     with store.frameset_files(loc) as d, OpenEXR.File(str(d / "input.exr")) as f:
         assert json.loads(f.header()[io.FIXED_POINT_ATTRIBUTE]) == {"Z": 1000}  # 7-Scenes depth: millimetres
-    np.testing.assert_array_equal(rec.input_m, np.round(rec.input_m.astype(np.float64) * 1000).astype(np.float32) / 1000)
+    np.testing.assert_array_equal(
+        rec.input_m, np.round(rec.input_m.astype(np.float64) * 1000).astype(np.float32) / 1000
+    )
     z_units = rec.gt_m.astype(np.float64) * store.GT_UNITS["Z"]
     assert np.array_equal(z_units, np.round(z_units)) and (rec.gt_m > 0).mean() > 0.9
     p = rec.patches

@@ -14,17 +14,22 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-
 from conftest import make_workdir, snakemake
+
 from depthgt.errors import FrameError
 from depthgt.gt import store
 from depthgt.jobs.common import open_source_scene
 from depthgt.sources import synthetic
 
 SYN = {"name": "syn", "kind": "synthetic", "split": "train", "options": {"n_frames": 16, "width": 80, "height": 60}}
-SMALL = {"seed": 1, "device": "cpu", "resize": 32, "sources": [dict(SYN, scenes=["room_000"])],
-         "frameset": {"neighbours": 1, "stride": 1, "target_step": 1, "batch_size": 4},
-         "patches": {"count": 1, "size": 16, "max_missing": 1.0}}
+SMALL = {
+    "seed": 1,
+    "device": "cpu",
+    "resize": 32,
+    "sources": [dict(SYN, scenes=["room_000"])],
+    "frameset": {"neighbours": 1, "stride": 1, "target_step": 1, "batch_size": 4},
+    "patches": {"count": 1, "size": 16, "max_missing": 1.0},
+}
 
 
 def test_the_index_reads_no_frame(tmp_path, monkeypatch):
@@ -41,8 +46,9 @@ def test_the_index_reads_no_frame(tmp_path, monkeypatch):
     monkeypatch.setattr(synthetic.SyntheticScene, "read", no_read)
     monkeypatch.setattr(synthetic, "generate_layout", no_room)
     monkeypatch.setattr(synthetic, "make_path", no_room)
-    run_scene_index(dict(SYN, scenes=["room_000"]), "room_000", SMALL, str(tmp_path / "index.parquet"),
-                    str(tmp_path / "index.json"))
+    run_scene_index(
+        dict(SYN, scenes=["room_000"]), "room_000", SMALL, str(tmp_path / "index.parquet"), str(tmp_path / "index.json")
+    )
     table = pd.read_parquet(tmp_path / "index.parquet")
     meta = json.loads((tmp_path / "index.json").read_text())
     assert list(table["frame_id"]) == [f"{i:06d}" for i in range(16)]
@@ -76,8 +82,9 @@ def test_a_batch_reads_each_frame_once(tmp_path, monkeypatch):
 def _export_scannet(root, n_frames=12):
     """A ScanNet exported folder (color/N.jpg, depth/N.png in mm, pose/N.txt) holding
     the frames of a small synthetic room; returns the scene folder."""
-    syn = open_source_scene({"kind": "synthetic", "options": {"n_frames": n_frames, "width": 80, "height": 60}},
-                            "room_000")
+    syn = open_source_scene(
+        {"kind": "synthetic", "options": {"n_frames": n_frames, "width": 80, "height": 60}}, "room_000"
+    )
     scene = root / "scene0000_00"
     for sub in ("color", "depth", "pose", "intrinsic"):
         (scene / sub).mkdir(parents=True)
@@ -101,8 +108,12 @@ def test_a_bad_frame_found_by_the_batches_is_recorded(tmp_path):
     jpg = scene / "color" / "5.jpg"
     jpg.write_bytes(jpg.read_bytes()[:-200])
     np.savetxt(scene / "pose" / "8.txt", np.full((4, 4), np.nan))
-    config = dict(SMALL, sources=[{"name": "scan", "kind": "scannet", "root": str(scene.parent),
-                                   "scenes": ["scene0000_00"], "split": "train"}])
+    config = dict(
+        SMALL,
+        sources=[
+            {"name": "scan", "kind": "scannet", "root": str(scene.parent), "scenes": ["scene0000_00"], "split": "train"}
+        ],
+    )
     wd = make_workdir(tmp_path / "wd", config)
     snakemake(wd, "dataset")
 
@@ -131,13 +142,18 @@ def test_a_bad_frame_found_by_the_batches_is_recorded(tmp_path):
 
     summary = json.loads((wd / "results/dataset/summary.json").read_text())
     assert summary["frames_read"] == 12
-    assert [(f["position"], f["frame_id"], f["reason"]) for f in summary["frames_skipped"]] == \
-        [(5, "5", "unreadable"), (8, "8", "nonfinite_pose")]
+    assert [(f["position"], f["frame_id"], f["reason"]) for f in summary["frames_skipped"]] == [
+        (5, "5", "unreadable"),
+        (8, "8", "nonfinite_pose"),
+    ]
     assert [r["target"] for r in summary["framesets_skipped"]] == [4, 5, 6, 7, 8, 9]
     md = (wd / "results/dataset/summary.md").read_text()
     assert "unusable (skipped): 2. Frame sets skipped: 6." in md
     # each frame's file or name and problem: in its row of the frames, and in each frame set it made skip
-    assert md.count("color/5.jpg: truncated JPEG") == 1 + 3 and md.count("scene0000_00 frame 8: pose is not a finite") == 1 + 3
+    assert (
+        md.count("color/5.jpg: truncated JPEG") == 1 + 3
+        and md.count("scene0000_00 frame 8: pose is not a finite") == 1 + 3
+    )
 
 
 def test_pretraining_skips_a_frame_set_with_an_unusable_frame(tmp_path, monkeypatch, caplog):
@@ -150,7 +166,9 @@ def test_pretraining_skips_a_frame_set_with_an_unusable_frame(tmp_path, monkeypa
 
     config = dict(SMALL, registration={"method": "overfit", "preset": "fast", "pretrain": {"framesets": 3}})
     index_json = tmp_path / "index.json"
-    run_scene_index(dict(SYN, scenes=["room_000"]), "room_000", config, str(tmp_path / "index.parquet"), str(index_json))
+    run_scene_index(
+        dict(SYN, scenes=["room_000"]), "room_000", config, str(tmp_path / "index.parquet"), str(index_json)
+    )
     candidates = select_pretraining_framesets([str(index_json)], 3, config["seed"])
     assert len(candidates) == 14
     bad_frame = candidates[1][2][0]  # the target of the second drawn set
@@ -175,11 +193,13 @@ def test_pretraining_skips_a_frame_set_with_an_unusable_frame(tmp_path, monkeypa
     with caplog.at_level(logging.WARNING, logger="depthgt"):
         run_pretrain_registration({"syn": SYN}, [str(index_json)], config, str(tmp_path / "encoder.pt"))
     assert (tmp_path / "encoder.pt").exists()
-    assert any("skipped, a frame is unusable" in r.getMessage() and f"frame {bad_frame} unreadable" in r.getMessage()
-               for r in caplog.records)
+    assert any(
+        "skipped, a frame is unusable" in r.getMessage() and f"frame {bad_frame} unreadable" in r.getMessage()
+        for r in caplog.records
+    )
     scene = open_source_scene(dict(SYN), "room_000", need_poses=False)
     assert len(seen) == 3
-    for (_, _, members), (rgb, depth, K, offsets) in zip(usable, seen):
+    for (_, _, members), (rgb, depth, _K, offsets) in zip(usable, seen):
         want = load_frameset(scene, members, (32, 32), need_poses=False, device=torch.device("cpu"))
         assert offsets == [m - members[0] for m in members]
         assert torch.equal(depth, want.depth_m) and torch.equal(rgb, want.rgb)

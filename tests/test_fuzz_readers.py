@@ -40,7 +40,12 @@ def test_fuzzed_and_crafted_inputs_end_in_project_errors_or_recorded_skips(tmp_p
 
     crafted = {r["case"]: r for r in records if r["kind"] == "crafted"}
     accepted = {"sens_grey_colour", "sens_no_imu_block"}
-    recorded = {"sens_lowered_frame_count", "sens_frame_count_2^64-1", "sens_garbage_after_frames", "sens_colour_size_2^63"}
+    recorded = {
+        "sens_lowered_frame_count",
+        "sens_frame_count_2^64-1",
+        "sens_garbage_after_frames",
+        "sens_colour_size_2^63",
+    }
     stopped = {"sens_name_length_2^60", "sens_header_colour_60000x60000"}
     for name, r in crafted.items():
         if name in accepted:
@@ -60,8 +65,13 @@ def test_fuzzed_and_crafted_inputs_end_in_project_errors_or_recorded_skips(tmp_p
 
 def test_fuzzing_is_seeded(tmp_path):
     cases = mutant_cases({"sens": 25, "jpeg": 10}, seed=7)
-    strip = lambda recs: [(r["case"], r["outcome"], r["frame_errors"], re.sub(r"/\S+/work/", "", r["message"]))  # noqa: E731
-                          for r in recs]
+
+    def strip(recs):
+        return [
+            (r["case"], r["outcome"], r["frame_errors"], re.sub(r"/\S+/work/", "", r["message"]))  # noqa: E731
+            for r in recs
+        ]
+
     first = strip(run_fuzz(cases, tmp=tmp_path / "a"))
     assert first == strip(run_fuzz(cases, tmp=tmp_path / "b"))
     assert first != strip(run_fuzz(mutant_cases({"sens": 25, "jpeg": 10}, seed=8), tmp=tmp_path / "c"))

@@ -11,9 +11,9 @@ import pandas as pd
 import pytest
 import torch
 
-from depthgt.jobs.common import open_source_scene
-from depthgt.gt.build import fuse, load_frameset, poses_from_source
 from depthgt.eval.metrics import depth_errors
+from depthgt.gt.build import fuse, load_frameset, poses_from_source
+from depthgt.jobs.common import open_source_scene
 from depthgt.settings import FrameSetSettings, RenderSettings
 
 
@@ -38,7 +38,7 @@ def rendered(framesets):
 
 def test_gt_beats_input_against_truth(framesets, rendered):
     ratios_counted, ratios_valid, completeness = [], [], []
-    for (data, T), out in zip(framesets, rendered):
+    for (data, _T), out in zip(framesets, rendered):
         gt = out.depth[0, 0].numpy()
         inp = data.depth_m[0, 0].numpy()
         truth = data.truth_m[0, 0].numpy()
@@ -76,12 +76,14 @@ def test_leave_target_out_beside_the_gt_is_the_same_render(framesets, members):
     gt = fuse(data, T, st, members=members)
     assert both.left_out is not None and gt.left_out is None
     for a, b in ((both, gt), (both.left_out, alone)):
-        for name in ("depth", "weight_sum", "count", "sigma")[:4 if a is both else 3]:
+        for name in ("depth", "weight_sum", "count", "sigma")[: 4 if a is both else 3]:
             assert torch.equal(getattr(a, name), getattr(b, name)), name
     assert not both.left_out.sigma.any()
     capped = replace(st, max_sigma_m=0.004)  # sigma decides which pixels stay: estimated, and the same
-    c_both, c_alone = (fuse(data, T, capped, members=m, leave_target_out=lto) for m, lto in
-                       ((members, True), (slice(1, None) if isinstance(members, slice) else members[1:], False)))
+    c_both, c_alone = (
+        fuse(data, T, capped, members=m, leave_target_out=lto)
+        for m, lto in ((members, True), (slice(1, None) if isinstance(members, slice) else members[1:], False))
+    )
     for name in ("depth", "sigma"):
         assert torch.equal(getattr(c_both.left_out, name), getattr(c_alone, name)), name
     assert c_both.left_out.sigma.any() and (c_both.left_out.depth > 0).sum() < (both.left_out.depth > 0).sum()
@@ -100,7 +102,7 @@ def test_confidence_tracks_actual_error(framesets, rendered):
     """sigma (gt.exr channel S) against the known truth: larger where the GT is worse,
     about calibrated, and leaving out the least certain pixels cuts the error."""
     errs, sigmas = [], []
-    for (data, T), out in zip(framesets, rendered):
+    for (data, _T), out in zip(framesets, rendered):
         gt, sigma = out.depth[0, 0].numpy(), out.sigma[0, 0].numpy()
         truth = data.truth_m[0, 0].numpy()
         m = (gt > 0) & (truth > 0)
@@ -136,15 +138,23 @@ def test_gt_reuses_the_refinements_normals_unchanged(framesets):
     alignment = align(data, list(FrameSetSettings().offsets), settings, seed=0)
     assert alignment.normals is not None and alignment.normals.shape == (7, 3, 256, 256)
     for members in (slice(None), [0, 1, 2, 4, 6]):
-        reused = fuse(data, alignment.T_j_to_t, RenderSettings(), members=members, leave_target_out=True,
-                      normals=alignment.normals)
+        reused = fuse(
+            data,
+            alignment.T_j_to_t,
+            RenderSettings(),
+            members=members,
+            leave_target_out=True,
+            normals=alignment.normals,
+        )
         own = fuse(data, alignment.T_j_to_t, RenderSettings(), members=members, leave_target_out=True)
         for name in ("depth", "weight_sum", "count", "sigma"):
             assert torch.equal(getattr(reused, name), getattr(own, name)), name
         assert torch.equal(reused.left_out.depth, own.left_out.depth)
         # they are what the renderer uses (all members), or ignored (a subset): zero normals
         # (no plane correction) change the GT only where they are used
-        zero = fuse(data, alignment.T_j_to_t, RenderSettings(), members=members, normals=torch.zeros_like(alignment.normals))
+        zero = fuse(
+            data, alignment.T_j_to_t, RenderSettings(), members=members, normals=torch.zeros_like(alignment.normals)
+        )
         assert torch.equal(zero.depth, own.depth) == isinstance(members, list)
     # normals that do not match the depth are not used (a depth other than the raw one)
     other = fuse(data, alignment.T_j_to_t, RenderSettings(), depth_m=data.depth_m * 1.01, normals=alignment.normals)

@@ -164,8 +164,9 @@ def _textured(h=48, w=64):
 def test_declared_size_is_checked_before_decoding(tmp_path, monkeypatch):
     """Headers claiming huge images are rejected from the header alone: the decoder is
     never called (it would allocate w*h*3 bytes first)."""
-    import depthgt.io as io_mod
     from fuzz_harness import jpeg_with_size, png_with_size
+
+    import depthgt.io as io_mod
 
     def no_decode(*a, **k):
         raise AssertionError("decoded")
@@ -207,7 +208,9 @@ def test_truncated_empty_and_mistyped_images(tmp_path):
         assert e.value.reason == "unreadable" and name in str(e.value), name
     # JPEG padded with zeros after its end marker and 8-bit grey are fine
     (tmp_path / "pad.jpg").write_bytes(jpg + b"\x00" * 7)
-    np.testing.assert_array_equal(read_rgb(tmp_path / "pad.jpg"), cv2.cvtColor(cv2.imdecode(np.frombuffer(jpg, np.uint8), 1), cv2.COLOR_BGR2RGB))
+    np.testing.assert_array_equal(
+        read_rgb(tmp_path / "pad.jpg"), cv2.cvtColor(cv2.imdecode(np.frombuffer(jpg, np.uint8), 1), cv2.COLOR_BGR2RGB)
+    )
     (tmp_path / "grey.png").write_bytes(_enc(rgb[..., 1], ".png"))
     np.testing.assert_array_equal(read_rgb(tmp_path / "grey.png"), np.repeat(rgb[..., 1:2], 3, axis=2))
     # depth: truncated, 8-bit and JPEG are unreadable
@@ -223,8 +226,12 @@ def test_save_npz_round_trip_at_exactly_the_path(tmp_path):
     ``.npz``; deflated (smaller than the arrays), with no time of writing in the bytes."""
     from depthgt.atomic import save_npz
 
-    arrays = {"gt": np.linspace(0.5, 4.0, 2 * 128 * 128, dtype=np.float32).reshape(2, 128, 128),
-              "rgb": np.full((2, 8, 8, 3), 7, np.uint8), "kept": np.array([True, False]), "boxes": np.arange(8).reshape(2, 4)}
+    arrays = {
+        "gt": np.linspace(0.5, 4.0, 2 * 128 * 128, dtype=np.float32).reshape(2, 128, 128),
+        "rgb": np.full((2, 8, 8, 3), 7, np.uint8),
+        "kept": np.array([True, False]),
+        "boxes": np.arange(8).reshape(2, 4),
+    }
     path = tmp_path / "patches.tmp"
     save_npz(path, arrays)
     with np.load(path) as z:
@@ -233,5 +240,6 @@ def test_save_npz_round_trip_at_exactly_the_path(tmp_path):
             assert z[name].dtype == value.dtype and np.array_equal(z[name], value)
     assert path.stat().st_size < sum(a.nbytes for a in arrays.values()) / 2
     import zipfile
+
     with zipfile.ZipFile(path) as zf:  # no time of writing in the bytes
         assert {m.date_time for m in zf.infolist()} == {(1980, 1, 1, 0, 0, 0)}

@@ -129,7 +129,7 @@ def cycle(edges) -> list[str] | None:
         path.append(u)
         for v in sorted(graph.get(u, ())):
             if state.get(v) == 1:
-                return path[path.index(v):] + [v]
+                return path[path.index(v) :] + [v]
             if v not in state and (found := visit(v)):
                 return found
         path.pop()
@@ -155,9 +155,11 @@ def test_every_module_has_a_layer():
 def test_stages_import_downwards_only():
     found = upward(all_edges())
     new = {edge: where for edge, where in found.items() if edge not in KNOWN_VIOLATIONS}
-    assert not new, "upward imports (DESIGN.md \"Layers\"; move the shared part to a leaf below both):\n" + "\n".join(
+    assert not new, 'upward imports (DESIGN.md "Layers"; move the shared part to a leaf below both):\n' + "\n".join(
         f"{', '.join(where)}: {src} ({LAYERS[layer_of(unit_of(src))][0]}) imports {dst} "
-        f"({LAYERS[layer_of(unit_of(dst))][0]})" for (src, dst), where in sorted(new.items()))
+        f"({LAYERS[layer_of(unit_of(dst))][0]})"
+        for (src, dst), where in sorted(new.items())
+    )
 
 
 def test_known_violations_are_still_there():

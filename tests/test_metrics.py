@@ -147,7 +147,9 @@ def test_pose_errors_hand_computed():
     batch = np.stack([T_est, T_ref])
     r, t = pose_errors(torch.from_numpy(batch), np.stack([T_ref, T_ref]))  # torch in, unpacks as a pair
     assert r.shape == (2,) and r[1] == pytest.approx(0.0, abs=1e-6)
-    assert pose_errors(batch, np.stack([T_ref, T_ref])).mean() == pytest.approx({"rot_err_deg": 15.0, "trans_err_cm": 1.5})
+    assert pose_errors(batch, np.stack([T_ref, T_ref])).mean() == pytest.approx(
+        {"rot_err_deg": 15.0, "trans_err_cm": 1.5}
+    )
     dt, dr = pose_delta(_pose(90.0, [0.0, 3.0, 4.0]))
     assert float(dt) == pytest.approx(5.0) and float(dr) == pytest.approx(90.0)
     with pytest.raises(ValueError, match="4, 4"):

@@ -11,7 +11,7 @@ def test_crop_matches_slicing():
     boxes = np.array([[0, 0, 5, 5], [15, 25, 5, 5], [3, 7, 5, 5]])
     out = crop(img, boxes)
     for b, p in zip(boxes, out):
-        np.testing.assert_array_equal(p, img[b[0]:b[0] + 5, b[1]:b[1] + 5])
+        np.testing.assert_array_equal(p, img[b[0] : b[0] + 5, b[1] : b[1] + 5])
 
 
 def test_boxes_inside_and_deterministic():
@@ -29,24 +29,28 @@ def test_missing_filter(filter_on):
     h = w = 64
     gt = np.ones((h, w), np.float32)
     inp = np.ones((h, w), np.float32)
-    gt[:, :32] = 0          # left half of GT missing
-    inp[:32, :] = 0         # top half of input missing
+    gt[:, :32] = 0  # left half of GT missing
+    inp[:32, :] = 0  # top half of input missing
     rgb = np.zeros((h, w, 3), np.uint8)
     s = PatchSettings(count=200, size=16, max_missing=0.05, filter_on=filter_on)
     out = make_patches(inp, gt, rgb, s, np.random.default_rng(0), truth_m=gt)
     assert len(out["kept"]) == 200 and out["kept"].sum() == len(out["gt"]) == len(out["truth"])
     # the recorded ratios are those of the images at the drawn boxes ...
     for key, img in (("all_missing_gt", gt), ("all_missing_input", inp)):
-        direct = [(img[y:y + 16, x:x + 16] <= 0).mean() for y, x, _, _ in out["all_boxes"]]
+        direct = [(img[y : y + 16, x : x + 16] <= 0).mean() for y, x, _, _ in out["all_boxes"]]
         np.testing.assert_allclose(out[key], direct)
     # ... and the kept crops are exactly those whose decisive ratios are all below the bound
-    decisive = {"gt": ["all_missing_gt"], "input": ["all_missing_input"], "both": ["all_missing_gt", "all_missing_input"]}
+    decisive = {
+        "gt": ["all_missing_gt"],
+        "input": ["all_missing_input"],
+        "both": ["all_missing_gt", "all_missing_input"],
+    }
     expected = np.logical_and.reduce([out[k] < 0.05 for k in decisive[filter_on]])
     np.testing.assert_array_equal(out["kept"], expected)
     assert 0 < out["kept"].sum() < 200  # the half-missing images reject some crops and keep others
     # crops are the right pixels
     for p, b in zip(out["gt"], out["boxes"]):
-        np.testing.assert_array_equal(p, gt[b[0]:b[0] + 16, b[1]:b[1] + 16])
+        np.testing.assert_array_equal(p, gt[b[0] : b[0] + 16, b[1] : b[1] + 16])
 
 
 def test_settings_validation():

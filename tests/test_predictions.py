@@ -40,8 +40,16 @@ def build(tmp_path):
         io.write_exr(tmp_path / loc / "input.exr", {"Z": noisy, "T": truth})
         io.write_exr(tmp_path / loc / "gt.exr", {"Z": gt})
         io.write_rgb_png(tmp_path / loc / "rgb.png", rgb)
-        rows.append({"dataset": "syn", "scene": "room", "target": i, "frameset": loc, "status": "ok",
-                     "split": "test" if i < 6 else "train"})
+        rows.append(
+            {
+                "dataset": "syn",
+                "scene": "room",
+                "target": i,
+                "frameset": loc,
+                "status": "ok",
+                "split": "test" if i < 6 else "train",
+            }
+        )
     (tmp_path / "results/dataset").mkdir(parents=True)
     pd.DataFrame(rows).to_parquet(tmp_path / "results/dataset/framesets.parquet")
     return tmp_path
@@ -60,8 +68,9 @@ def test_a_folder_of_predictions_reproduces_the_workflow_tables(build, tmp_path,
         io.write_exr(out, {"Y": np.load(npy)})
     assert len(list(pred_dir.rglob("*.exr"))) == 6  # the test frames only
     compare = [ev[ev["method"] == m] for m in ("input", "lapden")]
-    written = predictions.evaluate_folder(pred_dir, tmp_path / "out", predictions.frames_from_results(build),
-                                          method="mine", compare=compare)
+    written = predictions.evaluate_folder(
+        pred_dir, tmp_path / "out", predictions.frames_from_results(build), method="mine", compare=compare
+    )
     mine = pd.read_csv(written["table3"].with_suffix(".csv")).set_index("method")
     assert list(mine.index) == ["Input (raw depth)", "LapDEN (depthgt GT)", "mine"]
     cols = [c for c in t3.columns if c != "dataset"]
@@ -102,8 +111,9 @@ def test_the_command_and_bad_prediction_folders(build, tmp_path, capsys):
     io.write_exr(pred / "syn" / "room" / "000003.exr", {"Y": np.ones((16, 32), np.float32)})
     with pytest.raises(DepthGTError, match=r"000003.exr: prediction of shape \(16, 32\), the test frame is \(32, 32\)"):
         predictions.score_predictions(pred, predictions.frames_from_results(build), "p")
-    io.write_exr(pred / "syn" / "room" / "000003.exr", {"R": np.ones((32, 32), np.float32),
-                                                        "G": np.ones((32, 32), np.float32)})
+    io.write_exr(
+        pred / "syn" / "room" / "000003.exr", {"R": np.ones((32, 32), np.float32), "G": np.ones((32, 32), np.float32)}
+    )
     with pytest.raises(DepthGTError, match="one depth channel 'Y'"):
         predictions.score_predictions(pred, predictions.frames_from_results(build), "p")
     (pred / "syn" / "room" / "000003.png").write_bytes(b"")

@@ -15,7 +15,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from conftest import REPO, digest_outputs, make_workdir
 
 # two scenes, three frame sets: the smallest build with a train and a test split
@@ -23,10 +22,20 @@ SMALL = {
     "seed": 5,
     "device": "cpu",
     "sources": [
-        {"name": "syn", "kind": "synthetic", "scenes": ["room_000"], "split": "train",
-         "options": {"n_frames": 14, "width": 320, "height": 240}},
-        {"name": "syntest", "kind": "synthetic", "scenes": ["room_003"], "split": "test",
-         "options": {"n_frames": 13, "width": 320, "height": 240}},
+        {
+            "name": "syn",
+            "kind": "synthetic",
+            "scenes": ["room_000"],
+            "split": "train",
+            "options": {"n_frames": 14, "width": 320, "height": 240},
+        },
+        {
+            "name": "syntest",
+            "kind": "synthetic",
+            "scenes": ["room_003"],
+            "split": "test",
+            "options": {"n_frames": 13, "width": 320, "height": 240},
+        },
     ],
     "frameset": {"neighbours": 3, "stride": 2, "target_step": 1},
     "resize": 128,
@@ -85,8 +94,14 @@ def test_one_run_per_directory_and_kill9_then_same_command_finishes(tmp_path):
 
     wd = make_workdir(tmp_path / "killed", SMALL)
     hold = tmp_path / "hold"
-    proc = subprocess.Popen(plain_command(wd, "dataset"), cwd=tmp_path, env=hold_env(hold), stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = subprocess.Popen(
+        plain_command(wd, "dataset"),
+        cwd=tmp_path,
+        env=hold_env(hold),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     try:
         # the first job waits at its start until the build is killed: a job is running
         wait_held(hold, proc)
@@ -97,8 +112,12 @@ def test_one_run_per_directory_and_kill9_then_same_command_finishes(tmp_path):
         assert second.returncode != 0
         assert "another run is using this working directory" in second.stderr
         assert f"PID {proc.pid} on {lock['host']}, started {lock['started']}" in second.stderr
-        cli = subprocess.run([sys.executable, "-m", "depthgt.cli", "build", "-d", str(wd), "dataset"],
-                             capture_output=True, text=True, cwd=tmp_path)
+        cli = subprocess.run(
+            [sys.executable, "-m", "depthgt.cli", "build", "-d", str(wd), "dataset"],
+            capture_output=True,
+            text=True,
+            cwd=tmp_path,
+        )
         assert cli.returncode == 2 and f"PID {proc.pid}" in cli.stderr, cli.stderr[-2000:]
         # a dry run neither takes nor is refused by the lock
         dry = run(plain_command(wd, "dataset", "-n"), cwd=tmp_path)

@@ -16,8 +16,13 @@ import torch
 from depthgt.eval.evaluate import evaluate_frames
 from depthgt.gt.build import FrameSetOutputs, fuse, load_frameset, process_frameset
 from depthgt.gt.cache import ResizedScene
-from depthgt.gt.references import (fused_neighbours, neighbours_only_render, read_reference_table, reference_key,
-                                   scene_references)
+from depthgt.gt.references import (
+    fused_neighbours,
+    neighbours_only_render,
+    read_reference_table,
+    reference_key,
+    scene_references,
+)
 from depthgt.jobs.common import open_source_scene
 from depthgt.metric_vocabulary import depth_errors
 from depthgt.settings import FrameSetSettings, settings_from_config
@@ -33,8 +38,9 @@ def built(tmp_path_factory):
     poses are not the source's), its settings and the scene at the working resolution."""
     torch.set_num_threads(2)
     settings = settings_from_config({"device": "cpu", "registration": {"method": "refine"}})
-    scene = ResizedScene(open_source_scene({"kind": "sevenscenes", "root": str(FIXTURE)}, "7scenes-kitchen"),
-                         settings.size_hw, keep=16)
+    scene = ResizedScene(
+        open_source_scene({"kind": "sevenscenes", "root": str(FIXTURE)}, "7scenes-kitchen"), settings.size_hw, keep=16
+    )
     members = [TARGET + o for o in FrameSetSettings().offsets]
     out = tmp_path_factory.mktemp("fs") / f"{TARGET:06d}"
     doc = process_frameset(scene, "kitchen", TARGET, members, "test", FrameSetOutputs.in_dir(out), settings)
@@ -81,10 +87,26 @@ def test_scene_references_and_their_scoring(built, tmp_path):
     from depthgt.io import read_exr, write_exr
 
     write_exr(rde / "gt.exr", {"Z": tsdf})
-    fs = pd.DataFrame([{"dataset": "kitchen", "scene": "7scenes-kitchen", "target": TARGET, "split": "test",
-                        "status": "ok", "frameset": str(out)},
-                       {"dataset": "kitchen", "scene": "7scenes-kitchen", "target": TARGET + 2, "split": "train",
-                        "status": "ok", "frameset": "not/evaluated"}])
+    fs = pd.DataFrame(
+        [
+            {
+                "dataset": "kitchen",
+                "scene": "7scenes-kitchen",
+                "target": TARGET,
+                "split": "test",
+                "status": "ok",
+                "frameset": str(out),
+            },
+            {
+                "dataset": "kitchen",
+                "scene": "7scenes-kitchen",
+                "target": TARGET + 2,
+                "split": "train",
+                "status": "ok",
+                "frameset": "not/evaluated",
+            },
+        ]
+    )
     rde_fs = pd.DataFrame([{"frameset": str(out), "status": "ok", "rde": str(rde)}])
     npz = tmp_path / "refs" / "references.npz"
     table = scene_references(scene, fs, rde_fs, settings.render, settings.size_hw, "test", npz)
@@ -95,8 +117,9 @@ def test_scene_references_and_their_scoring(built, tmp_path):
         neighbours = z[reference_key(TARGET, "neighbours")]
     table.to_parquet(tmp_path / "refs.parquet")
     files = read_reference_table([tmp_path / "refs.parquet"])
-    ev = evaluate_frames(fs, {"input": {"image": "input"}}, references=("gt", "neighbours", "tsdf"), split="test",
-                         reference_files=files)
+    ev = evaluate_frames(
+        fs, {"input": {"image": "input"}}, references=("gt", "neighbours", "tsdf"), split="test", reference_files=files
+    )
     assert set(ev["reference"]) == {"gt", "neighbours", "tsdf"}
     got = ev[(ev["reference"] == "neighbours")].set_index("metric")["value"]
     inp = read_exr(out / "input.exr")["Z"]

@@ -18,7 +18,15 @@ import torch
 from kornia.geometry.liegroup import Se3
 
 from depthgt.registration.refine import (
-    Level, LevelSettings, _assemble, _residuals, _robust, adjoint, frame_pairs, normal_system)
+    Level,
+    LevelSettings,
+    _assemble,
+    _residuals,
+    _robust,
+    adjoint,
+    frame_pairs,
+    normal_system,
+)
 
 H = W = 32
 K = torch.tensor([[30.0, 0.0, 15.5], [0.0, 32.0, 16.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
@@ -29,8 +37,14 @@ def _hat(xi: torch.Tensor) -> torch.Tensor:
     """4x4 matrix of a twist (v, w): the oracle's own exponential map is torch's matrix_exp."""
     v, w = xi[:3], xi[3:]
     z = torch.zeros((), dtype=xi.dtype)
-    return torch.stack([torch.stack([z, -w[2], w[1], v[0]]), torch.stack([w[2], z, -w[0], v[1]]),
-                        torch.stack([-w[1], w[0], z, v[2]]), torch.stack([z, z, z, z])])
+    return torch.stack(
+        [
+            torch.stack([z, -w[2], w[1], v[0]]),
+            torch.stack([w[2], z, -w[0], v[1]]),
+            torch.stack([-w[1], w[0], z, v[2]]),
+            torch.stack([z, z, z, z]),
+        ]
+    )
 
 
 def _exp(xi: torch.Tensor) -> torch.Tensor:
@@ -42,8 +56,13 @@ def _pose(xi) -> torch.Tensor:
 
 
 # camera-to-world poses of three frames (frame 0 the target) looking at one tilted plane
-T_WORLD = torch.stack([_pose([0, 0, 0, 0, 0, 0]), _pose([0.04, -0.02, 0.01, 0.02, -0.03, 0.01]),
-                       _pose([-0.03, 0.03, -0.02, -0.01, 0.02, -0.02])])
+T_WORLD = torch.stack(
+    [
+        _pose([0, 0, 0, 0, 0, 0]),
+        _pose([0.04, -0.02, 0.01, 0.02, -0.03, 0.01]),
+        _pose([-0.03, 0.03, -0.02, -0.01, 0.02, -0.02]),
+    ]
+)
 PLANE_N = torch.tensor([0.15, -0.2, 1.0], dtype=torch.float64)
 PLANE_N = PLANE_N / PLANE_N.norm()
 PLANE_D = 1.6  # n . X = d in the world (metres)
@@ -78,8 +97,9 @@ def _true_T_ab(pairs: torch.Tensor) -> torch.Tensor:
 def _start(pairs: torch.Tensor) -> torch.Tensor:
     """Relative poses near the truth (residuals not zero): a small left perturbation."""
     g = torch.Generator().manual_seed(3)
-    xi = (torch.rand(len(pairs), 6, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([0.01] * 3 + [0.005] * 3,
-                                                                                           dtype=torch.float64)
+    xi = (torch.rand(len(pairs), 6, generator=g, dtype=torch.float64) - 0.5) * torch.tensor(
+        [0.01] * 3 + [0.005] * 3, dtype=torch.float64
+    )
     return torch.stack([_exp(x) for x in xi]) @ _true_T_ab(pairs)
 
 
@@ -93,8 +113,14 @@ def _interior(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, margin: flo
     return (u > margin) & (u < W - 1 - margin) & (v > margin) & (v < H - 1 - margin)
 
 
-def _fd_jacobian(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: LevelSettings, gate: float,
-                 scale: torch.Tensor | float = 1.0) -> torch.Tensor:
+def _fd_jacobian(
+    level: Level,
+    T_ab: torch.Tensor,
+    pairs: torch.Tensor,
+    s: LevelSettings,
+    gate: float,
+    scale: torch.Tensor | float = 1.0,
+) -> torch.Tensor:
     """(P, 6, M) central differences of the residuals w.r.t. a left twist of each T_ab;
     ``scale`` multiplies the unscaled geometric residual (held fixed, as the IRLS does)."""
     cols = []
@@ -105,7 +131,10 @@ def _fd_jacobian(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: Level
         if s.photo_weight > 0:
             rp, rm = _residuals(level, plus, pairs, s, gate)[0], _residuals(level, minus, pairs, s, gate)[0]
         else:  # the unscaled point-to-plane residual, times its scale held fixed
-            rp, rm = _residuals(level, plus, pairs, s, gate)[4] * scale, _residuals(level, minus, pairs, s, gate)[4] * scale
+            rp, rm = (
+                _residuals(level, plus, pairs, s, gate)[4] * scale,
+                _residuals(level, minus, pairs, s, gate)[4] * scale,
+            )
         cols.append((rp - rm) / (2 * STEP))
     return torch.stack(cols, 1)
 
@@ -180,11 +209,18 @@ def test_joint_normal_system_matches_finite_differences(level, photo_weight):
     n_frames = 3
     pairs = frame_pairs(n_frames, "all")
     g_ = torch.Generator().manual_seed(5)
-    T = torch.stack([torch.eye(4, dtype=torch.float64)]
-                    + [_exp((torch.rand(6, generator=g_, dtype=torch.float64) - 0.5) * 0.01)
-                       @ torch.linalg.inv(T_WORLD[0]) @ T_WORLD[f] for f in range(1, n_frames)])
+    T = torch.stack(
+        [torch.eye(4, dtype=torch.float64)]
+        + [
+            _exp((torch.rand(6, generator=g_, dtype=torch.float64) - 0.5) * 0.01)
+            @ torch.linalg.inv(T_WORLD[0])
+            @ T_WORLD[f]
+            for f in range(1, n_frames)
+        ]
+    )
     s = LevelSettings(geo_scale_m=0.01, photo_scale=0.03, photo_weight=photo_weight, robust="huber")
     gate = 0.05
+
     def residuals(T_frames):
         T_ab = torch.linalg.inv(T_frames[pairs[:, 0]]) @ T_frames[pairs[:, 1]]
         return _residuals(level, T_ab, pairs, s, gate)

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
+from depthgt.eval.metrics import pose_errors
 from depthgt.registration.correspondences import find_correspondences, sample_candidates
 from depthgt.registration.encoder import build_encoder, candidate_points
-from depthgt.eval.metrics import pose_errors
 from depthgt.registration.overfit import encode_at, register_frameset
 from depthgt.registration.procrustes import procrustes_random_subsets, weighted_procrustes
 from depthgt.registration.refine import adjoint, refine_poses
@@ -24,6 +24,7 @@ SEVEN = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
 
 
 # ----------------------------------------------------------------------------- helpers
+
 
 def _raycast_room(T_world_cam: np.ndarray, K: np.ndarray, hw, textured=True, flat=False):
     """Depth (H, W) and colour (H, W, 3) of a textured box room with a cube inside
@@ -48,9 +49,14 @@ def _raycast_room(T_world_cam: np.ndarray, K: np.ndarray, hw, textured=True, fla
     X = o + t[..., None] * d
     depth = (t * (d @ T_world_cam[:3, 2])).astype(np.float32)  # z in the camera
     if textured:
-        rgb = np.stack([0.5 + 0.2 * np.sin(5 * X[..., 0] + 3 * X[..., 2]) + 0.15 * np.sin(11 * X[..., 1] + 7 * X[..., 2]),
-                        0.5 + 0.2 * np.sin(7 * X[..., 1] - 4 * X[..., 0]) + 0.15 * np.cos(13 * X[..., 2] + 5 * X[..., 0]),
-                        0.5 + 0.25 * np.cos(6 * X[..., 2] + 9 * X[..., 1] - 2 * X[..., 0])], -1)
+        rgb = np.stack(
+            [
+                0.5 + 0.2 * np.sin(5 * X[..., 0] + 3 * X[..., 2]) + 0.15 * np.sin(11 * X[..., 1] + 7 * X[..., 2]),
+                0.5 + 0.2 * np.sin(7 * X[..., 1] - 4 * X[..., 0]) + 0.15 * np.cos(13 * X[..., 2] + 5 * X[..., 0]),
+                0.5 + 0.25 * np.cos(6 * X[..., 2] + 9 * X[..., 1] - 2 * X[..., 0]),
+            ],
+            -1,
+        )
     else:
         rgb = np.full(depth.shape + (3,), 0.6)
     return depth, np.clip(rgb, 0, 1).astype(np.float32)
@@ -66,8 +72,9 @@ def _rot(axis_angle):
     return np.eye(3) + math.sin(th) * Kx + (1 - math.cos(th)) * Kx @ Kx
 
 
-def _frameset(offsets, hw=(64, 64), flat=False, textured=True, step_t=0.02, step_deg=1.0, noise_m=0.0, seed=0,
-              holes=0.0):
+def _frameset(
+    offsets, hw=(64, 64), flat=False, textured=True, step_t=0.02, step_deg=1.0, noise_m=0.0, seed=0, holes=0.0
+):
     """Synthetic frame set on a smooth trajectory (``holes``: share of depth pixels
     dropped at random, like a sensor's); returns rgb, depth, K, true T_j_to_t."""
     K = np.array([[0.9 * hw[1], 0, hw[1] / 2 - 0.5], [0, 0.9 * hw[1], hw[0] / 2 - 0.5], [0, 0, 1.0]])
@@ -82,7 +89,7 @@ def _frameset(offsets, hw=(64, 64), flat=False, textured=True, step_t=0.02, step
     for o in offsets:
         dep, col = _raycast_room(poses[o], K, hw, textured=textured, flat=flat)
         if noise_m:
-            dep = dep + rng.normal(0, noise_m, dep.shape).astype(np.float32) * dep ** 2
+            dep = dep + rng.normal(0, noise_m, dep.shape).astype(np.float32) * dep**2
         if holes:
             dep[rng.random(dep.shape) < holes] = 0
         rgbs.append(col)
@@ -193,10 +200,24 @@ def test_grouped_sampling_equals_one_map_per_pair():
     g = torch.Generator().manual_seed(0)
     maps = torch.rand(7, 7, 32, 40, generator=g)
     grid = torch.rand(42, 300, 2, generator=g) * 2.4 - 1.2  # some beyond the border: zeros
-    for a in (torch.arange(7).repeat_interleave(6), torch.arange(7).repeat(6), torch.tensor([0] * 6 + [1] * 3 + [3] * 3)):
+    for a in (
+        torch.arange(7).repeat_interleave(6),
+        torch.arange(7).repeat(6),
+        torch.tensor([0] * 6 + [1] * 3 + [3] * 3),
+    ):
         gr = grid[: len(a)]
-        one_by_one = torch.cat([F.grid_sample(maps[int(a[p])][None], gr[p][None, :, None], mode="bilinear",
-                                              padding_mode="zeros", align_corners=False)[..., 0] for p in range(len(a))])
+        one_by_one = torch.cat(
+            [
+                F.grid_sample(
+                    maps[int(a[p])][None],
+                    gr[p][None, :, None],
+                    mode="bilinear",
+                    padding_mode="zeros",
+                    align_corners=False,
+                )[..., 0]
+                for p in range(len(a))
+            ]
+        )
         assert torch.equal(_sample_grouped(maps, gr, a), one_by_one)
 
 
@@ -229,8 +250,16 @@ def test_refinement_recovers_poses_from_a_perturbed_start():
     for j in range(1, 4):
         T0[j] = _random_T(gen, 1.5, 0.015) @ T0[j]
     r0, t0 = pose_errors(T0[1:], T_true)
-    res = refine_poses(rgb, depth, K, T0, RefineSettings(scales=(2, 1), iters=(10, 10), point_stride=(1, 1),
-                                                         max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)), offsets)
+    res = refine_poses(
+        rgb,
+        depth,
+        K,
+        T0,
+        RefineSettings(
+            scales=(2, 1), iters=(10, 10), point_stride=(1, 1), max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)
+        ),
+        offsets,
+    )
     r1, t1 = pose_errors(res.T_f_to_t[1:], T_true)
     # 1.5 mm, not 0.5: at 64x64 the minimum of the robust cost of this scene lies ~1 mm
     # from the truth (bilinear intensity of a fine texture; the x translation is weakly
@@ -253,8 +282,16 @@ def test_refinement_leaves_the_identity_start_with_sensor_holes():
     T0 = torch.eye(4, dtype=torch.float64).repeat(len(offsets), 1, 1)
     r0, t0 = pose_errors(T0[1:], T_true)
     assert r0.max() > 2.0 and t0.max() > 2.0  # a real offset to recover
-    res = refine_poses(rgb, depth, K, T0, RefineSettings(scales=(2, 1), iters=(10, 6), point_stride=(1, 1),
-                                                         max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)), offsets)
+    res = refine_poses(
+        rgb,
+        depth,
+        K,
+        T0,
+        RefineSettings(
+            scales=(2, 1), iters=(10, 6), point_stride=(1, 1), max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)
+        ),
+        offsets,
+    )
     r1, t1 = pose_errors(res.T_f_to_t[1:], T_true)
     assert r1.max() < 0.2 and t1.max() < 0.8, (r1, t1)
     assert np.all(r1 < 0.1 * r0) and np.all(t1 < 0.5 * t0), (r0, r1, t0, t1)
@@ -303,8 +340,15 @@ def test_high_residual_neighbours_are_flagged_not_kept():
     offsets = [0, -2, 2]
     rgb, depth, K, _ = _frameset(offsets, hw=(48, 48))
     # a bound below any real residual: every neighbour must fail with the reason named
-    s = RegistrationSettings(**FAST_TEST, iterations=0, max_residual_m=1e-6, max_residual_sigmas=1e-6, refine_settings=RefineSettings(
-        scales=(1,), iters=(3,), point_stride=(1,), max_dist_m=(0.05,), geo_scale_m=(0.005,)))
+    s = RegistrationSettings(
+        **FAST_TEST,
+        iterations=0,
+        max_residual_m=1e-6,
+        max_residual_sigmas=1e-6,
+        refine_settings=RefineSettings(
+            scales=(1,), iters=(3,), point_stride=(1,), max_dist_m=(0.05,), geo_scale_m=(0.005,)
+        ),
+    )
     res = register_frameset(rgb, depth, K, offsets, s, seed=0)
     assert res.status == "failed" and res.neighbour_status == ["failed", "failed"]
     assert all("high_residual" in r for r in res.neighbour_reasons), res.neighbour_reasons
@@ -381,8 +425,13 @@ def test_full_pipeline_reaches_millimetre_accuracy_and_writes_json():
 
     offsets = [0, -4, -2, 2, 4]
     rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64), step_t=0.01, step_deg=0.7)
-    s = RegistrationSettings(**FAST_TEST, iterations=3, refine_settings=RefineSettings(
-        scales=(2, 1), iters=(10, 8), point_stride=(1, 1), max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)))
+    s = RegistrationSettings(
+        **FAST_TEST,
+        iterations=3,
+        refine_settings=RefineSettings(
+            scales=(2, 1), iters=(10, 8), point_stride=(1, 1), max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)
+        ),
+    )
     res = register_frameset(rgb, depth, K, offsets, s, seed=0)
     r, t = pose_errors(res.T_j_to_t, T_true)
     assert np.median(r) < 0.05 and np.median(t) < 0.1, (r, t, res.neighbour_reasons)
@@ -409,8 +458,13 @@ def test_pretrained_encoder_state_changes_and_loads():
 def test_textureless_flat_wall_is_flagged():
     offsets = [0, -2, 2]
     rgb, depth, K, _ = _frameset(offsets, hw=(48, 48), flat=True, textured=False)
-    s = RegistrationSettings(**FAST_TEST, iterations=2, refine_settings=RefineSettings(
-        scales=(2, 1), iters=(5, 5), point_stride=(1, 1), max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)))
+    s = RegistrationSettings(
+        **FAST_TEST,
+        iterations=2,
+        refine_settings=RefineSettings(
+            scales=(2, 1), iters=(5, 5), point_stride=(1, 1), max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)
+        ),
+    )
     res = register_frameset(rgb, depth, K, offsets, s, seed=0)
     assert res.status == "failed"
     assert res.neighbour_status == ["failed", "failed"]
@@ -423,7 +477,10 @@ def test_settings_presets_and_bad_inputs():
     assert set(REGISTRATION_PRESETS) >= {"paper", "fast"}
     # a nested override merges with the preset's refinement values
     tuned = registration_settings({"preset": "fast", "refine_settings": {"iters": [4, 4, 2]}})
-    assert tuned.refine_settings.iters == (4, 4, 2) and tuned.refine_settings.point_stride == fast.refine_settings.point_stride
+    assert (
+        tuned.refine_settings.iters == (4, 4, 2)
+        and tuned.refine_settings.point_stride == fast.refine_settings.point_stride
+    )
     from depthgt.errors import ConfigError
 
     with pytest.raises(ConfigError, match="registration.nonsense"):
@@ -447,15 +504,23 @@ def test_real_kinect_frameset_matches_reference_poses():
         stem = SEVEN / f"frame-{target + o:06d}"
         bgr = cv2.imread(str(stem) + ".color.jpg", cv2.IMREAD_COLOR)
         rgbs.append(torch.from_numpy(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)).permute(2, 0, 1).float() / 255)
-        deps.append(torch.from_numpy(cv2.imread(str(stem) + ".depth.png", cv2.IMREAD_UNCHANGED).astype(np.float32))[None] / 1000)
+        deps.append(
+            torch.from_numpy(cv2.imread(str(stem) + ".depth.png", cv2.IMREAD_UNCHANGED).astype(np.float32))[None] / 1000
+        )
         poses.append(np.loadtxt(str(stem) + ".pose.txt"))
     depth = resize_depth_nearest(torch.stack(deps), hw)
     depth[depth > 60] = 0  # 65.535 m marks missing depth in 7-Scenes
     rgb = resize_rgb(torch.stack(rgbs), hw)
     K = torch.from_numpy(scale_intrinsics(np.loadtxt(SEVEN / "camera-intrinsics.txt"), (480, 640), hw)).float()
     T_ref = np.stack([np.linalg.inv(poses[0]) @ p for p in poses[1:]])
-    s = registration_settings({"preset": "fast", "refine_settings": RefineSettings(scales=(2, 1), iters=(8, 5), point_stride=(1, 2),
-                                                             max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005))})
+    s = registration_settings(
+        {
+            "preset": "fast",
+            "refine_settings": RefineSettings(
+                scales=(2, 1), iters=(8, 5), point_stride=(1, 2), max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)
+            ),
+        }
+    )
     res = register_frameset(rgb, depth, K, offsets, s, seed=0)
     r, t = pose_errors(res.T_j_to_t, T_ref)
     # the reference (KinectFusion) itself is good to about 0.1-0.2 deg / 0.3-0.5 cm here
@@ -477,8 +542,18 @@ def test_refine_source_poses_ends_closer_to_the_truth():
     T_given = torch.from_numpy(T_true).clone()
     for j in range(len(T_given)):
         T_given[j] = _random_T(gen, 1.0, 0.015) @ T_given[j]
-    s = registration_settings({"method": "refine", "refine_settings": {
-        "scales": (2, 1), "iters": (10, 10), "point_stride": (1, 1), "max_dist_m": (0.1, 0.05), "geo_scale_m": (0.02, 0.005)}})
+    s = registration_settings(
+        {
+            "method": "refine",
+            "refine_settings": {
+                "scales": (2, 1),
+                "iters": (10, 10),
+                "point_stride": (1, 1),
+                "max_dist_m": (0.1, 0.05),
+                "geo_scale_m": (0.02, 0.005),
+            },
+        }
+    )
     res = refine_source_poses(rgb, depth, K, offsets, T_given, s)
     r0, t0 = pose_errors(T_given, T_true)
     r1, t1 = pose_errors(res.T_j_to_t, T_true)
@@ -502,10 +577,27 @@ def test_align_refine_uses_source_poses_and_photometric_rule():
     offsets = [0, -2, 2]
     rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64), seed=4)
     poses = torch.cat([torch.eye(4, dtype=torch.float64)[None], torch.from_numpy(T_true)])  # world = target camera
-    data = FrameSetData(rgb=rgb, depth_m=depth, K=K.double(), T_world_cam=poses, truth_m=None, frame_ids=["a", "b", "c"],
-                        colour_matches_depth=False)
-    s = registration_settings({"method": "refine", "refine_settings": {
-        "scales": (2, 1), "iters": (6, 6), "point_stride": (1, 1), "max_dist_m": (0.1, 0.05), "geo_scale_m": (0.02, 0.005)}})
+    data = FrameSetData(
+        rgb=rgb,
+        depth_m=depth,
+        K=K.double(),
+        T_world_cam=poses,
+        truth_m=None,
+        frame_ids=["a", "b", "c"],
+        colour_matches_depth=False,
+    )
+    s = registration_settings(
+        {
+            "method": "refine",
+            "refine_settings": {
+                "scales": (2, 1),
+                "iters": (6, 6),
+                "point_stride": (1, 1),
+                "max_dist_m": (0.1, 0.05),
+                "geo_scale_m": (0.02, 0.005),
+            },
+        }
+    )
     al = align(data, offsets, s, seed=0)
     assert al.status == "ok" and al.fused == [0, 1, 2] and al.info["photometric_weight"] == 0.0
     r, t = pose_errors(al.T_j_to_t, T_true)

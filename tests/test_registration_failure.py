@@ -16,8 +16,8 @@ from depthgt.gt import store
 from depthgt.gt.build import FrameSetOutputs, fuse, load_frameset, poses_from_source, process_frameset
 from depthgt.io import read_exr
 from depthgt.jobs.common import open_source_scene
-from depthgt.settings import FrameSetSettings, settings_from_config
 from depthgt.registration.result import RegistrationResult
+from depthgt.settings import FrameSetSettings, settings_from_config
 
 TARGET = 12
 
@@ -46,8 +46,15 @@ def _fake_registration(T_true: torch.Tensor, bad: set[int]):
             else:
                 status.append("ok")
                 reasons.append("")
-        return RegistrationResult(T_j_to_t=T, offsets=list(offsets), neighbour_status=status, neighbour_reasons=reasons,
-                                  status="ok", reason="", n_correspondences=[100] * (len(offsets) - 1))
+        return RegistrationResult(
+            T_j_to_t=T,
+            offsets=list(offsets),
+            neighbour_status=status,
+            neighbour_reasons=reasons,
+            status="ok",
+            reason="",
+            n_correspondences=[100] * (len(offsets) - 1),
+        )
 
     return fake
 
@@ -56,8 +63,9 @@ def _fake_registration(T_true: torch.Tensor, bad: set[int]):
 def test_failed_neighbours_are_dropped_or_the_set_excluded(scene_and_truth, tmp_path, monkeypatch, on_failure):
     scene, members, data, T_true = scene_and_truth
     monkeypatch.setattr(registration, "register_frameset", _fake_registration(T_true, {-6, 6}))
-    settings = settings_from_config({"device": "cpu",
-                                     "registration": {"method": "overfit", "preset": "fast", "on_failure": on_failure}})
+    settings = settings_from_config(
+        {"device": "cpu", "registration": {"method": "overfit", "preset": "fast", "on_failure": on_failure}}
+    )
     doc = process_frameset(scene, "synthetic", TARGET, members, "train", FrameSetOutputs.in_dir(tmp_path), settings)
     poses = json.loads((tmp_path / "poses.json").read_text())
     assert poses["registration"]["fused_offsets"] == [0, -4, -2, 2, 4]

@@ -66,7 +66,14 @@ def test_each_model_entry_builds_and_its_loss_reports_its_log_terms(name):
         outputs = model(depth)
     total, terms = build_loss(name)(outputs, batch)
     assert set(terms) == {"total", *registry.MODELS[name].log_terms}
-    assert registry.log_columns(name) == ("epoch", "split", "total", *registry.MODELS[name].log_terms, "batches", "seconds")
+    assert registry.log_columns(name) == (
+        "epoch",
+        "split",
+        "total",
+        *registry.MODELS[name].log_terms,
+        "batches",
+        "seconds",
+    )
     assert float(total) == pytest.approx(terms["total"])
 
 

@@ -2,19 +2,27 @@
 
 from __future__ import annotations
 
-
 from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
-
-from depthgt.geometry import resize_depth_nearest, scale_intrinsics
-from depthgt.errors import ConfigError
-from depthgt.gt.render import (GTRender, SoftSplat, cloud_in_target, composite_gt, estimate_noise_sigma_1m, rasterise_gt,
-                               render_gt, resampled_positions, splat_soft)
-from depthgt.settings import RenderSettings
 from render_reference import render_gt_reference, splat_soft_reference
+
+from depthgt.errors import ConfigError
+from depthgt.geometry import resize_depth_nearest, scale_intrinsics
+from depthgt.gt.render import (
+    GTRender,
+    SoftSplat,
+    cloud_in_target,
+    composite_gt,
+    estimate_noise_sigma_1m,
+    rasterise_gt,
+    render_gt,
+    resampled_positions,
+    splat_soft,
+)
+from depthgt.settings import RenderSettings
 
 torch.set_num_threads(1)  # on an oversubscribed 2-core machine, 2 intra-op threads ran these tests ~3x slower
 
@@ -78,15 +86,26 @@ def test_splat_matches_reference():
     g = torch.Generator().manual_seed(3)
     b, n, h, w = 2, 40, 12, 14
     K = _K(b, 12.0, 6.3, 5.8)
-    uv = torch.rand(b, n, 2, generator=g, dtype=torch.float64) * torch.tensor([w + 2.0, h + 2.0], dtype=torch.float64) - 1
+    uv = (
+        torch.rand(b, n, 2, generator=g, dtype=torch.float64) * torch.tensor([w + 2.0, h + 2.0], dtype=torch.float64)
+        - 1
+    )
     z = 1.0 + torch.rand(b, n, generator=g, dtype=torch.float64) * 0.3
     p = torch.stack([_unproject(uv[i], z[i], K[i]) for i in range(b)])
     f = torch.rand(b, n, 3, generator=g, dtype=torch.float64)
     valid = torch.rand(b, n, generator=g) > 0.1
     out = splat_soft(p, f, K, (h, w), valid=valid, radius_px=1.7, max_points=3, depth_band_rel=0.1)
     for i in range(b):
-        rf, rz, rw = splat_soft_reference(p[i].numpy(), f[i].numpy(), K[i].numpy(), (h, w), valid[i].numpy(),
-                                          radius_px=1.7, max_points=3, depth_band_rel=0.1)
+        rf, rz, rw = splat_soft_reference(
+            p[i].numpy(),
+            f[i].numpy(),
+            K[i].numpy(),
+            (h, w),
+            valid[i].numpy(),
+            radius_px=1.7,
+            max_points=3,
+            depth_band_rel=0.1,
+        )
         np.testing.assert_allclose(out.weight[i, 0].numpy(), rw, atol=1e-12)
         np.testing.assert_allclose(out.depth[i, 0].numpy(), rz, atol=1e-12)
         np.testing.assert_allclose(out.features[i].numpy(), rf, atol=1e-12)
@@ -150,7 +169,9 @@ def _two_layer_cloud(seed: int, n_bg: int = 900, n_fg: int = 250):
     for uv, n_plane, d in [(uv_bg, [0.3, -0.2, -1.0], -2.0), (uv_fg, [-0.4, 0.1, -1.0], -1.2)]:
         n_plane = torch.tensor(n_plane, dtype=torch.float64)
         n_plane = n_plane / n_plane.norm()
-        ray = torch.stack([(uv[:, 0] - 7.5) / 14.0, (uv[:, 1] - 7.5) / 14.0, torch.ones(len(uv), dtype=torch.float64)], 1)
+        ray = torch.stack(
+            [(uv[:, 0] - 7.5) / 14.0, (uv[:, 1] - 7.5) / 14.0, torch.ones(len(uv), dtype=torch.float64)], 1
+        )
         z = d / (ray @ n_plane)  # on the plane n.X = d
         pts.append(ray * z[:, None])
         nrms.append(n_plane.expand(len(uv), 3).clone())
@@ -165,12 +186,22 @@ def _two_layer_cloud(seed: int, n_bg: int = 900, n_fg: int = 250):
 
 
 def _compare_with_reference(p, nrm, valid, K, frame, sigma, st, src_hw, target_frame=None):
-    out = render_gt(p, K, (16, 16), valid, st, normals_cam=nrm, sigma_m=sigma, frame=frame, src_hw=src_hw,
-                    target_frame=target_frame)
+    out = render_gt(
+        p, K, (16, 16), valid, st, normals_cam=nrm, sigma_m=sigma, frame=frame, src_hw=src_hw, target_frame=target_frame
+    )
     assert isinstance(out, GTRender)
-    rd, rw, rc, rs, ra = render_gt_reference(p[0].numpy(), K[0].numpy(), (16, 16), valid[0].numpy(), st,
-                                             None if nrm is None else nrm[0].numpy(), None if sigma is None else sigma[0].numpy(),
-                                             None if frame is None else frame[0].numpy(), src_hw, target_frame)
+    rd, rw, rc, rs, ra = render_gt_reference(
+        p[0].numpy(),
+        K[0].numpy(),
+        (16, 16),
+        valid[0].numpy(),
+        st,
+        None if nrm is None else nrm[0].numpy(),
+        None if sigma is None else sigma[0].numpy(),
+        None if frame is None else frame[0].numpy(),
+        src_hw,
+        target_frame,
+    )
     np.testing.assert_allclose(out.agreement[0].numpy(), ra, atol=1e-6)
     np.testing.assert_array_equal(out.count[0, 0].numpy(), rc)
     np.testing.assert_allclose(out.weight_sum[0, 0].numpy(), rw, atol=1e-12)
@@ -185,33 +216,57 @@ def _compare_with_reference(p, nrm, valid, K, frame, sigma, st, src_hw, target_f
 def test_render_gt_matches_reference(seed, src_hw, variant):
     """The vectorised renderer against the plain loop oracle (tests/render_reference.py)."""
     p, nrm, valid, K, frame, sigma = _two_layer_cloud(seed)
-    kw = {"default": {}, "normals": dict(plane="normals"), "plain": dict(plane="none", drop_ambiguous=False),
-          "strict": dict(extend_uncovered=False, min_frames=3, max_sigma_m=0.002), "union": dict(edge_vote=0.0),
-          "resolve": dict(target_resolves_ambiguous=True)}[variant]
+    kw = {
+        "default": {},
+        "normals": dict(plane="normals"),
+        "plain": dict(plane="none", drop_ambiguous=False),
+        "strict": dict(extend_uncovered=False, min_frames=3, max_sigma_m=0.002),
+        "union": dict(edge_vote=0.0),
+        "resolve": dict(target_resolves_ambiguous=True),
+    }[variant]
     st = RenderSettings(m=5, radius_px=1.3, min_points=2, **kw)
     if variant in ("strict", "resolve"):  # the target's own samples, right on some sample positions
-        gu = resampled_positions(src_hw[1], 16, dtype=torch.float64) if src_hw else torch.arange(16, dtype=torch.float64)
-        gv = resampled_positions(src_hw[0], 16, dtype=torch.float64) if src_hw else torch.arange(16, dtype=torch.float64)
+        gu = (
+            resampled_positions(src_hw[1], 16, dtype=torch.float64) if src_hw else torch.arange(16, dtype=torch.float64)
+        )
+        gv = (
+            resampled_positions(src_hw[0], 16, dtype=torch.float64) if src_hw else torch.arange(16, dtype=torch.float64)
+        )
         step = 3 if variant == "strict" else 1
         uv = torch.stack(torch.meshgrid(gu[::step], gv[::step], indexing="xy"), -1).reshape(-1, 2)
         if variant == "strict":  # a lone frame at 1.1 m
             z_on = torch.full((len(uv),), 1.1, dtype=torch.float64)
         else:  # the target sees the background plane everywhere (the patch's edge pixels are ambiguous);
             # off the positions by < 0.02 px, so that no two samples tie in distance to a position
-            uv = uv + 0.02 * (torch.rand(uv.shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) - 0.5)
+            uv = uv + 0.02 * (
+                torch.rand(uv.shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) - 0.5
+            )
             n_bg = torch.tensor([0.3, -0.2, -1.0], dtype=torch.float64)
-            ray = torch.stack([(uv[:, 0] - 7.5) / 14.0, (uv[:, 1] - 7.5) / 14.0, torch.ones(len(uv), dtype=torch.float64)], 1)
+            ray = torch.stack(
+                [(uv[:, 0] - 7.5) / 14.0, (uv[:, 1] - 7.5) / 14.0, torch.ones(len(uv), dtype=torch.float64)], 1
+            )
             z_on = -2.0 / (ray @ (n_bg / n_bg.norm()))
         on = _unproject(uv, z_on, K[0])[None]
         p, nrm = torch.cat([p, on], 1), torch.cat([nrm, torch.zeros_like(on)], 1)
         valid = torch.cat([valid, torch.ones(1, on.shape[1], dtype=torch.bool)], 1)
         frame = torch.cat([frame, torch.full((1, on.shape[1]), 7)], 1)
         sigma = torch.cat([sigma, torch.full((1, on.shape[1]), 0.002, dtype=torch.float64)], 1)
-    out, rd, rc, rs = _compare_with_reference(p, nrm, valid, K, frame, sigma, st, src_hw,
-                                              target_frame=7 if variant in ("strict", "resolve") else None)
+    out, rd, rc, rs = _compare_with_reference(
+        p, nrm, valid, K, frame, sigma, st, src_hw, target_frame=7 if variant in ("strict", "resolve") else None
+    )
     if variant == "resolve":  # the target's samples decided pixels the default leaves empty
-        plain = render_gt(p, K, (16, 16), valid, RenderSettings(m=5, radius_px=1.3, min_points=2), normals_cam=nrm,
-                          sigma_m=sigma, frame=frame, src_hw=src_hw, target_frame=7)
+        plain = render_gt(
+            p,
+            K,
+            (16, 16),
+            valid,
+            RenderSettings(m=5, radius_px=1.3, min_points=2),
+            normals_cam=nrm,
+            sigma_m=sigma,
+            frame=frame,
+            src_hw=src_hw,
+            target_frame=7,
+        )
         assert ((rd > 0) & (plain.depth[0, 0].numpy() == 0)).any()
         return
     # the case exercises both surfaces, the cap and min_points
@@ -249,8 +304,9 @@ def test_render_gt_leaves_out_a_misregistered_frame():
     p, frame = torch.cat(pts)[None], torch.cat(frames)[None]
     st = RenderSettings(noise_sigma_1m=0.0012)
     out = render_gt(p, K, (h, w), settings=st, frame=frame, target_frame=0)
-    rd, rw, rc, rs, ra = render_gt_reference(p[0].numpy(), K[0].numpy(), (h, w), None, st, frame=frame[0].numpy(),
-                                             target_frame=0)
+    rd, rw, rc, rs, ra = render_gt_reference(
+        p[0].numpy(), K[0].numpy(), (h, w), None, st, frame=frame[0].numpy(), target_frame=0
+    )
     np.testing.assert_allclose(out.agreement[0].numpy(), ra, atol=1e-6)
     np.testing.assert_allclose(out.depth[0, 0].numpy(), rd, atol=1e-5)
     np.testing.assert_array_equal(out.count[0, 0].numpy(), rc)
@@ -258,8 +314,14 @@ def test_render_gt_leaves_out_a_misregistered_frame():
     truth = plane(uv_t).reshape(h, w)
     assert float((out.depth[0, 0] - truth).abs().mean()) < 0.002
     # without the check the off frame drags the GT towards itself
-    off = render_gt(p, K, (h, w), settings=RenderSettings(noise_sigma_1m=0.0012, min_frame_agreement=0.0), frame=frame,
-                    target_frame=0)
+    off = render_gt(
+        p,
+        K,
+        (h, w),
+        settings=RenderSettings(noise_sigma_1m=0.0012, min_frame_agreement=0.0),
+        frame=frame,
+        target_frame=0,
+    )
     assert float((off.depth[0, 0] - truth).abs().mean()) > 2 * float((out.depth[0, 0] - truth).abs().mean())
 
 
@@ -275,8 +337,13 @@ def test_render_gt_guard_hides_occluded_points():
     assert float(out.depth[0, 0, 4, 4]) == pytest.approx(1.0) and int(out.count[0, 0, 4, 4]) == 4
     uv = torch.tensor([[4.0, 4.0], [4.2, 3.9], [3.8, 4.1], [4.7, 4.0], [4.75, 4.1]], dtype=torch.float64)
     z = torch.tensor([3.0, 3.0, 3.0, 1.0, 1.0], dtype=torch.float64)
-    out = render_gt(_unproject(uv, z, K[0])[None], K, (9, 9), settings=RenderSettings(radius_px=1.0),
-                    frame=torch.tensor([[0, 1, 2, 1, 2]]))
+    out = render_gt(
+        _unproject(uv, z, K[0])[None],
+        K,
+        (9, 9),
+        settings=RenderSettings(radius_px=1.0),
+        frame=torch.tensor([[0, 1, 2, 1, 2]]),
+    )
     assert float(out.depth[0, 0, 4, 4]) == pytest.approx(3.0, abs=1e-3)
 
 
@@ -295,7 +362,9 @@ def test_render_gt_needs_support_of_several_frames():
 
 def test_render_gt_min_points_and_empty():
     K = _K(1, 10.0, 4.0, 4.0)
-    p = _unproject(torch.tensor([[4.0, 4.0]], dtype=torch.float64), torch.tensor([2.0], dtype=torch.float64), K[0])[None]
+    p = _unproject(torch.tensor([[4.0, 4.0]], dtype=torch.float64), torch.tensor([2.0], dtype=torch.float64), K[0])[
+        None
+    ]
     out = render_gt(p, K, (9, 9), settings=RenderSettings(min_points=2))
     assert out.depth.abs().sum() == 0 and int(out.count[0, 0, 4, 4]) == 1 and float(out.weight_sum[0, 0, 4, 4]) == 1.0
     out = render_gt(torch.zeros(1, 0, 3, dtype=torch.float64), K, (9, 9))
@@ -341,7 +410,6 @@ def test_render_gt_bad_input():
         render_gt(torch.ones(4, 3), K, (9, 9))
 
 
-
 def test_rasterised_candidates_are_sorted_by_pixel_front_first():
     """The rasteriser's record: candidates by pixel, front first within a pixel, each
     within radius_px of its point's projection, with the shapes its docstring states."""
@@ -368,8 +436,12 @@ def test_leave_one_frame_out_is_the_compositor_over_fewer_candidates():
     st = RenderSettings(m=6, radius_px=1.3, min_points=2)
     cands = rasterise_gt(p, K, (16, 16), st, valid=valid, normals_cam=nrm, sigma_m=sigma, frame=frame, src_hw=(32, 32))
     full = composite_gt(cands, st, target_frame=0)
-    assert torch.equal(full.depth, render_gt(p, K, (16, 16), valid, st, normals_cam=nrm, sigma_m=sigma, frame=frame,
-                                             src_hw=(32, 32), target_frame=0).depth)
+    assert torch.equal(
+        full.depth,
+        render_gt(
+            p, K, (16, 16), valid, st, normals_cam=nrm, sigma_m=sigma, frame=frame, src_hw=(32, 32), target_frame=0
+        ).depth,
+    )
     other_sigma = sigma * 1.7
     without = valid & (frame != 0)
     alone = render_gt(p, K, (16, 16), without, st, normals_cam=nrm, sigma_m=other_sigma, frame=frame, src_hw=(32, 32))
@@ -388,13 +460,14 @@ def test_leave_one_frame_out_is_the_compositor_over_fewer_candidates():
         assert (left.depth > 0).sum() > 0.5 * on.sum()
     # its own sigmas matter: the weights move with them
     same_sigma = composite_gt(cands.without_frame(0), st, with_sigma=False)
-    assert not torch.equal(same_sigma.depth, composite_gt(cands.without_frame(0, sigma_m=other_sigma ** 0.9), st).depth)
+    assert not torch.equal(same_sigma.depth, composite_gt(cands.without_frame(0, sigma_m=other_sigma**0.9), st).depth)
     with pytest.raises(ValueError, match="frame ids"):
         rasterise_gt(p, K, (16, 16), st).without_frame(0)
     with pytest.raises(ValueError, match="one sigma per point"):
         cands.without_frame(0, sigma_m=sigma[:, :10])
     empty = composite_gt(rasterise_gt(p[:, :0], K, (16, 16), st, frame=frame[:, :0]).without_frame(0), st)
     assert not empty.depth.any() and empty.agreement.shape == (1, 0)
+
 
 def test_front_to_back_sorts_by_decreasing_inverse_depth_exactly():
     """The bit-pattern sort equals a stable float sort, ties in index order, in each float type."""
@@ -428,8 +501,9 @@ def test_candidates_in_point_order_are_the_same_candidates():
     from depthgt.rasterise import candidates, front_to_back, sort_by_pixel
 
     g = torch.Generator().manual_seed(4)
-    pts = torch.rand(1, 3000, 3, generator=g, dtype=torch.float64) * torch.tensor([2.0, 2.0, 3.0], dtype=torch.float64) \
-        - torch.tensor([1.0, 1.0, -0.5], dtype=torch.float64)
+    pts = torch.rand(1, 3000, 3, generator=g, dtype=torch.float64) * torch.tensor(
+        [2.0, 2.0, 3.0], dtype=torch.float64
+    ) - torch.tensor([1.0, 1.0, -0.5], dtype=torch.float64)
     K = _K(1, 20.0, 15.5, 11.5)
     valid = torch.rand(1, 3000, generator=g) > 0.1
     grid = (resampled_positions(64, 32, dtype=torch.float64), resampled_positions(48, 24, dtype=torch.float64))
@@ -437,8 +511,7 @@ def test_candidates_in_point_order_are_the_same_candidates():
     for grid_uv in (None, grid):
         plain, _ = candidates(pts, K, valid, (24, 32), radius_px=1.25, min_depth=0.1, grid_uv=grid_uv)
         order = front_to_back(iz)
-        made, _ = candidates(pts, K, valid, (24, 32), radius_px=1.25, min_depth=0.1, grid_uv=grid_uv,
-                             point_order=order)
+        made, _ = candidates(pts, K, valid, (24, 32), radius_px=1.25, min_depth=0.1, grid_uv=grid_uv, point_order=order)
         pairs = lambda c: sorted(zip(c.point.tolist(), c.pixel.tolist(), c.d2.tolist()))  # noqa: E731
         assert pairs(made) == pairs(plain) and len(plain.point) > 3000
         rank = torch.empty_like(order)
@@ -466,7 +539,9 @@ def test_noise_estimate_follows_the_sensor():
     """sigma at 1 m from noisy depth alone: noise of known std in inverse depth on a slanted
     plane is recovered; clean depth gives ~0."""
     g = torch.Generator().manual_seed(0)
-    v, u = torch.meshgrid(torch.arange(96.0, dtype=torch.float64), torch.arange(128.0, dtype=torch.float64), indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(96.0, dtype=torch.float64), torch.arange(128.0, dtype=torch.float64), indexing="ij"
+    )
     iz = 0.5 + 0.004 * u - 0.002 * v  # a plane, in inverse depth (1/m)
     for sigma in (0.001, 0.003):
         noisy = 1.0 / (iz + sigma * torch.randn(iz.shape, generator=g, dtype=torch.float64))
@@ -513,8 +588,16 @@ def test_slanted_far_plane_stays_one_surface(incidence_deg, distance_m):
     depth = _plane_frames(K, n_plane, d, poses, (96, 96), 0.0012, 0)
     exact = _plane_frames(K, n_plane, d, poses[3:4], (96, 96), 0.0, 0)[0, 0]
     cloud = cloud_in_target(depth, K.float().expand(7, 3, 3), poses.float())
-    out = render_gt(cloud.points, K.float()[None], (96, 96), cloud.valid, RenderSettings(), normals_cam=cloud.normals,
-                    sigma_m=cloud.sigma_m, frame=cloud.frame)
+    out = render_gt(
+        cloud.points,
+        K.float()[None],
+        (96, 96),
+        cloud.valid,
+        RenderSettings(),
+        normals_cam=cloud.normals,
+        sigma_m=cloud.sigma_m,
+        frame=cloud.frame,
+    )
     gt = out.depth[0, 0]
     ok = exact > 0
     assert float((gt[ok] > 0).float().mean()) > 0.97
@@ -547,8 +630,16 @@ def test_render_gt_edge_where_most_frames_put_it():
     cloud = cloud_in_target(depth, K.float().expand(7, 3, 3), poses)
 
     def gt(**kw):
-        return render_gt(cloud.points, K.float()[None], (h, w), cloud.valid, RenderSettings(**kw),
-                         normals_cam=cloud.normals, sigma_m=cloud.sigma_m, frame=cloud.frame).depth[0, 0]
+        return render_gt(
+            cloud.points,
+            K.float()[None],
+            (h, w),
+            cloud.valid,
+            RenderSettings(**kw),
+            normals_cam=cloud.normals,
+            sigma_m=cloud.sigma_m,
+            frame=cloud.frame,
+        ).depth[0, 0]
 
     voted, union = gt(), gt(edge_vote=0.0)
     assert torch.allclose(voted[:, 4:25], torch.tensor(1.5), atol=1e-3)  # the foreground up to its true edge
@@ -570,13 +661,21 @@ def test_thin_pole_seen_by_several_frames_is_kept():
         T[0, 3] = 0.01 * k
         x_ray = (u - K[0, 2]) / K[0, 0]
         # camera j at x = 0.01 k: the pole (|x| < half at z = 1.5) is at x_j = -0.01 k
-        pole = ((x_ray * 1.5 + 0.01 * k).abs() < half)
+        pole = (x_ray * 1.5 + 0.01 * k).abs() < half
         frames.append(torch.where(pole, torch.full_like(u, 1.5), torch.full_like(u, 4.0)))
         poses.append(T)
     depth, poses = torch.stack(frames)[:, None].float(), torch.stack(poses).float()
     cloud = cloud_in_target(depth, K.float().expand(7, 3, 3), poses)
-    gt = render_gt(cloud.points, K.float()[None], (h, w), cloud.valid, RenderSettings(), normals_cam=cloud.normals,
-                   sigma_m=cloud.sigma_m, frame=cloud.frame).depth[0, 0]
+    gt = render_gt(
+        cloud.points,
+        K.float()[None],
+        (h, w),
+        cloud.valid,
+        RenderSettings(),
+        normals_cam=cloud.normals,
+        sigma_m=cloud.sigma_m,
+        frame=cloud.frame,
+    ).depth[0, 0]
     target_pole = depth[3, 0] < 2
     assert int(target_pole.sum()) == 2 * h
     assert torch.allclose(gt[target_pole], torch.tensor(1.5), atol=1e-3)
@@ -639,8 +738,17 @@ def _render_frames(clean256, K256, T_j_to_t, frames, src_hw=(480, 640), noise=0.
         g = torch.Generator().manual_seed(0)
         d = d * (1 + noise * d * torch.randn(d.shape, generator=g))  # sigma = noise * z^2 (Kinect-like)
     cloud = cloud_in_target(d, K256.expand(len(frames), 3, 3), T_j_to_t[frames], src_hw=src_hw)
-    return render_gt(cloud.points, K256[None], (256, 256), cloud.valid, settings, normals_cam=cloud.normals,
-                     sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=src_hw).depth[0, 0]
+    return render_gt(
+        cloud.points,
+        K256[None],
+        (256, 256),
+        cloud.valid,
+        settings,
+        normals_cam=cloud.normals,
+        sigma_m=cloud.sigma_m,
+        frame=cloud.frame,
+        src_hw=src_hw,
+    ).depth[0, 0]
 
 
 def _mae_mm(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -670,7 +778,9 @@ def test_render_gt_with_target_and_noise(analytic_frameset):
     clean, K, T, exact = analytic_frameset
     assert _mae_mm(_render_frames(clean, K, T, list(range(7))), clean[3, 0]) <= 1.0
     # Kinect-like noise (sigma 6 mm at 2 m): the GT stays well below the input's noise
-    noisy_in = clean[3, 0] * (1 + 0.0015 * clean[3, 0] * torch.randn(clean[3, 0].shape, generator=torch.Generator().manual_seed(1)))
+    noisy_in = clean[3, 0] * (
+        1 + 0.0015 * clean[3, 0] * torch.randn(clean[3, 0].shape, generator=torch.Generator().manual_seed(1))
+    )
     gt = _render_frames(clean, K, T, list(range(7)), noise=0.0015)
     assert _mae_mm(gt, clean[3, 0]) < 0.5 * _mae_mm(noisy_in, clean[3, 0])
 
@@ -694,8 +804,17 @@ def test_render_gt_on_synthetic_room():
     cloud = cloud_in_target(clean[nb], K.expand(6, 3, 3), T[nb], src_hw=hw)
 
     def render(st):
-        return render_gt(cloud.points, K[None], (256, 256), cloud.valid, st, normals_cam=cloud.normals,
-                         sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=hw).depth[0, 0]
+        return render_gt(
+            cloud.points,
+            K[None],
+            (256, 256),
+            cloud.valid,
+            st,
+            normals_cam=cloud.normals,
+            sigma_m=cloud.sigma_m,
+            frame=cloud.frame,
+            src_hw=hw,
+        ).depth[0, 0]
 
     gt = render(RenderSettings())
     assert float((gt > 0).float().mean()) > 0.97  # edge pixels of undecidable side are left empty
@@ -717,8 +836,12 @@ def _plane_seen_with_offsets(offsets_m, region_off, h=24, w=24, seed=7):
     uv_t = torch.stack([u.flatten(), v.flatten()], 1)
     pts, frames = [_unproject(uv_t, plane(uv_t), K[0])], [torch.zeros(h * w, dtype=torch.long)]
     for j, off in enumerate(offsets_m, 1):
-        uv = torch.rand(2 * h * w, 2, generator=g, dtype=torch.float64) * torch.tensor([w - 1.0, h - 1.0], dtype=torch.float64)
-        where = torch.ones(len(uv), dtype=torch.bool) if region_off is None or j != 3 else region_off(uv[:, 0], uv[:, 1])
+        uv = torch.rand(2 * h * w, 2, generator=g, dtype=torch.float64) * torch.tensor(
+            [w - 1.0, h - 1.0], dtype=torch.float64
+        )
+        where = (
+            torch.ones(len(uv), dtype=torch.bool) if region_off is None or j != 3 else region_off(uv[:, 0], uv[:, 1])
+        )
         z = plane(uv) + off * where + 0.002 * torch.randn(len(uv), generator=g, dtype=torch.float64)
         pts.append(_unproject(uv, z, K[0]))
         frames.append(torch.full((len(uv),), j))
@@ -736,8 +859,9 @@ def test_render_gt_keeps_a_frame_where_it_agrees():
     tiles = RenderSettings(noise_sigma_1m=0.0012, agreement_tile_px=8, min_whole_frame_agreement=0.5)
     whole = replace(tiles, agreement_tile_px=0)
     out = render_gt(p, K, (h, w), settings=tiles, frame=frame, target_frame=0)
-    rd, rw, rc, rs, ra = render_gt_reference(p[0].numpy(), K[0].numpy(), (h, w), None, tiles, frame=frame[0].numpy(),
-                                             target_frame=0)
+    rd, rw, rc, rs, ra = render_gt_reference(
+        p[0].numpy(), K[0].numpy(), (h, w), None, tiles, frame=frame[0].numpy(), target_frame=0
+    )
     np.testing.assert_allclose(out.agreement[0].numpy(), ra, atol=1e-6)
     np.testing.assert_array_equal(out.count[0, 0].numpy(), rc)
     np.testing.assert_allclose(out.depth[0, 0].numpy(), rd, atol=1e-5)
@@ -750,7 +874,9 @@ def test_render_gt_keeps_a_frame_where_it_agrees():
     kept_whole = per_frame.disagreement[0, 2].sum() / per_frame.disagreement[0, 0].sum()
     assert kept > kept_whole
     # the check is still a check: with tiles but no whole-frame floor frame 4 stays out too
-    floorless = render_gt(p, K, (h, w), settings=replace(tiles, min_whole_frame_agreement=0.0), frame=frame, target_frame=0)
+    floorless = render_gt(
+        p, K, (h, w), settings=replace(tiles, min_whole_frame_agreement=0.0), frame=frame, target_frame=0
+    )
     assert float((floorless.depth[0, 0] - truth).abs().max()) < 0.01
 
 
@@ -772,8 +898,9 @@ def test_render_gt_agreement_ignores_target_edges():
     for e in (0, 2):
         st = RenderSettings(noise_sigma_1m=0.0012, agreement_edge_px=e)
         out = render_gt(p, K, (h, w), settings=st, frame=frame, target_frame=0)
-        _, _, rc, _, ra = render_gt_reference(p[0].numpy(), K[0].numpy(), (h, w), None, st, frame=frame[0].numpy(),
-                                              target_frame=0)
+        _, _, rc, _, ra = render_gt_reference(
+            p[0].numpy(), K[0].numpy(), (h, w), None, st, frame=frame[0].numpy(), target_frame=0
+        )
         np.testing.assert_allclose(out.agreement[0].numpy(), ra, atol=1e-6)
         np.testing.assert_array_equal(out.count[0, 0].numpy(), rc)
         if e == 0:

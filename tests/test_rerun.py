@@ -6,14 +6,20 @@ from __future__ import annotations
 import re
 
 import pandas as pd
-
 from conftest import digest_outputs, make_workdir, snakemake
 
 SMALL = {
     "seed": 2,
     "device": "cpu",
-    "sources": [{"name": "syn", "kind": "synthetic", "scenes": ["room_000"], "split": "train",
-                 "options": {"n_frames": 14, "width": 160, "height": 120}}],
+    "sources": [
+        {
+            "name": "syn",
+            "kind": "synthetic",
+            "scenes": ["room_000"],
+            "split": "train",
+            "options": {"n_frames": 14, "width": 160, "height": 120},
+        }
+    ],
     "frameset": {"neighbours": 3, "stride": 2, "target_step": 1},
     "resize": 64,
     "patches": {"count": 2, "size": 32, "max_missing": 0.5, "filter_on": "gt"},
@@ -25,7 +31,7 @@ def planned_jobs(workdir, *args) -> dict[str, int]:
     text = snakemake(workdir, "-n", *args).stdout
     if "Nothing to be done" in text:
         return {}
-    table = text[text.index("Job stats:"):]
+    table = text[text.index("Job stats:") :]
     return {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\w+)\s+(\d+)$", table, re.M) if m.group(1) != "total"}
 
 
@@ -71,8 +77,11 @@ def test_batch_size_changes_the_files_not_the_frame_sets(tmp_path):
     assert shards_one == ["000006-000006.zip", "000007-000007.zip"] and shards_many == ["000006-000007.zip"]
 
     def members(wd):  # every frame set's files, whatever shard holds them
-        return {re.sub(r"\d{6}-\d{6}\.zip/", "", k): v for k, v in digest_outputs(wd).items()
-                if "/framesets/" in k and not k.endswith("batch.json")}
+        return {
+            re.sub(r"\d{6}-\d{6}\.zip/", "", k): v
+            for k, v in digest_outputs(wd).items()
+            if "/framesets/" in k and not k.endswith("batch.json")
+        }
 
     assert members(one) == members(many) and len(members(one)) == 2 * 6
 
@@ -87,25 +96,36 @@ def test_targets_a_truncated_sens_lacks_are_recorded(tmp_path):
     """The plan takes the frame count from the .sens header; frames cut off by a
     truncated file become recorded skips, never silently missing frame sets."""
     import numpy as np
+    from sens_writer import write_sens
 
     from depthgt.jobs.common import open_source_scene
     from depthgt.sources.sens import SensFile
-    from sens_writer import write_sens
 
     syn = open_source_scene({"kind": "synthetic", "options": {"n_frames": 12, "width": 80, "height": 60}}, "room_000")
     frames = [syn.read(i) for i in range(12)]
     sens = tmp_path / "data" / "scene0000_00.sens"
     sens.parent.mkdir()
     K = np.asarray(syn.intrinsics)
-    write_sens(sens, [f.rgb for f in frames], [np.round(f.depth_m * 1000).astype(np.uint16) for f in frames],
-               [f.T_world_cam for f in frames], K, K)
+    write_sens(
+        sens,
+        [f.rgb for f in frames],
+        [np.round(f.depth_m * 1000).astype(np.uint16) for f in frames],
+        [f.T_world_cam for f in frames],
+        K,
+        K,
+    )
     cut = int(SensFile(sens).color_offsets[8]) - 10  # inside frame 8's record: 8 frames remain
     sens.write_bytes(sens.read_bytes()[:cut])
-    config = {"seed": 0, "device": "cpu", "resize": 32,
-              "sources": [{"name": "scan", "kind": "scannet", "root": str(sens.parent), "scenes": ["scene0000_00"],
-                           "split": "train"}],
-              "frameset": {"neighbours": 1, "stride": 1, "target_step": 1, "batch_size": 4},
-              "patches": {"count": 1, "size": 16, "max_missing": 1.0}}
+    config = {
+        "seed": 0,
+        "device": "cpu",
+        "resize": 32,
+        "sources": [
+            {"name": "scan", "kind": "scannet", "root": str(sens.parent), "scenes": ["scene0000_00"], "split": "train"}
+        ],
+        "frameset": {"neighbours": 1, "stride": 1, "target_step": 1, "batch_size": 4},
+        "patches": {"count": 1, "size": 16, "max_missing": 1.0},
+    }
     wd = make_workdir(tmp_path / "wd", config)
     snakemake(wd, "dataset")
     fs = pd.read_parquet(wd / "results/dataset/framesets.parquet").set_index("target")

@@ -15,15 +15,26 @@ from depthgt import runlock
 def _lock_for(workdir, pid: int, host: str | None = None) -> None:
     path = runlock.lock_path(workdir)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"pid": pid, "host": host or socket.gethostname(), "started": "2026-01-01T00:00:00Z",
-                                "proc_start": runlock._proc_start(pid), "command": "snakemake dataset"}))
+    path.write_text(
+        json.dumps(
+            {
+                "pid": pid,
+                "host": host or socket.gethostname(),
+                "started": "2026-01-01T00:00:00Z",
+                "proc_start": runlock._proc_start(pid),
+                "command": "snakemake dataset",
+            }
+        )
+    )
 
 
 def test_live_owner_refuses_dead_owner_is_taken_over(tmp_path):
     other = subprocess.Popen(["sleep", "60"])
     try:
         _lock_for(tmp_path, other.pid)
-        with pytest.raises(runlock.RunLockError, match=rf"PID {other.pid} on .*started 2026-01-01T00:00:00Z: snakemake"):
+        with pytest.raises(
+            runlock.RunLockError, match=rf"PID {other.pid} on .*started 2026-01-01T00:00:00Z: snakemake"
+        ):
             runlock.acquire(tmp_path)
         with pytest.raises(runlock.RunLockError, match="another run"):
             runlock.check(tmp_path)

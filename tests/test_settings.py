@@ -66,14 +66,18 @@ def test_presets_validate():
         validate(config, schema=str(REPO / "workflow/schemas/config.schema.yaml"), set_default=True)
         built[path.stem] = settings_from_config(config)
     paper = built["paper"]
-    assert paper.train("lapden").model_params == {"preset": "paper"} and paper.train("rde").model_params == {"preset": "paper"}
+    assert paper.train("lapden").model_params == {"preset": "paper"} and paper.train("rde").model_params == {
+        "preset": "paper"
+    }
     assert all(paper.train(m).epochs == 100 for m in ("lapden", "ddrnet", "sdd", "rde"))
     train_rooms = next(src for src in paper.sources if src.name == "synthetic")
     planned = len(train_rooms.scenes) * len(paper.frameset.targets(train_rooms.options["n_frames"]))
     assert 2900 <= planned <= 3100  # the paper's ~3,000 frame sets
     real = built["table2-real"]
-    assert {src.name: (src.kind, src.split) for src in real.sources} == {"tum": ("tum", "auto"),
-                                                                          "kitchen": ("sevenscenes", "test")}
+    assert {src.name: (src.kind, src.split) for src in real.sources} == {
+        "tum": ("tum", "auto"),
+        "kitchen": ("sevenscenes", "test"),
+    }
     assert real.registration.method == "refine"
 
 
@@ -96,49 +100,55 @@ def test_missing_sections_take_defaults():
     assert s.patches.count == 6 and s.render.m == 64 and s.registration.refine_settings.iters == (10, 8, 6)
 
 
-@pytest.mark.parametrize("config, key", [
-    ({"bogus": 1}, "bogus"),
-    ({"patches": {"cuont": 6}}, "patches.cuont"),
-    ({"render": {"radius": 1.0}}, "render.radius"),
-    ({"registration": {"method": "given", "n_blocs": 2}}, "registration.n_blocs"),  # checked whatever the method
-    ({"registration": {"refine_settings": {"iter": [1]}}}, "registration.refine_settings.iter"),
-    ({"registration": {"pretrain": {"epoch": 1}}}, "registration.pretrain.epoch"),
-    ({"enhance": {"train": {"epoch": 3}}}, "epoch"),
-    ({"enhance": {"models": {"unet": {}}}}, "enhance.models.unet"),
-    ({"enhance": {"rde": {"voxel": 0.02}}}, "enhance.rde.voxel"),
-    ({"evaluation": {"method": ["input"]}}, "evaluation.method"),
-    ({"sources": [{"name": "a", "kind": "synthetic", "scene": ["x"]}]}, "sources[0].scene"),
-])
+@pytest.mark.parametrize(
+    "config, key",
+    [
+        ({"bogus": 1}, "bogus"),
+        ({"patches": {"cuont": 6}}, "patches.cuont"),
+        ({"render": {"radius": 1.0}}, "render.radius"),
+        ({"registration": {"method": "given", "n_blocs": 2}}, "registration.n_blocs"),  # checked whatever the method
+        ({"registration": {"refine_settings": {"iter": [1]}}}, "registration.refine_settings.iter"),
+        ({"registration": {"pretrain": {"epoch": 1}}}, "registration.pretrain.epoch"),
+        ({"enhance": {"train": {"epoch": 3}}}, "epoch"),
+        ({"enhance": {"models": {"unet": {}}}}, "enhance.models.unet"),
+        ({"enhance": {"rde": {"voxel": 0.02}}}, "enhance.rde.voxel"),
+        ({"evaluation": {"method": ["input"]}}, "evaluation.method"),
+        ({"sources": [{"name": "a", "kind": "synthetic", "scene": ["x"]}]}, "sources[0].scene"),
+    ],
+)
 def test_unknown_keys_are_named(config, key):
     with pytest.raises(ConfigError, match="unknown config key") as err:
         settings_from_config(config)
     assert key in str(err.value)
 
 
-@pytest.mark.parametrize("config, key", [
-    ({"patches": {"size": 300}}, "patches.size"),                       # larger than resize (256)
-    ({"resize": 128, "patches": {"size": 129}}, "patches.size"),
-    ({"patches": {"count": 100_000}}, "patches.count"),                 # memory bound
-    ({"resize": 100_000}, "resize"),
-    ({"frameset": {"neighbours": 500}}, "frameset.neighbours"),
-    ({"render": {"m": 0}}, "render.m"),
-    ({"render": {"edge_vote": 1.5}}, "render.edge_vote"),
-    ({"render": {"edge_vote_slack_px": -0.5}}, "render.edge_vote_slack_px"),
-    ({"render": {"leave_target_out_stride": 0}}, "render.leave_target_out_stride"),
-    ({"render": {"target_resolves_ambiguous": "yes"}}, "render.target_resolves_ambiguous"),  # wrong type
-    ({"registration": {"n_candidates": 10**7}}, "registration.n_candidates"),
-    ({"registration": {"method": "given", "pairs": "some"}}, "registration.pairs"),
-    ({"registration": {"preset": "slow"}}, "registration.preset"),
-    ({"registration": {"on_failure": "keep"}}, "registration.on_failure"),
-    ({"patches": {"count": "6"}}, "patches.count"),                     # wrong type
-    ({"device": "tpu"}, "device"),
-    ({"enhance": {"train": {"epochs": 0}}}, "train.epochs"),
-    ({"enhance": {"models": {"sdd": {"model": "lapden"}}}}, "enhance.models.sdd.model"),
-    ({"evaluation": {"methods": ["input", "bilateral"]}}, "evaluation.methods"),
-    ({"sources": [{"name": "a", "kind": "kinect"}]}, "kind"),
-    ({"sources": [{"name": "a", "kind": "synthetic", "scenes": ["../x"]}]}, "scenes"),
-    ({"sources": [{"name": "a", "kind": "synthetic"}, {"name": "a", "kind": "synthetic"}]}, "sources"),
-])
+@pytest.mark.parametrize(
+    "config, key",
+    [
+        ({"patches": {"size": 300}}, "patches.size"),  # larger than resize (256)
+        ({"resize": 128, "patches": {"size": 129}}, "patches.size"),
+        ({"patches": {"count": 100_000}}, "patches.count"),  # memory bound
+        ({"resize": 100_000}, "resize"),
+        ({"frameset": {"neighbours": 500}}, "frameset.neighbours"),
+        ({"render": {"m": 0}}, "render.m"),
+        ({"render": {"edge_vote": 1.5}}, "render.edge_vote"),
+        ({"render": {"edge_vote_slack_px": -0.5}}, "render.edge_vote_slack_px"),
+        ({"render": {"leave_target_out_stride": 0}}, "render.leave_target_out_stride"),
+        ({"render": {"target_resolves_ambiguous": "yes"}}, "render.target_resolves_ambiguous"),  # wrong type
+        ({"registration": {"n_candidates": 10**7}}, "registration.n_candidates"),
+        ({"registration": {"method": "given", "pairs": "some"}}, "registration.pairs"),
+        ({"registration": {"preset": "slow"}}, "registration.preset"),
+        ({"registration": {"on_failure": "keep"}}, "registration.on_failure"),
+        ({"patches": {"count": "6"}}, "patches.count"),  # wrong type
+        ({"device": "tpu"}, "device"),
+        ({"enhance": {"train": {"epochs": 0}}}, "train.epochs"),
+        ({"enhance": {"models": {"sdd": {"model": "lapden"}}}}, "enhance.models.sdd.model"),
+        ({"evaluation": {"methods": ["input", "bilateral"]}}, "evaluation.methods"),
+        ({"sources": [{"name": "a", "kind": "kinect"}]}, "kind"),
+        ({"sources": [{"name": "a", "kind": "synthetic", "scenes": ["../x"]}]}, "scenes"),
+        ({"sources": [{"name": "a", "kind": "synthetic"}, {"name": "a", "kind": "synthetic"}]}, "sources"),
+    ],
+)
 def test_bad_values_name_the_key(config, key):
     with pytest.raises(ConfigError, match="config key") as err:
         settings_from_config(config)
@@ -152,7 +162,11 @@ def test_registration_presets_and_types():
     assert fast.pretrain.framesets == 16
     # numbers given as ints where floats are expected are accepted and stored as floats
     s = settings_from_config({"render": {"radius_px": 2}, "enhance": {"rde": {"trunc_voxels": 4}}})
-    assert isinstance(s.render.radius_px, float) and s.render.radius_px == 2.0 and isinstance(s.enhance.rde.trunc_voxels, float)
+    assert (
+        isinstance(s.render.radius_px, float)
+        and s.render.radius_px == 2.0
+        and isinstance(s.enhance.rde.trunc_voxels, float)
+    )
 
 
 def test_train_settings_identity_ignores_epochs():
@@ -169,9 +183,18 @@ def test_schema_and_settings_agree_on_the_default_config():
 
 def test_settings_doc_is_json_ready():
     doc = settings_from_config({}).doc("frameset", "registration")
-    assert doc["frameset"] == {"neighbours": 3, "stride": 2, "target_step": 1, "batch_size": 32, "selection": "window",
-                               "coverage_span": 30, "coverage_views": 4, "coverage_max_baseline_m": 0.3,
-                               "coverage_max_angle_deg": 20.0, "coverage_min_fill_px": 50}
+    assert doc["frameset"] == {
+        "neighbours": 3,
+        "stride": 2,
+        "target_step": 1,
+        "batch_size": 32,
+        "selection": "window",
+        "coverage_span": 30,
+        "coverage_views": 4,
+        "coverage_max_baseline_m": 0.3,
+        "coverage_max_angle_deg": 20.0,
+        "coverage_min_fill_px": 50,
+    }
     assert doc["registration"]["refine_settings"]["scales"] == [4, 2, 1]
 
 
@@ -206,7 +229,9 @@ def test_schema_defaults_equal_the_dataclass_defaults():
     for path, default in _schema_defaults(schema):
         if isinstance(default, dict):
             # a section's default: empty, so that its keys take the dataclass defaults
-            assert default == {}, f"schema default of {'.'.join(path)} sets values {default}: leave them to the dataclass"
+            assert default == {}, (
+                f"schema default of {'.'.join(path)} sets values {default}: leave them to the dataclass"
+            )
             continue
         value = _lookup(doc, path)
         assert value == default, f"config key {'.'.join(path)}: schema default {default!r}, settings default {value!r}"
@@ -217,7 +242,7 @@ def test_schema_defaults_equal_the_dataclass_defaults():
     validate(filled, schema=str(schema_path), set_default=True)
     assert filled != bare  # the schema did fill defaults in
     assert settings_from_config(filled) == settings_from_config(bare)
-    for model, st in settings_from_config(filled).enhance.models.items():
+    for _model, st in settings_from_config(filled).enhance.models.items():
         assert (st.epochs, st.batch_size, st.lr) == (TrainSettings.epochs, TrainSettings.batch_size, TrainSettings.lr)
     assert TrainSettings().lr == 1e-3 and TrainSettings().epochs == 6 and TrainSettings().batch_size == 8
     # the schema's bound on frameset.batch_size is the settings' own
@@ -239,15 +264,27 @@ def test_overfit_without_a_train_split_fails_when_the_workflow_starts(tmp_path):
     without a source that gives any, the run stops before its first job (a dry run
     shows it) with the keys to change, not in the pretraining job."""
     from conftest import make_workdir, snakemake
+
     from depthgt.settings import check_workflow
 
-    test_only = {"registration": {"method": "overfit", "preset": "fast"},
-                 "sources": [{"name": "t", "kind": "synthetic", "scenes": ["room_000"], "split": "test",
-                              "options": {"n_frames": 8, "width": 80, "height": 60}}]}
+    test_only = {
+        "registration": {"method": "overfit", "preset": "fast"},
+        "sources": [
+            {
+                "name": "t",
+                "kind": "synthetic",
+                "scenes": ["room_000"],
+                "split": "test",
+                "options": {"n_frames": 8, "width": 80, "height": 60},
+            }
+        ],
+    }
     with pytest.raises(ConfigError, match=r"registration.pretrain.framesets: 16 .*sources\[0\].split: test"):
         check_workflow(settings_from_config(test_only))
     # fine: pretraining off, a train or auto source, or the given poses
-    check_workflow(settings_from_config({**test_only, "registration": {"method": "overfit", "pretrain": {"framesets": 0}}}))
+    check_workflow(
+        settings_from_config({**test_only, "registration": {"method": "overfit", "pretrain": {"framesets": 0}}})
+    )
     check_workflow(settings_from_config({**test_only, "sources": [dict(test_only["sources"][0], split="auto")]}))
     check_workflow(settings_from_config({**test_only, "registration": {"method": "given"}}))
 
@@ -345,8 +382,11 @@ def test_a_check_between_sections_runs_where_the_stage_reads_both():
     small = {"resize": 64, "patches": {"size": 32}, "enhance": {"rde": {"voxel_m": 0.04}}}
     assert stage_settings(small, "rde").resize == 64 and stage_settings(small, "rde").enhance.rde.voxel_m == 0.04
     assert stage_settings(small, "frameset").patches.size == 32
-    for bad in (lambda: settings_from_config({"resize": 64}), lambda: stage_settings({"resize": 64}, "frameset"),
-                lambda: stage_settings({"resize": 64}, "dataset")):
+    for bad in (
+        lambda: settings_from_config({"resize": 64}),
+        lambda: stage_settings({"resize": 64}, "frameset"),
+        lambda: stage_settings({"resize": 64}, "dataset"),
+    ):
         with pytest.raises(ConfigError, match=r"patches.size: 128 does not fit in the 64x64 working resolution"):
             bad()
 
@@ -369,6 +409,8 @@ def test_the_embedded_defaults_apply_wherever_snakemake_starts(tmp_path):
         text = snakemake(wd, "-n", "framesets", *args).stdout
         return sorted({line.split("/")[-1] for line in text.split() if line.endswith(".zip")})
 
-    assert planned(elsewhere, "--configfile", str(tmp_path / "mine.yaml")) == [f"{a:06d}-{b:06d}.zip" for a, b in expected]
+    assert planned(elsewhere, "--configfile", str(tmp_path / "mine.yaml")) == [
+        f"{a:06d}-{b:06d}.zip" for a, b in expected
+    ]
     own = make_workdir(tmp_path / "own", mine)
     assert planned(own) == ["000006-000033.zip"]  # its own config, the schema's defaults (target_step 1)

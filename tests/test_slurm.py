@@ -20,7 +20,6 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-
 from conftest import REPO, make_workdir
 
 pytestmark = pytest.mark.slow
@@ -31,10 +30,20 @@ TINY = {
     "seed": 3,
     "device": "cpu",
     "sources": [
-        {"name": "syn", "kind": "synthetic", "scenes": ["room_000"], "split": "train",
-         "options": {"n_frames": 14, "width": 320, "height": 240}},
-        {"name": "syntest", "kind": "synthetic", "scenes": ["room_003"], "split": "test",
-         "options": {"n_frames": 13, "width": 320, "height": 240}},
+        {
+            "name": "syn",
+            "kind": "synthetic",
+            "scenes": ["room_000"],
+            "split": "train",
+            "options": {"n_frames": 14, "width": 320, "height": 240},
+        },
+        {
+            "name": "syntest",
+            "kind": "synthetic",
+            "scenes": ["room_003"],
+            "split": "test",
+            "options": {"n_frames": 13, "width": 320, "height": 240},
+        },
     ],
     "frameset": {"neighbours": 3, "stride": 2, "target_step": 1},
     "resize": 128,
@@ -52,8 +61,13 @@ def free_port() -> int:
 def slurm(tmp_path_factory) -> dict[str, str]:
     """Environment of a running single-node cluster (SLURM_CONF set); stopped after."""
     state = tmp_path_factory.mktemp("slurm-state")
-    env = dict(os.environ, DEPTHGT_SLURM_STATE=str(state), DEPTHGT_SLURMCTLD_PORT=str(free_port()),
-               DEPTHGT_SLURMD_PORT=str(free_port()), DEPTHGT_SLURM_GPUS="2")
+    env = dict(
+        os.environ,
+        DEPTHGT_SLURM_STATE=str(state),
+        DEPTHGT_SLURMCTLD_PORT=str(free_port()),
+        DEPTHGT_SLURMD_PORT=str(free_port()),
+        DEPTHGT_SLURM_GPUS="2",
+    )
     start = subprocess.run(["bash", str(SCRIPT), "start"], env=env, capture_output=True, text=True, timeout=900)
     if start.returncode == 3:  # the script's code for "SLURM cannot be installed or set up here"
         pytest.skip(f"no SLURM cluster on this machine: {start.stderr.strip()}")
@@ -67,10 +81,26 @@ def slurm(tmp_path_factory) -> dict[str, str]:
 def snakemake_on_slurm(workdir: Path, env: dict[str, str], target: str, *args: str) -> subprocess.CompletedProcess:
     """The cluster command of README.md and docs/cluster.md, plus what this accounting-free test cluster needs:
     job states from squeue, no account, and a short first status check."""
-    cmd = [sys.executable, "-m", "snakemake", target, "-s", str(REPO / "Snakefile"), "-d", str(workdir),
-           "--profile", str(REPO / "profiles" / "slurm"), "--executor", "slurm",
-           "--slurm-status-command", "squeue", "--slurm-no-account",
-           "--slurm-init-seconds-before-status-checks", "2", *args]
+    cmd = [
+        sys.executable,
+        "-m",
+        "snakemake",
+        target,
+        "-s",
+        str(REPO / "Snakefile"),
+        "-d",
+        str(workdir),
+        "--profile",
+        str(REPO / "profiles" / "slurm"),
+        "--executor",
+        "slurm",
+        "--slurm-status-command",
+        "squeue",
+        "--slurm-no-account",
+        "--slurm-init-seconds-before-status-checks",
+        "2",
+        *args,
+    ]
     return subprocess.run(cmd, cwd=workdir, capture_output=True, text=True, env=env, timeout=900)
 
 
@@ -87,7 +117,8 @@ def submitted_jobs(log: str) -> list[dict]:
         resources = re.search(r"^\s+resources: (.*)$", block, re.M)
         threads = re.search(r"^\s+threads: (\d+)$", block, re.M)
         jobs[jobid.group(1)] = {
-            "rule": head.group(2), "local": head.group(1) is not None,
+            "rule": head.group(2),
+            "local": head.group(1) is not None,
             "threads": int(threads.group(1)) if threads else 1,
             "resources": dict(kv.split("=", 1) for kv in resources.group(1).split(", ")) if resources else {},
             "slurm_id": None,
@@ -106,8 +137,9 @@ def completion_records(state_env: dict[str, str]) -> dict[str, dict[str, str]]:
 
 def slurm_job(slurm_id: str, env: dict[str, str]) -> dict[str, str]:
     """slurmctld's record of a job (kept MinJobAge = 10 min after it ends)."""
-    out = subprocess.run(["scontrol", "show", "job", "-o", slurm_id], env=env, capture_output=True, text=True,
-                         check=True).stdout
+    out = subprocess.run(
+        ["scontrol", "show", "job", "-o", slurm_id], env=env, capture_output=True, text=True, check=True
+    ).stdout
     return dict(re.findall(r"(\w+)=(\S*)", out))
 
 

@@ -151,8 +151,18 @@ def make_sens(path, n=5, inf_pose=(3,), color="jpeg", depth="zlib_ushort", **kw)
     depths = [_depth_raw(k) for k in range(n)]
     poses = [np.full((4, 4), -np.inf) if k in inf_pose else _pose(k) for k in range(n)]
     K_color = K_DEPTH * np.array([[2, 1, 2], [1, 2, 2], [1, 1, 1]])
-    write_sens(path, rgbs, depths, poses, K_color, K_DEPTH, depth_shift=1000.0,
-               color_compression=color, depth_compression=depth, **kw)
+    write_sens(
+        path,
+        rgbs,
+        depths,
+        poses,
+        K_color,
+        K_DEPTH,
+        depth_shift=1000.0,
+        color_compression=color,
+        depth_compression=depth,
+        **kw,
+    )
     return rgbs, depths, poses
 
 
@@ -229,7 +239,7 @@ def test_sens_truncated_header(tmp_path):
         SensFile(bad)
     pos = 4 + 8 + len("test-sensor") + 4 * 64 + 4  # depth_compression_type
     bad = tmp_path / "occi.sens"
-    bad.write_bytes(data[:pos] + (2).to_bytes(4, "little") + data[pos + 4:])
+    bad.write_bytes(data[:pos] + (2).to_bytes(4, "little") + data[pos + 4 :])
     with pytest.raises(SourceError, match="occi.sens: depth compression 'occi_ushort' is not supported"):
         SensFile(bad)
 
@@ -261,8 +271,15 @@ def test_sens_corrupt_payloads(tmp_path):
     rgbs = [_rgb(2 * HD, 2 * WD, k) for k in range(3)]
     good = [cv2.imencode(".jpg", cv2.cvtColor(c, cv2.COLOR_RGB2BGR))[1].tobytes() for c in rgbs]
     payloads = [good[0], b"\xff\xd8\xff\xe0 this is not a jpeg" * 4, good[2]]
-    write_sens(path, rgbs, [_depth_raw(k) for k in range(3)], [_pose(k) for k in range(3)],
-               K_DEPTH, K_DEPTH, color_payloads=payloads)
+    write_sens(
+        path,
+        rgbs,
+        [_depth_raw(k) for k in range(3)],
+        [_pose(k) for k in range(3)],
+        K_DEPTH,
+        K_DEPTH,
+        color_payloads=payloads,
+    )
     scene = base.open_scene("scannet", tmp_path, "scene0005_00")
     scene.read(0)
     scene.read(2)
@@ -273,7 +290,7 @@ def test_sens_corrupt_payloads(tmp_path):
     sens = SensFile(path)
     data = bytearray(path.read_bytes())
     off = int(sens.depth_offsets[2])
-    data[off: off + 8] = b"\x00" * 8
+    data[off : off + 8] = b"\x00" * 8
     path.write_bytes(bytes(data))
     with pytest.raises(FrameError, match="frame 2 depth.*zlib") as e:
         base.open_scene("scannet", tmp_path, "scene0005_00").read(2)
@@ -291,7 +308,9 @@ def test_scannet_list_scenes_mixes_layouts(tmp_path):
     # the one file of a scene (an input of its index): a .sens, not an exported folder
     assert base.scene_file("scannet", str(tmp_path), "scene0010_00") is None
     assert base.scene_file("scannet", str(tmp_path), "scene0011_00") == str(tmp_path / "scene0011_00.sens")
-    assert base.scene_file("scannet", str(tmp_path), "scene0012_00") == str(tmp_path / "scene0012_00" / "scene0012_00.sens")
+    assert base.scene_file("scannet", str(tmp_path), "scene0012_00") == str(
+        tmp_path / "scene0012_00" / "scene0012_00.sens"
+    )
     assert base.scene_file("sevenscenes", str(tmp_path), "scene0011_00") is None  # not a single-file kind
 
 
@@ -452,7 +471,9 @@ def test_tum_pose_interpolated_at_depth_time(tmp_path):
         dt = t_depth[i] - t_depth[0]
         a = 0.5 * dt
         T = s.read(i).T_world_cam
-        np.testing.assert_allclose(T[:3, :3], [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]], atol=1e-6)
+        np.testing.assert_allclose(
+            T[:3, :3], [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]], atol=1e-6
+        )
         np.testing.assert_allclose(T[:3, 3], [dt, 0.5, 1.5], atol=2e-5)  # rows are written to 0.1 mm
     nearest = base.open_scene("tum", tmp_path, "rgbd_dataset_freiburg2_xyz", interpolate_poses=False)
     assert abs(nearest.read(1).T_world_cam[0, 3] - (t_depth[1] - t_depth[0])) > 1e-3
@@ -472,7 +493,10 @@ def test_tum_undistortion_known_truth(tmp_path):
     h, w = 480, 640  # the camera's own size (the small colour images are scaled up to it)
     vd, ud = np.mgrid[0:h, 0:w].astype(np.float64)
     und = cv2.undistortPoints(np.stack([ud, vd], -1).reshape(-1, 1, 2), K, D).reshape(h, w, 2)
-    value = lambda x, y: 1.0 + 0.5 * x + 0.25 * y  # metres, of the pinhole direction (x, y)
+
+    def value(x, y):
+        return 1.0 + 0.5 * x + 0.25 * y  # metres, of the pinhole direction (x, y)
+
     raw = np.round(value(und[..., 0], und[..., 1]) * 5000).astype(np.uint16)
     for name in sorted((seq / "depth").iterdir()):
         cv2.imwrite(str(name), raw)
@@ -530,25 +554,46 @@ def _crafted_sens(tmp_path, name, param=0):
     return base.open_scene("scannet", tmp_path, "scene0100_00")
 
 
-@pytest.mark.parametrize("name,param,frame,reason,message", [
-    ("sens_empty_colour_payload", 0, 2, "unreadable", "frame 2 colour: empty payload"),
-    ("sens_jpeg_declares_60000x60000", 0, 2, "unreadable", "frame 2 colour: .*absurd size"),
-    ("sens_jpeg_declares_40000x26000", 0, 2, "unreadable", "frame 2 colour: .*absurd size"),
-    ("sens_jpeg_declares_16000x16000", 0, 2, "unreadable", "frame 2 colour: .*absurd size"),
-    ("sens_jpeg_declares_8000x6000", 0, 2, "unreadable", "frame 2 colour: JPEG header declares 8000x6000 pixels, beyond"),
-    ("sens_jpeg_declares_256x192", 0, 2, "size_mismatch", "frame 2 colour: JPEG is 256x192, expected colour size is 128x96"),
-    ("sens_jpeg_truncated_half", 0, 2, "unreadable", "frame 2 colour: truncated JPEG"),
-    ("sens_png_truncated_half", 0, 2, "unreadable", "frame 2 colour: truncated PNG"),
-    ("sens_png16_colour", 0, 2, "unreadable", "frame 2 colour: colour must be 8-bit grey or RGB, decoded uint16"),
-    ("sens_rgba_colour", 0, 2, "unreadable", "frame 2 colour: colour must be 8-bit grey or RGB, the PNG is 'RGBA'"),
-    ("sens_tiff_colour", 0, 2, "unreadable", "frame 2 colour: not a readable JPEG or PNG"),
-    ("sens_png_in_jpeg_file", 0, 2, "unreadable", "frame 2 colour: colour payload is PNG, expected JPEG"),
-    ("sens_zlib_bomb", 64 << 20, 1, "unreadable", "frame 1 depth: payload of .* more than a frame of this size can take"),
-    ("sens_zlib_bomb", 6 << 20, 1, "unreadable", "frame 1 depth: zlib payload inflates beyond the 6144 bytes"),
-    ("sens_pose_bottom_row_0000", 0, 3, "invalid_pose", "frame 3: pose's bottom row is 0 0 0 0, expected 0 0 0 1"),
-    ("sens_pose_bottom_row_0002", 0, 3, "invalid_pose", "frame 3: pose's bottom row is 0 0 0 2, expected 0 0 0 1"),
-    ("sens_pose_reflection", 0, 3, "invalid_pose", "frame 3: pose rotation has determinant -1"),
-])
+@pytest.mark.parametrize(
+    "name,param,frame,reason,message",
+    [
+        ("sens_empty_colour_payload", 0, 2, "unreadable", "frame 2 colour: empty payload"),
+        ("sens_jpeg_declares_60000x60000", 0, 2, "unreadable", "frame 2 colour: .*absurd size"),
+        ("sens_jpeg_declares_40000x26000", 0, 2, "unreadable", "frame 2 colour: .*absurd size"),
+        ("sens_jpeg_declares_16000x16000", 0, 2, "unreadable", "frame 2 colour: .*absurd size"),
+        (
+            "sens_jpeg_declares_8000x6000",
+            0,
+            2,
+            "unreadable",
+            "frame 2 colour: JPEG header declares 8000x6000 pixels, beyond",
+        ),
+        (
+            "sens_jpeg_declares_256x192",
+            0,
+            2,
+            "size_mismatch",
+            "frame 2 colour: JPEG is 256x192, expected colour size is 128x96",
+        ),
+        ("sens_jpeg_truncated_half", 0, 2, "unreadable", "frame 2 colour: truncated JPEG"),
+        ("sens_png_truncated_half", 0, 2, "unreadable", "frame 2 colour: truncated PNG"),
+        ("sens_png16_colour", 0, 2, "unreadable", "frame 2 colour: colour must be 8-bit grey or RGB, decoded uint16"),
+        ("sens_rgba_colour", 0, 2, "unreadable", "frame 2 colour: colour must be 8-bit grey or RGB, the PNG is 'RGBA'"),
+        ("sens_tiff_colour", 0, 2, "unreadable", "frame 2 colour: not a readable JPEG or PNG"),
+        ("sens_png_in_jpeg_file", 0, 2, "unreadable", "frame 2 colour: colour payload is PNG, expected JPEG"),
+        (
+            "sens_zlib_bomb",
+            64 << 20,
+            1,
+            "unreadable",
+            "frame 1 depth: payload of .* more than a frame of this size can take",
+        ),
+        ("sens_zlib_bomb", 6 << 20, 1, "unreadable", "frame 1 depth: zlib payload inflates beyond the 6144 bytes"),
+        ("sens_pose_bottom_row_0000", 0, 3, "invalid_pose", "frame 3: pose's bottom row is 0 0 0 0, expected 0 0 0 1"),
+        ("sens_pose_bottom_row_0002", 0, 3, "invalid_pose", "frame 3: pose's bottom row is 0 0 0 2, expected 0 0 0 1"),
+        ("sens_pose_reflection", 0, 3, "invalid_pose", "frame 3: pose rotation has determinant -1"),
+    ],
+)
 def test_sens_hostile_frame_is_a_recorded_skip(tmp_path, name, param, frame, reason, message):
     """Each crafted case of issue 10 fails as its own frame, naming file and frame; the
     other frames of the file read normally."""
@@ -599,12 +644,24 @@ def test_inflate_is_bounded_by_the_image_size():
         _inflate_bounded(b"\x00" * 8 + good, 1536, "f")
 
 
-@pytest.mark.parametrize("name,problem", [
-    ("sens_lowered_frame_count", r"unexpected bytes after the 4 announced frames \(it holds 2 more frame record\(s\)"),
-    ("sens_garbage_after_frames", r"1160 unexpected bytes after the 6 announced frames \(it is not a valid IMU block\)"),
-    ("sens_frame_count_2^64-1", r"truncated .sens: header announces 18446744073709551615 frames, 6 found"),
-    ("sens_colour_size_2^63", r"truncated .sens: header announces 6 frames, 2 found \(frame 2 payload ends at byte"),
-])
+@pytest.mark.parametrize(
+    "name,problem",
+    [
+        (
+            "sens_lowered_frame_count",
+            r"unexpected bytes after the 4 announced frames \(it holds 2 more frame record\(s\)",
+        ),
+        (
+            "sens_garbage_after_frames",
+            r"1160 unexpected bytes after the 6 announced frames \(it is not a valid IMU block\)",
+        ),
+        ("sens_frame_count_2^64-1", r"truncated .sens: header announces 18446744073709551615 frames, 6 found"),
+        (
+            "sens_colour_size_2^63",
+            r"truncated .sens: header announces 6 frames, 2 found \(frame 2 payload ends at byte",
+        ),
+    ],
+)
 def test_sens_frames_never_vanish_unrecorded(tmp_path, name, problem):
     """Data after the announced frames must be the IMU block; otherwise (a frame count
     lowered by corruption) the frames it holds are recorded as a scene problem."""
@@ -620,10 +677,13 @@ def test_sens_imu_block_or_nothing_is_clean(tmp_path):
         assert len(sens) == N_SENS_FRAMES and sens.problems == [], imu
 
 
-@pytest.mark.parametrize("name,message", [
-    ("sens_header_colour_60000x60000", r"corrupt .sens header \(colour 60000x60000"),
-    ("sens_name_length_2^60", r"corrupt .sens header \(sensor name length 1152921504606846976\)"),
-])
+@pytest.mark.parametrize(
+    "name,message",
+    [
+        ("sens_header_colour_60000x60000", r"corrupt .sens header \(colour 60000x60000"),
+        ("sens_name_length_2^60", r"corrupt .sens header \(sensor name length 1152921504606846976\)"),
+    ],
+)
 def test_sens_absurd_header_is_a_source_error(tmp_path, name, message):
     with pytest.raises(SourceError, match=f"scene0100_00.sens: {message}"):
         _crafted_sens(tmp_path, name)
@@ -669,8 +729,11 @@ def test_first_depth_of_another_size_does_not_decide(tmp_path):
     scene = base.open_scene("scannet", tmp_path, "scene0000_00")
     assert scene.image_size == (HD, WD)
     assert len(scene.problems) == 1 and "32x24 (4), 16x12 (1)" in scene.problems[0]
-    with pytest.raises(FrameError, match=r"depth/0\.png: PNG is 16x12, the scene's depth size \(that of 4 of 5 sampled "
-                                         r"depth images\) is 32x24") as e:
+    with pytest.raises(
+        FrameError,
+        match=r"depth/0\.png: PNG is 16x12, the scene's depth size \(that of 4 of 5 sampled "
+        r"depth images\) is 32x24",
+    ) as e:
         scene.read(0)
     assert e.value.reason == "size_mismatch"
     for i in range(1, 5):
@@ -692,13 +755,15 @@ def test_tum_unsorted_and_repeated_lists_are_cleaned_and_recorded(tmp_path, capl
     assert [s.frame_id(i) for i in range(len(s))] == [f"{t:.6f}" for t in t_depth]  # sorted, each image once
     assert len(s.problems) == 2
     assert re.search(r"depth.txt: 1 entries out of time order \(first at line 5\); sorted", s.problems[0])
-    assert re.search(r"depth.txt: 1 repeated entries dropped \(same timestamp or file; first: line 6 repeats line 5\)",
-                     s.problems[1])
+    assert re.search(
+        r"depth.txt: 1 repeated entries dropped \(same timestamp or file; first: line 6 repeats line 5\)", s.problems[1]
+    )
     assert sum("repeated entries dropped" in r.getMessage() for r in caplog.records) == 1
 
 
-@pytest.mark.parametrize("file,value", [("depth.txt", "nan"), ("depth.txt", "inf"), ("rgb.txt", "-inf"),
-                                        ("groundtruth.txt", "nan")])
+@pytest.mark.parametrize(
+    "file,value", [("depth.txt", "nan"), ("depth.txt", "inf"), ("rgb.txt", "-inf"), ("groundtruth.txt", "nan")]
+)
 def test_tum_nonfinite_timestamp_is_a_source_error(tmp_path, file, value):
     """A NaN timestamp would be paired with any image (NaN > max_dt is False)."""
     seq = tmp_path / "rgbd_dataset_freiburg1_room"
@@ -736,10 +801,12 @@ def test_frame_count_comes_from_metadata(tmp_path, monkeypatch):
     make_sens(tmp_path / "scannet" / "scene0002_00.sens", n=5, inf_pose=())
     make_7scenes_seq(tmp_path / "7s" / "seq-01", n=3)
     make_tum(tmp_path / "tum" / "rgbd_dataset_freiburg1_xyz")
-    for kind, root, scene in (("scannet", tmp_path / "scannet", "scene0000_00"),
-                              ("scannet", tmp_path / "scannet", "scene0002_00"),
-                              ("sevenscenes", tmp_path / "7s", "seq-01"),
-                              ("tum", tmp_path / "tum", "rgbd_dataset_freiburg1_xyz")):
+    for kind, root, scene in (
+        ("scannet", tmp_path / "scannet", "scene0000_00"),
+        ("scannet", tmp_path / "scannet", "scene0002_00"),
+        ("sevenscenes", tmp_path / "7s", "seq-01"),
+        ("tum", tmp_path / "tum", "rgbd_dataset_freiburg1_xyz"),
+    ):
         assert base.frame_count(kind, root, scene) == len(base.open_scene(kind, root, scene)), (kind, scene)
     from depthgt.sources import synthetic
 
@@ -771,8 +838,11 @@ def test_colour_matches_depth_from_the_registry_and_the_config(tmp_path):
     make_exported(tmp_path / "scannet")
     make_7scenes_seq(tmp_path / "seven" / "seq-01")
     make_tum(tmp_path / "tum" / "rgbd_dataset_freiburg1_xyz")
-    scenes = {"scannet": ("scene0000_00", tmp_path / "scannet"), "sevenscenes": ("seq-01", tmp_path / "seven"),
-              "tum": ("rgbd_dataset_freiburg1_xyz", tmp_path / "tum")}
+    scenes = {
+        "scannet": ("scene0000_00", tmp_path / "scannet"),
+        "sevenscenes": ("seq-01", tmp_path / "seven"),
+        "tum": ("rgbd_dataset_freiburg1_xyz", tmp_path / "tum"),
+    }
     for kind, (name, root) in scenes.items():
         assert base.open_scene(kind, str(root), name).colour_matches_depth is False, kind
     assert base.open_scene("synthetic", None, "room_000", n_frames=2, width=64, height=48).colour_matches_depth is True
@@ -786,5 +856,3 @@ def test_colour_matches_depth_from_the_registry_and_the_config(tmp_path):
     assert photometric_for(auto, False).refine_settings.photo_weight == 0
     syn = {"name": "y", "kind": "synthetic", "options": {"n_frames": 2, "width": 64, "height": 48}}
     assert open_source_scene({**syn, "colour_matches_depth": False}, "room_000").colour_matches_depth is False
-
-

@@ -21,7 +21,7 @@ from depthgt.gt.patches import crop_pairs, cut_patches, patch_record
 
 
 def _scene(rng, hw=(40, 48)):
-    yy, xx = np.mgrid[0:hw[0], 0:hw[1]]
+    yy, xx = np.mgrid[0 : hw[0], 0 : hw[1]]
     gt = (1.2 + 0.013 * xx + 0.007 * yy + rng.normal(0, 0.001, hw)).astype(np.float32)
     gt[rng.random(hw) < 0.02] = 0
     sigma = np.where(gt > 0, rng.uniform(0.0005, 0.002, hw), 0).astype(np.float32)
@@ -37,8 +37,12 @@ def _scene(rng, hw=(40, 48)):
 def test_fixed_point_exr_round_trip_within_half_a_unit(tmp_path):
     rng = np.random.default_rng(0)
     gt, sigma, *_ = _scene(rng)
-    chans = {"Z": gt, "S": sigma, "N": rng.integers(0, 60, gt.shape).astype(np.float32),
-             "W": rng.uniform(0, 30, gt.shape).astype(np.float32)}
+    chans = {
+        "Z": gt,
+        "S": sigma,
+        "N": rng.integers(0, 60, gt.shape).astype(np.float32),
+        "W": rng.uniform(0, 30, gt.shape).astype(np.float32),
+    }
     store.write_gt_exr(tmp_path / "a.exr", chans)
     store.write_gt_exr(tmp_path / "b.exr", dict(reversed(list(chans.items()))))
     assert (tmp_path / "a.exr").read_bytes() == (tmp_path / "b.exr").read_bytes()  # deterministic
@@ -84,6 +88,7 @@ def test_input_depth_stays_exact(tmp_path, units):
     assert np.abs(back["T"].astype(np.float64) - truth).max() <= 0.5 / store.TRUTH_UNITS
     np.testing.assert_array_equal(back["T"], store.stored_input(depth, truth)[1])
     import OpenEXR
+
     with OpenEXR.File(str(tmp_path / "input.exr")) as f:
         table = json.loads(f.header()[io.FIXED_POINT_ATTRIBUTE])
     assert table.get("Z") == units and table["T"] == store.TRUTH_UNITS
@@ -94,8 +99,7 @@ def test_patches_cut_on_read_are_the_built_crops(max_gt_sigma_m):
     rng = np.random.default_rng(2)
     gt, sigma, inp, truth, rgb = _scene(rng)
     boxes = np.array([[0, 0, 16, 16], [10, 20, 16, 16], [24, 32, 16, 16], [5, 5, 16, 16]])
-    built = crop_pairs(inp, gt, rgb, boxes, 0.05, "gt", truth_m=truth, gt_sigma_m=sigma,
-                       max_gt_sigma_m=max_gt_sigma_m)
+    built = crop_pairs(inp, gt, rgb, boxes, 0.05, "gt", truth_m=truth, gt_sigma_m=sigma, max_gt_sigma_m=max_gt_sigma_m)
     assert built["kept"].sum() == (len(boxes) if max_gt_sigma_m is None else 2)
     record = patch_record(built, max_gt_sigma_m)
     assert not set(record) & {"input", "gt", "rgb", "truth", "gt_sigma"}  # boxes, not crops
@@ -137,8 +141,13 @@ def test_an_old_format_shard_is_refused_by_name(tmp_path):
     folder = _v1_shard(shard, gt, inp, rgb, np.array([[0, 0, 16, 16]]))
     loc = store.location(shard, 6)
     want = rf"{shard} is in frame-set format version 1; this depthgt reads version 2.*`depthgt rebuild syn room_0`"
-    for read in (store.read_frameset_at, store.read_patches_at, store.read_frame_images, store.read_batch,
-                 lambda loc: store.read_json(f"{loc}/frameset.json")):
+    for read in (
+        store.read_frameset_at,
+        store.read_patches_at,
+        store.read_frame_images,
+        store.read_batch,
+        lambda loc: store.read_json(f"{loc}/frameset.json"),
+    ):
         with pytest.raises(DepthGTError, match=want):
             read(loc if read is not store.read_batch else shard)
     with pytest.raises(DepthGTError, match=want):

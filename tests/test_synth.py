@@ -69,7 +69,12 @@ def test_determinism_and_random_access():
     for i in range(4):
         b.read(i)
     fa, fb = a.read(5), b.read(5)
-    for x, y in ((fa.rgb, fb.rgb), (fa.depth_m, fb.depth_m), (fa.clean_depth_m, fb.clean_depth_m), (fa.T_world_cam, fb.T_world_cam)):
+    for x, y in (
+        (fa.rgb, fb.rgb),
+        (fa.depth_m, fb.depth_m),
+        (fa.clean_depth_m, fb.clean_depth_m),
+        (fa.T_world_cam, fb.T_world_cam),
+    ):
         np.testing.assert_array_equal(x, y)
 
 
@@ -115,8 +120,15 @@ def test_errors(small_scene):
 
 def _empty_room(prims=()):
     tex = np.full((64, 64, 3), 128, np.uint8)
-    return Layout(np.array([4.0, 5.0, 2.5]), [0] * 6, list(prims), [Material(0, 1.0)], [tex],
-                  np.array([2.0, 2.5, 2.4]), np.array([2.0, 2.5, 0.5]))
+    return Layout(
+        np.array([4.0, 5.0, 2.5]),
+        [0] * 6,
+        list(prims),
+        [Material(0, 1.0)],
+        [tex],
+        np.array([2.0, 2.5, 2.4]),
+        np.array([2.0, 2.5, 0.5]),
+    )
 
 
 def test_clean_depth_matches_analytic_planes():
@@ -206,8 +218,15 @@ def test_projector_shadow_left_of_foreground():
     K = np.array([[100.0, 0, 59.5], [0, 100.0, 29.5], [0, 0, 1]])
     depth = np.full((h, w), 2.0, np.float32)
     depth[20:40, 50:70] = 1.0
-    s = KinectNoise(jitter_px=0, edge_band_px=0, blob_fraction=0, sigma_disp_px=0, sigma_disp_smooth_px=0,
-                    border_right_px=0, shadow_grow_px=0)
+    s = KinectNoise(
+        jitter_px=0,
+        edge_band_px=0,
+        blob_fraction=0,
+        sigma_disp_px=0,
+        sigma_disp_smooth_px=0,
+        border_right_px=0,
+        shadow_grow_px=0,
+    )
     out = kinect_noise(depth, K, np.random.default_rng(0), s)
     band = 100.0 * 0.075 * (1 / 1.0 - 1 / 2.0)  # disparity jump in pixels: 3.75
     holes = out[30] == 0

@@ -34,7 +34,12 @@ def test_names_list_and_errors():
 def test_deterministic_and_distinct_from_rooms(varied):
     again = open_scene("synthetic", None, "varied_001", seed=3, **SMALL)
     a, b = varied[1].read(7), again.read(7)
-    for x, y in ((a.rgb, b.rgb), (a.depth_m, b.depth_m), (a.clean_depth_m, b.clean_depth_m), (a.T_world_cam, b.T_world_cam)):
+    for x, y in (
+        (a.rgb, b.rgb),
+        (a.depth_m, b.depth_m),
+        (a.clean_depth_m, b.clean_depth_m),
+        (a.T_world_cam, b.T_world_cam),
+    ):
         np.testing.assert_array_equal(x, y)
     room = open_scene("synthetic", None, "room_001", seed=3, **SMALL)
     assert not np.allclose(room.layout.size, varied[1].layout.size)
@@ -129,4 +134,7 @@ def test_varied_depth_uses_profile(varied):
     assert s.noise_settings.max_range_m == 8.0  # the family's range
     np.testing.assert_array_equal(s.read(3).clean_depth_m, varied[1].read(3).clean_depth_m)
     assert not np.array_equal(s.read(3).depth_m, varied[1].read(3).depth_m)
-    assert open_scene("synthetic", None, "varied_001", seed=3, noise_max_range_m=5.0, **SMALL).noise_settings.max_range_m == 5.0
+    assert (
+        open_scene("synthetic", None, "varied_001", seed=3, noise_max_range_m=5.0, **SMALL).noise_settings.max_range_m
+        == 5.0
+    )

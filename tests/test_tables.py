@@ -37,8 +37,9 @@ def _eval_table():
 
 
 KINDS = {"syn": "synthetic", "kitchen": "sevenscenes"}
-RMSE, MAE_D, SSIM = (tables.METHOD_LABELS[m] for m in ("rmse_missing_counted_m", "mae_input_valid_m",
-                                                        "ssim_missing_counted"))
+RMSE, MAE_D, SSIM = (
+    tables.METHOD_LABELS[m] for m in ("rmse_missing_counted_m", "mae_input_valid_m", "ssim_missing_counted")
+)
 
 
 def test_table3_means_over_frames_intervals_and_method_order():
@@ -129,7 +130,11 @@ def test_table2_one_block_per_reference():
     intervals and paired differences; a reference without values has no block."""
     rows = []
     for target in range(3):
-        for ref, (inp, lap) in (("tsdf", (0.05, 0.04)), ("gt", (0.02, 0.01)), ("neighbours", (0.03, 0.02 + 0.001 * target))):
+        for ref, (inp, lap) in (
+            ("tsdf", (0.05, 0.04)),
+            ("gt", (0.02, 0.01)),
+            ("neighbours", (0.03, 0.02 + 0.001 * target)),
+        ):
             for method, v in (("input", inp), ("lapden", lap)):
                 rows.append(("kitchen", ".", target, method, ref, "rmse_missing_counted_m", "m", v))
     t2 = tables.table2(_ev(rows), KINDS)
@@ -147,8 +152,12 @@ def test_table2_one_block_per_reference():
 
 
 def test_conflicting_units_and_duplicates_raise():
-    ev = _ev([("syn", "r", 0, "input", "truth", "rmse_missing_counted_m", "m", 0.1),
-              ("syn", "r", 1, "input", "truth", "rmse_missing_counted_m", "mm", 100.0)])
+    ev = _ev(
+        [
+            ("syn", "r", 0, "input", "truth", "rmse_missing_counted_m", "m", 0.1),
+            ("syn", "r", 1, "input", "truth", "rmse_missing_counted_m", "mm", 100.0),
+        ]
+    )
     with pytest.raises(ValueError, match="units"):
         tables.table3(ev, KINDS)
     ev = _ev([("syn", "r", 0, "input", "truth", "rmse_missing_counted_m", "m", 0.1)] * 2)
@@ -157,20 +166,30 @@ def test_conflicting_units_and_duplicates_raise():
 
 
 def test_table1_and_gt_quality():
-    long = pd.DataFrame([
-        ("syn", "room", 0, "gt", "ssim", "1", 0.9), ("syn", "room", 1, "gt", "ssim", "1", 0.8),
-        ("syn", "room", 0, "gt", "ls", "m^2/px^2", 1e-4), ("syn", "room", 0, "rde", "ssim", "1", 0.7),
-        ("syn", "room", 0, "rde", "ls", "m^2/px^2", 3e-4), ("syn", "room2", 0, "gt", "ssim", "1", 0.85),
-    ], columns=["dataset", "scene", "target", "gt", "metric", "unit", "value"])
+    long = pd.DataFrame(
+        [
+            ("syn", "room", 0, "gt", "ssim", "1", 0.9),
+            ("syn", "room", 1, "gt", "ssim", "1", 0.8),
+            ("syn", "room", 0, "gt", "ls", "m^2/px^2", 1e-4),
+            ("syn", "room", 0, "rde", "ssim", "1", 0.7),
+            ("syn", "room", 0, "rde", "ls", "m^2/px^2", 3e-4),
+            ("syn", "room2", 0, "gt", "ssim", "1", 0.85),
+        ],
+        columns=["dataset", "scene", "target", "gt", "metric", "unit", "value"],
+    )
     t1 = tables.table1(long).set_index("GT")
     assert t1.loc[tables.GT_LABELS["gt"], "SSIM (unitless)"] == pytest.approx(0.85)  # (0.9 + 0.8 + 0.85) / 3
     assert t1.loc[tables.GT_LABELS["rde"], "L_S (m^2/px^2)"] == pytest.approx(3e-4)
     assert t1.loc[tables.GT_LABELS["gt"], "frames"] == 3  # frames of two scenes with the same target number
-    q = pd.DataFrame([
-        ("syn", "a", "gt", "truth", "mae_m", "m", 0.002), ("syn", "b", "gt", "truth", "mae_m", "m", 0.004),
-        ("syn", "a", "input", "truth", "mae_m", "m", 0.02),
-        ("kitchen", ".", "leave_target_out", "target_raw", "mae_m", "m", 0.01),
-    ], columns=["dataset", "scene", "estimate", "reference", "metric", "unit", "value"])
+    q = pd.DataFrame(
+        [
+            ("syn", "a", "gt", "truth", "mae_m", "m", 0.002),
+            ("syn", "b", "gt", "truth", "mae_m", "m", 0.004),
+            ("syn", "a", "input", "truth", "mae_m", "m", 0.02),
+            ("kitchen", ".", "leave_target_out", "target_raw", "mae_m", "m", 0.01),
+        ],
+        columns=["dataset", "scene", "estimate", "reference", "metric", "unit", "value"],
+    )
     rq = pd.DataFrame([("syn", "a", "rde", "truth", "mae_m", "m", 0.008)], columns=q.columns)
     tq = tables.table_gt_quality(q, rq)
     assert list(tq["estimate"]) == [tables.GT_LABELS["gt"], tables.GT_LABELS["rde"], tables.GT_LABELS["input"]]
@@ -188,8 +207,18 @@ def test_gt_vs_input_long_reads_frame_sets(tmp_path):
         io.write_exr(tmp_path / d / "gt.exr", {"Z": z})
     io.write_exr(tmp_path / "fs" / "input.exr", {"Z": inp})
     fs = pd.DataFrame([{"dataset": "syn", "scene": "r", "target": 0, "status": "ok", "frameset": str(tmp_path / "fs")}])
-    rde = pd.DataFrame([{"dataset": "syn", "scene": "r", "target": 0, "status": "ok", "frameset": str(tmp_path / "fs"),
-                         "rde": str(tmp_path / "rde")}])
+    rde = pd.DataFrame(
+        [
+            {
+                "dataset": "syn",
+                "scene": "r",
+                "target": 0,
+                "status": "ok",
+                "frameset": str(tmp_path / "fs"),
+                "rde": str(tmp_path / "rde"),
+            }
+        ]
+    )
     long = tables.gt_vs_input_long(fs, rde).set_index(["gt", "metric"])["value"]
     assert long[("rde", "ssim")] == pytest.approx(1.0, abs=1e-6)  # identical to the input
     assert long[("rde", "ls")] == pytest.approx(0.0, abs=1e-12)
@@ -197,11 +226,20 @@ def test_gt_vs_input_long_reads_frame_sets(tmp_path):
 
 
 def test_write_table(tmp_path):
-    t = pd.DataFrame({"method": ["a", "b"], "RMSE (m)": [0.0123456, np.nan], "RMSE (m)" + tables.LOW: [0.011, np.nan],
-                      "RMSE (m)" + tables.HIGH: [0.01351, np.nan], "frames": [3, 0]})
+    t = pd.DataFrame(
+        {
+            "method": ["a", "b"],
+            "RMSE (m)": [0.0123456, np.nan],
+            "RMSE (m)" + tables.LOW: [0.011, np.nan],
+            "RMSE (m)" + tables.HIGH: [0.01351, np.nan],
+            "frames": [3, 0],
+        }
+    )
     csv, md = tables.write_table(t, tmp_path / "sub" / "t.csv", tmp_path / "other" / "t.md", "Caption: conventions.")
     back = pd.read_csv(csv)
-    assert back["RMSE (m)"][0] == pytest.approx(0.0123456) and back["RMSE (m)" + tables.HIGH][0] == pytest.approx(0.01351)
+    assert back["RMSE (m)"][0] == pytest.approx(0.0123456) and back["RMSE (m)" + tables.HIGH][0] == pytest.approx(
+        0.01351
+    )
     text = md.read_text()
     assert text.startswith("Caption: conventions.") and "RMSE (m)" in text and "0.01235 [0.011, 0.01351]" in text
     assert "95% low" not in text and "n/a" in text

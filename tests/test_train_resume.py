@@ -15,23 +15,34 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import torch
-
 from conftest import REPO, make_workdir, snakemake
 
 CONFIG = {
     "seed": 2,
     "device": "cpu",
     "sources": [
-        {"name": "syn", "kind": "synthetic", "scenes": ["room_000"], "split": "train",
-         "options": {"n_frames": 10, "width": 160, "height": 120}},
-        {"name": "synval", "kind": "synthetic", "scenes": ["room_002"], "split": "val",
-         "options": {"n_frames": 8, "width": 160, "height": 120}},
+        {
+            "name": "syn",
+            "kind": "synthetic",
+            "scenes": ["room_000"],
+            "split": "train",
+            "options": {"n_frames": 10, "width": 160, "height": 120},
+        },
+        {
+            "name": "synval",
+            "kind": "synthetic",
+            "scenes": ["room_002"],
+            "split": "val",
+            "options": {"n_frames": 8, "width": 160, "height": 120},
+        },
     ],
     "frameset": {"neighbours": 1, "stride": 2, "target_step": 2},
     "resize": 64,
     "patches": {"count": 4, "size": 32, "max_missing": 0.2, "filter_on": "gt"},
-    "enhance": {"train": {"batch_size": 4, "lr": 0.001, "max_batches_per_epoch": 2},
-                "models": {"ddrnet": {"model": "ddrnet", "epochs": 4, "model_params": {"channels": 4}}}},
+    "enhance": {
+        "train": {"batch_size": 4, "lr": 0.001, "max_batches_per_epoch": 2},
+        "models": {"ddrnet": {"model": "ddrnet", "epochs": 4, "model_params": {"channels": 4}}},
+    },
     "evaluation": {"methods": ["input", "ddrnet"]},
 }
 TARGET = "results/models/ddrnet/best.pt"

@@ -14,22 +14,38 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-
 from conftest import REPO, digest_outputs, make_workdir, snakemake
+
 from depthgt.gt import store
 from depthgt.io import read_exr
+
 FRAMESET_FILES = ("gt.exr", "input.exr", "rgb.png", "poses.json", "patches.npz", "frameset.json")
 
 TINY = {
     "seed": 3,
     "device": "cpu",
     "sources": [
-        {"name": "syn", "kind": "synthetic", "scenes": ["room_000", "room_001"], "split": "train",
-         "options": {"n_frames": 14, "width": 320, "height": 240}},
-        {"name": "synval", "kind": "synthetic", "scenes": ["room_002"], "split": "val",
-         "options": {"n_frames": 13, "width": 320, "height": 240}},
-        {"name": "syntest", "kind": "synthetic", "scenes": ["room_003"], "split": "test",
-         "options": {"n_frames": 13, "width": 320, "height": 240}},
+        {
+            "name": "syn",
+            "kind": "synthetic",
+            "scenes": ["room_000", "room_001"],
+            "split": "train",
+            "options": {"n_frames": 14, "width": 320, "height": 240},
+        },
+        {
+            "name": "synval",
+            "kind": "synthetic",
+            "scenes": ["room_002"],
+            "split": "val",
+            "options": {"n_frames": 13, "width": 320, "height": 240},
+        },
+        {
+            "name": "syntest",
+            "kind": "synthetic",
+            "scenes": ["room_003"],
+            "split": "test",
+            "options": {"n_frames": 13, "width": 320, "height": 240},
+        },
     ],
     "frameset": {"neighbours": 3, "stride": 2, "target_step": 1},
     "resize": 128,
@@ -88,13 +104,18 @@ def test_layout(built):
         # the scene's manifest points into the shard
         fs = pd.read_parquet(sdir / "framesets.parquet")
         assert set(fs.loc[fs["status"] == "ok", "frameset"]) == {
-            store.location(f"results/framesets/{dataset}/{scene}/{shards[0].name}", t) for t in targets}
+            store.location(f"results/framesets/{dataset}/{scene}/{shards[0].name}", t) for t in targets
+        }
     for split in ("train", "val", "test"):
         m = pd.read_parquet(wd / f"results/dataset/{split}.parquet")
         assert len(m) > 0 and (m["split"] == split).all()
     summary = json.loads((wd / "results/dataset/summary.json").read_text())
     fs = pd.read_parquet(wd / "results/dataset/framesets.parquet")
-    assert summary["patches_kept"] + summary["patches_rejected"] == summary["patches_drawn"] == 6 * (fs["status"] == "ok").sum()
+    assert (
+        summary["patches_kept"] + summary["patches_rejected"]
+        == summary["patches_drawn"]
+        == 6 * (fs["status"] == "ok").sum()
+    )
     # the members of targets 6 and 7 (14 frames: 0..13) in syn's rooms, of target 6 alone (0, 2, .., 12) in the
     # others: every frame read once, none unusable
     assert summary["frames_read"] == 14 + 14 + 7 + 7 and summary["frames_skipped"] == []
@@ -158,17 +179,37 @@ def test_bad_config_names_key(tmp_path):
     assert "patches.filter_on" in text and "bogus" in text
 
 
-@pytest.mark.parametrize("name, extra, key", [
-    ("size", {"resize": 32}, "patches.size"),  # a patch larger than the working resolution
-    ("reg", {"registration": {"method": "given", "n_blockz": 1}}, "registration.n_blockz"),  # checked whatever the method
-    ("render_key", {"render": {"bogus": 1}}, "render.bogus"),
-    ("render_m", {"render": {"m": 0}}, "render.m"),
-    ("train", {"enhance": {"train": {"epoch": 3}}}, "enhance.train"),
-    ("options", {"sources": [{"name": "syn", "kind": "synthetic", "scenes": ["room_000"], "split": "train",
-                              "options": {"n_frames": 12, "n_frame": 3}}]}, "sources[syn].options.n_frame"),
-    ("cuda", {"device": "cuda"}, "config key device: cuda was asked for but no CUDA device is available"),
-    ("count", {"patches": {"count": 1_000_000_000, "size": 64}}, "patches.count"),
-])
+@pytest.mark.parametrize(
+    "name, extra, key",
+    [
+        ("size", {"resize": 32}, "patches.size"),  # a patch larger than the working resolution
+        (
+            "reg",
+            {"registration": {"method": "given", "n_blockz": 1}},
+            "registration.n_blockz",
+        ),  # checked whatever the method
+        ("render_key", {"render": {"bogus": 1}}, "render.bogus"),
+        ("render_m", {"render": {"m": 0}}, "render.m"),
+        ("train", {"enhance": {"train": {"epoch": 3}}}, "enhance.train"),
+        (
+            "options",
+            {
+                "sources": [
+                    {
+                        "name": "syn",
+                        "kind": "synthetic",
+                        "scenes": ["room_000"],
+                        "split": "train",
+                        "options": {"n_frames": 12, "n_frame": 3},
+                    }
+                ]
+            },
+            "sources[syn].options.n_frame",
+        ),
+        ("cuda", {"device": "cuda"}, "config key device: cuda was asked for but no CUDA device is available"),
+        ("count", {"patches": {"count": 1_000_000_000, "size": 64}}, "patches.count"),
+    ],
+)
 def test_settings_are_checked_before_any_job(tmp_path, name, extra, key):
     """Issue 10's config cases stop the run before any job, naming the key (checks
     the JSON schema cannot express, made by depthgt.settings at workflow start)."""
@@ -200,11 +241,20 @@ def test_overfit_registration_in_workflow(tmp_path):
     """registration.method overfit: pretraining rule, then every frame set registered
     without the source's poses; estimated poses close to the reference ones."""
     cfg = {
-        "seed": 0, "device": "cpu",
-        "sources": [{"name": "syn", "kind": "synthetic", "scenes": ["room_000"], "split": "train",
-                     "options": {"n_frames": 13, "width": 320, "height": 240}}],
+        "seed": 0,
+        "device": "cpu",
+        "sources": [
+            {
+                "name": "syn",
+                "kind": "synthetic",
+                "scenes": ["room_000"],
+                "split": "train",
+                "options": {"n_frames": 13, "width": 320, "height": 240},
+            }
+        ],
         "registration": {"method": "overfit", "preset": "fast", "pretrain": {"framesets": 1}},
-        "resize": 128, "patches": {"count": 2, "size": 64},
+        "resize": 128,
+        "patches": {"count": 2, "size": 64},
     }
     wd = make_workdir(tmp_path / "reg", cfg)
     snakemake(wd, "dataset")

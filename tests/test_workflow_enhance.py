@@ -12,15 +12,14 @@
 from __future__ import annotations
 
 import copy
-import json
 import subprocess
 import sys
 from pathlib import Path
 
 import pandas as pd
 import pytest
-
 from conftest import make_workdir, snakemake
+
 from depthgt.gt import store
 
 FIXTURE = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
@@ -29,18 +28,35 @@ TINY = {
     "seed": 1,
     "device": "cpu",
     "sources": [
-        {"name": "syn", "kind": "synthetic", "scenes": ["room_000"], "split": "train",
-         "options": {"n_frames": 10, "width": 160, "height": 120}},
-        {"name": "synval", "kind": "synthetic", "scenes": ["room_002"], "split": "val",
-         "options": {"n_frames": 8, "width": 160, "height": 120}},
-        {"name": "syntest", "kind": "synthetic", "scenes": ["room_003"], "split": "test",
-         "options": {"n_frames": 8, "width": 160, "height": 120}},
+        {
+            "name": "syn",
+            "kind": "synthetic",
+            "scenes": ["room_000"],
+            "split": "train",
+            "options": {"n_frames": 10, "width": 160, "height": 120},
+        },
+        {
+            "name": "synval",
+            "kind": "synthetic",
+            "scenes": ["room_002"],
+            "split": "val",
+            "options": {"n_frames": 8, "width": 160, "height": 120},
+        },
+        {
+            "name": "syntest",
+            "kind": "synthetic",
+            "scenes": ["room_003"],
+            "split": "test",
+            "options": {"n_frames": 8, "width": 160, "height": 120},
+        },
     ],
     "frameset": {"neighbours": 1, "stride": 2, "target_step": 2},
     "resize": 64,
     "patches": {"count": 4, "size": 32, "max_missing": 0.2, "filter_on": "gt"},
-    "enhance": {"train": {"epochs": 1, "batch_size": 4, "lr": 0.001, "max_batches_per_epoch": 2},
-                "rde": {"voxel_m": 0.04, "frame_step": 1, "backend": "torch", "max_missing": 0.5}},
+    "enhance": {
+        "train": {"epochs": 1, "batch_size": 4, "lr": 0.001, "max_batches_per_epoch": 2},
+        "rde": {"voxel_m": 0.04, "frame_step": 1, "backend": "torch", "max_missing": 0.5},
+    },
     "evaluation": {"methods": ["input", "rgf"], "figure_frames_per_scene": 1},
 }
 
@@ -63,8 +79,9 @@ def test_tables_without_real_source(synthetic_only):
     assert "no real source" in (wd / "results/tables/table2.md").read_text()
     t3 = _table(wd, "table3")
     assert list(t3["method"]) == ["Input (raw depth)", "RGF"] and set(t3["dataset"]) == {"syntest"}
-    assert {"RMSE, filling (m)", "MAE, denoising (m)", "SSIM, filling (unitless)",
-            "RMSE, filling (m) 95% low"} <= set(t3.columns)
+    assert {"RMSE, filling (m)", "MAE, denoising (m)", "SSIM, filling (unitless)", "RMSE, filling (m) 95% low"} <= set(
+        t3.columns
+    )
     assert (t3["RMSE, filling (m)"] > 0).all() and (t3["RMSE, denoising (m)"] < 0.5).all()
     assert (t3["frames"] == t3["frames"].iloc[0]).all()  # every method on the same frames
     paired = _table(wd, "table3_paired")  # no LapDEN in this build: the note says so
@@ -73,7 +90,9 @@ def test_tables_without_real_source(synthetic_only):
     assert set(t1["GT"]) == {"depthgt GT (local frame set)", "global reconstruction GT (TSDF)"}
     assert t1["SSIM (unitless)"].between(0, 1).all()
     tq = _table(wd, "table_gt_quality")
-    assert {"depthgt GT (local frame set)", "global reconstruction GT (TSDF)", "input (raw depth)"} <= set(tq["estimate"])
+    assert {"depthgt GT (local frame set)", "global reconstruction GT (TSDF)", "input (raw depth)"} <= set(
+        tq["estimate"]
+    )
     md = (wd / "results/tables/table3.md").read_text()
     assert "RMSE, filling (m)" in md and "data_range 1" in md and "seed 0" in md
 
@@ -88,15 +107,24 @@ def test_evaluate_command_reproduces_table3(synthetic_only, tmp_path):
     wd = synthetic_only
     cli = [sys.executable, "-m", "depthgt.cli"]
     exp = tmp_path / "export"
-    proc = subprocess.run([*cli, "export", str(exp), "-d", str(wd), "--format", "exr", "--kind", "frames", "--split",
-                           "test"], capture_output=True, text=True)
+    proc = subprocess.run(
+        [*cli, "export", str(exp), "-d", str(wd), "--format", "exr", "--kind", "frames", "--split", "test"],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     preds = tmp_path / "rgf"
     for npy in (wd / "results/eval/predictions/rgf").rglob("*.npy"):
-        io.write_exr(preds / npy.relative_to(wd / "results/eval/predictions/rgf").with_suffix(".exr"), {"Y": np.load(npy)})
-    proc = subprocess.run([*cli, "evaluate", str(preds), "-d", str(wd), "--export", str(exp), "--out",
-                           str(tmp_path / "out")], capture_output=True, text=True)
+        io.write_exr(
+            preds / npy.relative_to(wd / "results/eval/predictions/rgf").with_suffix(".exr"), {"Y": np.load(npy)}
+        )
+    proc = subprocess.run(
+        [*cli, "evaluate", str(preds), "-d", str(wd), "--export", str(exp), "--out", str(tmp_path / "out")],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
+
     def cells(md):  # the printed cells of the RGF row (the column widths differ with the rows beside it)
         return [[c.strip() for c in line.split("|")] for line in md.read_text().splitlines() if "| RGF " in line]
 
@@ -127,8 +155,11 @@ def test_html_report(synthetic_only):
 def test_depthgt_report_command(synthetic_only, tmp_path):
     """`depthgt report` on a finished build writes the same kind of report."""
     out = tmp_path / "r.html"
-    proc = subprocess.run([sys.executable, "-m", "depthgt.cli", "report", "-d", str(synthetic_only), "--out", str(out)],
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "depthgt.cli", "report", "-d", str(synthetic_only), "--out", str(out)],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert out.stat().st_size > 10_000
 
@@ -136,8 +167,9 @@ def test_depthgt_report_command(synthetic_only, tmp_path):
 @pytest.mark.skipif(not FIXTURE.is_dir(), reason="../shared/data/7scenes-kitchen is absent")
 def test_table2_from_7scenes_fixture(tmp_path):
     cfg = copy.deepcopy(TINY)
-    cfg["sources"].append({"name": "kitchen", "kind": "sevenscenes", "root": str(FIXTURE), "scenes": "all",
-                           "split": "test"})
+    cfg["sources"].append(
+        {"name": "kitchen", "kind": "sevenscenes", "root": str(FIXTURE), "scenes": "all", "split": "test"}
+    )
     cfg["frameset"]["target_step"] = 6
     cfg["evaluation"]["methods"] = ["input", "rgf", "jf", "lapden"]  # one model trained (2 steps) to stay fast
     wd = make_workdir(tmp_path / "kitchen", cfg)
@@ -199,8 +231,9 @@ def test_rde_tsdf_renders_a_plane(backend):
     if backend == "open3d" and not open3d_available():
         pytest.skip("Open3D is not installed (optional extra)")
     K, poses, depths, T_new, truth = _plane_stream()
-    out, used = reconstruct_and_render(depths, None, K, poses, [K], [T_new], truth.shape,
-                                       RDESettings(voxel_m=0.01, max_depth_m=4.0, backend=backend))
+    out, used = reconstruct_and_render(
+        depths, None, K, poses, [K], [T_new], truth.shape, RDESettings(voxel_m=0.01, max_depth_m=4.0, backend=backend)
+    )
     assert used == backend
     valid = out[0] > 0
     assert valid.mean() > 0.95

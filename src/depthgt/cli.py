@@ -23,8 +23,9 @@ import argparse
 import os
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 from depthgt import runlock
 from depthgt.errors import DepthGTError
@@ -40,7 +41,8 @@ def repo_root() -> Path:
     if not (root / "Snakefile").is_file():
         raise DepthGTError(
             f"no Snakefile at {root}: depthgt's command needs the checkout it was installed from "
-            "(pip install -e <checkout>); pass --snakefile to name the workflow")
+            "(pip install -e <checkout>); pass --snakefile to name the workflow"
+        )
     return root
 
 
@@ -81,7 +83,7 @@ def scene_outputs(summary: str, dataset: str, scene: str) -> list[str]:
     for line in summary.splitlines()[1:]:
         path = line.split("\t", 1)[0].strip()
         parts = Path(path).parts
-        if any(parts[i:i + 2] == (dataset, scene) for i in range(len(parts) - 1)):
+        if any(parts[i : i + 2] == (dataset, scene) for i in range(len(parts) - 1)):
             out.append(path)
     return out
 
@@ -111,8 +113,10 @@ def _cmd_rebuild(args: argparse.Namespace) -> int:
     summary = _run(snakemake_command(args, "framesets", "--summary"), capture=True).stdout
     files = scene_outputs(summary, args.dataset, args.scene)
     if not files:
-        raise DepthGTError(f"scene {args.dataset}/{args.scene} is not in the plan: the config's `sources` "
-                           f"have no source {args.dataset!r} listing scene {args.scene!r}")
+        raise DepthGTError(
+            f"scene {args.dataset}/{args.scene} is not in the plan: the config's `sources` "
+            f"have no source {args.dataset!r} listing scene {args.scene!r}"
+        )
     extra = [target, "--forcerun", *files]
     if args.dry_run:
         extra.append("-n")
@@ -154,8 +158,7 @@ def _cmd_show(args: argparse.Namespace) -> int:
 
 
 def _cmd_extract(args: argparse.Namespace) -> int:
-    for p in store.extract_frameset(Path(args.directory) / "results", args.dataset, args.scene, args.target,
-                                    args.dest):
+    for p in store.extract_frameset(Path(args.directory) / "results", args.dataset, args.scene, args.target, args.dest):
         print(p)
     return 0
 
@@ -164,8 +167,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from depthgt.data import export_dataset  # torch: only for this command
 
     results = Path(args.directory) / "results"
-    index = export_dataset(results, args.dest, fmt=args.format, splits=args.split, kind=args.kind,
-                           workers=args.workers)
+    index = export_dataset(results, args.dest, fmt=args.format, splits=args.split, kind=args.kind, workers=args.workers)
     print(f"{len(index)} {args.kind} exported to {args.dest} (index.parquet, index.csv, SHA256SUMS, card.json)")
     return 0
 
@@ -187,8 +189,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.compare:
         evals = sorted((Path(args.directory) / "results" / "eval").glob("*.parquet"))
         if not evals:
-            raise DepthGTError(f"--compare: no evaluation tables in {Path(args.directory) / 'results' / 'eval'} "
-                               "(run `depthgt build tables` first)")
+            raise DepthGTError(
+                f"--compare: no evaluation tables in {Path(args.directory) / 'results' / 'eval'} "
+                "(run `depthgt build tables` first)"
+            )
         compare = [pd.read_parquet(p) for p in evals]
     out = Path(args.out) if args.out else Path(args.directory) / f"evaluate-{name}"
     written = predictions.evaluate_folder(pred_dir, out, frames, method=name, compare=compare)
@@ -203,8 +207,10 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     report = verify(args.folder or args.directory)
     for problem in report.problems:
         print(f"FAILED {problem}")
-    print(f"{report.folder} ({report.kind}): {report.checked} files checked, "
-          + ("all match the card" if report.ok else f"{len(report.problems)} problem(s)"))
+    print(
+        f"{report.folder} ({report.kind}): {report.checked} files checked, "
+        + ("all match the card" if report.ok else f"{len(report.problems)} problem(s)")
+    )
     return 0 if report.ok else 1
 
 
@@ -213,8 +219,10 @@ def _cmd_report(args: argparse.Namespace) -> int:
     # Snakemake's "marked for report but does not exist"
     plan = subprocess.run(snakemake_command(args, "-n", "--quiet", "all"), capture_output=True, text=True)
     if plan.returncode != 0 or "Nothing to be done" not in plan.stdout + plan.stderr:
-        raise DepthGTError(f"the build in {Path(args.directory).resolve()} is not finished (or its config fails): "
-                           "run `depthgt build` first, then `depthgt report`")
+        raise DepthGTError(
+            f"the build in {Path(args.directory).resolve()} is not finished (or its config fails): "
+            "run `depthgt build` first, then `depthgt report`"
+        )
     _run(snakemake_command(args, "--report", str(Path(args.out).resolve())))
     return 0
 
@@ -224,17 +232,20 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     names = sorted(p.stem for p in bench.glob("*.py"))
     if args.name not in names:
         raise DepthGTError(f"no benchmark {args.name!r} in {bench}; there are: {', '.join(names)}")
-    proc = subprocess.run([sys.executable, str(bench / f"{args.name}.py"), *args.args],
-                          env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    proc = subprocess.run(
+        [sys.executable, str(bench / f"{args.name}.py"), *args.args], env=dict(os.environ, PYTHONUNBUFFERED="1")
+    )
     return proc.returncode
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="depthgt", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="depthgt", description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("-d", "--directory", default=".",
-                        help="working directory with config/config.yaml and results/ (default: .)")
+    common.add_argument(
+        "-d", "--directory", default=".", help="working directory with config/config.yaml and results/ (default: .)"
+    )
     common.add_argument("--snakefile", help="the workflow (default: the Snakefile of depthgt's checkout)")
     run = argparse.ArgumentParser(add_help=False)
     run.add_argument("--cores", type=int, help="cores for Snakemake (default: the profile's)")
@@ -243,13 +254,21 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("-n", "--dry-run", action="store_true", help="show the jobs, run none")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    b = sub.add_parser("build", parents=[common, run], help="run the workflow",
-                       description="Run the workflow on the working directory's config.")
+    b = sub.add_parser(
+        "build",
+        parents=[common, run],
+        help="run the workflow",
+        description="Run the workflow on the working directory's config.",
+    )
     b.add_argument("targets", nargs="*", help="targets (rules or files; default: all)")
     b.set_defaults(func=_cmd_build)
 
-    r = sub.add_parser("rebuild", parents=[common, run], help="build one scene again",
-                       description="Force one scene's jobs (frame sets, summaries) to run again.")
+    r = sub.add_parser(
+        "rebuild",
+        parents=[common, run],
+        help="build one scene again",
+        description="Force one scene's jobs (frame sets, summaries) to run again.",
+    )
     r.add_argument("dataset", help="a source name of the config")
     r.add_argument("scene", help="a scene of that source")
     r.set_defaults(func=_cmd_rebuild)
@@ -259,60 +278,99 @@ def _parser() -> argparse.ArgumentParser:
     fs.add_argument("scene")
     fs.add_argument("target", type=int, help="the target frame's index")
 
-    s = sub.add_parser("show", parents=[common, fs], help="statistics and a PNG panel of one frame set",
-                       description="Print one built frame set's statistics and write a panel "
-                                   "RGB | input | GT | confidence (| truth).")
+    s = sub.add_parser(
+        "show",
+        parents=[common, fs],
+        help="statistics and a PNG panel of one frame set",
+        description="Print one built frame set's statistics and write a panel RGB | input | GT | confidence (| truth).",
+    )
     s.add_argument("--out", help="PNG path (default: DATASET_SCENE_TARGET.png)")
     s.set_defaults(func=_cmd_show)
 
-    e = sub.add_parser("extract", parents=[common, fs], help="one frame set's files into a folder",
-                       description="Write one built frame set's files (EXR, PNG, JSON, NPZ) into DEST.")
+    e = sub.add_parser(
+        "extract",
+        parents=[common, fs],
+        help="one frame set's files into a folder",
+        description="Write one built frame set's files (EXR, PNG, JSON, NPZ) into DEST.",
+    )
     e.add_argument("dest")
     e.set_defaults(func=_cmd_extract)
 
-    x = sub.add_parser("export", parents=[common], help="the dataset as plain files (PNG/EXR + index)",
-                       description="Write the built dataset to DEST as plain files: 16-bit PNG depth in millimetres "
-                                   "(or float32 EXR in metres), RGB PNG, index.parquet/index.csv listing every "
-                                   "sample, SHA256SUMS and the dataset card. Resumes an unfinished export.")
+    x = sub.add_parser(
+        "export",
+        parents=[common],
+        help="the dataset as plain files (PNG/EXR + index)",
+        description="Write the built dataset to DEST as plain files: 16-bit PNG depth in millimetres "
+        "(or float32 EXR in metres), RGB PNG, index.parquet/index.csv listing every "
+        "sample, SHA256SUMS and the dataset card. Resumes an unfinished export.",
+    )
     x.add_argument("dest", help="the export folder")
     x.add_argument("--format", choices=["png16", "exr"], default="png16", help="depth files (default: png16)")
-    x.add_argument("--split", nargs="+", choices=["train", "val", "test"], default=["train", "val", "test"],
-                   help="splits to export (default: all)")
-    x.add_argument("--kind", choices=["patches", "frames"], default="patches",
-                   help="patch pairs or whole frames (default: patches)")
+    x.add_argument(
+        "--split",
+        nargs="+",
+        choices=["train", "val", "test"],
+        default=["train", "val", "test"],
+        help="splits to export (default: all)",
+    )
+    x.add_argument(
+        "--kind",
+        choices=["patches", "frames"],
+        default="patches",
+        help="patch pairs or whole frames (default: patches)",
+    )
     x.add_argument("--workers", type=int, default=0, help="processes reading the shards (default: 0, this one)")
     x.set_defaults(func=_cmd_export)
 
-    ev = sub.add_parser("evaluate", parents=[common], help="score a folder of predictions of the test frames",
-                        description="Score a folder of depth predictions of the test split with the tables' masks, "
-                                    "metrics and bootstrap intervals, and write Tables 2/3 (CSV + Markdown) and the "
-                                    "long per-frame table. PRED_DIR/{dataset}/{scene}/{target:06d}.png (16-bit, mm) "
-                                    "or .exr (float32 m, channel Y), named like the test split of "
-                                    "`depthgt export --kind frames`. References: the build in -d, or --export.")
+    ev = sub.add_parser(
+        "evaluate",
+        parents=[common],
+        help="score a folder of predictions of the test frames",
+        description="Score a folder of depth predictions of the test split with the tables' masks, "
+        "metrics and bootstrap intervals, and write Tables 2/3 (CSV + Markdown) and the "
+        "long per-frame table. PRED_DIR/{dataset}/{scene}/{target:06d}.png (16-bit, mm) "
+        "or .exr (float32 m, channel Y), named like the test split of "
+        "`depthgt export --kind frames`. References: the build in -d, or --export.",
+    )
     ev.add_argument("pred_dir", help="the folder of predictions")
-    ev.add_argument("--export", help="read the references from this export (--kind frames, with the test split) "
-                                     "instead of the build in -d; an exr export holds the build's exact images")
+    ev.add_argument(
+        "--export",
+        help="read the references from this export (--kind frames, with the test split) "
+        "instead of the build in -d; an exr export holds the build's exact images",
+    )
     ev.add_argument("--name", help="the predictions' name in the tables (default: PRED_DIR's folder name)")
-    ev.add_argument("--compare", action="store_true",
-                    help="put the build's methods (results/eval/*.parquet in -d) beside the predictions and write "
-                         "the paired tables: the predictions minus every method, per frame")
+    ev.add_argument(
+        "--compare",
+        action="store_true",
+        help="put the build's methods (results/eval/*.parquet in -d) beside the predictions and write "
+        "the paired tables: the predictions minus every method, per frame",
+    )
     ev.add_argument("--out", help="folder of the tables (default: evaluate-NAME in -d)")
     ev.set_defaults(func=_cmd_evaluate)
 
-    v = sub.add_parser("verify", parents=[common], help="check a dataset or an export against its card",
-                       description="Check every shard and manifest of a built dataset (or every file of an export) "
-                                   "against the checksums of its dataset card; exit status 1 naming each file "
-                                   "that differs.")
+    v = sub.add_parser(
+        "verify",
+        parents=[common],
+        help="check a dataset or an export against its card",
+        description="Check every shard and manifest of a built dataset (or every file of an export) "
+        "against the checksums of its dataset card; exit status 1 naming each file "
+        "that differs.",
+    )
     v.add_argument("folder", nargs="?", help="working directory, results folder or export (default: -d)")
     v.set_defaults(func=_cmd_verify)
 
-    rep = sub.add_parser("report", parents=[common], help="Snakemake's HTML report",
-                         description="Write Snakemake's report (tables, figures) of a finished build.")
+    rep = sub.add_parser(
+        "report",
+        parents=[common],
+        help="Snakemake's HTML report",
+        description="Write Snakemake's report (tables, figures) of a finished build.",
+    )
     rep.add_argument("--out", default="report.html", help="HTML file (default: report.html)")
     rep.set_defaults(func=_cmd_report)
 
-    be = sub.add_parser("bench", help="run a benchmark of bench/",
-                        description="Run bench/NAME.py with ARGS (see bench/README.md).")
+    be = sub.add_parser(
+        "bench", help="run a benchmark of bench/", description="Run bench/NAME.py with ARGS (see bench/README.md)."
+    )
     be.add_argument("name", help="the benchmark, e.g. bench_render")
     be.add_argument("args", nargs=argparse.REMAINDER, help="its arguments")
     be.set_defaults(func=_cmd_bench)

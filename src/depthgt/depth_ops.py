@@ -15,8 +15,15 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["check_depth", "valid_avg_pool", "masked_avg_pool", "masked_mean", "forward_gradients",
-           "max_gradient_magnitude", "structure_loss"]
+__all__ = [
+    "check_depth",
+    "valid_avg_pool",
+    "masked_avg_pool",
+    "masked_mean",
+    "forward_gradients",
+    "max_gradient_magnitude",
+    "structure_loss",
+]
 
 
 def check_depth(name: str, t: torch.Tensor) -> None:
@@ -25,9 +32,15 @@ def check_depth(name: str, t: torch.Tensor) -> None:
         raise ValueError(f"{name} must be (B, 1, H, W), got {tuple(t.shape)}")
 
 
-def valid_avg_pool(depth_m: torch.Tensor, valid: torch.Tensor, kernel: int, stride: int | None = None,
-                   padding: int = 0, ceil_mode: bool = False,
-                   count_include_pad: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+def valid_avg_pool(
+    depth_m: torch.Tensor,
+    valid: torch.Tensor,
+    kernel: int,
+    stride: int | None = None,
+    padding: int = 0,
+    ceil_mode: bool = False,
+    count_include_pad: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean of the valid pixels in each pooling window (``F.avg_pool2d``'s windows).
 
     Computed as the ratio of two average pools (depth x validity, validity) with the
@@ -48,10 +61,12 @@ def valid_avg_pool(depth_m: torch.Tensor, valid: torch.Tensor, kernel: int, stri
     (2.0, True)
     """
     w = valid.to(depth_m.dtype)
-    num = F.avg_pool2d(depth_m * w, kernel, stride=stride, padding=padding, ceil_mode=ceil_mode,
-                       count_include_pad=count_include_pad)
-    den = F.avg_pool2d(w, kernel, stride=stride, padding=padding, ceil_mode=ceil_mode,
-                       count_include_pad=count_include_pad)
+    num = F.avg_pool2d(
+        depth_m * w, kernel, stride=stride, padding=padding, ceil_mode=ceil_mode, count_include_pad=count_include_pad
+    )
+    den = F.avg_pool2d(
+        w, kernel, stride=stride, padding=padding, ceil_mode=ceil_mode, count_include_pad=count_include_pad
+    )
     ok = den > 0
     return torch.where(ok, num / den.clamp_min(1e-12), torch.zeros_like(num)), ok
 

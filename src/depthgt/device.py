@@ -10,22 +10,29 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import TYPE_CHECKING, Iterator
+from typing import TYPE_CHECKING
 
 from depthgt.errors import ConfigError
 
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["resolve_device", "cuda_device_count", "check_device_available", "keep_freed_memory",
-           "plain_cpu_convolutions"]
+__all__ = [
+    "resolve_device",
+    "cuda_device_count",
+    "check_device_available",
+    "keep_freed_memory",
+    "plain_cpu_convolutions",
+]
 
-_NO_CUDA = ("config key device: cuda was asked for but no CUDA device is available "
-            "(use device: auto to fall back to the CPU)")
+_NO_CUDA = (
+    "config key device: cuda was asked for but no CUDA device is available (use device: auto to fall back to the CPU)"
+)
 
 
-def resolve_device(name: str = "auto") -> "torch.device":
+def resolve_device(name: str = "auto") -> torch.device:
     """``auto`` -> CUDA when available, else CPU; ``cpu``; ``cuda`` (an error when no
     CUDA device is available, rather than a silent fall-back to CPU).
 

@@ -24,9 +24,10 @@ import io
 import json
 import struct
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import cv2
 import numpy as np
@@ -70,8 +71,17 @@ _JPEG_EOI = b"\xff\xd9"  # end-of-image marker
 # What Pillow's header parsers raise on malformed input (Image.open tries its plugins
 # and ends in UnidentifiedImageError, an OSError; DecompressionBombError above
 # 2 * Image.MAX_IMAGE_PIXELS; the others from plugins that accepted the first bytes).
-_PIL_ERRORS = (OSError, ValueError, TypeError, SyntaxError, EOFError, IndexError, KeyError, struct.error,
-               Image.DecompressionBombError)
+_PIL_ERRORS = (
+    OSError,
+    ValueError,
+    TypeError,
+    SyntaxError,
+    EOFError,
+    IndexError,
+    KeyError,
+    struct.error,
+    Image.DecompressionBombError,
+)
 _COLOR_MODES = {"L", "RGB", "P"}  # 8-bit grey, 8-bit colour, 8-bit palette (PNG)
 
 
@@ -110,9 +120,13 @@ def _open_header(source, where: str) -> ImageHeader:
     except Image.DecompressionBombError as exc:
         raise FrameError(f"{where}: image header declares an absurd size ({exc})", "unreadable") from exc
     except UnidentifiedImageError as exc:
-        raise FrameError(f"{where}: not a readable JPEG or PNG image (unknown format or corrupt header)", "unreadable") from exc
+        raise FrameError(
+            f"{where}: not a readable JPEG or PNG image (unknown format or corrupt header)", "unreadable"
+        ) from exc
     except _PIL_ERRORS as exc:
-        raise FrameError(f"{where}: not a readable JPEG or PNG image ({type(exc).__name__}: {exc})", "unreadable") from exc
+        raise FrameError(
+            f"{where}: not a readable JPEG or PNG image ({type(exc).__name__}: {exc})", "unreadable"
+        ) from exc
 
 
 def probe_image(data: bytes, where: str) -> ImageHeader:
@@ -149,7 +163,9 @@ def _check_declared_size(header: ImageHeader, where: str, expected_hw: tuple[int
             "unreadable",
         )
     if expected_hw is not None and header.hw != tuple(expected_hw):
-        raise FrameError(f"{where}: {header.format} is {w}x{h}, {what} is {expected_hw[1]}x{expected_hw[0]}", "size_mismatch")
+        raise FrameError(
+            f"{where}: {header.format} is {w}x{h}, {what} is {expected_hw[1]}x{expected_hw[0]}", "size_mismatch"
+        )
 
 
 def _check_complete(data: bytes, header: ImageHeader, where: str) -> None:
@@ -164,7 +180,9 @@ def _imdecode(data: bytes, header: ImageHeader, where: str) -> np.ndarray:
     try:
         img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error as exc:
-        raise FrameError(f"{where}: cannot decode {header.format} ({str(exc).strip().splitlines()[-1]})", "unreadable") from exc
+        raise FrameError(
+            f"{where}: cannot decode {header.format} ({str(exc).strip().splitlines()[-1]})", "unreadable"
+        ) from exc
     if img is None:
         raise FrameError(f"{where}: cannot decode {header.format} image", "unreadable")
     if img.shape[:2] != header.hw:
@@ -175,8 +193,9 @@ def _imdecode(data: bytes, header: ImageHeader, where: str) -> np.ndarray:
     return img
 
 
-def decode_color(data: bytes, where: str, expected_hw: tuple[int, int] | None = None,
-                 formats: tuple[str, ...] = ("JPEG", "PNG")) -> np.ndarray:
+def decode_color(
+    data: bytes, where: str, expected_hw: tuple[int, int] | None = None, formats: tuple[str, ...] = ("JPEG", "PNG")
+) -> np.ndarray:
     """Decode an encoded colour image to (H, W, 3) uint8 RGB.
 
     Accepted: 8-bit grey (expanded to three channels), 8-bit RGB and 8-bit palette
@@ -197,18 +216,23 @@ def decode_color(data: bytes, where: str, expected_hw: tuple[int, int] | None = 
     if header.format not in formats:
         raise FrameError(f"{where}: colour payload is {header.format}, expected {' or '.join(formats)}", "unreadable")
     if header.mode not in _COLOR_MODES:
-        raise FrameError(f"{where}: colour must be 8-bit grey or RGB, the {header.format} is {header.mode!r}", "unreadable")
+        raise FrameError(
+            f"{where}: colour must be 8-bit grey or RGB, the {header.format} is {header.mode!r}", "unreadable"
+        )
     _check_declared_size(header, where, expected_hw, "expected colour size")
     _check_complete(data, header, where)
     img = _imdecode(data, header, where)
     channels = 1 if img.ndim == 2 else img.shape[2]
     if img.dtype != np.uint8 or channels not in (1, 3):
-        raise FrameError(f"{where}: colour must be 8-bit grey or RGB, decoded {img.dtype} with {channels} channels", "unreadable")
+        raise FrameError(
+            f"{where}: colour must be 8-bit grey or RGB, decoded {img.dtype} with {channels} channels", "unreadable"
+        )
     return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB if channels == 1 else cv2.COLOR_BGR2RGB)
 
 
-def decode_depth_png(data: bytes, where: str, expected_hw: tuple[int, int] | None = None,
-                     what: str = "expected depth size") -> np.ndarray:
+def decode_depth_png(
+    data: bytes, where: str, expected_hw: tuple[int, int] | None = None, what: str = "expected depth size"
+) -> np.ndarray:
     """Decode a 16-bit single-channel depth PNG to (H, W) uint16 raw units.
 
     Args:
@@ -227,7 +251,9 @@ def decode_depth_png(data: bytes, where: str, expected_hw: tuple[int, int] | Non
     _check_complete(data, header, where)
     raw = _imdecode(data, header, where)
     if raw.dtype != np.uint16 or raw.ndim != 2:
-        raise FrameError(f"{where}: depth must be single-channel uint16, got {raw.dtype} with shape {raw.shape}", "unreadable")
+        raise FrameError(
+            f"{where}: depth must be single-channel uint16, got {raw.dtype} with shape {raw.shape}", "unreadable"
+        )
     return raw
 
 
@@ -235,12 +261,15 @@ def _read_image_file(path: Path) -> bytes:
     _require_file(path)
     size = path.stat().st_size
     if size > MAX_IMAGE_FILE_BYTES:
-        raise FrameError(f"{path}: {size} bytes, larger than any image accepted ({MAX_IMAGE_FILE_BYTES} bytes)", "unreadable")
+        raise FrameError(
+            f"{path}: {size} bytes, larger than any image accepted ({MAX_IMAGE_FILE_BYTES} bytes)", "unreadable"
+        )
     return path.read_bytes()
 
 
-def read_depth_png(path: str | Path, scale: float, expected_hw: tuple[int, int] | None = None,
-                   what: str = "expected depth size") -> np.ndarray:
+def read_depth_png(
+    path: str | Path, scale: float, expected_hw: tuple[int, int] | None = None, what: str = "expected depth size"
+) -> np.ndarray:
     """Read a 16-bit depth PNG and convert it to metres.
 
     Args:
@@ -313,8 +342,10 @@ def fixed_point(values: np.ndarray, units_per_value: int, where: str = "array") 
     bad = ~np.isfinite(scaled) | (scaled < 0) | (scaled > _UINT32_MAX)
     if bad.any():
         y, x = np.argwhere(bad)[0]
-        raise ValueError(f"{where}: value {values[y, x]} at pixel ({y}, {x}) is not a finite number in "
-                         f"[0, {_UINT32_MAX / units_per_value:g}] (fixed point, {units_per_value} units per value)")
+        raise ValueError(
+            f"{where}: value {values[y, x]} at pixel ({y}, {x}) is not a finite number in "
+            f"[0, {_UINT32_MAX / units_per_value:g}] (fixed point, {units_per_value} units per value)"
+        )
     return scaled.astype(np.uint32)
 
 
@@ -331,8 +362,12 @@ def on_fixed_point_grid(values: np.ndarray, units_per_value: int, where: str = "
     return from_fixed_point(fixed_point(values, units_per_value, where), units_per_value)
 
 
-def write_exr(path: str | Path, channels: Mapping[str, np.ndarray], fixed: Mapping[str, int] | None = None,
-              compression: str = "zip") -> None:
+def write_exr(
+    path: str | Path,
+    channels: Mapping[str, np.ndarray],
+    fixed: Mapping[str, int] | None = None,
+    compression: str = "zip",
+) -> None:
     """Write float32 channels to a scanline EXR.
 
     The header holds only the standard attributes (no timestamps) and, with ``fixed``,
@@ -370,12 +405,16 @@ def write_exr(path: str | Path, channels: Mapping[str, np.ndarray], fixed: Mappi
     if len(set(shapes.values())) != 1:
         raise ValueError(f"{path}: channels differ in shape: {shapes}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    header = {"compression": OpenEXR.ZIP_COMPRESSION if compression == "zip" else OpenEXR.HTJ2K256_COMPRESSION,
-              "type": OpenEXR.scanlineimage}
+    header = {
+        "compression": OpenEXR.ZIP_COMPRESSION if compression == "zip" else OpenEXR.HTJ2K256_COMPRESSION,
+        "type": OpenEXR.scanlineimage,
+    }
     if fixed:
         header[FIXED_POINT_ATTRIBUTE] = json.dumps({k: int(v) for k, v in sorted(fixed.items())})
-    data = {name: (fixed_point(arr, fixed[name], f"{path} channel {name}") if name in fixed else np.ascontiguousarray(arr))
-            for name, arr in sorted(channels.items())}
+    data = {
+        name: (fixed_point(arr, fixed[name], f"{path} channel {name}") if name in fixed else np.ascontiguousarray(arr))
+        for name, arr in sorted(channels.items())
+    }
     with OpenEXR.File(header, data) as f:
         f.write(str(path))
 
@@ -396,12 +435,16 @@ def _exr_channels(source: str | io.BytesIO, where: str) -> dict[str, np.ndarray]
         try:
             fixed = {str(k): int(v) for k, v in json.loads(table).items()}
         except (ValueError, TypeError, AttributeError) as exc:
-            raise FrameError(f"{where}: header {FIXED_POINT_ATTRIBUTE} is not a JSON table of units ({exc})",
-                             "unreadable") from exc
+            raise FrameError(
+                f"{where}: header {FIXED_POINT_ATTRIBUTE} is not a JSON table of units ({exc})", "unreadable"
+            ) from exc
         for name, units in fixed.items():
             if name not in chans or chans[name].dtype != np.uint32 or units <= 0:
-                raise FrameError(f"{where}: fixed-point channel {name!r} ({units} units per value) is not a UINT channel "
-                                 f"of the file (channels {sorted(chans)})", "unreadable")
+                raise FrameError(
+                    f"{where}: fixed-point channel {name!r} ({units} units per value) is not a UINT channel "
+                    f"of the file (channels {sorted(chans)})",
+                    "unreadable",
+                )
             chans[name] = from_fixed_point(chans[name], units)
     return chans
 
@@ -476,7 +519,9 @@ def read_pose_txt(path: str | Path) -> np.ndarray:
     return values.reshape(4, 4)
 
 
-def fit_rgb_to_depth(rgb: np.ndarray, depth_hw: tuple[int, int], where: str, max_aspect_change: float = 0.05) -> np.ndarray:
+def fit_rgb_to_depth(
+    rgb: np.ndarray, depth_hw: tuple[int, int], where: str, max_aspect_change: float = 0.05
+) -> np.ndarray:
     """Bring a colour image to the depth resolution (cv2.INTER_AREA when sizes differ).
 
     Args:

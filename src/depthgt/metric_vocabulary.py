@@ -86,8 +86,15 @@ METRIC_UNITS = {
     "patches_drawn": "patches",
     "patches_kept": "patches",
 }
-DEPTH_ERRORS = ("mae_m", "rmse_m", "mae_missing_counted_m", "rmse_missing_counted_m", "completeness", "n_reference_px",
-                "n_both_px")
+DEPTH_ERRORS = (
+    "mae_m",
+    "rmse_m",
+    "mae_missing_counted_m",
+    "rmse_missing_counted_m",
+    "completeness",
+    "n_reference_px",
+    "n_both_px",
+)
 
 
 def unit_of(metric: str) -> str:

@@ -12,8 +12,15 @@ import torch.nn.functional as F
 
 from depthgt.rasterise import resampled_positions
 
-__all__ = ["KINECT_SIGMA_1M", "depth_sigma_m", "estimate_noise_sigma_1m", "second_differences", "Residuals",
-           "second_difference_residuals", "noise_sigma_1m_from"]
+__all__ = [
+    "KINECT_SIGMA_1M",
+    "depth_sigma_m",
+    "estimate_noise_sigma_1m",
+    "second_differences",
+    "Residuals",
+    "second_difference_residuals",
+    "noise_sigma_1m_from",
+]
 
 #: sigma of one depth sample at 1 m (metres) used when neither the settings nor the
 #: caller give one: Kinect v1 (1/8-px disparity steps and noise, bench/calibrate_noise.py)
@@ -26,7 +33,9 @@ def depth_sigma_m(z_m: torch.Tensor, sigma_1m: float, sigma_abs_m: float) -> tor
     return torch.sqrt(sigma_abs_m**2 + (sigma_1m * z_m * z_m) ** 2)
 
 
-def second_differences(iz: torch.Tensor, ok: torch.Tensor, dim: int, pos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def second_differences(
+    iz: torch.Tensor, ok: torch.Tensor, dim: int, pos: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Residual of each pixel's inverse depth from the line through its two neighbours
     along ``dim`` (3: x, 2: y) at their sample positions ``pos``, scaled to the std of
     one sample (zero on any plane), and where all three are valid. Shapes: the input's,
@@ -88,11 +97,15 @@ def noise_sigma_1m_from(res: Residuals, frames: slice = slice(None), min_pixels:
         return KINECT_SIGMA_1M
     # the invalid residuals as +inf: the k-th smallest of all is the k-th of the valid ones
     # (k <= n), without gathering them into a copy first
-    r = torch.cat([torch.where(both[frames], r[frames].abs(), float("inf")).reshape(-1) for r, both in zip(res.r, res.both)])
+    r = torch.cat(
+        [torch.where(both[frames], r[frames].abs(), float("inf")).reshape(-1) for r, both in zip(res.r, res.both)]
+    )
     return float(r.kthvalue(max(1, int(round(0.6827 * n)))).values)
 
 
-def estimate_noise_sigma_1m(depth_m: torch.Tensor, src_hw: tuple[int, int] | None = None, min_pixels: int = 2000) -> float:
+def estimate_noise_sigma_1m(
+    depth_m: torch.Tensor, src_hw: tuple[int, int] | None = None, min_pixels: int = 2000
+) -> float:
     """Sigma of one depth sample at 1 m (metres, the z^2 law) estimated from noisy depth alone.
 
     In inverse depth a disparity sensor's noise is about constant and every plane is

@@ -22,8 +22,17 @@ import torch
 
 from depthgt.geometry import project
 
-__all__ = ["Candidates", "candidates", "check_points", "resampled_positions", "front_to_back", "sort_by_pixel",
-           "segment_rank_keep", "rank_in_pixel"]
+__all__ = [
+    "Candidates",
+    "candidates",
+    "check_points",
+    "resampled_positions",
+    "front_to_back",
+    "sort_by_pixel",
+    "segment_rank_keep",
+    "rank_in_pixel",
+]
+
 
 def check_points(points_cam: torch.Tensor, K: torch.Tensor, valid: torch.Tensor | None, size_hw) -> torch.Tensor:
     if points_cam.ndim != 3 or points_cam.shape[-1] != 3:
@@ -84,8 +93,16 @@ def candidates(
     z_f = z.reshape(-1)
     r = float(radius_px)
     if grid_uv is not None:
-        return _candidates_on_grid(uv_f, z_f, valid, bnhw=(b, n, h, w), radius_px=r, min_depth=min_depth,
-                                   grid_uv=grid_uv, point_order=point_order)
+        return _candidates_on_grid(
+            uv_f,
+            z_f,
+            valid,
+            bnhw=(b, n, h, w),
+            radius_px=r,
+            min_depth=min_depth,
+            grid_uv=grid_uv,
+            point_order=point_order,
+        )
     with torch.no_grad():
         u, v = uv_f[:, 0], uv_f[:, 1]
         ok = valid.reshape(-1) & (z_f > min_depth) & torch.isfinite(u) & torch.isfinite(v)
@@ -138,7 +155,11 @@ def _cells_inside(inside: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, tor
     slot = flat.to(torch.float64).add_(0.5).mul_(1.0 / cells).long()
     cell = flat - slot * cells
     table = torch.arange(cells, device=flat.device)
-    return slot, torch.div(table, span, rounding_mode="floor").index_select(0, cell), (table % span).index_select(0, cell)
+    return (
+        slot,
+        torch.div(table, span, rounding_mode="floor").index_select(0, cell),
+        (table % span).index_select(0, cell),
+    )
 
 
 def _visited(ok: torch.Tensor, point_order: torch.Tensor | None) -> torch.Tensor:
@@ -148,10 +169,17 @@ def _visited(ok: torch.Tensor, point_order: torch.Tensor | None) -> torch.Tensor
     return point_order.index_select(0, ok.index_select(0, point_order).nonzero().squeeze(1))
 
 
-def _candidates_on_grid(uv_f: torch.Tensor, z_f: torch.Tensor, valid: torch.Tensor, *,
-                        bnhw: tuple[int, int, int, int], radius_px: float, min_depth: float,
-                        grid_uv: tuple[torch.Tensor, torch.Tensor],
-                        point_order: torch.Tensor | None = None) -> tuple[Candidates, torch.Tensor]:
+def _candidates_on_grid(
+    uv_f: torch.Tensor,
+    z_f: torch.Tensor,
+    valid: torch.Tensor,
+    *,
+    bnhw: tuple[int, int, int, int],
+    radius_px: float,
+    min_depth: float,
+    grid_uv: tuple[torch.Tensor, torch.Tensor],
+    point_order: torch.Tensor | None = None,
+) -> tuple[Candidates, torch.Tensor]:
     """:func:`candidates` for sample positions ``grid_uv`` off the pixel centres, from the
     flattened projections ``uv_f`` (B*N, 2) px and depths ``z_f`` (B*N,) m; ``bnhw``:
     (B, N, H, W)."""
@@ -159,10 +187,16 @@ def _candidates_on_grid(uv_f: torch.Tensor, z_f: torch.Tensor, valid: torch.Tens
     r = radius_px
     gu, gv = (g.to(uv_f.dtype) for g in grid_uv)
     if gu.shape != (w,) or gv.shape != (h,):
-        raise ValueError(f"grid_uv must hold ({w},) and ({h},) sample positions, got {tuple(gu.shape)}, {tuple(gv.shape)}")
+        raise ValueError(
+            f"grid_uv must hold ({w},) and ({h},) sample positions, got {tuple(gu.shape)}, {tuple(gv.shape)}"
+        )
     with torch.no_grad():
-        shift = float(max((gu - torch.arange(w, dtype=gu.dtype, device=gu.device)).abs().max(),
-                          (gv - torch.arange(h, dtype=gv.dtype, device=gv.device)).abs().max()))
+        shift = float(
+            max(
+                (gu - torch.arange(w, dtype=gu.dtype, device=gu.device)).abs().max(),
+                (gv - torch.arange(h, dtype=gv.dtype, device=gv.device)).abs().max(),
+            )
+        )
         if shift >= 0.5:
             raise ValueError(f"grid_uv positions must lie within 0.5 px of the pixel centres, got up to {shift:.3f}")
         u, v = uv_f[:, 0], uv_f[:, 1]
@@ -215,7 +249,12 @@ def front_to_back(iz: torch.Tensor) -> torch.Tensor:
     float sort). Written by hand: torch sorts floats by comparison only. NaN (no depth)
     sorts first; such points have no candidates.
     """
-    ints = {torch.float64: torch.int64, torch.float32: torch.int32, torch.float16: torch.int16, torch.bfloat16: torch.int16}
+    ints = {
+        torch.float64: torch.int64,
+        torch.float32: torch.int32,
+        torch.float16: torch.int16,
+        torch.bfloat16: torch.int16,
+    }
     bits = iz.detach().contiguous().view(ints[iz.dtype])
     return torch.sort(-bits, stable=True).indices
 
@@ -234,7 +273,9 @@ def sort_by_pixel(pixel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.sort(pixel, stable=True)
 
 
-def segment_rank_keep(pixel: torch.Tensor, key: torch.Tensor, active: torch.Tensor, limit: int, n_pixels: int) -> torch.Tensor:
+def segment_rank_keep(
+    pixel: torch.Tensor, key: torch.Tensor, active: torch.Tensor, limit: int, n_pixels: int
+) -> torch.Tensor:
     """Restrict ``active`` (C,) bool to the ``limit`` active candidates of smallest ``key``
     in every pixel.
 
@@ -269,5 +310,3 @@ def rank_in_pixel(pixel: torch.Tensor, key: torch.Tensor) -> torch.Tensor:
     rank = torch.empty_like(pos)
     rank[order] = pos - first
     return rank
-
-

@@ -57,21 +57,38 @@ class Model:
     def __post_init__(self):
         for what in ("build", "loss"):
             if getattr(self, what).count(":") != 1:
-                raise ValueError(f"registry model {self.name!r}: {what} must be 'module:function', "
-                                 f"got {getattr(self, what)!r}")
+                raise ValueError(
+                    f"registry model {self.name!r}: {what} must be 'module:function', got {getattr(self, what)!r}"
+                )
         if "total" in self.log_terms or len(set(self.log_terms)) != len(self.log_terms):
-            raise ValueError(f"registry model {self.name!r}: log_terms must be distinct and without 'total', "
-                             f"got {self.log_terms}")
+            raise ValueError(
+                f"registry model {self.name!r}: log_terms must be distinct and without 'total', got {self.log_terms}"
+            )
 
 
-MODELS: dict[str, Model] = {m.name: m for m in (
-    Model("lapden", build="depthgt.enhance.lapden:build_lapden", loss="depthgt.enhance.losses:lapden_loss_from_params",
-          log_terms=("depth", "grad", "normal", "structure")),
-    Model("ddrnet", build="depthgt.enhance.learned:DDRNetDenoise", loss="depthgt.enhance.learned:ddrnet_loss",
-          log_terms=("depth", "normal")),
-    Model("sdd", build="depthgt.enhance.learned:SDDUNet", loss="depthgt.enhance.learned:sdd_loss",
-          log_terms=("depth", "smooth")),
-)}
+MODELS: dict[str, Model] = {
+    m.name: m
+    for m in (
+        Model(
+            "lapden",
+            build="depthgt.enhance.lapden:build_lapden",
+            loss="depthgt.enhance.losses:lapden_loss_from_params",
+            log_terms=("depth", "grad", "normal", "structure"),
+        ),
+        Model(
+            "ddrnet",
+            build="depthgt.enhance.learned:DDRNetDenoise",
+            loss="depthgt.enhance.learned:ddrnet_loss",
+            log_terms=("depth", "normal"),
+        ),
+        Model(
+            "sdd",
+            build="depthgt.enhance.learned:SDDUNet",
+            loss="depthgt.enhance.learned:sdd_loss",
+            log_terms=("depth", "smooth"),
+        ),
+    )
+}
 
 
 def log_columns(model: str) -> tuple[str, ...]:
@@ -116,27 +133,55 @@ class Method:
             raise ValueError(f"registry method {self.name!r}: kind must be one of {KINDS}, got {self.kind!r}")
         learned = self.kind == "learned"
         if learned != (self.trains_on is not None) or learned != (self.builder is not None):
-            raise ValueError(f"registry method {self.name!r}: trains_on and builder are set exactly for learned methods")
+            raise ValueError(
+                f"registry method {self.name!r}: trains_on and builder are set exactly for learned methods"
+            )
         if learned and self.builder not in MODELS:
-            raise ValueError(f"registry method {self.name!r}: builder must be one of {list(MODELS)}, got {self.builder!r}")
+            raise ValueError(
+                f"registry method {self.name!r}: builder must be one of {list(MODELS)}, got {self.builder!r}"
+            )
         if learned and self.trains_on not in TRAINS_ON:
-            raise ValueError(f"registry method {self.name!r}: trains_on must be one of {TRAINS_ON}, got {self.trains_on!r}")
+            raise ValueError(
+                f"registry method {self.name!r}: trains_on must be one of {TRAINS_ON}, got {self.trains_on!r}"
+            )
         if learned and self.settings_key is None:
             object.__setattr__(self, "settings_key", self.name)
 
 
 # The order here is the order of the tables' rows and of the default evaluation.methods.
-METHODS: dict[str, Method] = {m.name: m for m in (
-    Method("input", "Input (raw depth)", "input", baseline="input"),
-    Method("rgf", "RGF", "filter", baseline="rgf"),
-    Method("jf", "JF", "filter", baseline="jf"),
-    Method("ddrnet", "DDRNet (denoising net)", "learned", baseline="learned", trains_on="depthgt", builder="ddrnet"),
-    Method("sdd", "SDD (single-view depth terms)", "learned", baseline="learned", trains_on="depthgt", builder="sdd"),
-    Method("rde", "RDE (LapDEN on TSDF GT)", "learned", baseline="learned", trains_on="rde", builder="lapden",
-           settings_key="lapden", model_params={"preset": "default"}),
-    Method("lapden", "LapDEN (depthgt GT)", "learned", baseline="learned", trains_on="depthgt", builder="lapden",
-           model_params={"preset": "default"}),
-)}
+METHODS: dict[str, Method] = {
+    m.name: m
+    for m in (
+        Method("input", "Input (raw depth)", "input", baseline="input"),
+        Method("rgf", "RGF", "filter", baseline="rgf"),
+        Method("jf", "JF", "filter", baseline="jf"),
+        Method(
+            "ddrnet", "DDRNet (denoising net)", "learned", baseline="learned", trains_on="depthgt", builder="ddrnet"
+        ),
+        Method(
+            "sdd", "SDD (single-view depth terms)", "learned", baseline="learned", trains_on="depthgt", builder="sdd"
+        ),
+        Method(
+            "rde",
+            "RDE (LapDEN on TSDF GT)",
+            "learned",
+            baseline="learned",
+            trains_on="rde",
+            builder="lapden",
+            settings_key="lapden",
+            model_params={"preset": "default"},
+        ),
+        Method(
+            "lapden",
+            "LapDEN (depthgt GT)",
+            "learned",
+            baseline="learned",
+            trains_on="depthgt",
+            builder="lapden",
+            model_params={"preset": "default"},
+        ),
+    )
+}
 
 
 def learned() -> dict[str, Method]:

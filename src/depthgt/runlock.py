@@ -66,9 +66,13 @@ def _proc_start(pid: int) -> str | None:
 
 
 def _me() -> Holder:
-    return Holder(pid=os.getpid(), host=socket.gethostname(),
-                  started=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), proc_start=_proc_start(os.getpid()),
-                  command=" ".join(sys.argv)[:500])
+    return Holder(
+        pid=os.getpid(),
+        host=socket.gethostname(),
+        started=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        proc_start=_proc_start(os.getpid()),
+        command=" ".join(sys.argv)[:500],
+    )
 
 
 def holder(workdir: str | Path = ".") -> Holder | None:
@@ -103,8 +107,10 @@ def _alive(h: Holder) -> bool:
 
 def _refuse(path: Path, h: Holder) -> RunLockError:
     remote = " (on another host: remove the file if that run is gone)" if h.host != socket.gethostname() else ""
-    return RunLockError(f"another run is using this working directory: {h.describe()}{remote}. "
-                        f"Wait for it to finish or stop it; the lock is {path}")
+    return RunLockError(
+        f"another run is using this working directory: {h.describe()}{remote}. "
+        f"Wait for it to finish or stop it; the lock is {path}"
+    )
 
 
 def check(workdir: str | Path = ".") -> None:

@@ -29,8 +29,9 @@ import json
 import re
 import types
 import typing
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Any, Mapping, TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -38,12 +39,35 @@ from depthgt import registry
 from depthgt.errors import ConfigError
 
 __all__ = [
-    "SPLITS", "DEVICES", "ON_FAILURE", "REGISTRATION_METHODS", "REGISTRATION_PRESETS",
-    "FrameSetSettings", "SplitSettings", "PatchSettings", "RenderSettings", "RefineSettings", "PretrainSettings",
-    "RegistrationSettings", "TrainSettings", "RDESettings", "EnhanceSettings", "EvaluationSettings", "SourceSettings",
-    "Settings", "Stage", "STAGES", "stage_config", "stage_settings", "settings_from_config",
-    "registration_settings", "check_keys", "build", "check_config",
-    "check_scene_name", "check_workflow",
+    "SPLITS",
+    "DEVICES",
+    "ON_FAILURE",
+    "REGISTRATION_METHODS",
+    "REGISTRATION_PRESETS",
+    "FrameSetSettings",
+    "SplitSettings",
+    "PatchSettings",
+    "RenderSettings",
+    "RefineSettings",
+    "PretrainSettings",
+    "RegistrationSettings",
+    "TrainSettings",
+    "RDESettings",
+    "EnhanceSettings",
+    "EvaluationSettings",
+    "SourceSettings",
+    "Settings",
+    "Stage",
+    "STAGES",
+    "stage_config",
+    "stage_settings",
+    "settings_from_config",
+    "registration_settings",
+    "check_keys",
+    "build",
+    "check_config",
+    "check_scene_name",
+    "check_workflow",
 ]
 
 T = TypeVar("T")
@@ -120,24 +144,48 @@ class FrameSetSettings:
     coverage_min_fill_px: int = 50
 
     def __post_init__(self):
-        _require(1 <= self.batch_size <= MAX_FRAMESET_BATCH, "frameset.batch_size",
-                 f"must be in 1..{MAX_FRAMESET_BATCH}, got {self.batch_size}")
+        _require(
+            1 <= self.batch_size <= MAX_FRAMESET_BATCH,
+            "frameset.batch_size",
+            f"must be in 1..{MAX_FRAMESET_BATCH}, got {self.batch_size}",
+        )
         for key in ("neighbours", "stride", "target_step"):
             _require(getattr(self, key) >= 1, f"frameset.{key}", f"must be >= 1, got {getattr(self, key)}")
-        _require(self.neighbours <= MAX_NEIGHBOURS, "frameset.neighbours",
-                 f"must be <= {MAX_NEIGHBOURS} (every member is held in memory at once), got {self.neighbours}")
-        _require(self.selection in FRAMESET_SELECTIONS, "frameset.selection",
-                 f"must be one of {FRAMESET_SELECTIONS}, got {self.selection!r}")
-        _require(1 <= self.coverage_span <= MAX_COVERAGE_SPAN, "frameset.coverage_span",
-                 f"must be in 1..{MAX_COVERAGE_SPAN} (the candidates are held in memory at once), got {self.coverage_span}")
-        _require(0 <= self.coverage_views <= MAX_NEIGHBOURS, "frameset.coverage_views",
-                 f"must be in 0..{MAX_NEIGHBOURS}, got {self.coverage_views}")
-        _require(self.coverage_max_baseline_m > 0, "frameset.coverage_max_baseline_m",
-                 f"must be > 0, got {self.coverage_max_baseline_m}")
-        _require(0 < self.coverage_max_angle_deg <= 180, "frameset.coverage_max_angle_deg",
-                 f"must be in (0, 180], got {self.coverage_max_angle_deg}")
-        _require(self.coverage_min_fill_px >= 1, "frameset.coverage_min_fill_px",
-                 f"must be >= 1, got {self.coverage_min_fill_px}")
+        _require(
+            self.neighbours <= MAX_NEIGHBOURS,
+            "frameset.neighbours",
+            f"must be <= {MAX_NEIGHBOURS} (every member is held in memory at once), got {self.neighbours}",
+        )
+        _require(
+            self.selection in FRAMESET_SELECTIONS,
+            "frameset.selection",
+            f"must be one of {FRAMESET_SELECTIONS}, got {self.selection!r}",
+        )
+        _require(
+            1 <= self.coverage_span <= MAX_COVERAGE_SPAN,
+            "frameset.coverage_span",
+            f"must be in 1..{MAX_COVERAGE_SPAN} (the candidates are held in memory at once), got {self.coverage_span}",
+        )
+        _require(
+            0 <= self.coverage_views <= MAX_NEIGHBOURS,
+            "frameset.coverage_views",
+            f"must be in 0..{MAX_NEIGHBOURS}, got {self.coverage_views}",
+        )
+        _require(
+            self.coverage_max_baseline_m > 0,
+            "frameset.coverage_max_baseline_m",
+            f"must be > 0, got {self.coverage_max_baseline_m}",
+        )
+        _require(
+            0 < self.coverage_max_angle_deg <= 180,
+            "frameset.coverage_max_angle_deg",
+            f"must be in (0, 180], got {self.coverage_max_angle_deg}",
+        )
+        _require(
+            self.coverage_min_fill_px >= 1,
+            "frameset.coverage_min_fill_px",
+            f"must be >= 1, got {self.coverage_min_fill_px}",
+        )
 
     @property
     def offsets(self) -> list[int]:
@@ -211,13 +259,21 @@ class PatchSettings:
     max_gt_sigma_m: float | None = None
 
     def __post_init__(self):
-        _require(self.filter_on in ("gt", "input", "both"), "patches.filter_on",
-                 f"must be gt, input or both, got {self.filter_on!r}")
-        _require(1 <= self.count <= MAX_PATCH_COUNT, "patches.count", f"must be in [1, {MAX_PATCH_COUNT}], got {self.count}")
+        _require(
+            self.filter_on in ("gt", "input", "both"),
+            "patches.filter_on",
+            f"must be gt, input or both, got {self.filter_on!r}",
+        )
+        _require(
+            1 <= self.count <= MAX_PATCH_COUNT, "patches.count", f"must be in [1, {MAX_PATCH_COUNT}], got {self.count}"
+        )
         _require(self.size >= 1, "patches.size", f"must be >= 1, got {self.size}")
         _require(0.0 < self.max_missing <= 1.0, "patches.max_missing", f"must be in (0, 1], got {self.max_missing}")
-        _require(self.max_gt_sigma_m is None or self.max_gt_sigma_m > 0, "patches.max_gt_sigma_m",
-                 f"must be null or > 0, got {self.max_gt_sigma_m}")
+        _require(
+            self.max_gt_sigma_m is None or self.max_gt_sigma_m > 0,
+            "patches.max_gt_sigma_m",
+            f"must be null or > 0, got {self.max_gt_sigma_m}",
+        )
 
 
 # --------------------------------------------------------------------------- GT renderer
@@ -363,34 +419,67 @@ class RenderSettings:
     leave_target_out_stride: int = 2
 
     def __post_init__(self) -> None:
-        _require(self.leave_target_out_stride >= 1, "render.leave_target_out_stride",
-                 f"must be >= 1, got {self.leave_target_out_stride}")
+        _require(
+            self.leave_target_out_stride >= 1,
+            "render.leave_target_out_stride",
+            f"must be >= 1, got {self.leave_target_out_stride}",
+        )
         _require(self.m >= 1, "render.m", f"must be >= 1, got {self.m}")
         _require(self.radius_px > 0, "render.radius_px", f"must be > 0, got {self.radius_px}")
-        _require(self.noise_sigma_1m is None or self.noise_sigma_1m > 0, "render.noise_sigma_1m",
-                 f"must be null or > 0, got {self.noise_sigma_1m}")
+        _require(
+            self.noise_sigma_1m is None or self.noise_sigma_1m > 0,
+            "render.noise_sigma_1m",
+            f"must be null or > 0, got {self.noise_sigma_1m}",
+        )
         _require(self.noise_sigma_abs_m >= 0, "render.noise_sigma_abs_m", f"must be >= 0, got {self.noise_sigma_abs_m}")
         _require(self.gap_sigmas > 0, "render.gap_sigmas", f"must be > 0, got {self.gap_sigmas}")
         _require(self.gap_slope_rel >= 0, "render.gap_slope_rel", f"must be >= 0, got {self.gap_slope_rel}")
         _require(self.min_frames >= 1, "render.min_frames", f"must be >= 1, got {self.min_frames}")
         _require(self.min_points >= 1, "render.min_points", f"must be >= 1, got {self.min_points}")
         _require(0.0 <= self.edge_vote <= 1.0, "render.edge_vote", f"must be in [0, 1], got {self.edge_vote}")
-        _require(self.edge_vote_slack_px >= 0, "render.edge_vote_slack_px", f"must be >= 0, got {self.edge_vote_slack_px}")
+        _require(
+            self.edge_vote_slack_px >= 0, "render.edge_vote_slack_px", f"must be >= 0, got {self.edge_vote_slack_px}"
+        )
         _require(self.ambiguous_px >= 0, "render.ambiguous_px", f"must be >= 0, got {self.ambiguous_px}")
         _require(self.slope_prior >= 0, "render.slope_prior", f"must be >= 0, got {self.slope_prior}")
-        _require(self.plane in RENDER_PLANES, "render.plane", f"must be one of {', '.join(RENDER_PLANES)}, got {self.plane!r}")
-        _require(0.0 <= self.min_frame_agreement <= 1.0, "render.min_frame_agreement",
-                 f"must be in [0, 1], got {self.min_frame_agreement}")
-        _require(0.0 <= self.min_whole_frame_agreement <= 1.0, "render.min_whole_frame_agreement",
-                 f"must be in [0, 1], got {self.min_whole_frame_agreement}")
-        _require(isinstance(self.agreement_edge_px, int) and self.agreement_edge_px >= 0, "render.agreement_edge_px",
-                 f"must be an integer >= 0, got {self.agreement_edge_px!r}")
-        _require(isinstance(self.agreement_tile_px, int) and self.agreement_tile_px >= 0, "render.agreement_tile_px",
-                 f"must be an integer >= 0, got {self.agreement_tile_px!r}")
-        _require(self.max_sigma_m is None or self.max_sigma_m > 0, "render.max_sigma_m",
-                 f"must be null or > 0, got {self.max_sigma_m}")
-        _require(0 < self.min_cos_incidence < 1, "render.min_cos_incidence", f"must be in (0, 1), got {self.min_cos_incidence}")
-        _require(self.max_correction_rel > 0, "render.max_correction_rel", f"must be > 0, got {self.max_correction_rel}")
+        _require(
+            self.plane in RENDER_PLANES,
+            "render.plane",
+            f"must be one of {', '.join(RENDER_PLANES)}, got {self.plane!r}",
+        )
+        _require(
+            0.0 <= self.min_frame_agreement <= 1.0,
+            "render.min_frame_agreement",
+            f"must be in [0, 1], got {self.min_frame_agreement}",
+        )
+        _require(
+            0.0 <= self.min_whole_frame_agreement <= 1.0,
+            "render.min_whole_frame_agreement",
+            f"must be in [0, 1], got {self.min_whole_frame_agreement}",
+        )
+        _require(
+            isinstance(self.agreement_edge_px, int) and self.agreement_edge_px >= 0,
+            "render.agreement_edge_px",
+            f"must be an integer >= 0, got {self.agreement_edge_px!r}",
+        )
+        _require(
+            isinstance(self.agreement_tile_px, int) and self.agreement_tile_px >= 0,
+            "render.agreement_tile_px",
+            f"must be an integer >= 0, got {self.agreement_tile_px!r}",
+        )
+        _require(
+            self.max_sigma_m is None or self.max_sigma_m > 0,
+            "render.max_sigma_m",
+            f"must be null or > 0, got {self.max_sigma_m}",
+        )
+        _require(
+            0 < self.min_cos_incidence < 1,
+            "render.min_cos_incidence",
+            f"must be in (0, 1), got {self.min_cos_incidence}",
+        )
+        _require(
+            self.max_correction_rel > 0, "render.max_correction_rel", f"must be > 0, got {self.max_correction_rel}"
+        )
         _require(self.min_depth_m > 0, "render.min_depth_m", f"must be > 0, got {self.min_depth_m}")
 
 
@@ -437,9 +526,16 @@ class RefineSettings:
         where = "registration.refine_settings"
         _require(self.geo_ref_depth_m >= 0, f"{where}.geo_ref_depth_m", f"must be >= 0, got {self.geo_ref_depth_m}")
         n = len(self.scales)
-        _require(len(self.iters) == len(self.point_stride) == len(self.max_dist_m) == len(self.geo_scale_m) == n,
-                 where, "scales, iters, point_stride, max_dist_m and geo_scale_m need the same length")
-        _require(self.pairs in ("all", "target", "adjacent"), f"{where}.pairs", f"must be all|target|adjacent, got {self.pairs!r}")
+        _require(
+            len(self.iters) == len(self.point_stride) == len(self.max_dist_m) == len(self.geo_scale_m) == n,
+            where,
+            "scales, iters, point_stride, max_dist_m and geo_scale_m need the same length",
+        )
+        _require(
+            self.pairs in ("all", "target", "adjacent"),
+            f"{where}.pairs",
+            f"must be all|target|adjacent, got {self.pairs!r}",
+        )
         _require(self.robust in ("huber", "cauchy"), f"{where}.robust", f"must be huber|cauchy, got {self.robust!r}")
 
 
@@ -550,35 +646,79 @@ class RegistrationSettings:
         return self.method in ("given", "refine")
 
     def __post_init__(self):
-        _require(self.method in REGISTRATION_METHODS, "registration.method",
-                 f"must be {' or '.join(REGISTRATION_METHODS)}, got {self.method!r}")
-        _require(self.on_failure in ON_FAILURE, "registration.on_failure",
-                 f"must be one of {', '.join(ON_FAILURE)}, got {self.on_failure!r}")
-        _require(self.preset is None or self.preset in REGISTRATION_PRESETS, "registration.preset",
-                 f"unknown preset {self.preset!r}; known: {', '.join(REGISTRATION_PRESETS)}")
-        _require(self.pairs in ("all", "target"), "registration.pairs", f"must be 'all' or 'target', got {self.pairs!r}")
-        _require(self.pose_from in ("last", "best"), "registration.pose_from", f"must be 'last' or 'best', got {self.pose_from!r}")
-        _require(self.precision in ("auto", "fp32", "bf16"), "registration.precision",
-                 f"must be auto, fp32 or bf16, got {self.precision!r}")
-        _require(self.photometric in ("auto", "on", "off"), "registration.photometric",
-                 f"must be auto, on or off, got {self.photometric!r}")
-        _require(self.max_correction_m > 0, "registration.max_correction_m", f"must be > 0, got {self.max_correction_m}")
-        _require(self.max_correction_deg > 0, "registration.max_correction_deg",
-                 f"must be > 0, got {self.max_correction_deg}")
-        _require(self.max_residual_sigmas >= 0, "registration.max_residual_sigmas",
-                 f"must be >= 0, got {self.max_residual_sigmas}")
-        _require(self.iterations >= 0 and self.top_k >= 3 and self.n_candidates >= 3, "registration",
-                 "need iterations >= 0, top_k >= 3 and n_candidates >= 3")
-        _require(self.n_candidates <= MAX_CANDIDATES, "registration.n_candidates",
-                 f"must be <= {MAX_CANDIDATES} (matching is quadratic in it), got {self.n_candidates}")
+        _require(
+            self.method in REGISTRATION_METHODS,
+            "registration.method",
+            f"must be {' or '.join(REGISTRATION_METHODS)}, got {self.method!r}",
+        )
+        _require(
+            self.on_failure in ON_FAILURE,
+            "registration.on_failure",
+            f"must be one of {', '.join(ON_FAILURE)}, got {self.on_failure!r}",
+        )
+        _require(
+            self.preset is None or self.preset in REGISTRATION_PRESETS,
+            "registration.preset",
+            f"unknown preset {self.preset!r}; known: {', '.join(REGISTRATION_PRESETS)}",
+        )
+        _require(
+            self.pairs in ("all", "target"), "registration.pairs", f"must be 'all' or 'target', got {self.pairs!r}"
+        )
+        _require(
+            self.pose_from in ("last", "best"),
+            "registration.pose_from",
+            f"must be 'last' or 'best', got {self.pose_from!r}",
+        )
+        _require(
+            self.precision in ("auto", "fp32", "bf16"),
+            "registration.precision",
+            f"must be auto, fp32 or bf16, got {self.precision!r}",
+        )
+        _require(
+            self.photometric in ("auto", "on", "off"),
+            "registration.photometric",
+            f"must be auto, on or off, got {self.photometric!r}",
+        )
+        _require(
+            self.max_correction_m > 0, "registration.max_correction_m", f"must be > 0, got {self.max_correction_m}"
+        )
+        _require(
+            self.max_correction_deg > 0,
+            "registration.max_correction_deg",
+            f"must be > 0, got {self.max_correction_deg}",
+        )
+        _require(
+            self.max_residual_sigmas >= 0,
+            "registration.max_residual_sigmas",
+            f"must be >= 0, got {self.max_residual_sigmas}",
+        )
+        _require(
+            self.iterations >= 0 and self.top_k >= 3 and self.n_candidates >= 3,
+            "registration",
+            "need iterations >= 0, top_k >= 3 and n_candidates >= 3",
+        )
+        _require(
+            self.n_candidates <= MAX_CANDIDATES,
+            "registration.n_candidates",
+            f"must be <= {MAX_CANDIDATES} (matching is quadratic in it), got {self.n_candidates}",
+        )
         for key in ("n_blocks", "channels", "feat_dim", "n_subsets", "render_max_points", "render_stride", "knn_block"):
             _require(getattr(self, key) >= 1, f"registration.{key}", f"must be >= 1, got {getattr(self, key)}")
-        _require(0.0 < self.subset_fraction <= 1.0, "registration.subset_fraction",
-                 f"must be in (0, 1], got {self.subset_fraction}")
-        _require(0.0 <= self.min_ok_fraction <= 1.0, "registration.min_ok_fraction",
-                 f"must be in [0, 1], got {self.min_ok_fraction}")
-        _require(self.num_threads is None or self.num_threads >= 1, "registration.num_threads",
-                 f"must be >= 1 or null, got {self.num_threads}")
+        _require(
+            0.0 < self.subset_fraction <= 1.0,
+            "registration.subset_fraction",
+            f"must be in (0, 1], got {self.subset_fraction}",
+        )
+        _require(
+            0.0 <= self.min_ok_fraction <= 1.0,
+            "registration.min_ok_fraction",
+            f"must be in [0, 1], got {self.min_ok_fraction}",
+        )
+        _require(
+            self.num_threads is None or self.num_threads >= 1,
+            "registration.num_threads",
+            f"must be >= 1 or null, got {self.num_threads}",
+        )
 
 
 # Presets of the overfit registration, as config values (nested sections merge with
@@ -596,14 +736,25 @@ REGISTRATION_PRESETS: dict[str, dict[str, Any]] = {
     # stronger photometric term (chosen on bench_gt_protocol.py's tuning sets: pose
     # error vs the source's poses and GT error; bench/README.md).
     "fast": {
-        "n_blocks": 1, "channels": 32, "n_candidates": 1024, "iterations": 0, "render_stride": 2,
-        "refine_settings": {"scales": (4, 2, 1), "iters": (8, 5, 3), "point_stride": (1, 2, 4),
-                            "geo_ref_depth_m": 1.5, "photo_weight": 1.0},
+        "n_blocks": 1,
+        "channels": 32,
+        "n_candidates": 1024,
+        "iterations": 0,
+        "render_stride": 2,
+        "refine_settings": {
+            "scales": (4, 2, 1),
+            "iters": (8, 5, 3),
+            "point_stride": (1, 2, 4),
+            "geo_ref_depth_m": 1.5,
+            "photo_weight": 1.0,
+        },
     },
 }
 
 
-def registration_settings(section: Mapping[str, Any] | None = None, where: str = "registration") -> RegistrationSettings:
+def registration_settings(
+    section: Mapping[str, Any] | None = None, where: str = "registration"
+) -> RegistrationSettings:
     """:class:`RegistrationSettings` of a ``registration`` config section: the preset's
     values (default ``paper``), overridden by the section's other keys.
 
@@ -663,13 +814,23 @@ class TrainSettings:
         _require(self.model in builders, "train.model", f"unknown model {self.model!r}; known: {sorted(builders)}")
         for key in ("epochs", "batch_size"):
             _require(int(getattr(self, key)) >= 1, f"train.{key}", f"must be >= 1, got {getattr(self, key)}")
-        _require(self.batch_size <= MAX_TRAIN_BATCH, "train.batch_size", f"must be <= {MAX_TRAIN_BATCH}, got {self.batch_size}")
+        _require(
+            self.batch_size <= MAX_TRAIN_BATCH,
+            "train.batch_size",
+            f"must be <= {MAX_TRAIN_BATCH}, got {self.batch_size}",
+        )
         _require(self.lr > 0, "train.lr", f"must be > 0, got {self.lr}")
         _require(self.device in DEVICES, "train.device", f"must be auto, cpu or cuda, got {self.device!r}")
-        _require(self.max_batches_per_epoch is None or self.max_batches_per_epoch >= 1, "train.max_batches_per_epoch",
-                 f"must be >= 1 or null, got {self.max_batches_per_epoch}")
-        _require(isinstance(self.model_params, Mapping) and isinstance(self.loss_params, Mapping),
-                 "train.model_params/loss_params", "must be mappings")
+        _require(
+            self.max_batches_per_epoch is None or self.max_batches_per_epoch >= 1,
+            "train.max_batches_per_epoch",
+            f"must be >= 1 or null, got {self.max_batches_per_epoch}",
+        )
+        _require(
+            isinstance(self.model_params, Mapping) and isinstance(self.loss_params, Mapping),
+            "train.model_params/loss_params",
+            "must be mappings",
+        )
 
     def identity(self) -> dict:
         """The settings that define the result (a resumed run must match them)."""
@@ -702,13 +863,22 @@ class RDESettings:
     max_missing: float = 0.05
 
     def __post_init__(self):
-        _require(self.voxel_m > 0 and self.trunc_voxels >= 1 and self.max_depth_m > 0, "enhance.rde",
-                 f"voxel_m and max_depth_m must be > 0 and trunc_voxels >= 1, got {self.voxel_m}, {self.max_depth_m}, "
-                 f"{self.trunc_voxels}")
-        _require(self.frame_step >= 1 and self.max_voxels >= 1, "enhance.rde",
-                 f"frame_step and max_voxels must be >= 1, got {self.frame_step}, {self.max_voxels}")
-        _require(self.backend in ("auto", "open3d", "torch"), "enhance.rde.backend",
-                 f"must be auto, open3d or torch, got {self.backend!r}")
+        _require(
+            self.voxel_m > 0 and self.trunc_voxels >= 1 and self.max_depth_m > 0,
+            "enhance.rde",
+            f"voxel_m and max_depth_m must be > 0 and trunc_voxels >= 1, got {self.voxel_m}, {self.max_depth_m}, "
+            f"{self.trunc_voxels}",
+        )
+        _require(
+            self.frame_step >= 1 and self.max_voxels >= 1,
+            "enhance.rde",
+            f"frame_step and max_voxels must be >= 1, got {self.frame_step}, {self.max_voxels}",
+        )
+        _require(
+            self.backend in ("auto", "open3d", "torch"),
+            "enhance.rde.backend",
+            f"must be auto, open3d or torch, got {self.backend!r}",
+        )
         _require(0 < self.max_missing <= 1, "enhance.rde.max_missing", f"must be in (0, 1], got {self.max_missing}")
 
     @property
@@ -738,10 +908,19 @@ def _enhance_settings(section: Mapping[str, Any] | None, seed: int, device: str)
     for name, spec in trainable.items():
         entry = dict(per_model.get(spec.settings_key) or {})
         if entry.get("model", spec.builder) != spec.builder:
-            _fail(f"enhance.models.{spec.settings_key}.model", f"must be {spec.builder!r} (the registry's builder), "
-                  f"got {entry['model']!r}")
-        values = {"seed": seed, "device": device, "progress": False, "model_params": dict(spec.model_params), **shared,
-                  "model": spec.builder, **entry}
+            _fail(
+                f"enhance.models.{spec.settings_key}.model",
+                f"must be {spec.builder!r} (the registry's builder), got {entry['model']!r}",
+            )
+        values = {
+            "seed": seed,
+            "device": device,
+            "progress": False,
+            "model_params": dict(spec.model_params),
+            **shared,
+            "model": spec.builder,
+            **entry,
+        }
         where = f"enhance.models.{spec.settings_key}" if spec.settings_key in per_model else "enhance.train"
         models[name] = build(TrainSettings, values, where)
     return EnhanceSettings(models=models, rde=build(RDESettings, section.get("rde"), "enhance.rde"))
@@ -765,11 +944,18 @@ class EvaluationSettings:
     def __post_init__(self):
         _require(self.split in SPLITS, "evaluation.split", f"must be one of {', '.join(SPLITS)}, got {self.split!r}")
         unknown = [m for m in self.methods if m not in registry.METHODS]
-        _require(not unknown, "evaluation.methods", f"unknown method(s) {unknown}; known: {', '.join(registry.METHODS)}")
-        _require(len(set(self.methods)) == len(self.methods), "evaluation.methods", f"duplicates in {list(self.methods)}")
+        _require(
+            not unknown, "evaluation.methods", f"unknown method(s) {unknown}; known: {', '.join(registry.METHODS)}"
+        )
+        _require(
+            len(set(self.methods)) == len(self.methods), "evaluation.methods", f"duplicates in {list(self.methods)}"
+        )
         _require(len(self.methods) >= 1, "evaluation.methods", "needs at least one method")
-        _require(self.figure_frames_per_scene >= 1, "evaluation.figure_frames_per_scene",
-                 f"must be >= 1, got {self.figure_frames_per_scene}")
+        _require(
+            self.figure_frames_per_scene >= 1,
+            "evaluation.figure_frames_per_scene",
+            f"must be >= 1, got {self.figure_frames_per_scene}",
+        )
 
     @property
     def models(self) -> list[str]:
@@ -812,15 +998,27 @@ class SourceSettings:
 
         where = f"sources[{self.name}]"
         _require(bool(_NAME.match(self.name)), f"{where}.name", "must match [A-Za-z0-9_.-]+ (it names output folders)")
-        _require(self.kind in known_kinds(), f"{where}.kind", f"unknown kind {self.kind!r}; known: {', '.join(known_kinds())}")
-        _require(self.split in (*SPLITS, "auto"), f"{where}.split", f"must be auto, train, val or test, got {self.split!r}")
+        _require(
+            self.kind in known_kinds(),
+            f"{where}.kind",
+            f"unknown kind {self.kind!r}; known: {', '.join(known_kinds())}",
+        )
+        _require(
+            self.split in (*SPLITS, "auto"), f"{where}.split", f"must be auto, train, val or test, got {self.split!r}"
+        )
         if self.scenes != "all":
-            _require(isinstance(self.scenes, tuple) and len(self.scenes) >= 1, f"{where}.scenes",
-                     "must be 'all' or a non-empty list of scene names")
+            _require(
+                isinstance(self.scenes, tuple) and len(self.scenes) >= 1,
+                f"{where}.scenes",
+                "must be 'all' or a non-empty list of scene names",
+            )
             for scene in self.scenes:
                 check_scene_name(scene, f"{where}.scenes")
-        _require(isinstance(self.colour_matches_depth, bool) or self.colour_matches_depth == "auto",
-                 f"{where}.colour_matches_depth", f"must be auto, true or false, got {self.colour_matches_depth!r}")
+        _require(
+            isinstance(self.colour_matches_depth, bool) or self.colour_matches_depth == "auto",
+            f"{where}.colour_matches_depth",
+            f"must be auto, true or false, got {self.colour_matches_depth!r}",
+        )
         _require(isinstance(self.options, Mapping), f"{where}.options", "must be a mapping")
         from depthgt.sources.base import check_options  # numpy only
 
@@ -881,8 +1079,15 @@ class Settings:
         """JSON-ready dict of the named sections (all when none), e.g. for the resolved
         settings written beside outputs."""
         names = sections or tuple(f.name for f in dataclasses.fields(self))
-        return json.loads(json.dumps({k: asdict(getattr(self, k)) if dataclasses.is_dataclass(getattr(self, k))
-                                      else getattr(self, k) for k in names}, default=list))
+        return json.loads(
+            json.dumps(
+                {
+                    k: asdict(getattr(self, k)) if dataclasses.is_dataclass(getattr(self, k)) else getattr(self, k)
+                    for k in names
+                },
+                default=list,
+            )
+        )
 
 
 @dataclass(frozen=True)
@@ -972,15 +1177,26 @@ def _without(tree: Any, keys: list[str]) -> Any:
     return {**tree, keys[0]: _without(tree[keys[0]], keys[1:])}
 
 
-def stage_settings(config: Mapping[str, Any], stage: str, **names: str) -> "Settings":
+def stage_settings(config: Mapping[str, Any], stage: str, **names: str) -> Settings:
     """The settings a stage's job works with: :func:`settings_from_config` of
     :func:`stage_config` (the sections the stage reads; every other section takes its
     defaults, the same whether the job gets the rule's sections or the whole config)."""
     return settings_from_config(stage_config(config, stage, **names), sections=STAGES[stage].top)
 
 
-TOP_LEVEL_KEYS = ("seed", "device", "resize", "sources", "frameset", "split", "patches", "render", "registration",
-                  "enhance", "evaluation")
+TOP_LEVEL_KEYS = (
+    "seed",
+    "device",
+    "resize",
+    "sources",
+    "frameset",
+    "split",
+    "patches",
+    "render",
+    "registration",
+    "enhance",
+    "evaluation",
+)
 
 
 def settings_from_config(config: Mapping[str, Any], sections: tuple[str, ...] | None = None) -> Settings:
@@ -1019,14 +1235,23 @@ def settings_from_config(config: Mapping[str, Any], sections: tuple[str, ...] | 
         evaluation=build(EvaluationSettings, config.get("evaluation"), "evaluation"),
     )
     if sections is None or {"patches", "resize"} <= set(sections):
-        _require(settings.patches.size <= settings.resize, "patches.size",
-                 f"{settings.patches.size} does not fit in the {settings.resize}x{settings.resize} working resolution "
-                 "(resize)")
-    if ((sections is None or {"frameset", "registration"} <= set(sections))
-            and settings.frameset.selection == "coverage" and not settings.registration.uses_source_poses):
-        _fail("frameset.selection", "coverage chooses and starts its added views with the source's poses; "
-              f"registration.method {settings.registration.method!r} uses none (use given or refine, or "
-              "selection: window)")
+        _require(
+            settings.patches.size <= settings.resize,
+            "patches.size",
+            f"{settings.patches.size} does not fit in the {settings.resize}x{settings.resize} working resolution "
+            "(resize)",
+        )
+    if (
+        (sections is None or {"frameset", "registration"} <= set(sections))
+        and settings.frameset.selection == "coverage"
+        and not settings.registration.uses_source_poses
+    ):
+        _fail(
+            "frameset.selection",
+            "coverage chooses and starts its added views with the source's poses; "
+            f"registration.method {settings.registration.method!r} uses none (use given or refine, or "
+            "selection: window)",
+        )
     return settings
 
 
@@ -1049,11 +1274,13 @@ def check_workflow(settings: Settings) -> None:
     if reg.method == "overfit" and reg.pretrain.framesets > 0 and settings.sources:
         if not any(s.split in ("train", "auto") for s in settings.sources):
             splits = ", ".join(f"sources[{i}].split: {s.split}" for i, s in enumerate(settings.sources))
-            _fail("registration.pretrain.framesets",
-                  f"{reg.pretrain.framesets} frame sets of the train split pretrain the overfit registration's encoder "
-                  f"(registration.method: overfit), but no source puts frame sets in the train split ({splits}); "
-                  "give a source split: train or auto, or set registration.pretrain.framesets: 0 (random initial "
-                  "weights)")
+            _fail(
+                "registration.pretrain.framesets",
+                f"{reg.pretrain.framesets} frame sets of the train split pretrain the overfit registration's encoder "
+                f"(registration.method: overfit), but no source puts frame sets in the train split ({splits}); "
+                "give a source split: train or auto, or set registration.pretrain.framesets: 0 (random initial "
+                "weights)",
+            )
 
 
 # --------------------------------------------------------------------------- the builder
@@ -1067,8 +1294,10 @@ def check_keys(section: Mapping[str, Any], allowed, where: str) -> None:
     unknown = sorted(set(section) - set(allowed))
     if unknown:
         prefix = f"{where}." if where else ""
-        raise ConfigError(f"unknown config key(s) {', '.join(prefix + str(k) for k in unknown)}; "
-                          f"allowed{' in ' + where if where else ''}: {', '.join(sorted(map(str, allowed)))}")
+        raise ConfigError(
+            f"unknown config key(s) {', '.join(prefix + str(k) for k in unknown)}; "
+            f"allowed{' in ' + where if where else ''}: {', '.join(sorted(map(str, allowed)))}"
+        )
 
 
 def build(cls: type[T], section: Mapping[str, Any] | T | None, where: str) -> T:
@@ -1156,6 +1385,9 @@ def check_config(config: dict[str, Any], schema_path: str) -> None:
     if errors:
         lines = []
         for err in errors:
-            path = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in err.absolute_path).lstrip(".") or "(top level)"
+            path = (
+                "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in err.absolute_path).lstrip(".")
+                or "(top level)"
+            )
             lines.append(f"  config key {path}: {err.message}")
         raise ConfigError("invalid configuration:\n" + "\n".join(lines))

@@ -16,6 +16,7 @@ from depthgt.rasterise import candidates, check_points, segment_rank_keep
 
 __all__ = ["SoftSplat", "splat_soft"]
 
+
 class SoftSplat(NamedTuple):
     """Output of :func:`splat_soft`.
 
@@ -103,7 +104,9 @@ def splat_soft(
     dtype = torch.promote_types(features.dtype, points_cam.dtype)
     wsum = torch.zeros(n_pix, dtype=wgt.dtype, device=wgt.device).index_add(0, pixel, wgt)
     zsum = torch.zeros(n_pix, dtype=wgt.dtype, device=wgt.device).index_add(0, pixel, wgt * z)
-    fsum = torch.zeros(n_pix, c, dtype=dtype, device=wgt.device).index_add(0, pixel, wgt[:, None].to(dtype) * feats.to(dtype))
+    fsum = torch.zeros(n_pix, c, dtype=dtype, device=wgt.device).index_add(
+        0, pixel, wgt[:, None].to(dtype) * feats.to(dtype)
+    )
     has = wsum > 0
     denom = torch.where(has, wsum, torch.ones_like(wsum))
     depth = torch.where(has, zsum / denom, torch.zeros_like(zsum))

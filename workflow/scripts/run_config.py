@@ -1,4 +1,5 @@
 """The run's validated config (defaults filled in) as a report item."""
+
 from pathlib import Path
 
 import yaml

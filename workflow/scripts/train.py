@@ -7,7 +7,18 @@ from depthgt.jobs.enhance import run_train
 # Snakemake deletes a killed job's outputs and log before it runs the job again
 resume = Path(snakemake.output.best).parent / "resume"
 with logging_to(snakemake.log[0], keep=resume / "job.log"):
-    outputs = {"best": snakemake.output.best, "last": snakemake.output.last, "log": snakemake.output.log,
-               "meta": snakemake.output.meta, "resume": str(resume)}
-    run_train(snakemake.wildcards.model, snakemake.params.config, snakemake.input.train, snakemake.input.val, outputs,
-              threads=snakemake.threads)
+    outputs = {
+        "best": snakemake.output.best,
+        "last": snakemake.output.last,
+        "log": snakemake.output.log,
+        "meta": snakemake.output.meta,
+        "resume": str(resume),
+    }
+    run_train(
+        snakemake.wildcards.model,
+        snakemake.params.config,
+        snakemake.input.train,
+        snakemake.input.val,
+        outputs,
+        threads=snakemake.threads,
+    )

@@ -28,8 +28,9 @@ from __future__ import annotations
 
 import json
 from collections import OrderedDict
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -87,8 +88,16 @@ class GTDataset(Dataset):
             that is missing or corrupt.
     """
 
-    def __init__(self, results: str | Path, split: str, kind: str = "patches", datasets: Sequence[str] | None = None,
-                 transform: Callable[[dict], dict] | None = None, *, cache: bool = False):
+    def __init__(
+        self,
+        results: str | Path,
+        split: str,
+        kind: str = "patches",
+        datasets: Sequence[str] | None = None,
+        transform: Callable[[dict], dict] | None = None,
+        *,
+        cache: bool = False,
+    ):
         path = manifest_path(results, split, kind)
         if not path.is_file():
             raise DepthGTError(f"GTDataset: no manifest {path} (build the dataset first: `depthgt build dataset`)")
@@ -100,14 +109,23 @@ class GTDataset(Dataset):
             _require_columns(table, ("dataset",), path)
             unknown = sorted(set(datasets) - set(table["dataset"]))
             if unknown:
-                raise DepthGTError(f"GTDataset: {path} holds no {kind} of dataset(s) {unknown} in split {split!r}; "
-                                   f"it has {sorted(set(table['dataset']))}")
+                raise DepthGTError(
+                    f"GTDataset: {path} holds no {kind} of dataset(s) {unknown} in split {split!r}; "
+                    f"it has {sorted(set(table['dataset']))}"
+                )
             table = table[table["dataset"].isin(list(datasets))]
         self._setup(table.reset_index(drop=True), kind, Path(results).parent, transform, cache, str(path))
 
     @classmethod
-    def from_manifest(cls, manifest: str | Path | pd.DataFrame, kind: str = "patches", root: str | Path | None = None,
-                      transform: Callable[[dict], dict] | None = None, *, cache: bool = False) -> "GTDataset":
+    def from_manifest(
+        cls,
+        manifest: str | Path | pd.DataFrame,
+        kind: str = "patches",
+        root: str | Path | None = None,
+        transform: Callable[[dict], dict] | None = None,
+        *,
+        cache: bool = False,
+    ) -> GTDataset:
         """A dataset over any manifest table with columns ``frameset`` (a location,
         :mod:`depthgt.gt.store`) and, for patches, ``patch``: the split manifests, the
         RDE manifests, a user's selection of rows.
@@ -151,8 +169,13 @@ class GTDataset(Dataset):
 
     def ids(self, i: int) -> dict[str, Any]:
         """``dataset``, ``scene``, ``split``, ``target``, ``patch`` of sample ``i`` (nothing read)."""
-        return {"dataset": self._ids["dataset"][i], "scene": self._ids["scene"][i], "split": self._ids["split"][i],
-                "target": self._ids["target"][i], "patch": int(self.patch[i])}
+        return {
+            "dataset": self._ids["dataset"][i],
+            "scene": self._ids["scene"][i],
+            "split": self._ids["split"][i],
+            "target": self._ids["target"][i],
+            "patch": int(self.patch[i]),
+        }
 
     def _arrays(self, loc: str) -> dict[str, np.ndarray]:
         arrays = self._decoded.get(loc)
@@ -182,8 +205,13 @@ class GTDataset(Dataset):
 
     def _read_frame(self, loc: str) -> dict[str, np.ndarray]:
         rec = store.read_frameset_at(loc, self._reader)
-        arrays = {"input": rec.input_m[None], "gt": rec.gt_m[None], "gt_sigma": rec.gt_sigma_m[None],
-                  "rgb": rec.rgb[None], "K": self._intrinsics(loc, rec.meta)}
+        arrays = {
+            "input": rec.input_m[None],
+            "gt": rec.gt_m[None],
+            "gt_sigma": rec.gt_sigma_m[None],
+            "rgb": rec.rgb[None],
+            "K": self._intrinsics(loc, rec.meta),
+        }
         if rec.truth_m is not None:
             arrays["truth"] = rec.truth_m[None]
         return arrays

@@ -28,8 +28,9 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -44,8 +45,16 @@ from depthgt.errors import DepthGTError
 from depthgt.gt.card import CHECKSUMS, sha256_file
 from depthgt.settings import SPLITS
 
-__all__ = ["FORMATS", "DEPTH_UNITS_PER_M", "SIGMA_UNITS_PER_M", "CARD_FILES", "INDEX_COLUMNS", "export_dataset",
-           "encode_png16", "read_depth"]
+__all__ = [
+    "FORMATS",
+    "DEPTH_UNITS_PER_M",
+    "SIGMA_UNITS_PER_M",
+    "CARD_FILES",
+    "INDEX_COLUMNS",
+    "export_dataset",
+    "encode_png16",
+    "read_depth",
+]
 
 FORMATS = {"png16": ".png", "exr": ".exr"}
 DEPTH_UNITS_PER_M = 1000  # millimetres, ScanNet's and NYU-v2's depth PNG unit
@@ -99,8 +108,10 @@ def _write_sample(dest: Path, sample: dict[str, Any], files: dict[str, str], fmt
         if m not in files:
             continue
         if m not in sample:
-            raise DepthGTError(f"{sample['dataset']}/{sample['scene']}/{_stem(sample, 'frames')}: no {m} in the shard, "
-                               "but its frame set records one")
+            raise DepthGTError(
+                f"{sample['dataset']}/{sample['scene']}/{_stem(sample, 'frames')}: no {m} in the shard, "
+                "but its frame set records one"
+            )
         depth = sample[m][0].numpy()
         path = dest / files[m]
         if fmt == "png16":
@@ -118,14 +129,22 @@ def _check_settings(dest: Path, settings: dict[str, Any]) -> None:
         before = json.loads(path.read_text())
         if before != settings:
             diff = sorted(k for k in set(before) | set(settings) if before.get(k) != settings.get(k))
-            raise DepthGTError(f"{path}: {dest} holds an export with other settings ({diff}); "
-                               "export into an empty folder or remove it")
+            raise DepthGTError(
+                f"{path}: {dest} holds an export with other settings ({diff}); export into an empty folder or remove it"
+            )
     else:
         write_atomic(path, io.write_json, settings)
 
 
-def export_dataset(results: str | Path, dest: str | Path, fmt: str = "png16", splits: Sequence[str] = SPLITS,
-                   kind: str = "patches", workers: int = 0, progress: bool = True) -> pd.DataFrame:
+def export_dataset(
+    results: str | Path,
+    dest: str | Path,
+    fmt: str = "png16",
+    splits: Sequence[str] = SPLITS,
+    kind: str = "patches",
+    workers: int = 0,
+    progress: bool = True,
+) -> pd.DataFrame:
     """Export the samples of ``splits`` (:class:`~depthgt.data.GTDataset` of ``kind``) to
     plain files in ``dest`` (layout in the module docstring), resuming an unfinished
     export there.
@@ -154,12 +173,25 @@ def export_dataset(results: str | Path, dest: str | Path, fmt: str = "png16", sp
     cards = [results / "dataset" / name for name in CARD_FILES]
     for card in cards:
         if not card.is_file():
-            raise DepthGTError(f"export: no dataset card {card} (built before cards existed?): "
-                               "run `depthgt build dataset` again")
+            raise DepthGTError(
+                f"export: no dataset card {card} (built before cards existed?): run `depthgt build dataset` again"
+            )
     dest.mkdir(parents=True, exist_ok=True)
-    settings = {"format": fmt, "kind": kind, "splits": list(splits), "units_per_m": (
-        {"input": DEPTH_UNITS_PER_M, "gt": DEPTH_UNITS_PER_M, "truth": DEPTH_UNITS_PER_M, "sigma": SIGMA_UNITS_PER_M}
-        if fmt == "png16" else {m: 1 for m in DEPTH_MODALITIES})}
+    settings = {
+        "format": fmt,
+        "kind": kind,
+        "splits": list(splits),
+        "units_per_m": (
+            {
+                "input": DEPTH_UNITS_PER_M,
+                "gt": DEPTH_UNITS_PER_M,
+                "truth": DEPTH_UNITS_PER_M,
+                "sigma": SIGMA_UNITS_PER_M,
+            }
+            if fmt == "png16"
+            else {m: 1 for m in DEPTH_MODALITIES}
+        ),
+    }
     _check_settings(dest, settings)
     for card in cards:
         write_atomic(dest / card.name, lambda tmp, src=card: shutil.copyfile(src, tmp))
@@ -177,8 +209,9 @@ def export_dataset(results: str | Path, dest: str | Path, fmt: str = "png16", sp
             if not all((dest / f).is_file() for f in files.values()):
                 pending.append((i, files))
         todo.append((ds, pending))
-    with tqdm(total=sum(len(p) for _, p in todo), desc=f"export {kind} ({fmt})", unit="sample",
-              disable=not progress) as bar:
+    with tqdm(
+        total=sum(len(p) for _, p in todo), desc=f"export {kind} ({fmt})", unit="sample", disable=not progress
+    ) as bar:
         for ds, pending in todo:
             if not pending:
                 continue

@@ -26,9 +26,9 @@ by name in :data:`BASELINES`; :func:`run_baseline` checks the inputs and calls o
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from functools import lru_cache
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -114,8 +114,9 @@ def box_fill(depth: torch.Tensor, valid: torch.Tensor, kernel: int = 5, max_iter
 
 
 @register_baseline("rgf")
-def rgf(depth_m: np.ndarray, rgb: np.ndarray | None = None, sigma_s: float = 3.0, sigma_r: float = 0.05,
-        iterations: int = 4) -> np.ndarray:
+def rgf(
+    depth_m: np.ndarray, rgb: np.ndarray | None = None, sigma_s: float = 3.0, sigma_r: float = 0.05, iterations: int = 4
+) -> np.ndarray:
     """Rolling guidance filter of depth with invalid pixels excluded (OpenCV filters).
 
     Args:
@@ -129,7 +130,9 @@ def rgf(depth_m: np.ndarray, rgb: np.ndarray | None = None, sigma_s: float = 3.0
         kernel, 0 elsewhere.
     """
     if sigma_s <= 0 or sigma_r <= 0 or iterations < 0:
-        raise ValueError(f"rgf: sigma_s, sigma_r must be > 0 and iterations >= 0, got {sigma_s}, {sigma_r}, {iterations}")
+        raise ValueError(
+            f"rgf: sigma_s, sigma_r must be > 0 and iterations >= 0, got {sigma_s}, {sigma_r}, {iterations}"
+        )
     d = np.ascontiguousarray(depth_m, dtype=np.float32)
     valid = (d > 0).astype(np.float32)
     k = 2 * math.ceil(2 * sigma_s) + 1
@@ -142,14 +145,23 @@ def rgf(depth_m: np.ndarray, rgb: np.ndarray | None = None, sigma_s: float = 3.0
 
     J = normalised(cv2.GaussianBlur(stack, (k, k), sigma_s, sigmaY=sigma_s, borderType=cv2.BORDER_REFLECT_101))
     for _ in range(iterations):
-        J = normalised(cv2.ximgproc.jointBilateralFilter(J, stack, k, sigma_r, sigma_s,
-                                                         borderType=cv2.BORDER_REFLECT_101))
+        J = normalised(
+            cv2.ximgproc.jointBilateralFilter(J, stack, k, sigma_r, sigma_s, borderType=cv2.BORDER_REFLECT_101)
+        )
     return J
 
 
 @register_baseline("jf")
-def jf(depth_m: np.ndarray, rgb: np.ndarray, r: int = 3, eps_I: float = 1e-4, eps_G: float = 5e-4,
-       lambda_I: float = 1.0, lambda_G: float = 30.0, iterations: int = 20) -> np.ndarray:
+def jf(
+    depth_m: np.ndarray,
+    rgb: np.ndarray,
+    r: int = 3,
+    eps_I: float = 1e-4,
+    eps_G: float = 5e-4,
+    lambda_I: float = 1.0,
+    lambda_G: float = 30.0,
+    iterations: int = 20,
+) -> np.ndarray:
     """Mutual-structure joint filtering of depth I with the grey image G.
 
     The energy (Shen et al. 2015) couples I and G by local linear models in every
@@ -193,7 +205,7 @@ def jf(depth_m: np.ndarray, rgb: np.ndarray, r: int = 3, eps_I: float = 1e-4, ep
     def box(x):  # OpenCV's mean filter (reflect-101 border as kornia's "reflect"): ~5x faster on one thread
         return cv2.boxFilter(x, -1, (k, k), normalize=True, borderType=cv2.BORDER_REFLECT_101)
 
-    I, G = I0.copy(), G0.copy()
+    I, G = I0.copy(), G0.copy()  # noqa: E741 (the paper's names: I the depth, G the guide)
     for _ in range(iterations):
         mI, mG = box(I), box(G)
         cov = box(I * G) - mI * mG
@@ -213,7 +225,7 @@ def jf(depth_m: np.ndarray, rgb: np.ndarray, r: int = 3, eps_I: float = 1e-4, ep
         q1 = -AB + E + lam_I * I0
         q2 = B - CE + lambda_G * G0
         det = p11 * p22 - p12 * p12
-        I = (p22 * q1 - p12 * q2) / det
+        I = (p22 * q1 - p12 * q2) / det  # noqa: E741
         G = (p11 * q2 - p12 * q1) / det
     return np.maximum(I * scale, 0.0).astype(np.float32)
 
@@ -224,8 +236,9 @@ def _cached_model(checkpoint: str, device: str):
 
 
 @register_baseline("learned")
-def learned(depth_m: np.ndarray, rgb: np.ndarray | None = None, checkpoint: str | Path | None = None,
-            device: str = "cpu") -> np.ndarray:
+def learned(
+    depth_m: np.ndarray, rgb: np.ndarray | None = None, checkpoint: str | Path | None = None, device: str = "cpu"
+) -> np.ndarray:
     """Enhance with a trained network checkpoint (LapDEN, RDE, DDRNet, SDD).
 
     Args:

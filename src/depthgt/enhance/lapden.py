@@ -44,7 +44,15 @@ import torch.nn.functional as F
 
 from depthgt.depth_ops import masked_avg_pool, valid_avg_pool
 
-__all__ = ["LapDENConfig", "LapDEN", "PRESETS", "lapden_from_preset", "build_lapden", "push_pull_fill", "count_parameters"]
+__all__ = [
+    "LapDENConfig",
+    "LapDEN",
+    "PRESETS",
+    "lapden_from_preset",
+    "build_lapden",
+    "push_pull_fill",
+    "count_parameters",
+]
 
 
 @dataclass(frozen=True)
@@ -86,7 +94,7 @@ PRESETS: dict[str, LapDENConfig] = {
 }
 
 
-def lapden_from_preset(name: str, **overrides) -> "LapDEN":
+def lapden_from_preset(name: str, **overrides) -> LapDEN:
     """Build a LapDEN from a preset name (``paper`` or ``default``), with field overrides."""
     if name not in PRESETS:
         raise ValueError(f"unknown LapDEN preset {name!r}; known: {sorted(PRESETS)}")
@@ -97,7 +105,7 @@ def lapden_from_preset(name: str, **overrides) -> "LapDEN":
     return LapDEN(LapDENConfig(**cfg))
 
 
-def build_lapden(preset: str = "default", **overrides) -> "LapDEN":
+def build_lapden(preset: str = "default", **overrides) -> LapDEN:
     """The registry's builder of ``lapden`` (:data:`depthgt.registry.MODELS`): the
     config's ``model_params`` (``preset`` and LapDENConfig overrides) as keywords."""
     return lapden_from_preset(preset, **overrides)

@@ -50,21 +50,33 @@ class DDRNetDenoise(nn.Module):
         super().__init__()
         if channels < 1 or levels < 1:
             raise ValueError(f"DDRNetDenoise needs channels >= 1 and levels >= 1, got {channels}, {levels}")
-        self.size_multiple = 2 ** levels
-        widths = [channels * 2 ** i for i in range(levels + 1)]
+        self.size_multiple = 2**levels
+        widths = [channels * 2**i for i in range(levels + 1)]
         self.inc = self._double(1, widths[0])
         self.downs = nn.ModuleList(
-            [nn.Sequential(nn.Conv2d(widths[i], widths[i + 1], 3, stride=2, padding=1), nn.ReLU(inplace=True),
-                           self._double(widths[i + 1], widths[i + 1])) for i in range(levels)])
-        self.ups = nn.ModuleList([nn.ConvTranspose2d(widths[i + 1], widths[i], 4, stride=2, padding=1)
-                                  for i in reversed(range(levels))])
+            [
+                nn.Sequential(
+                    nn.Conv2d(widths[i], widths[i + 1], 3, stride=2, padding=1),
+                    nn.ReLU(inplace=True),
+                    self._double(widths[i + 1], widths[i + 1]),
+                )
+                for i in range(levels)
+            ]
+        )
+        self.ups = nn.ModuleList(
+            [nn.ConvTranspose2d(widths[i + 1], widths[i], 4, stride=2, padding=1) for i in reversed(range(levels))]
+        )
         self.decs = nn.ModuleList([self._double(2 * widths[i], widths[i]) for i in reversed(range(levels))])
         self.out = nn.Conv2d(widths[0], 1, 3, padding=1)
 
     @staticmethod
     def _double(cin: int, cout: int) -> nn.Sequential:
-        return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1), nn.ReLU(inplace=True),
-                             nn.Conv2d(cout, cout, 3, padding=1), nn.ReLU(inplace=True))
+        return nn.Sequential(
+            nn.Conv2d(cin, cout, 3, padding=1),
+            nn.ReLU(inplace=True),
+            nn.Conv2d(cout, cout, 3, padding=1),
+            nn.ReLU(inplace=True),
+        )
 
     def forward(self, depth_m: torch.Tensor) -> list[torch.Tensor]:
         _check_input(depth_m, self.size_multiple, "DDRNetDenoise")
@@ -124,11 +136,13 @@ class SDDUNet(nn.Module):
         super().__init__()
         if channels < 1 or levels < 1:
             raise ValueError(f"SDDUNet needs channels >= 1 and levels >= 1, got {channels}, {levels}")
-        self.size_multiple = 2 ** levels
-        widths = [channels * min(2 ** i, 8) for i in range(levels + 1)]
+        self.size_multiple = 2**levels
+        widths = [channels * min(2**i, 8) for i in range(levels + 1)]
         self.inc = PartialConv2d(1, widths[0], 5)
         self.downs = nn.ModuleList([PartialConv2d(widths[i], widths[i + 1], 3, stride=2) for i in range(levels)])
-        self.decs = nn.ModuleList([PartialConv2d(widths[i + 1] + widths[i], widths[i], 3) for i in reversed(range(levels))])
+        self.decs = nn.ModuleList(
+            [PartialConv2d(widths[i + 1] + widths[i], widths[i], 3) for i in reversed(range(levels))]
+        )
         self.out = nn.Conv2d(widths[0], 1, 3, padding=1)
         with torch.no_grad():  # start at the mean depth (1 in the normalised units)
             self.out.bias.fill_(1.0)

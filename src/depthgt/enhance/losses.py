@@ -116,7 +116,7 @@ def lapden_loss(outputs: list[torch.Tensor], batch: dict, config: LossConfig = L
         outputs = [outputs]
     gt, K = batch["gt"], batch["K"]
     check_depth("batch['gt']", gt)
-    weights = config.scale_weights[-len(outputs):]
+    weights = config.scale_weights[-len(outputs) :]
     if len(weights) != len(outputs):
         raise ValueError(f"{len(outputs)} outputs but only {len(config.scale_weights)} scale_weights")
     total = gt.new_zeros(())

@@ -34,10 +34,11 @@ import json
 import logging
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from functools import partial
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -70,7 +71,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
 
 
 # --------------------------------------------------------------------------- models
@@ -108,7 +108,7 @@ class TrainOutputs(NamedTuple):
     resume: Path | None = None
 
     @classmethod
-    def in_dir(cls, out_dir: str | Path, resume: bool = False) -> "TrainOutputs":
+    def in_dir(cls, out_dir: str | Path, resume: bool = False) -> TrainOutputs:
         """``best.pt``, ``last.pt``, ``loss_log.csv`` and ``train.json`` in ``out_dir``
         (and the resume folder ``resume/`` there, when ``resume``)."""
         d = Path(out_dir)
@@ -165,7 +165,7 @@ def _epoch_generator(seed: int, epoch: int) -> torch.Generator:
 
 def _batches(n: int, batch_size: int, order: torch.Tensor | None):
     idx = order if order is not None else torch.arange(n)
-    return [idx[i:i + batch_size].tolist() for i in range(0, n, batch_size)]
+    return [idx[i : i + batch_size].tolist() for i in range(0, n, batch_size)]
 
 
 def _to(batch: dict, device: torch.device) -> dict:
@@ -187,8 +187,15 @@ def _net_input(batch: dict, device: torch.device) -> torch.Tensor:
 # --------------------------------------------------------------------------- steps
 
 
-def train_epoch(model: nn.Module, loss_fn: Callable, optimizer: torch.optim.Optimizer, dataset: Dataset,
-                settings: TrainSettings, epoch: int, device: torch.device) -> dict[str, float]:
+def train_epoch(
+    model: nn.Module,
+    loss_fn: Callable,
+    optimizer: torch.optim.Optimizer,
+    dataset: Dataset,
+    settings: TrainSettings,
+    epoch: int,
+    device: torch.device,
+) -> dict[str, float]:
     """One epoch of training; returns the mean loss terms (plus batches, seconds)."""
     from tqdm import tqdm
 
@@ -221,7 +228,9 @@ def train_epoch(model: nn.Module, loss_fn: Callable, optimizer: torch.optim.Opti
 
 
 @torch.no_grad()
-def evaluate(model: nn.Module, loss_fn: Callable, dataset: Dataset, batch_size: int, device: torch.device) -> dict[str, float]:
+def evaluate(
+    model: nn.Module, loss_fn: Callable, dataset: Dataset, batch_size: int, device: torch.device
+) -> dict[str, float]:
     """Mean loss terms over a dataset (no flips, eval mode)."""
     model.eval()
     batches = _batches(len(dataset), batch_size, None)
@@ -273,19 +282,25 @@ def _log_row(epoch: int, split: str, terms: dict, model: str) -> dict:
     extra = sorted(set(terms) - set(columns))
     missing = sorted(set(columns[2:]) - set(terms))
     if extra or missing:
-        raise ValueError(f"model {model!r}: its loss reported the terms {sorted(terms)}; the loss log's columns are "
-                         f"{list(columns[2:])} (depthgt.registry.MODELS[{model!r}].log_terms): "
-                         + "; ".join(f"{what} {names}" for what, names in (("not logged:", extra), ("missing:", missing))
-                                     if names))
+        raise ValueError(
+            f"model {model!r}: its loss reported the terms {sorted(terms)}; the loss log's columns are "
+            f"{list(columns[2:])} (depthgt.registry.MODELS[{model!r}].log_terms): "
+            + "; ".join(f"{what} {names}" for what, names in (("not logged:", extra), ("missing:", missing)) if names)
+        )
     row = {"epoch": epoch, "split": split}
     for k in columns[2:]:
         row[k] = f"{terms[k]:.6g}" if k != "batches" else int(terms[k])
     return row
 
 
-def train(manifest_train: str | Path | pd.DataFrame, manifest_val: str | Path | pd.DataFrame | None,
-          out: TrainOutputs, settings: TrainSettings = TrainSettings(),
-          model: nn.Module | None = None, loss_fn: Callable | None = None) -> dict:
+def train(
+    manifest_train: str | Path | pd.DataFrame,
+    manifest_val: str | Path | pd.DataFrame | None,
+    out: TrainOutputs,
+    settings: TrainSettings = TrainSettings(),
+    model: nn.Module | None = None,
+    loss_fn: Callable | None = None,
+) -> dict:
     """Train a depth-enhancement model on the patch manifests, resuming if possible.
 
     Args:
@@ -333,8 +348,10 @@ def train(manifest_train: str | Path | pd.DataFrame, manifest_val: str | Path | 
         if ckpt["identity"] != settings.identity():
             diff = sorted(k for k in settings.identity() if ckpt["identity"].get(k) != settings.identity()[k])
             if out.resume is None:
-                raise ConfigError(f"{last_path}: checkpoint was trained with other settings ({diff}); "
-                                  f"remove {out.last} (and {out.best}) or restore the settings")
+                raise ConfigError(
+                    f"{last_path}: checkpoint was trained with other settings ({diff}); "
+                    f"remove {out.last} (and {out.best}) or restore the settings"
+                )
             log.warning("%s: resume state of other settings (%s): training starts anew", last_path, diff)
             ckpt = None
         if ckpt is not None:
@@ -377,15 +394,30 @@ def train(manifest_train: str | Path | pd.DataFrame, manifest_val: str | Path | 
 
     if out.resume is not None:
         if start >= settings.epochs:
-            _write_log(log_path, rows, registry.log_columns(settings.model))  # every epoch was done before: the outputs from the state
+            _write_log(
+                log_path, rows, registry.log_columns(settings.model)
+            )  # every epoch was done before: the outputs from the state
         _copy_atomic(best_path, out.best)
         _copy_atomic(last_path, out.last)
 
-    result = {"best": str(out.best), "last": str(out.last), "best_epoch": best_epoch, "best_val": best_val,
-              "log": str(log_path), "epochs_run": settings.epochs - start}
-    meta = {"settings": {**asdict(settings)}, "parameters": n_params, "best_epoch": best_epoch, "best_val": best_val,
-            "train_pairs": len(train_set), "val_pairs": len(val_set) if val_set is not None else 0,
-            "versions": {"torch": torch.__version__, "numpy": np.__version__}, "device": str(device)}
+    result = {
+        "best": str(out.best),
+        "last": str(out.last),
+        "best_epoch": best_epoch,
+        "best_val": best_val,
+        "log": str(log_path),
+        "epochs_run": settings.epochs - start,
+    }
+    meta = {
+        "settings": {**asdict(settings)},
+        "parameters": n_params,
+        "best_epoch": best_epoch,
+        "best_val": best_val,
+        "train_pairs": len(train_set),
+        "val_pairs": len(val_set) if val_set is not None else 0,
+        "versions": {"torch": torch.__version__, "numpy": np.__version__},
+        "device": str(device),
+    }
     out.meta.write_text(json.dumps(meta, indent=2, sort_keys=True, default=str) + "\n")
     return result
 
@@ -430,7 +462,7 @@ def predict(model: nn.Module, depth_m: torch.Tensor, chunk: int = 8) -> torch.Te
     ph, pw = (-H) % m, (-W) % m
     outs = []
     for i in range(0, depth_m.shape[0], chunk):
-        x = depth_m[i:i + chunk].to(dev).float()
+        x = depth_m[i : i + chunk].to(dev).float()
         if ph or pw:
             x = torch.nn.functional.pad(x, (0, pw, 0, ph), mode="replicate")
         y = model(x.contiguous(memory_format=memory_layout(dev)))

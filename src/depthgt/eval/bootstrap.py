@@ -18,8 +18,14 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["BOOTSTRAP_RESAMPLES", "BOOTSTRAP_SEED", "BOOTSTRAP_LEVEL", "MeanInterval", "resample_counts",
-           "bootstrap_means"]
+__all__ = [
+    "BOOTSTRAP_RESAMPLES",
+    "BOOTSTRAP_SEED",
+    "BOOTSTRAP_LEVEL",
+    "MeanInterval",
+    "resample_counts",
+    "bootstrap_means",
+]
 
 BOOTSTRAP_RESAMPLES = 2000
 BOOTSTRAP_SEED = 0
@@ -47,8 +53,9 @@ def resample_counts(n: int, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BO
     return np.bincount(flat, minlength=resamples * n).reshape(resamples, n).astype(np.float64)
 
 
-def bootstrap_means(values: np.ndarray, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED,
-                    level: float = BOOTSTRAP_LEVEL) -> MeanInterval:
+def bootstrap_means(
+    values: np.ndarray, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED, level: float = BOOTSTRAP_LEVEL
+) -> MeanInterval:
     """Mean of each column over frames with its percentile bootstrap interval.
 
     Args:

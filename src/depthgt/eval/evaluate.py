@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -49,8 +50,15 @@ def run_method(method: Mapping, frame: store.FrameImages) -> np.ndarray:
     return run_baseline(method["baseline"], frame.input_m, frame.rgb, **dict(method.get("params", {})))
 
 
-def score_rows(dataset: str, scene: str, target: int, method: str, pred_m: np.ndarray, input_m: np.ndarray,
-               references: Mapping[str, np.ndarray]) -> list[dict]:
+def score_rows(
+    dataset: str,
+    scene: str,
+    target: int,
+    method: str,
+    pred_m: np.ndarray,
+    input_m: np.ndarray,
+    references: Mapping[str, np.ndarray],
+) -> list[dict]:
     """Long-table rows (:data:`EVAL_COLUMNS`) of one prediction (H, W) float32 metres
     against each reference image (name -> (H, W) metres) with the raw input ``input_m``
     as the denoising mask (:func:`depthgt.eval.metrics.depth_metrics`): the scoring of
@@ -58,8 +66,18 @@ def score_rows(dataset: str, scene: str, target: int, method: str, pred_m: np.nd
     rows = []
     for reference, ref_m in references.items():
         for metric, value in depth_metrics(pred_m, ref_m, input_m).items():
-            rows.append({"dataset": dataset, "scene": scene, "target": int(target), "method": method,
-                         "reference": reference, "metric": metric, "unit": unit_of(metric), "value": float(value)})
+            rows.append(
+                {
+                    "dataset": dataset,
+                    "scene": scene,
+                    "target": int(target),
+                    "method": method,
+                    "reference": reference,
+                    "metric": metric,
+                    "unit": unit_of(metric),
+                    "value": float(value),
+                }
+            )
     return rows
 
 
@@ -79,11 +97,14 @@ def method_spec(name: str, checkpoint: str | Path | None = None, device: str | N
     return {"baseline": m.baseline, "params": params}
 
 
-def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Mapping],
-                    references: Sequence[str] = ("gt", "truth"), split: str | None = "test",
-                    pred_dirs: Mapping[str, str | Path] | None = None,
-                    reference_files: Mapping[tuple[str, str, int], Mapping[str, tuple[str, str]]] | None = None
-                    ) -> pd.DataFrame:
+def evaluate_frames(
+    frames: pd.DataFrame | str | Path,
+    methods: Mapping[str, Mapping],
+    references: Sequence[str] = ("gt", "truth"),
+    split: str | None = "test",
+    pred_dirs: Mapping[str, str | Path] | None = None,
+    reference_files: Mapping[tuple[str, str, int], Mapping[str, tuple[str, str]]] | None = None,
+) -> pd.DataFrame:
     """Run every method on every frame set and score it against each reference.
 
     The one evaluation of the project: the workflow's ``evaluate_method`` job calls it
@@ -114,7 +135,9 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
     table = frames if isinstance(frames, pd.DataFrame) else pd.read_parquet(frames)
     missing = {"dataset", "scene", "target", "frameset"} - set(table.columns)
     if missing:
-        raise ValueError(f"frame table {frames if not isinstance(frames, pd.DataFrame) else ''}: missing columns {sorted(missing)}")
+        raise ValueError(
+            f"frame table {frames if not isinstance(frames, pd.DataFrame) else ''}: missing columns {sorted(missing)}"
+        )
     known = (*store.FRAME_DEPTHS, *REFERENCES)
     bad = [r for r in references if r not in known]
     if bad or not references:
@@ -140,8 +163,9 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
                     raise ValueError(f"{file}: no reference image {key!r} (reference {r} of {rec.frameset})")
                 ref_images[r] = np.asarray(npz[file][key], dtype=np.float32)
                 if ref_images[r].shape != frame.input_m.shape:
-                    raise ValueError(f"{file}[{key}]: shape {ref_images[r].shape}, the frame's input has "
-                                     f"{frame.input_m.shape}")
+                    raise ValueError(
+                        f"{file}[{key}]: shape {ref_images[r].shape}, the frame's input has {frame.input_m.shape}"
+                    )
         refs = [r for r in references if r in ref_images]
         if not refs:
             log.info("%s: none of the references %s, skipped", rec.frameset, list(references))
@@ -154,11 +178,16 @@ def evaluate_frames(frames: pd.DataFrame | str | Path, methods: Mapping[str, Map
                 out = Path(pred_dirs[name]) / str(rec.dataset) / str(rec.scene) / f"{int(rec.target):06d}.npy"
                 out.parent.mkdir(parents=True, exist_ok=True)
                 np.save(out, pred.astype(np.float32))
-            rows += score_rows(rec.dataset, rec.scene, int(rec.target), name, pred, frame.input_m,
-                               {r: ref_images[r] for r in refs})
+            rows += score_rows(
+                rec.dataset, rec.scene, int(rec.target), name, pred, frame.input_m, {r: ref_images[r] for r in refs}
+            )
     for name, s in seconds.items():
-        log.info("method %s: %.2f s on %d frame sets (wall clock, not in the table: results stay deterministic)",
-                 name, s, len(table))
+        log.info(
+            "method %s: %.2f s on %d frame sets (wall clock, not in the table: results stay deterministic)",
+            name,
+            s,
+            len(table),
+        )
     for f in npz.values():
         f.close()
     return pd.DataFrame(rows, columns=EVAL_COLUMNS)

@@ -5,8 +5,8 @@ matplotlib is imported lazily with the Agg backend (no display needed).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 import pandas as pd
@@ -45,8 +45,9 @@ def shared_depth_range(images: list[np.ndarray], lo_pct: float = 1.0, hi_pct: fl
     return float(lo), float(max(hi, lo + 1e-3))
 
 
-def comparison_figure(frames: pd.DataFrame, pred_dirs: Mapping[str, str | Path], out_path: str | Path,
-                      frames_per_scene: int = 2) -> Path:
+def comparison_figure(
+    frames: pd.DataFrame, pred_dirs: Mapping[str, str | Path], out_path: str | Path, frames_per_scene: int = 2
+) -> Path:
     """One row per test frame: RGB | input | each method | GT (| truth when known).
 
     Depth panels share one colour range per row (the row's valid depths, 1st-99th
@@ -85,8 +86,9 @@ def comparison_figure(frames: pd.DataFrame, pred_dirs: Mapping[str, str | Path],
         for m in methods:
             p = Path(pred_dirs[m]) / str(rec.dataset) / str(rec.scene) / f"{int(rec.target):06d}.npy"
             preds.append(np.load(p) if p.is_file() else np.zeros_like(fr.input_m))
-        depths = [fr.input_m, *preds, fr.gt_m] + ([fr.truth_m if fr.truth_m is not None else np.zeros_like(fr.gt_m)]
-                                                    if has_truth else [])
+        depths = [fr.input_m, *preds, fr.gt_m] + (
+            [fr.truth_m if fr.truth_m is not None else np.zeros_like(fr.gt_m)] if has_truth else []
+        )
         vmin, vmax = shared_depth_range(depths)
         axes[row, 0].imshow(fr.rgb)
         for col, d in enumerate(depths, start=1):

@@ -109,8 +109,11 @@ def input_valid_errors(estimate_m, reference_m, input_m) -> dict[str, float]:
     """
     inp, _ = depth_pair(input_m, reference_m)
     e = depth_errors(estimate_m, reference_m, mask=inp > 0)
-    return {"mae_input_valid_m": e["mae_missing_counted_m"], "rmse_input_valid_m": e["rmse_missing_counted_m"],
-            "n_input_valid_px": e["n_reference_px"]}
+    return {
+        "mae_input_valid_m": e["mae_missing_counted_m"],
+        "rmse_input_valid_m": e["rmse_missing_counted_m"],
+        "n_input_valid_px": e["n_reference_px"],
+    }
 
 
 def depth_metrics(estimate_m, reference_m, input_m=None) -> dict[str, float]:
@@ -125,8 +128,12 @@ def depth_metrics(estimate_m, reference_m, input_m=None) -> dict[str, float]:
         dict metric name -> value; units in :data:`METRIC_UNITS`.
     """
     ssim_both, ssim_counted = _ssim_both(estimate_m, reference_m)  # one SSIM map, two pixel sets
-    out = {**depth_errors(estimate_m, reference_m), "ssim": ssim_both, "ssim_missing_counted": ssim_counted,
-           "ls": ls_distance(estimate_m, reference_m)}
+    out = {
+        **depth_errors(estimate_m, reference_m),
+        "ssim": ssim_both,
+        "ssim_missing_counted": ssim_counted,
+        "ls": ls_distance(estimate_m, reference_m),
+    }
     if input_m is not None:
         out.update(input_valid_errors(estimate_m, reference_m, input_m))
     return out

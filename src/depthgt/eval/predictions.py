@@ -22,8 +22,9 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Iterator, NamedTuple, Sequence
+from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -36,8 +37,16 @@ from depthgt.eval.evaluate import EVAL_COLUMNS, score_rows
 from depthgt.gt import store
 from depthgt.status import Status
 
-__all__ = ["TestFrame", "frames_from_results", "frames_from_export", "prediction_path", "read_prediction",
-           "score_predictions", "evaluate_folder", "PREDICTION_SUFFIXES"]
+__all__ = [
+    "TestFrame",
+    "frames_from_results",
+    "frames_from_export",
+    "prediction_path",
+    "read_prediction",
+    "score_predictions",
+    "evaluate_folder",
+    "PREDICTION_SUFFIXES",
+]
 
 log = logging.getLogger(__name__)
 
@@ -87,14 +96,17 @@ def frames_from_export(export_dir: str | Path, split: str = "test") -> Iterator[
         raise DepthGTError(f"{export_dir}: not a finished export (no export.json or index.parquet)")
     meta = json.loads(meta_path.read_text())
     if meta.get("kind") != "frames" or split not in meta.get("splits", []):
-        raise DepthGTError(f"{meta_path}: an export of {meta.get('kind')} of the splits {meta.get('splits')}; "
-                           f"scoring needs `depthgt export --kind frames --split {split}`")
+        raise DepthGTError(
+            f"{meta_path}: an export of {meta.get('kind')} of the splits {meta.get('splits')}; "
+            f"scoring needs `depthgt export --kind frames --split {split}`"
+        )
     index = pd.read_parquet(index_path)
     index = index[index["split"] == split]
     for rec in index.itertuples():
         refs = {m: read_depth(export_dir / getattr(rec, m), m) for m in ("gt", "truth") if getattr(rec, m)}
-        yield TestFrame(str(rec.dataset), str(rec.scene), int(rec.target), read_depth(export_dir / rec.input, "input"),
-                        refs)
+        yield TestFrame(
+            str(rec.dataset), str(rec.scene), int(rec.target), read_depth(export_dir / rec.input, "input"), refs
+        )
 
 
 def prediction_path(pred_dir: str | Path, dataset: str, scene: str, target: int) -> Path:
@@ -145,8 +157,13 @@ def score_predictions(pred_dir: str | Path, frames: Iterator[TestFrame], method:
     return pd.DataFrame(rows, columns=EVAL_COLUMNS)
 
 
-def evaluate_folder(pred_dir: str | Path, out_dir: str | Path, frames: Iterator[TestFrame], method: str = "user",
-                    compare: Sequence[pd.DataFrame] = ()) -> dict[str, Path]:
+def evaluate_folder(
+    pred_dir: str | Path,
+    out_dir: str | Path,
+    frames: Iterator[TestFrame],
+    method: str = "user",
+    compare: Sequence[pd.DataFrame] = (),
+) -> dict[str, Path]:
     """Score ``pred_dir`` on ``frames`` and write the tables into ``out_dir``.
 
     Args:
@@ -175,14 +192,19 @@ def evaluate_folder(pred_dir: str | Path, out_dir: str | Path, frames: Iterator[
     out_dir.mkdir(parents=True, exist_ok=True)
     written = {"eval": out_dir / "eval.parquet"}
     ev_all.to_parquet(written["eval"], index=False)
-    built = {"table2": (tables.table2(ev_all, kinds), tables.TABLE2_CAPTION),
-             "table3": (tables.table3(ev_all, kinds), tables.TABLE3_CAPTION)}
+    built = {
+        "table2": (tables.table2(ev_all, kinds), tables.TABLE2_CAPTION),
+        "table3": (tables.table3(ev_all, kinds), tables.TABLE3_CAPTION),
+    }
     if compare:
-        datasets = {True: [d for d, k in kinds.items() if k == "synthetic"],
-                    False: [d for d, k in kinds.items() if k != "synthetic"]}
+        datasets = {
+            True: [d for d, k in kinds.items() if k == "synthetic"],
+            False: [d for d, k in kinds.items() if k != "synthetic"],
+        }
         for key, synthetic, ref, note, caption in (
-                ("table2_paired", False, "gt", tables.NO_REAL_NOTE, tables.TABLE2_PAIRED_CAPTION),
-                ("table3_paired", True, "truth", tables.NO_SYNTH_NOTE, tables.TABLE3_PAIRED_CAPTION)):
+            ("table2_paired", False, "gt", tables.NO_REAL_NOTE, tables.TABLE2_PAIRED_CAPTION),
+            ("table3_paired", True, "truth", tables.NO_SYNTH_NOTE, tables.TABLE3_PAIRED_CAPTION),
+        ):
             table = tables.paired_table(ev_all, sorted(datasets[synthetic]), ref, note, base=method)
             built[key] = (table, caption.replace("LapDEN", method))
     for key, (table, caption) in built.items():

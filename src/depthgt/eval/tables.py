@@ -32,8 +32,8 @@ and the number of frames. In the CSV a metric's column holds the mean and the co
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 import pandas as pd
@@ -97,8 +97,11 @@ METHOD_METRICS = list(METHOD_LABELS)
 LOW, HIGH = " 95% low", " 95% high"  # suffixes of an interval's columns
 PAIRED_BASE = "lapden"  # the method the paired tables compare with every other
 QUALITY_METRICS = ["mae_m", "rmse_m", "mae_missing_counted_m", "rmse_missing_counted_m", "completeness"]
-GT_LABELS = {"gt": "depthgt GT (local frame set)", "rde": "global reconstruction GT (TSDF)",
-             "input": "input (raw depth)"}
+GT_LABELS = {
+    "gt": "depthgt GT (local frame set)",
+    "rde": "global reconstruction GT (TSDF)",
+    "input": "input (raw depth)",
+}
 
 _CONVENTIONS = (
     "Each column has one pixel set, the same for every method. Filling: every reference-valid pixel, a missing "
@@ -137,14 +140,23 @@ TABLE1_CAPTION = (
     "frame sets. depthgt's GT fuses the 7-frame local set; the global-reconstruction GT is a TSDF of the whole "
     "stream (global poses) ray-cast at each frame. Higher SSIM / lower L_S = closer in structure to the input."
 )
-TABLE2_CAPTION = ("Table 2 (real data): methods on held-out real test frames against three references. "
-                  + _REAL_REFERENCES_TEXT + _CONVENTIONS)
-TABLE3_CAPTION = ("Table 3 (synthetic data): methods on held-out synthetic test frames against the true clean depth; "
-                  "the input carries Kinect-style noise. " + _CONVENTIONS)
-TABLE2_PAIRED_CAPTION = ("Table 2, paired (real data, each reference of Table 2): LapDEN minus every other method. "
-                         + _REAL_REFERENCES_TEXT + _PAIRED)
-TABLE3_PAIRED_CAPTION = ("Table 3, paired (synthetic data, reference: the true clean depth): LapDEN minus every other "
-                         "method. " + _PAIRED)
+TABLE2_CAPTION = (
+    "Table 2 (real data): methods on held-out real test frames against three references. "
+    + _REAL_REFERENCES_TEXT
+    + _CONVENTIONS
+)
+TABLE3_CAPTION = (
+    "Table 3 (synthetic data): methods on held-out synthetic test frames against the true clean depth; "
+    "the input carries Kinect-style noise. " + _CONVENTIONS
+)
+TABLE2_PAIRED_CAPTION = (
+    "Table 2, paired (real data, each reference of Table 2): LapDEN minus every other method. "
+    + _REAL_REFERENCES_TEXT
+    + _PAIRED
+)
+TABLE3_PAIRED_CAPTION = (
+    "Table 3, paired (synthetic data, reference: the true clean depth): LapDEN minus every other method. " + _PAIRED
+)
 GT_QUALITY_CAPTION = (
     "GT quality (synthetic data, what the paper could not measure): the error of each GT, and of the raw input, "
     "against the true clean depth, mean over frame sets. MAE/RMSE in metres over pixels valid in both; 'missing "
@@ -177,8 +189,17 @@ def gt_vs_input_long(framesets: pd.DataFrame, rde_framesets: pd.DataFrame | None
         gt = store.read_exr_member(f"{gt_loc}/gt.exr")["Z"]
         inp = store.read_exr_member(f"{fs_loc}/input.exr")["Z"]
         for metric, value in (("ssim", ssim_depth(gt, inp)), ("ls", ls_distance(gt, inp))):
-            rows.append({"dataset": dataset, "scene": scene, "target": target, "gt": which, "metric": metric,
-                         "unit": unit_of(metric), "value": float(value)})
+            rows.append(
+                {
+                    "dataset": dataset,
+                    "scene": scene,
+                    "target": target,
+                    "gt": which,
+                    "metric": metric,
+                    "unit": unit_of(metric),
+                    "value": float(value),
+                }
+            )
     return pd.DataFrame(rows, columns=["dataset", "scene", "target", "gt", "metric", "unit", "value"])
 
 
@@ -186,12 +207,25 @@ def rde_quality_long(rde_framesets: pd.DataFrame) -> pd.DataFrame:
     """Per-scene mean error of the RDE GT against the truth, in gt_quality.csv's form
     (dataset, scene, estimate='rde', reference='truth', metric, unit, value)."""
     rows = []
-    ok = rde_framesets[(rde_framesets["status"] == Status.OK) & (rde_framesets["rde"] != "")] if len(rde_framesets) else rde_framesets
+    ok = (
+        rde_framesets[(rde_framesets["status"] == Status.OK) & (rde_framesets["rde"] != "")]
+        if len(rde_framesets)
+        else rde_framesets
+    )
     for rec in ok.itertuples():
         st = store.read_json(f"{rec.rde}/frameset.json")["statistics"]
         for metric, value in st.get("rde_vs_truth", {}).items():
-            rows.append({"dataset": rec.dataset, "scene": rec.scene, "estimate": "rde", "reference": "truth",
-                         "metric": metric, "unit": unit_of(metric), "value": float(value)})
+            rows.append(
+                {
+                    "dataset": rec.dataset,
+                    "scene": rec.scene,
+                    "estimate": "rde",
+                    "reference": "truth",
+                    "metric": metric,
+                    "unit": unit_of(metric),
+                    "value": float(value),
+                }
+            )
     cols = ["dataset", "scene", "estimate", "reference", "metric", "unit", "value"]
     long = pd.DataFrame(rows, columns=cols)
     if long.empty:
@@ -220,8 +254,10 @@ def _frame_matrix(ev: pd.DataFrame, datasets: list[str], reference: str) -> pd.D
     dup = sub.duplicated(["dataset", "scene", "target", "method", "metric"])
     if dup.any():
         first = sub[dup].iloc[0]
-        raise ValueError(f"evaluation table: {int(dup.sum())} duplicate rows, e.g. {first['dataset']}/{first['scene']}/"
-                         f"{first['target']} {first['method']} {first['metric']} (a method evaluated twice?)")
+        raise ValueError(
+            f"evaluation table: {int(dup.sum())} duplicate rows, e.g. {first['dataset']}/{first['scene']}/"
+            f"{first['target']} {first['method']} {first['metric']} (a method evaluated twice?)"
+        )
     return sub.pivot(index=["dataset", "scene", "target"], columns=["method", "metric"], values="value")
 
 
@@ -237,7 +273,7 @@ def _rows_with_intervals(values: pd.DataFrame, keys: list[tuple], resamples: int
     v = values.reindex(columns=pd.MultiIndex.from_tuples(cols)).to_numpy(dtype=np.float64)
     est = bootstrap_means(v, resamples=resamples, seed=seed)
     rows = []
-    for i, key in enumerate(keys):
+    for i, _key in enumerate(keys):
         part = slice(i * len(METHOD_METRICS), (i + 1) * len(METHOD_METRICS))
         # the frames a row averages: those with any value (each column's own NaNs aside)
         row = {"frames": int(np.isfinite(v[:, part]).any(axis=1).sum())}
@@ -248,8 +284,14 @@ def _rows_with_intervals(values: pd.DataFrame, keys: list[tuple], resamples: int
     return rows
 
 
-def method_table(ev: pd.DataFrame, datasets: list[str], reference: str, note: str,
-                 resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED) -> pd.DataFrame:
+def method_table(
+    ev: pd.DataFrame,
+    datasets: list[str],
+    reference: str,
+    note: str,
+    resamples: int = BOOTSTRAP_RESAMPLES,
+    seed: int = BOOTSTRAP_SEED,
+) -> pd.DataFrame:
     """Wide table (one row per dataset and method) of :data:`METHOD_METRICS` from an
     evaluation long table, restricted to ``datasets`` and ``reference``: the mean over
     frames of each metric with its bootstrap interval (columns ``label``, ``label +
@@ -268,8 +310,15 @@ def method_table(ev: pd.DataFrame, datasets: list[str], reference: str, note: st
     return pd.DataFrame(out, columns=cols)
 
 
-def paired_table(ev: pd.DataFrame, datasets: list[str], reference: str, note: str, base: str = PAIRED_BASE,
-                 resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED) -> pd.DataFrame:
+def paired_table(
+    ev: pd.DataFrame,
+    datasets: list[str],
+    reference: str,
+    note: str,
+    base: str = PAIRED_BASE,
+    resamples: int = BOOTSTRAP_RESAMPLES,
+    seed: int = BOOTSTRAP_SEED,
+) -> pd.DataFrame:
     """``base`` against every other method, per dataset: the mean over frames of the
     per-frame difference (base minus other) of each metric of :data:`METHOD_METRICS`,
     with its bootstrap interval over the frames both have (the draws of
@@ -344,7 +393,9 @@ def table1(long: pd.DataFrame) -> pd.DataFrame:
     if long.empty:
         return pd.DataFrame([{"note": "no runnable frame set: Table 1 is empty"}])
     wide = long.pivot_table(index=["dataset", "gt"], columns="metric", values="value", aggfunc="mean")
-    frames = long.drop_duplicates(["dataset", "gt", "scene", "target"]).groupby(["dataset", "gt"]).size().rename("frames")
+    frames = (
+        long.drop_duplicates(["dataset", "gt", "scene", "target"]).groupby(["dataset", "gt"]).size().rename("frames")
+    )
     wide = wide.join(frames).reset_index()
     wide["gt"] = wide["gt"].map(lambda g: GT_LABELS.get(g, g))
     wide = wide.rename(columns={"gt": "GT", **COLUMN_LABELS})
@@ -358,15 +409,23 @@ def table_gt_quality(quality: pd.DataFrame, rde_quality: pd.DataFrame | None = N
         quality: ``gt_quality.csv`` (dataset, scene, estimate, reference, metric, unit, value; per-scene means).
         rde_quality: :func:`rde_quality_long` (same columns), or None.
     """
-    q = pd.concat([quality, rde_quality], ignore_index=True) if rde_quality is not None and len(rde_quality) else quality
+    q = (
+        pd.concat([quality, rde_quality], ignore_index=True)
+        if rde_quality is not None and len(rde_quality)
+        else quality
+    )
     q = q[(q["reference"] == "truth") & q["metric"].isin(QUALITY_METRICS)] if len(q) else q
     if q.empty:
-        return pd.DataFrame([{"note": "no source with clean truth is configured: the GT's own error cannot be measured"}])
+        return pd.DataFrame(
+            [{"note": "no source with clean truth is configured: the GT's own error cannot be measured"}]
+        )
     wide = q.pivot_table(index=["dataset", "estimate"], columns="metric", values="value", aggfunc="mean")
     scenes = q.groupby(["dataset", "estimate"])["scene"].nunique().rename("scenes")
     wide = wide.join(scenes).reset_index()
     order = {"gt": 0, "rde": 1, "input": 2}
-    wide = wide.sort_values(["dataset", "estimate"], key=lambda s: s.map(order).fillna(9) if s.name == "estimate" else s)
+    wide = wide.sort_values(
+        ["dataset", "estimate"], key=lambda s: s.map(order).fillna(9) if s.name == "estimate" else s
+    )
     wide["estimate"] = wide["estimate"].map(lambda g: GT_LABELS.get(g, g))
     wide = wide.rename(columns=COLUMN_LABELS)
     cols = ["dataset", "estimate", "scenes"] + [COLUMN_LABELS[m] for m in QUALITY_METRICS]
@@ -383,6 +442,7 @@ def markdown_view(table: pd.DataFrame, digits: int = 4) -> pd.DataFrame:
     out = table.copy()
     for col in list(table.columns):
         if col + LOW in table.columns and col + HIGH in table.columns:
+
             def cell(mean, lo, hi):
                 if not np.isfinite(mean):
                     return "n/a"
@@ -393,8 +453,9 @@ def markdown_view(table: pd.DataFrame, digits: int = 4) -> pd.DataFrame:
     return out
 
 
-def write_table(table: pd.DataFrame, csv_path: str | Path, md_path: str | Path, caption: str,
-                digits: int = 4) -> tuple[Path, Path]:
+def write_table(
+    table: pd.DataFrame, csv_path: str | Path, md_path: str | Path, caption: str, digits: int = 4
+) -> tuple[Path, Path]:
     """Write ``csv_path`` (full precision) and ``md_path`` (caption, then the table with
     ``digits`` significant digits, intervals as ``mean [low, high]``: :func:`markdown_view`).
     Returns both paths."""

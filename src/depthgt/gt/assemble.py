@@ -24,16 +24,46 @@ from depthgt.metric_vocabulary import unit_of
 from depthgt.settings import SPLITS
 from depthgt.status import Status
 
-FRAMESET_COLUMNS = ["dataset", "scene", "target", "frame_id", "split", "status", "reason", "frameset", "has_truth",
-                    "patches_drawn", "patches_kept", "input_missing", "gt_missing", "gt_median_sigma_m"]
+FRAMESET_COLUMNS = [
+    "dataset",
+    "scene",
+    "target",
+    "frame_id",
+    "split",
+    "status",
+    "reason",
+    "frameset",
+    "has_truth",
+    "patches_drawn",
+    "patches_kept",
+    "input_missing",
+    "gt_missing",
+    "gt_median_sigma_m",
+]
 # (estimate, frameset.json statistics key, reference) of the GT quality table
-QUALITY_KEYS = (("gt", "gt_vs_truth", "truth"), ("input", "input_vs_truth", "truth"),
-                ("gt", "gt_vs_truth_input_valid", "truth@input_valid"), ("leave_target_out", "leave_target_out", "target_raw"))
+QUALITY_KEYS = (
+    ("gt", "gt_vs_truth", "truth"),
+    ("input", "input_vs_truth", "truth"),
+    ("gt", "gt_vs_truth_input_valid", "truth@input_valid"),
+    ("leave_target_out", "leave_target_out", "target_raw"),
+)
 # the frames the frame-set batches read (depthgt.gt.cache.FrameCheck): message names the file at fault
 FRAME_COLUMNS = ["dataset", "scene", "position", "frame_id", "valid", "reason", "message"]
 # frameset: the frame set's location (depthgt.gt.store); its patches are <frameset>/patches.npz
-PATCH_COLUMNS = ["dataset", "scene", "target", "split", "patch", "frameset", "y0", "x0", "size", "missing_input", "missing_gt",
-                 "kept"]
+PATCH_COLUMNS = [
+    "dataset",
+    "scene",
+    "target",
+    "split",
+    "patch",
+    "frameset",
+    "y0",
+    "x0",
+    "size",
+    "missing_input",
+    "missing_gt",
+    "kept",
+]
 
 
 def read_index(index_parquet: str | Path) -> tuple[pd.DataFrame, dict]:
@@ -43,8 +73,9 @@ def read_index(index_parquet: str | Path) -> tuple[pd.DataFrame, dict]:
     return table, meta
 
 
-def summarize_scene(index_parquet: str | Path, shards: list[str | Path]
-                    ) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+def summarize_scene(
+    index_parquet: str | Path, shards: list[str | Path]
+) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame, pd.DataFrame]:
     """Tables of one scene: frame sets, patches, GT quality (tidy long form) and frames.
 
     Args:
@@ -78,49 +109,120 @@ def summarize_scene(index_parquet: str | Path, shards: list[str | Path]
         index_targets.add(target)
         batch = batch_records.get(target)
         if batch is None:
-            raise FileNotFoundError(f"{dataset}/{scene}: frame set {target} is in the index but no shard given records it")
-        row = {"dataset": dataset, "scene": scene, "target": target, "frame_id": rec.frame_id, "split": rec.frameset_split,
-               "status": batch["status"], "reason": batch["reason"], "frameset": "", "has_truth": False,
-               "patches_drawn": 0, "patches_kept": 0, "input_missing": np.nan, "gt_missing": np.nan,
-               "gt_median_sigma_m": np.nan}
+            raise FileNotFoundError(
+                f"{dataset}/{scene}: frame set {target} is in the index but no shard given records it"
+            )
+        row = {
+            "dataset": dataset,
+            "scene": scene,
+            "target": target,
+            "frame_id": rec.frame_id,
+            "split": rec.frameset_split,
+            "status": batch["status"],
+            "reason": batch["reason"],
+            "frameset": "",
+            "has_truth": False,
+            "patches_drawn": 0,
+            "patches_kept": 0,
+            "input_missing": np.nan,
+            "gt_missing": np.nan,
+            "gt_median_sigma_m": np.nan,
+        }
         loc = by_target.get(target)
         if loc is not None:
             doc = store.read_json(f"{loc}/frameset.json")
             st = doc["statistics"]
-            row.update(status=doc["status"], reason=doc["reason"], frameset=loc, has_truth="gt_vs_truth" in st,
-                       patches_drawn=st["patches_drawn"], patches_kept=st["patches_kept"],
-                       input_missing=st["input_missing"], gt_missing=st["gt_missing"],
-                       gt_median_sigma_m=st.get("gt_median_sigma_m", np.nan))
+            row.update(
+                status=doc["status"],
+                reason=doc["reason"],
+                frameset=loc,
+                has_truth="gt_vs_truth" in st,
+                patches_drawn=st["patches_drawn"],
+                patches_kept=st["patches_kept"],
+                input_missing=st["input_missing"],
+                gt_missing=st["gt_missing"],
+                gt_median_sigma_m=st.get("gt_median_sigma_m", np.nan),
+            )
             npz = store.read_npz(f"{loc}/patches.npz")
             kept, boxes = npz["kept"], npz["all_boxes"]
             miss_in, miss_gt = npz["all_missing_input"], npz["all_missing_gt"]
             kept_index = np.cumsum(kept) - 1
             for i in range(len(kept)):
-                patch_rows.append({"dataset": dataset, "scene": scene, "target": target, "split": doc["split"],
-                                   "patch": int(kept_index[i]) if kept[i] else -1, "frameset": loc,
-                                   "y0": int(boxes[i, 0]), "x0": int(boxes[i, 1]), "size": int(boxes[i, 2]),
-                                   "missing_input": float(miss_in[i]), "missing_gt": float(miss_gt[i]), "kept": bool(kept[i])})
+                patch_rows.append(
+                    {
+                        "dataset": dataset,
+                        "scene": scene,
+                        "target": target,
+                        "split": doc["split"],
+                        "patch": int(kept_index[i]) if kept[i] else -1,
+                        "frameset": loc,
+                        "y0": int(boxes[i, 0]),
+                        "x0": int(boxes[i, 1]),
+                        "size": int(boxes[i, 2]),
+                        "missing_input": float(miss_in[i]),
+                        "missing_gt": float(miss_gt[i]),
+                        "kept": bool(kept[i]),
+                    }
+                )
             for estimate, key, reference in QUALITY_KEYS:
                 if key not in st:
                     continue
                 for metric, value in st[key].items():
-                    quality.append({"dataset": dataset, "scene": scene, "target": target, "split": doc["split"],
-                                    "estimate": estimate, "reference": reference, "metric": metric,
-                                    "unit": unit_of(metric), "value": float(value)})
+                    quality.append(
+                        {
+                            "dataset": dataset,
+                            "scene": scene,
+                            "target": target,
+                            "split": doc["split"],
+                            "estimate": estimate,
+                            "reference": reference,
+                            "metric": metric,
+                            "unit": unit_of(metric),
+                            "value": float(value),
+                        }
+                    )
         rows.append(row)
     # targets a batch job planned but the scene does not hold (fewer frames than planned)
     for target in sorted(set(batch_records) - index_targets):
         rec = batch_records[target]
-        rows.append({"dataset": dataset, "scene": scene, "target": target, "frame_id": "", "split": rec.get("split", ""),
-                     "status": rec["status"], "reason": rec["reason"], "frameset": "", "has_truth": False,
-                     "patches_drawn": 0, "patches_kept": 0, "input_missing": np.nan, "gt_missing": np.nan,
-                     "gt_median_sigma_m": np.nan})
-    frame_rows = [{"dataset": dataset, "scene": scene, "position": p, "frame_id": str(frames[p]["frame_id"]),
-                   "valid": bool(frames[p]["valid"]), "reason": frames[p]["reason"], "message": frames[p]["message"]}
-                  for p in sorted(frames)]
-    return (pd.DataFrame(rows, columns=FRAMESET_COLUMNS), pd.DataFrame(patch_rows, columns=PATCH_COLUMNS),
-            pd.DataFrame(quality, columns=["dataset", "scene", "target", "split", "estimate", "reference", "metric", "unit", "value"]),
-            pd.DataFrame(frame_rows, columns=FRAME_COLUMNS))
+        rows.append(
+            {
+                "dataset": dataset,
+                "scene": scene,
+                "target": target,
+                "frame_id": "",
+                "split": rec.get("split", ""),
+                "status": rec["status"],
+                "reason": rec["reason"],
+                "frameset": "",
+                "has_truth": False,
+                "patches_drawn": 0,
+                "patches_kept": 0,
+                "input_missing": np.nan,
+                "gt_missing": np.nan,
+                "gt_median_sigma_m": np.nan,
+            }
+        )
+    frame_rows = [
+        {
+            "dataset": dataset,
+            "scene": scene,
+            "position": p,
+            "frame_id": str(frames[p]["frame_id"]),
+            "valid": bool(frames[p]["valid"]),
+            "reason": frames[p]["reason"],
+            "message": frames[p]["message"],
+        }
+        for p in sorted(frames)
+    ]
+    return (
+        pd.DataFrame(rows, columns=FRAMESET_COLUMNS),
+        pd.DataFrame(patch_rows, columns=PATCH_COLUMNS),
+        pd.DataFrame(
+            quality, columns=["dataset", "scene", "target", "split", "estimate", "reference", "metric", "unit", "value"]
+        ),
+        pd.DataFrame(frame_rows, columns=FRAME_COLUMNS),
+    )
 
 
 class DatasetOutputs(NamedTuple):
@@ -135,14 +237,27 @@ class DatasetOutputs(NamedTuple):
     quality: Path
 
     @classmethod
-    def in_dir(cls, out_dir: str | Path) -> "DatasetOutputs":
+    def in_dir(cls, out_dir: str | Path) -> DatasetOutputs:
         d = Path(out_dir)
-        return cls(d / "train.parquet", d / "val.parquet", d / "test.parquet", d / "framesets.parquet", d / "summary.json",
-                   d / "summary.md", d / "gt_quality.csv")
+        return cls(
+            d / "train.parquet",
+            d / "val.parquet",
+            d / "test.parquet",
+            d / "framesets.parquet",
+            d / "summary.json",
+            d / "summary.md",
+            d / "gt_quality.csv",
+        )
 
 
-def assemble(scene_framesets: list[str | Path], scene_patches: list[str | Path], scene_quality: list[str | Path],
-             scene_frames: list[str | Path], index_jsons: list[str | Path], out: DatasetOutputs) -> dict:
+def assemble(
+    scene_framesets: list[str | Path],
+    scene_patches: list[str | Path],
+    scene_quality: list[str | Path],
+    scene_frames: list[str | Path],
+    index_jsons: list[str | Path],
+    out: DatasetOutputs,
+) -> dict:
     """Write the dataset manifests from the per-scene summaries.
 
     Args:
@@ -175,8 +290,9 @@ def assemble(scene_framesets: list[str | Path], scene_patches: list[str | Path],
     fs.to_parquet(out.framesets, index=False)
 
     if len(quality):
-        per_scene = (quality.groupby(["dataset", "scene", "estimate", "reference", "metric", "unit"], as_index=False)["value"]
-                     .mean())
+        per_scene = quality.groupby(["dataset", "scene", "estimate", "reference", "metric", "unit"], as_index=False)[
+            "value"
+        ].mean()
     else:
         per_scene = pd.DataFrame(columns=["dataset", "scene", "estimate", "reference", "metric", "unit", "value"])
     per_scene.to_csv(out.quality, index=False)
@@ -191,12 +307,20 @@ def assemble(scene_framesets: list[str | Path], scene_patches: list[str | Path],
             {"dataset": r.dataset, "scene": r.scene, "target": int(r.target), "reason": r.reason}
             for r in fs[fs["status"] != Status.OK].itertuples()
         ],
-        "scene_problems": [{"dataset": m["dataset"], "scene": m["scene"], "problem": p} for m in metas for p in m["problems"]],
+        "scene_problems": [
+            {"dataset": m["dataset"], "scene": m["scene"], "problem": p} for m in metas for p in m["problems"]
+        ],
         "scenes_without_framesets": scenes_without_framesets(fs, metas),
         "frames_read": int(len(frames)),
         "frames_skipped": [
-            {"dataset": r.dataset, "scene": r.scene, "position": int(r.position), "frame_id": str(r.frame_id),
-             "reason": r.reason, "message": r.message}
+            {
+                "dataset": r.dataset,
+                "scene": r.scene,
+                "position": int(r.position),
+                "frame_id": str(r.frame_id),
+                "reason": r.reason,
+                "message": r.message,
+            }
             for r in frames[~frames["valid"].astype(bool)].itertuples()
         ],
     }
@@ -240,30 +364,53 @@ def _summary_md(summary: dict, quality: pd.DataFrame) -> str:
     lines = ["# Dataset summary", "", "| split | frame sets | patch pairs |", "|---|---:|---:|"]
     for s in SPLITS:
         lines.append(f"| {s} | {summary['framesets'][s]} | {summary['pairs'][s]} |")
-    lines += ["", f"Patches drawn: {summary['patches_drawn']}, kept: {summary['patches_kept']}, "
-                  f"rejected by the missing filter: {summary['patches_rejected']}.",
-              f"Frames read by the frame-set batches: {summary['frames_read']}, unusable (skipped): "
-              f"{len(summary['frames_skipped'])}. Frame sets skipped: {len(summary['framesets_skipped'])}.", ""]
+    lines += [
+        "",
+        f"Patches drawn: {summary['patches_drawn']}, kept: {summary['patches_kept']}, "
+        f"rejected by the missing filter: {summary['patches_rejected']}.",
+        f"Frames read by the frame-set batches: {summary['frames_read']}, unusable (skipped): "
+        f"{len(summary['frames_skipped'])}. Frame sets skipped: {len(summary['framesets_skipped'])}.",
+        "",
+    ]
     if summary["frames_skipped"]:
         lines += ["| dataset | scene | frame | id | reason | message |", "|---|---|---:|---|---|---|"]
-        lines += [f"| {r['dataset']} | {r['scene']} | {r['position']} | {r['frame_id']} | {r['reason']} | "
-                  f"{_cell(r['message'])} |" for r in summary["frames_skipped"]]
+        lines += [
+            f"| {r['dataset']} | {r['scene']} | {r['position']} | {r['frame_id']} | {r['reason']} | "
+            f"{_cell(r['message'])} |"
+            for r in summary["frames_skipped"]
+        ]
         lines.append("")
     if summary["framesets_skipped"]:
         lines += ["| dataset | scene | target | reason |", "|---|---|---:|---|"]
-        lines += [f"| {r['dataset']} | {r['scene']} | {r['target']} | {_cell(r['reason'])} |" for r in summary["framesets_skipped"]]
+        lines += [
+            f"| {r['dataset']} | {r['scene']} | {r['target']} | {_cell(r['reason'])} |"
+            for r in summary["framesets_skipped"]
+        ]
         lines.append("")
     if summary["scenes_without_framesets"]:
         lines += ["Scenes without a frame set:", "", "| dataset | scene | frames | reason |", "|---|---|---:|---|"]
-        lines += [f"| {r['dataset']} | {r['scene']} | {r['n_frames']} | {_cell(r['reason'])} |"
-                  for r in summary["scenes_without_framesets"]]
+        lines += [
+            f"| {r['dataset']} | {r['scene']} | {r['n_frames']} | {_cell(r['reason'])} |"
+            for r in summary["scenes_without_framesets"]
+        ]
         lines.append("")
     if summary["scene_problems"]:
-        lines += ["Scene problems:", ""] + [f"- {p['dataset']}/{p['scene']}: {p['problem']}" for p in summary["scene_problems"]] + [""]
+        lines += (
+            ["Scene problems:", ""]
+            + [f"- {p['dataset']}/{p['scene']}: {p['problem']}" for p in summary["scene_problems"]]
+            + [""]
+        )
     if len(quality):
         table = quality[quality["metric"].isin(["mae_m", "mae_missing_counted_m", "rmse_m", "completeness"])]
-        wide = table.pivot_table(index=["dataset", "estimate", "reference"], columns="metric", values="value", aggfunc="mean")
-        lines += ["## GT quality (mean over scenes; metres, completeness as a fraction)", "", wide.round(4).to_markdown(), ""]
+        wide = table.pivot_table(
+            index=["dataset", "estimate", "reference"], columns="metric", values="value", aggfunc="mean"
+        )
+        lines += [
+            "## GT quality (mean over scenes; metres, completeness as a fraction)",
+            "",
+            wide.round(4).to_markdown(),
+            "",
+        ]
     return "\n".join(lines)
 
 

@@ -31,9 +31,18 @@ from depthgt.settings import RegistrationSettings, RenderSettings, Settings
 from depthgt.sources.base import Scene, check_frame
 from depthgt.status import Status
 
-__all__ = ["FrameSetData", "FrameSetOutputs", "Alignment", "load_frameset", "poses_from_source", "align", "photometric_for",
-           "fuse",
-           "quality_statistics", "process_frameset"]
+__all__ = [
+    "FrameSetData",
+    "FrameSetOutputs",
+    "Alignment",
+    "load_frameset",
+    "poses_from_source",
+    "align",
+    "photometric_for",
+    "fuse",
+    "quality_statistics",
+    "process_frameset",
+]
 
 log = logging.getLogger(__name__)
 
@@ -49,10 +58,12 @@ class FrameSetOutputs(NamedTuple):
     meta: Path
 
     @classmethod
-    def in_dir(cls, out_dir: str | Path) -> "FrameSetOutputs":
+    def in_dir(cls, out_dir: str | Path) -> FrameSetOutputs:
         """The standard names (``gt.exr`` ... ``frameset.json``) in ``out_dir``."""
         d = Path(out_dir)
-        return cls(d / "gt.exr", d / "input.exr", d / "rgb.png", d / "poses.json", d / "patches.npz", d / "frameset.json")
+        return cls(
+            d / "gt.exr", d / "input.exr", d / "rgb.png", d / "poses.json", d / "patches.npz", d / "frameset.json"
+        )
 
 
 OUTPUT_FILES = tuple(p.name for p in FrameSetOutputs.in_dir("."))
@@ -84,8 +95,9 @@ class FrameSetData:
     colour_matches_depth: bool = True
 
 
-def load_frameset(scene: Scene, members: list[int], size_hw: tuple[int, int], need_poses: bool,
-                  device: torch.device) -> FrameSetData:
+def load_frameset(
+    scene: Scene, members: list[int], size_hw: tuple[int, int], need_poses: bool, device: torch.device
+) -> FrameSetData:
     """Read the member frames of any :class:`~depthgt.sources.base.Scene` and bring them
     to ``size_hw`` (depth nearest/valid-aware, colour area-averaged, intrinsics scaled).
 
@@ -133,8 +145,10 @@ def load_frameset(scene: Scene, members: list[int], size_hw: tuple[int, int], ne
 def poses_from_source(data: FrameSetData) -> torch.Tensor:
     """``T_j_to_t`` (F-1, 4, 4) float64 of each neighbour from the source's poses."""
     if data.T_world_cam is None:
-        raise FrameError("registration.method 'given' needs poses, but this source provides none or some are non-finite",
-                         "missing_pose")
+        raise FrameError(
+            "registration.method 'given' needs poses, but this source provides none or some are non-finite",
+            "missing_pose",
+        )
     T = data.T_world_cam
     return torch.linalg.inv(T[:1]) @ T[1:]
 
@@ -160,8 +174,9 @@ class Alignment:
     normals: torch.Tensor | None = None
 
 
-def align(data: FrameSetData, offsets: list[int], settings: RegistrationSettings, seed: int,
-          encoder_state: dict | None = None) -> Alignment:
+def align(
+    data: FrameSetData, offsets: list[int], settings: RegistrationSettings, seed: int, encoder_state: dict | None = None
+) -> Alignment:
     """Poses of the neighbours in the target camera by ``settings.method``: the source's
     (``given``), the source's refined on the set (``refine``) or the overfit
     registration (``overfit``). A neighbour that did not
@@ -180,10 +195,13 @@ def align(data: FrameSetData, offsets: list[int], settings: RegistrationSettings
     info["photometric_weight"] = settings.refine_settings.photo_weight
 
     if settings.method == "refine":
-        result = registration.refine_source_poses(data.rgb, data.depth_m, data.K, offsets, poses_from_source(data), settings)
+        result = registration.refine_source_poses(
+            data.rgb, data.depth_m, data.K, offsets, poses_from_source(data), settings
+        )
     else:
-        result = registration.register_frameset(data.rgb, data.depth_m, data.K, offsets, settings,
-                                                encoder_state=encoder_state, seed=seed)
+        result = registration.register_frameset(
+            data.rgb, data.depth_m, data.K, offsets, settings, encoder_state=encoder_state, seed=seed
+        )
     T_j_to_t = torch.as_tensor(result.T_j_to_t, dtype=torch.float64, device=data.depth_m.device)
     info.update(result.to_dict())
     status, reason = result.status, result.reason
@@ -206,9 +224,15 @@ def photometric_for(settings: RegistrationSettings, colour_matches_depth: bool) 
     return replace(settings, refine_settings=replace(settings.refine_settings, photo_weight=0.0))
 
 
-def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, depth_m: torch.Tensor | None = None,
-         members: slice | list[int] = slice(None), leave_target_out: bool = False,
-         normals: torch.Tensor | None = None) -> GTRender:
+def fuse(
+    data: FrameSetData,
+    T_j_to_t: torch.Tensor,
+    settings: RenderSettings,
+    depth_m: torch.Tensor | None = None,
+    members: slice | list[int] = slice(None),
+    leave_target_out: bool = False,
+    normals: torch.Tensor | None = None,
+) -> GTRender:
     """Render the aligned members into the target view (paper eq. 5).
 
     Args:
@@ -231,21 +255,41 @@ def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, d
     depth = (data.depth_m if depth_m is None else depth_m)[members]
     n_all = data.depth_m.shape[0]
     chosen = list(range(n_all))[members] if isinstance(members, slice) else list(members)
-    if normals is not None and (depth_m is not None or chosen != list(range(n_all))
-                                or normals.shape != (n_all, 3, *data.depth_m.shape[-2:])
-                                or normals.dtype != depth.dtype or normals.device != depth.device):
+    if normals is not None and (
+        depth_m is not None
+        or chosen != list(range(n_all))
+        or normals.shape != (n_all, 3, *data.depth_m.shape[-2:])
+        or normals.dtype != depth.dtype
+        or normals.device != depth.device
+    ):
         normals = None
     eye = torch.eye(4, dtype=T_j_to_t.dtype, device=T_j_to_t.device)[None]
     T = torch.cat([eye, T_j_to_t], dim=0)[members]
     K = data.K[None].expand(depth.shape[0], 3, 3)
     residuals = second_difference_residuals(depth, data.src_hw)  # the noise estimates and the normals' edge test
-    cloud = cloud_in_target(depth, K, T, src_hw=data.src_hw, noise_sigma_1m=settings.noise_sigma_1m,
-                            noise_sigma_abs_m=settings.noise_sigma_abs_m, residuals=residuals,
-                            normals=normals)
+    cloud = cloud_in_target(
+        depth,
+        K,
+        T,
+        src_hw=data.src_hw,
+        noise_sigma_1m=settings.noise_sigma_1m,
+        noise_sigma_abs_m=settings.noise_sigma_abs_m,
+        residuals=residuals,
+        normals=normals,
+    )
     h, w = data.depth_m.shape[-2:]
     with_target = bool(chosen) and chosen[0] == 0  # the target's own depth is fused, as frame 0 of the cloud
-    cands = rasterise_gt(cloud.points, data.K[None].to(depth.dtype), (h, w), settings, valid=cloud.valid,
-                         normals_cam=cloud.normals, sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=data.src_hw)
+    cands = rasterise_gt(
+        cloud.points,
+        data.K[None].to(depth.dtype),
+        (h, w),
+        settings,
+        valid=cloud.valid,
+        normals_cam=cloud.normals,
+        sigma_m=cloud.sigma_m,
+        frame=cloud.frame,
+        src_hw=data.src_hw,
+    )
     gt = composite_gt(cands, settings, target_frame=0 if with_target else None)
     if not (with_target and leave_target_out and len(chosen) > 1):
         return gt
@@ -253,15 +297,22 @@ def fuse(data: FrameSetData, T_j_to_t: torch.Tensor, settings: RenderSettings, d
     if settings.noise_sigma_1m is None:
         # the noise law as fusing the neighbours alone estimates it (without the target's depth)
         sigma_1m = noise_sigma_1m_from(residuals, frames=slice(1, None))
-        lo_sigma = torch.cat([torch.zeros_like(depth[:1]), depth_sigma_m(depth[1:], sigma_1m, settings.noise_sigma_abs_m)])
+        lo_sigma = torch.cat(
+            [torch.zeros_like(depth[:1]), depth_sigma_m(depth[1:], sigma_1m, settings.noise_sigma_abs_m)]
+        )
         lo_sigma = lo_sigma.reshape(1, -1).to(cloud.sigma_m.dtype)
     # the leave-target-out render: the same compositor over the same candidates minus the target's
     neighbours = cands.without_frame(0, stride=settings.leave_target_out_stride, sigma_m=lo_sigma)
     return gt._replace(left_out=composite_gt(neighbours, settings, with_sigma=False))
 
 
-def quality_statistics(data: FrameSetData, alignment: Alignment, gt_m: np.ndarray, settings: RenderSettings,
-                       left_out: GTRender | None = None) -> dict:
+def quality_statistics(
+    data: FrameSetData,
+    alignment: Alignment,
+    gt_m: np.ndarray,
+    settings: RenderSettings,
+    left_out: GTRender | None = None,
+) -> dict:
     """Depth errors of the GT (:func:`depthgt.metric_vocabulary.depth_errors`).
 
     With a clean truth: ``gt_vs_truth``, ``input_vs_truth`` and
@@ -288,9 +339,17 @@ def quality_statistics(data: FrameSetData, alignment: Alignment, gt_m: np.ndarra
     return stats
 
 
-def process_frameset(scene: Scene, dataset: str, target: int, members: list[int], split: str, out: FrameSetOutputs,
-                     settings: Settings, encoder_state: dict | None = None,
-                     candidates: list[int] | None = None) -> dict[str, Any]:
+def process_frameset(
+    scene: Scene,
+    dataset: str,
+    target: int,
+    members: list[int],
+    split: str,
+    out: FrameSetOutputs,
+    settings: Settings,
+    encoder_state: dict | None = None,
+    candidates: list[int] | None = None,
+) -> dict[str, Any]:
     """Build every output of one frame set and return frameset.json's content.
 
     Args:
@@ -327,8 +386,14 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     lap("align")
 
     fused = alignment.fused
-    gt = fuse(data, alignment.T_j_to_t, settings.render, members=fused if len(fused) < len(members) else slice(None),
-              leave_target_out=data.truth_m is None, normals=alignment.normals)
+    gt = fuse(
+        data,
+        alignment.T_j_to_t,
+        settings.render,
+        members=fused if len(fused) < len(members) else slice(None),
+        leave_target_out=data.truth_m is None,
+        normals=alignment.normals,
+    )
     lap("render")
 
     coverage = None
@@ -337,9 +402,12 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
         from depthgt.gt.coverage import add_coverage_views
 
         if candidates is None:
-            candidates = coverage_candidates(np.full(len(scene), split, dtype=object), target, members, settings.frameset)
-        coverage = add_coverage_views(scene, target, list(candidates), data, alignment, gt, settings.frameset, reg,
-                                      settings.render)
+            candidates = coverage_candidates(
+                np.full(len(scene), split, dtype=object), target, members, settings.frameset
+            )
+        coverage = add_coverage_views(
+            scene, target, list(candidates), data, alignment, gt, settings.frameset, reg, settings.render
+        )
         gt = coverage.render  # the core's GT where it has one, the added views' only where it has none
         lap("coverage")
 
@@ -349,9 +417,15 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     rgb8 = (data.rgb[0].permute(1, 2, 0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
     # the images as the shard stores them (fixed point, store.GT_UNITS): the statistics
     # and the patches are those of what every reader gets
-    gt_images = store.stored_gt({"Z": gt_raw, "S": gt.sigma[0, 0].detach().cpu().numpy().astype(np.float32),
-                                 "N": gt.count[0, 0].cpu().numpy().astype(np.float32),
-                                 "W": gt.weight_sum[0, 0].detach().cpu().numpy().astype(np.float32)}, str(out.gt))
+    gt_images = store.stored_gt(
+        {
+            "Z": gt_raw,
+            "S": gt.sigma[0, 0].detach().cpu().numpy().astype(np.float32),
+            "N": gt.count[0, 0].cpu().numpy().astype(np.float32),
+            "W": gt.weight_sum[0, 0].detach().cpu().numpy().astype(np.float32),
+        },
+        str(out.gt),
+    )
     depth_in, truth = store.stored_input(depth_in, truth, str(out.input))
     gt_depth, gt_sigma = gt_images["Z"], gt_images["S"]
 
@@ -366,8 +440,11 @@ def process_frameset(scene: Scene, dataset: str, target: int, members: list[int]
     offsets_fused = [members[i] - target for i in fused]
     share = gt.agreement[0].cpu().numpy()
     stats["render_agreement"] = {f"{o:+d}": round(float(a), 4) for o, a in zip(offsets_fused, share) if np.isfinite(a)}
-    whole = settings.render.min_whole_frame_agreement if settings.render.agreement_tile_px > 0 else \
-        settings.render.min_frame_agreement  # with tiles a frame is left out whole only below this
+    whole = (
+        settings.render.min_whole_frame_agreement
+        if settings.render.agreement_tile_px > 0
+        else settings.render.min_frame_agreement
+    )  # with tiles a frame is left out whole only below this
     stats["render_left_out"] = [o for o, a in zip(offsets_fused, share) if np.isfinite(a) and a < whole and o != 0]
     if gt.disagreement is not None and float(gt.disagreement[0, 0].sum()) > 0:
         # share of the neighbours' compared samples that the agreement check kept

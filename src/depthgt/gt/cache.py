@@ -41,9 +41,12 @@ def resize_frame(frame: Frame, size_hw: tuple[int, int]) -> Frame:
     area-averaged (uint8), pose unchanged."""
     rgb = torch.from_numpy(np.ascontiguousarray(frame.rgb)).permute(2, 0, 1)[None].float() / 255.0
     rgb = geometry.resize_rgb(rgb, size_hw)[0].permute(1, 2, 0).numpy()
-    return Frame(rgb=(rgb * 255.0 + 0.5).astype(np.uint8), depth_m=_depth_at(frame.depth_m, size_hw),
-                 T_world_cam=frame.T_world_cam,
-                 clean_depth_m=_depth_at(frame.clean_depth_m, size_hw) if frame.clean_depth_m is not None else None)
+    return Frame(
+        rgb=(rgb * 255.0 + 0.5).astype(np.uint8),
+        depth_m=_depth_at(frame.depth_m, size_hw),
+        T_world_cam=frame.T_world_cam,
+        clean_depth_m=_depth_at(frame.clean_depth_m, size_hw) if frame.clean_depth_m is not None else None,
+    )
 
 
 @dataclass(frozen=True)
@@ -98,8 +101,9 @@ class ResizedScene:
         self.name = scene.name
         self.image_size = self.size_hw
         self.source_size = tuple(int(x) for x in scene.image_size)
-        self.intrinsics = geometry.scale_intrinsics(np.asarray(scene.intrinsics, dtype=np.float64), scene.image_size,
-                                                    self.size_hw)
+        self.intrinsics = geometry.scale_intrinsics(
+            np.asarray(scene.intrinsics, dtype=np.float64), scene.image_size, self.size_hw
+        )
         self.has_poses = bool(scene.has_poses)
         self.has_clean_depth = bool(scene.has_clean_depth)
         self.colour_matches_depth = bool(getattr(scene, "colour_matches_depth", True))

@@ -28,9 +28,10 @@ from __future__ import annotations
 import hashlib
 import json
 import subprocess
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -44,8 +45,17 @@ from depthgt.gt import store
 from depthgt.settings import SPLITS
 from depthgt.status import Status
 
-__all__ = ["CARD_VERSION", "CHECKSUMS", "code_version", "sha256_file", "build_card", "card_markdown", "write_card",
-           "Verification", "verify"]
+__all__ = [
+    "CARD_VERSION",
+    "CHECKSUMS",
+    "code_version",
+    "sha256_file",
+    "build_card",
+    "card_markdown",
+    "write_card",
+    "Verification",
+    "verify",
+]
 
 CARD_VERSION = 1
 CHECKSUMS = "SHA256SUMS"  # an export's checksum list, in the format of `sha256sum -c`
@@ -84,9 +94,15 @@ def _mean(series: pd.Series) -> float | None:
     return float(values.mean()) if len(values) else None
 
 
-def build_card(results: str | Path, summary: Mapping[str, Any], framesets: pd.DataFrame, quality: pd.DataFrame,
-               index_metas: Sequence[Mapping[str, Any]], settings: Mapping[str, Any],
-               files: Sequence[str | Path]) -> dict[str, Any]:
+def build_card(
+    results: str | Path,
+    summary: Mapping[str, Any],
+    framesets: pd.DataFrame,
+    quality: pd.DataFrame,
+    index_metas: Sequence[Mapping[str, Any]],
+    settings: Mapping[str, Any],
+    files: Sequence[str | Path],
+) -> dict[str, Any]:
     """The card's content (see the module docstring).
 
     Args:
@@ -111,8 +127,11 @@ def build_card(results: str | Path, summary: Mapping[str, Any], framesets: pd.Da
     splits = {}
     for s in SPLITS:
         in_split = framesets[framesets["split"] == s]
-        splits[s] = {"scenes": sorted({f"{r.dataset}/{r.scene}" for r in in_split.itertuples()}),
-                     "framesets": int(summary["framesets"][s]), "pairs": int(summary["pairs"][s])}
+        splits[s] = {
+            "scenes": sorted({f"{r.dataset}/{r.scene}" for r in in_split.itertuples()}),
+            "framesets": int(summary["framesets"][s]),
+            "pairs": int(summary["pairs"][s]),
+        }
     skipped = summary["framesets_skipped"]
     by_reason: dict[str, int] = {}
     for r in skipped:
@@ -123,7 +142,9 @@ def build_card(results: str | Path, summary: Mapping[str, Any], framesets: pd.Da
     if len(quality):
         table = quality[quality["metric"].isin(_QUALITY_METRICS)]
         means = table.groupby(["dataset", "estimate", "reference", "metric", "unit"], as_index=False)["value"].mean()
-        quality_rows = [{k: (float(v) if k == "value" else str(v)) for k, v in r.items()} for r in means.to_dict("records")]
+        quality_rows = [
+            {k: (float(v) if k == "value" else str(v)) for k, v in r.items()} for r in means.to_dict("records")
+        ]
     file_entries = {}
     for f in sorted({Path(p).resolve() for p in files}):
         if not f.is_file():
@@ -140,12 +161,23 @@ def build_card(results: str | Path, summary: Mapping[str, Any], framesets: pd.Da
         "depthgt": code_version(),
         "sources": [sources[k] for k in sorted(sources)],
         "splits": splits,
-        "framesets": {"total": int(len(framesets)), "kept": int(len(ok)), "skipped": len(skipped),
-                      "skipped_by_reason": dict(sorted(by_reason.items())), "skipped_list": list(skipped)},
-        "frames": {"read": int(summary["frames_read"]), "skipped": len(summary["frames_skipped"]),
-                   "skipped_list": list(summary["frames_skipped"])},
-        "patches": {"drawn": int(summary["patches_drawn"]), "kept": int(summary["patches_kept"]),
-                    "rejected": int(summary["patches_rejected"])},
+        "framesets": {
+            "total": int(len(framesets)),
+            "kept": int(len(ok)),
+            "skipped": len(skipped),
+            "skipped_by_reason": dict(sorted(by_reason.items())),
+            "skipped_list": list(skipped),
+        },
+        "frames": {
+            "read": int(summary["frames_read"]),
+            "skipped": len(summary["frames_skipped"]),
+            "skipped_list": list(summary["frames_skipped"]),
+        },
+        "patches": {
+            "drawn": int(summary["patches_drawn"]),
+            "kept": int(summary["patches_kept"]),
+            "rejected": int(summary["patches_rejected"]),
+        },
         "scene_problems": list(summary.get("scene_problems", [])),
         "settings": dict(settings),
         "quality": {
@@ -153,8 +185,11 @@ def build_card(results: str | Path, summary: Mapping[str, Any], framesets: pd.Da
             "input_completeness": None if ok.empty else _mean(1.0 - ok["input_missing"]),
             "gt_median_sigma_m": float(np.median(gt_sigma)) if len(gt_sigma) else None,
             "by_dataset": quality_rows,
-            "units": {"completeness": "fraction of pixels", "gt_median_sigma_m": "m (median over frame sets of the "
-                      "per-frame median expected std of the GT)", "value": "see each row's unit"},
+            "units": {
+                "completeness": "fraction of pixels",
+                "gt_median_sigma_m": "m (median over frame sets of the per-frame median expected std of the GT)",
+                "value": "see each row's unit",
+            },
         },
         "files": file_entries,
     }
@@ -163,45 +198,84 @@ def build_card(results: str | Path, summary: Mapping[str, Any], framesets: pd.Da
 def card_markdown(card: Mapping[str, Any]) -> str:
     """card.md: the card for a person (checksums stay in card.json)."""
     code = card["depthgt"]
-    lines = ["# Dataset card", "",
-             f"Built by depthgt {code['version']}, commit {code['commit'] or 'unknown (not a git checkout)'}"
-             + (" (uncommitted changes)" if code.get("dirty") else "") + ".", "",
-             "## Sources", "", "| source | kind | split | scenes |", "|---|---|---|---|"]
+    lines = [
+        "# Dataset card",
+        "",
+        f"Built by depthgt {code['version']}, commit {code['commit'] or 'unknown (not a git checkout)'}"
+        + (" (uncommitted changes)" if code.get("dirty") else "")
+        + ".",
+        "",
+        "## Sources",
+        "",
+        "| source | kind | split | scenes |",
+        "|---|---|---|---|",
+    ]
     for s in card["sources"]:
         lines.append(f"| {s['name']} | {s.get('kind', '')} | {s.get('split', '')} | {', '.join(s['scenes'])} |")
     lines += ["", "## Splits", "", "| split | scenes | frame sets | patch pairs |", "|---|---:|---:|---:|"]
     for name, s in card["splits"].items():
         lines.append(f"| {name} | {len(s['scenes'])} | {s['framesets']} | {s['pairs']} |")
     fs, fr, pa = card["framesets"], card["frames"], card["patches"]
-    lines += ["", f"Frame sets: {fs['total']}, kept {fs['kept']}, skipped {fs['skipped']}"
-                  + (f" ({', '.join(f'{k}: {v}' for k, v in fs['skipped_by_reason'].items())})" if fs["skipped"] else "")
-              + f". Frames read: {fr['read']}, unusable: {fr['skipped']}. Patch pairs drawn: {pa['drawn']}, "
-                f"kept: {pa['kept']}, rejected by the missing filter: {pa['rejected']}.", ""]
+    lines += [
+        "",
+        f"Frame sets: {fs['total']}, kept {fs['kept']}, skipped {fs['skipped']}"
+        + (f" ({', '.join(f'{k}: {v}' for k, v in fs['skipped_by_reason'].items())})" if fs["skipped"] else "")
+        + f". Frames read: {fr['read']}, unusable: {fr['skipped']}. Patch pairs drawn: {pa['drawn']}, "
+        f"kept: {pa['kept']}, rejected by the missing filter: {pa['rejected']}.",
+        "",
+    ]
     if fs["skipped_list"]:
         lines += ["| dataset | scene | target | reason |", "|---|---|---:|---|"]
-        lines += [f"| {r['dataset']} | {r['scene']} | {r['target']} | {str(r['reason']).replace('|', '/')} |"
-                  for r in fs["skipped_list"]] + [""]
+        lines += [
+            f"| {r['dataset']} | {r['scene']} | {r['target']} | {str(r['reason']).replace('|', '/')} |"
+            for r in fs["skipped_list"]
+        ] + [""]
     q = card["quality"]
 
     def num(v: float | None, unit: str = "") -> str:
         return "n/a" if v is None else f"{v:.4f}{unit}"
 
-    lines += ["## GT quality", "", f"GT completeness {num(q['gt_completeness'])} "
-              f"(input {num(q['input_completeness'])}); GT confidence: median expected std "
-              f"{num(q['gt_median_sigma_m'], ' m')}.", ""]
+    lines += [
+        "## GT quality",
+        "",
+        f"GT completeness {num(q['gt_completeness'])} "
+        f"(input {num(q['input_completeness'])}); GT confidence: median expected std "
+        f"{num(q['gt_median_sigma_m'], ' m')}.",
+        "",
+    ]
     if q["by_dataset"]:
-        wide = pd.DataFrame(q["by_dataset"]).pivot_table(index=["dataset", "estimate", "reference"], columns="metric",
-                                                         values="value", aggfunc="mean")
-        lines += ["Mean over scenes (metres; completeness as a fraction); reference `truth`: the clean depth of "
-                  "synthetic sources, `target_raw`: the target's own sensor depth left out of the GT.", "",
-                  wide.round(4).to_markdown(), ""]
-    lines += ["## Format", "", f"Frame-set shards in format version {card.get('format_version', 1)}; "
-              "what each stored channel holds, its unit and precision:", "", "| file | channel | content |",
-              "|---|---|---|"]
+        wide = pd.DataFrame(q["by_dataset"]).pivot_table(
+            index=["dataset", "estimate", "reference"], columns="metric", values="value", aggfunc="mean"
+        )
+        lines += [
+            "Mean over scenes (metres; completeness as a fraction); reference `truth`: the clean depth of "
+            "synthetic sources, `target_raw`: the target's own sensor depth left out of the GT.",
+            "",
+            wide.round(4).to_markdown(),
+            "",
+        ]
+    lines += [
+        "## Format",
+        "",
+        f"Frame-set shards in format version {card.get('format_version', 1)}; "
+        "what each stored channel holds, its unit and precision:",
+        "",
+        "| file | channel | content |",
+        "|---|---|---|",
+    ]
     lines += [f"| {f} | {c} | {text} |" for f, chans in card.get("encoding", {}).items() for c, text in chans.items()]
-    lines += ["", "## Settings", "", "```yaml", yaml.safe_dump(card["settings"], sort_keys=True).rstrip(), "```", "",
-              f"## Files\n\n{len(card['files'])} files (shards and manifests) with their sha256 in card.json; "
-              "check a copy with `depthgt verify DIR`.", ""]
+    lines += [
+        "",
+        "## Settings",
+        "",
+        "```yaml",
+        yaml.safe_dump(card["settings"], sort_keys=True).rstrip(),
+        "```",
+        "",
+        f"## Files\n\n{len(card['files'])} files (shards and manifests) with their sha256 in card.json; "
+        "check a copy with `depthgt verify DIR`.",
+        "",
+    ]
     return "\n".join(lines)
 
 
@@ -253,15 +327,19 @@ def verify(folder: str | Path) -> Verification:
             report = Verification(results, "results")
             version = card.get("format_version", 1)
             if version != store.FORMAT_VERSION:
-                report.problems.append(f"{card_path}: shards in format version {version}, this depthgt reads version "
-                                       f"{store.FORMAT_VERSION}: rebuild every scene (`depthgt rebuild DATASET SCENE`) and the dataset (`depthgt build dataset`)")
+                report.problems.append(
+                    f"{card_path}: shards in format version {version}, this depthgt reads version "
+                    f"{store.FORMAT_VERSION}: rebuild every scene (`depthgt rebuild DATASET SCENE`) and the dataset (`depthgt build dataset`)"
+                )
             for rel, entry in card["files"].items():
                 _check_file(results / rel, entry["sha256"], entry.get("bytes"), f"card {card_path}", report)
             return report
     if (folder / "card.json").is_file() and (folder / "export.json").is_file():
         return _verify_export(folder, folder / CHECKSUMS)
-    raise DepthGTError(f"verify: {folder} holds no dataset card (results/dataset/card.json, dataset/card.json, "
-                       "or the card.json and export.json of an export)")
+    raise DepthGTError(
+        f"verify: {folder} holds no dataset card (results/dataset/card.json, dataset/card.json, "
+        "or the card.json and export.json of an export)"
+    )
 
 
 def _verify_export(folder: Path, sums: Path) -> Verification:

@@ -78,8 +78,10 @@ def fill_maps(depth_m: torch.Tensor, K: torch.Tensor, T_c_to_t: torch.Tensor, em
     c = depth_m.shape[0]
     h, w = depth_m.shape[-2:]
     if depth_m.ndim != 4 or depth_m.shape[1] != 1 or T_c_to_t.shape != (c, 4, 4) or empty.shape != (h, w):
-        raise ValueError(f"fill_maps: depth_m (C, 1, H, W), T_c_to_t (C, 4, 4) and empty (H, W) must agree, got "
-                         f"{tuple(depth_m.shape)}, {tuple(T_c_to_t.shape)}, {tuple(empty.shape)}")
+        raise ValueError(
+            f"fill_maps: depth_m (C, 1, H, W), T_c_to_t (C, 4, 4) and empty (H, W) must agree, got "
+            f"{tuple(depth_m.shape)}, {tuple(T_c_to_t.shape)}, {tuple(empty.shape)}"
+        )
     dt = depth_m.dtype
     Kb = K.to(dt)[None].expand(c, 3, 3)
     pts = geometry.backproject(depth_m, Kb)
@@ -169,8 +171,9 @@ def _usable(scene: Scene, positions: list[int]) -> tuple[list[int], dict[int, st
     return good, bad
 
 
-def _register(data: FrameSetData, offsets: list[int], T_start: torch.Tensor,
-              reg: RegistrationSettings) -> tuple[torch.Tensor, list[str], list[str]]:
+def _register(
+    data: FrameSetData, offsets: list[int], T_start: torch.Tensor, reg: RegistrationSettings
+) -> tuple[torch.Tensor, list[str], list[str]]:
     """Poses of the added views (target first in ``data``) by the frame set's method."""
     if reg.method == "given":
         return T_start, [Status.OK] * len(offsets[1:]), [""] * len(offsets[1:])
@@ -180,15 +183,24 @@ def _register(data: FrameSetData, offsets: list[int], T_start: torch.Tensor,
 
     if reg.method != "refine":
         raise ValueError(f"coverage views need the source's poses (given or refine), not {reg.method!r}")
-    res = registration.refine_source_poses(data.rgb, data.depth_m, data.K, offsets, T_start,
-                                           photometric_for(reg, data.colour_matches_depth))
+    res = registration.refine_source_poses(
+        data.rgb, data.depth_m, data.K, offsets, T_start, photometric_for(reg, data.colour_matches_depth)
+    )
     T = torch.as_tensor(res.T_j_to_t, dtype=torch.float64, device=data.depth_m.device)
     return T, list(res.neighbour_status), list(res.neighbour_reasons)
 
 
-def add_coverage_views(scene: Scene, target: int, candidates: list[int], data: FrameSetData, alignment: Alignment,
-                       core: GTRender, fs: FrameSetSettings, reg: RegistrationSettings,
-                       render: RenderSettings) -> CoverageResult:
+def add_coverage_views(
+    scene: Scene,
+    target: int,
+    candidates: list[int],
+    data: FrameSetData,
+    alignment: Alignment,
+    core: GTRender,
+    fs: FrameSetSettings,
+    reg: RegistrationSettings,
+    render: RenderSettings,
+) -> CoverageResult:
     """Fill the pixels the core left without GT from added views (module docstring).
 
     Args:
@@ -201,12 +213,17 @@ def add_coverage_views(scene: Scene, target: int, candidates: list[int], data: F
     """
     h, w = data.depth_m.shape[-2:]
     empty = core.depth[0, 0] <= 0
-    record: dict[str, Any] = {"selection": "coverage", "candidates": len(candidates),
-                              "gt_missing_core": round(float(empty.float().mean()), 6), "added": []}
+    record: dict[str, Any] = {
+        "selection": "coverage",
+        "candidates": len(candidates),
+        "gt_missing_core": round(float(empty.float().mean()), 6),
+        "added": [],
+    }
 
     def keep() -> GTRender:  # nothing added: the core's render as it is
-        return GTRender(core.depth, core.weight_sum, core.count, core.sigma, core.agreement, core.disagreement,
-                        core.left_out)
+        return GTRender(
+            core.depth, core.weight_sum, core.count, core.sigma, core.agreement, core.disagreement, core.left_out
+        )
 
     usable, bad = _usable(scene, candidates)
     record["unusable"] = {str(p - target): why for p, why in bad.items()}
@@ -226,13 +243,28 @@ def add_coverage_views(scene: Scene, target: int, candidates: list[int], data: F
     chosen = [int(idx[i]) for i, _ in picks]  # positions in cand's neighbours
     offsets = [0, *(usable[c] - target for c in chosen)]
     sel = [0, *(c + 1 for c in chosen)]
-    added = FrameSetData(cand.rgb[sel], cand.depth_m[sel], cand.K, cand.T_world_cam[sel],
-                         cand.truth_m[sel] if cand.truth_m is not None else None, [cand.frame_ids[i] for i in sel],
-                         cand.src_hw, cand.colour_matches_depth)
+    added = FrameSetData(
+        cand.rgb[sel],
+        cand.depth_m[sel],
+        cand.K,
+        cand.T_world_cam[sel],
+        cand.truth_m[sel] if cand.truth_m is not None else None,
+        [cand.frame_ids[i] for i in sel],
+        cand.src_hw,
+        cand.colour_matches_depth,
+    )
     T_added, status, reasons = _register(added, offsets, T_c_to_t[chosen], reg)
-    views = [{"offset": o, "planned_fill_px": g, "baseline_m": round(float(baseline[c]), 4),
-              "angle_deg": round(float(angle[c]), 2), "status": st, "reason": why}
-             for o, (_, g), c, st, why in zip(offsets[1:], picks, chosen, status, reasons)]
+    views = [
+        {
+            "offset": o,
+            "planned_fill_px": g,
+            "baseline_m": round(float(baseline[c]), 4),
+            "angle_deg": round(float(angle[c]), 2),
+            "status": st,
+            "reason": why,
+        }
+        for o, (_, g), c, st, why in zip(offsets[1:], picks, chosen, status, reasons)
+    ]
     record["added"] = views
     ok = [k for k, v in enumerate(views) if v["status"] == Status.OK]
     if not ok:
@@ -240,10 +272,18 @@ def add_coverage_views(scene: Scene, target: int, candidates: list[int], data: F
 
     # the core's fused members and the registered views, rendered together
     n = data.depth_m.shape[0]
-    both = FrameSetData(torch.cat([data.rgb, added.rgb[1:]]), torch.cat([data.depth_m, added.depth_m[1:]]), data.K,
-                        None, torch.cat([data.truth_m, added.truth_m[1:]]) if data.truth_m is not None
-                        and added.truth_m is not None else None, [*data.frame_ids, *added.frame_ids[1:]],
-                        data.src_hw, data.colour_matches_depth)
+    both = FrameSetData(
+        torch.cat([data.rgb, added.rgb[1:]]),
+        torch.cat([data.depth_m, added.depth_m[1:]]),
+        data.K,
+        None,
+        torch.cat([data.truth_m, added.truth_m[1:]])
+        if data.truth_m is not None and added.truth_m is not None
+        else None,
+        [*data.frame_ids, *added.frame_ids[1:]],
+        data.src_hw,
+        data.colour_matches_depth,
+    )
     T_both = torch.cat([alignment.T_j_to_t.to(torch.float64), T_added.to(alignment.T_j_to_t.device, torch.float64)])
     members = [*alignment.fused, *(n + k for k in ok)]
     full = fuse(both, T_both, render, members=members, leave_target_out=data.truth_m is None)
@@ -259,9 +299,15 @@ def add_coverage_views(scene: Scene, target: int, candidates: list[int], data: F
         views[k]["filled_px"] = int((planned & filled).sum()) if views[k]["status"] == Status.OK else 0
     record["filled_px"] = int(filled.sum())
     m = filled[None, None]
-    merged = GTRender(torch.where(m, full.depth, core.depth), torch.where(m, full.weight_sum, core.weight_sum),
-                      torch.where(m, full.count, core.count), torch.where(m, full.sigma, core.sigma), core.agreement,
-                      core.disagreement, core.left_out)
+    merged = GTRender(
+        torch.where(m, full.depth, core.depth),
+        torch.where(m, full.weight_sum, core.weight_sum),
+        torch.where(m, full.count, core.count),
+        torch.where(m, full.sigma, core.sigma),
+        core.agreement,
+        core.disagreement,
+        core.left_out,
+    )
     stats: dict[str, Any] = {}
     if full.left_out is not None:
         k = render.leave_target_out_stride  # fuse rendered these pixels only
@@ -270,7 +316,6 @@ def add_coverage_views(scene: Scene, target: int, candidates: list[int], data: F
         stats["leave_target_out_all_views"] = depth_errors(lto[::k, ::k], depth_in[::k, ::k])
         # where the core's neighbours alone left the target empty: the added views' own check
         core_lto = core.left_out.depth[0, 0].detach().cpu().numpy() if core.left_out is not None else np.zeros_like(lto)
-        stats["leave_target_out_added"] = depth_errors(lto[::k, ::k], depth_in[::k, ::k],
-                                                       mask=core_lto[::k, ::k] <= 0)
+        stats["leave_target_out_added"] = depth_errors(lto[::k, ::k], depth_in[::k, ::k], mask=core_lto[::k, ::k] <= 0)
     poses = {offsets[1 + k]: T_added[k].detach().cpu().numpy().tolist() for k in ok if views[k]["status"] == Status.OK}
     return CoverageResult(merged, record, stats, poses, full)

@@ -27,17 +27,19 @@ from depthgt.status import Status
 log = logging.getLogger(__name__)
 
 #: What the index says about the frames' own validity (index.json ``frame_checks``).
-FRAME_CHECKS = ("not in the index: each frame is checked when a frame-set batch reads it "
-                "(batch.json of the shards, results/scenes/<dataset>/<scene>/frames.parquet)")
+FRAME_CHECKS = (
+    "not in the index: each frame is checked when a frame-set batch reads it "
+    "(batch.json of the shards, results/scenes/<dataset>/<scene>/frames.parquet)"
+)
 
 
 @dataclass
 class SceneIndex:
     """Attributes:
-        frames: one row per frame position: position, frame_id, split.
-        framesets: one row per candidate target: target, members, split, status
-            ("planned" | "skipped"), reason.
-        meta: intrinsics (3x3 list), image_size, counts, scene-level problems.
+    frames: one row per frame position: position, frame_id, split.
+    framesets: one row per candidate target: target, members, split, status
+        ("planned" | "skipped"), reason.
+    meta: intrinsics (3x3 list), image_size, counts, scene-level problems.
     """
 
     frames: pd.DataFrame
@@ -46,8 +48,14 @@ class SceneIndex:
 
     def to_table(self) -> pd.DataFrame:
         """The index as one table (one row per frame, frame-set columns filled on targets)."""
-        fs = self.framesets.rename(columns={"target": "position", "status": "frameset_status", "reason": "frameset_reason",
-                                            "split": "frameset_split"})
+        fs = self.framesets.rename(
+            columns={
+                "target": "position",
+                "status": "frameset_status",
+                "reason": "frameset_reason",
+                "split": "frameset_split",
+            }
+        )
         table = self.frames.merge(fs, on="position", how="left")
         table["is_target"] = table["frameset_status"].notna()
         table["frameset_status"] = table["frameset_status"].fillna("")
@@ -57,8 +65,14 @@ class SceneIndex:
         return table
 
 
-def build_index(scene: Scene, dataset: str, source_split: str, fs_settings: FrameSetSettings,
-                split_settings: SplitSettings, seed: int) -> SceneIndex:
+def build_index(
+    scene: Scene,
+    dataset: str,
+    source_split: str,
+    fs_settings: FrameSetSettings,
+    split_settings: SplitSettings,
+    seed: int,
+) -> SceneIndex:
     """List the frames of ``scene`` and enumerate its frame sets, reading no frame.
 
     Uses ``len(scene)``, ``scene.frame_id``, the intrinsics and image size, and the
@@ -66,11 +80,13 @@ def build_index(scene: Scene, dataset: str, source_split: str, fs_settings: Fram
     """
     n = len(scene)
     splits = block_splits(n, source_split, split_settings, seed, dataset, scene.name)
-    frames = pd.DataFrame({
-        "position": np.arange(n),
-        "frame_id": [scene.frame_id(i) for i in range(n)],
-        "split": splits.astype(str),
-    })
+    frames = pd.DataFrame(
+        {
+            "position": np.arange(n),
+            "frame_id": [scene.frame_id(i) for i in range(n)],
+            "split": splits.astype(str),
+        }
+    )
     sets = enumerate_framesets(splits, fs_settings)
     framesets = pd.DataFrame(sets, columns=["target", "members", "split", "status", "reason"])
     problems = list(getattr(scene, "problems", []))
@@ -115,11 +131,15 @@ def select_pretraining_framesets(index_jsons: list[str], n: int, seed: int) -> l
     for path in index_jsons:
         meta = json.loads(Path(path).read_text())
         table = pd.read_parquet(Path(path).with_name("index.parquet"))
-        ok = table[table["is_target"] & (table["frameset_status"] == Status.PLANNED) & (table["frameset_split"] == "train")]
+        ok = table[
+            table["is_target"] & (table["frameset_status"] == Status.PLANNED) & (table["frameset_split"] == "train")
+        ]
         candidates += [(meta["dataset"], meta["scene"], [int(m) for m in r.members]) for r in ok.itertuples()]
     if not candidates:
-        raise ValueError("pretrain_registration: no frame set of the train split to pretrain on "
-                         "(set registration.pretrain.framesets: 0 to start from random weights)")
+        raise ValueError(
+            "pretrain_registration: no frame set of the train split to pretrain on "
+            "(set registration.pretrain.framesets: 0 to start from random weights)"
+        )
     rng = np.random.default_rng(stable_seed(seed, "pretrain"))
     chosen = sorted(rng.choice(len(candidates), size=min(n, len(candidates)), replace=False).tolist()) if n else []
     taken = set(chosen)

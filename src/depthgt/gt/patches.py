@@ -20,15 +20,36 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from depthgt.settings import PatchSettings
 
-__all__ = ["crop_boxes", "crop", "missing_ratio", "passes_missing_filter", "crop_pairs", "make_patches",
-           "CROPPED", "RECORD_KEYS", "CUT_KEYS", "patch_record", "cut_patches"]
+__all__ = [
+    "crop_boxes",
+    "crop",
+    "missing_ratio",
+    "passes_missing_filter",
+    "crop_pairs",
+    "make_patches",
+    "CROPPED",
+    "RECORD_KEYS",
+    "CUT_KEYS",
+    "patch_record",
+    "cut_patches",
+]
 
 #: the crops :func:`crop_pairs` returns, cut again on read by :func:`cut_patches`
 CROPPED = ("input", "gt", "rgb", "truth", "gt_sigma")
 #: what a frame set stores of its patches (patches.npz): boxes, missing ratios, kept
 #: flags, and the filter's ``max_gt_sigma_m`` (NaN: off) and which crops exist
-RECORD_KEYS = ("boxes", "missing_input", "missing_gt", "all_boxes", "all_missing_input", "all_missing_gt", "kept",
-               "max_gt_sigma_m", "has_truth", "has_gt_sigma")
+RECORD_KEYS = (
+    "boxes",
+    "missing_input",
+    "missing_gt",
+    "all_boxes",
+    "all_missing_input",
+    "all_missing_gt",
+    "kept",
+    "max_gt_sigma_m",
+    "has_truth",
+    "has_gt_sigma",
+)
 #: the record's arrays :func:`cut_patches` needs to cut the crops
 CUT_KEYS = ("all_boxes", "kept", "max_gt_sigma_m", "has_truth", "has_gt_sigma")
 
@@ -79,9 +100,17 @@ def passes_missing_filter(max_missing: float, *ratios: np.ndarray) -> np.ndarray
     return keep
 
 
-def crop_pairs(input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray, boxes: np.ndarray, max_missing: float,
-               filter_on: str = "gt", truth_m: np.ndarray | None = None, gt_sigma_m: np.ndarray | None = None,
-               max_gt_sigma_m: float | None = None) -> dict[str, np.ndarray]:
+def crop_pairs(
+    input_m: np.ndarray,
+    gt_m: np.ndarray,
+    rgb: np.ndarray,
+    boxes: np.ndarray,
+    max_missing: float,
+    filter_on: str = "gt",
+    truth_m: np.ndarray | None = None,
+    gt_sigma_m: np.ndarray | None = None,
+    max_gt_sigma_m: float | None = None,
+) -> dict[str, np.ndarray]:
     """Crop (input, GT, rgb[, truth, GT sigma]) at ``boxes`` and keep the pairs that pass the
     missing filter on ``filter_on`` ("gt", "input" or "both").
 
@@ -135,15 +164,31 @@ def crop_pairs(input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray, boxes: np
     return out
 
 
-def make_patches(input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray, settings: PatchSettings, rng: np.random.Generator,
-                 truth_m: np.ndarray | None = None, gt_sigma_m: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def make_patches(
+    input_m: np.ndarray,
+    gt_m: np.ndarray,
+    rgb: np.ndarray,
+    settings: PatchSettings,
+    rng: np.random.Generator,
+    truth_m: np.ndarray | None = None,
+    gt_sigma_m: np.ndarray | None = None,
+) -> dict[str, np.ndarray]:
     """Draw ``settings.count`` crop boxes and :func:`crop_pairs` them (see there for the
     arrays returned)."""
     if input_m.shape != gt_m.shape or rgb.shape[:2] != gt_m.shape:
         raise ValueError(f"input {input_m.shape}, gt {gt_m.shape} and rgb {rgb.shape} sizes differ")
     boxes = crop_boxes(gt_m.shape, settings, rng)
-    return crop_pairs(input_m, gt_m, rgb, boxes, settings.max_missing, settings.filter_on, truth_m,
-                      gt_sigma_m, settings.max_gt_sigma_m)
+    return crop_pairs(
+        input_m,
+        gt_m,
+        rgb,
+        boxes,
+        settings.max_missing,
+        settings.filter_on,
+        truth_m,
+        gt_sigma_m,
+        settings.max_gt_sigma_m,
+    )
 
 
 def patch_record(patches: dict[str, np.ndarray], max_gt_sigma_m: float | None = None) -> dict[str, np.ndarray]:
@@ -160,9 +205,15 @@ def patch_record(patches: dict[str, np.ndarray], max_gt_sigma_m: float | None = 
     return record
 
 
-def cut_patches(record: dict[str, np.ndarray], input_m: np.ndarray, gt_m: np.ndarray, rgb: np.ndarray,
-                truth_m: np.ndarray | None = None, gt_sigma_m: np.ndarray | None = None,
-                where: str = "patches") -> dict[str, np.ndarray]:
+def cut_patches(
+    record: dict[str, np.ndarray],
+    input_m: np.ndarray,
+    gt_m: np.ndarray,
+    rgb: np.ndarray,
+    truth_m: np.ndarray | None = None,
+    gt_sigma_m: np.ndarray | None = None,
+    where: str = "patches",
+) -> dict[str, np.ndarray]:
     """The arrays :func:`crop_pairs` returned, from a :func:`patch_record` and the frame
     images it was cut from: the kept crops (``input``, ``gt`` with the sigma filter's
     pixels at 0, ``rgb``[, ``truth``, ``gt_sigma``]) and their ``boxes``, beside the
@@ -183,7 +234,9 @@ def cut_patches(record: dict[str, np.ndarray], input_m: np.ndarray, gt_m: np.nda
     threshold = float(record["max_gt_sigma_m"])
     if np.isfinite(threshold):
         if gt_sigma_m is None:
-            raise ValueError(f"{where}: the patches were filtered by max_gt_sigma_m but the frame set has no sigma image")
+            raise ValueError(
+                f"{where}: the patches were filtered by max_gt_sigma_m but the frame set has no sigma image"
+            )
         gt_m = np.where(gt_sigma_m <= threshold, gt_m, 0).astype(gt_m.dtype)
     # crop(image, all_boxes)[kept]: the expression crop_pairs uses (shapes also when nothing is kept)
     out = {k: record[k] for k in RECORD_KEYS[:7] if k in record}

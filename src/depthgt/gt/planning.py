@@ -10,7 +10,7 @@ jobs decide it (:func:`member_problems` words the skip reason).
 from __future__ import annotations
 
 import hashlib
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -27,7 +27,9 @@ def stable_seed(*parts: object) -> int:
     return int.from_bytes(digest[:8], "little") >> 1
 
 
-def block_splits(n_frames: int, source_split: str, settings: SplitSettings, seed: int, dataset: str, scene: str) -> np.ndarray:
+def block_splits(
+    n_frames: int, source_split: str, settings: SplitSettings, seed: int, dataset: str, scene: str
+) -> np.ndarray:
     """Split tag of every frame position (array of str, length ``n_frames``)."""
     if source_split in SPLITS:
         return np.full(n_frames, source_split, dtype=object)
@@ -73,7 +75,9 @@ def enumerate_framesets(splits: np.ndarray, settings: FrameSetSettings) -> list[
     return out
 
 
-def coverage_candidates(splits: np.ndarray, target: int, members: Sequence[int], settings: FrameSetSettings) -> list[int]:
+def coverage_candidates(
+    splits: np.ndarray, target: int, members: Sequence[int], settings: FrameSetSettings
+) -> list[int]:
     """Frames that ``frameset.selection: coverage`` may add to a frame set (none with
     ``window``): within +-``coverage_span`` of the target, inside the scene, not a
     member, and of the target's split (the split guard holds for added views too: a

@@ -31,9 +31,9 @@ Conventions: depth float32 metres (0 = invalid), poses float64 4x4 camera-to-wor
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import pandas as pd
@@ -103,8 +103,14 @@ def _check_depth_pose_K(depth_m: torch.Tensor, K: torch.Tensor, T_world_cam: tor
         raise ValueError(f"{where}: T_world_cam must be a finite (4, 4) matrix, got {tuple(T_world_cam.shape)}")
 
 
-def scene_bounds(depths_m: Sequence[np.ndarray], K: np.ndarray, T_world_cam: Sequence[np.ndarray], max_depth_m: float,
-                 margin_m: float, sample: int = 4) -> tuple[np.ndarray, np.ndarray]:
+def scene_bounds(
+    depths_m: Sequence[np.ndarray],
+    K: np.ndarray,
+    T_world_cam: Sequence[np.ndarray],
+    max_depth_m: float,
+    margin_m: float,
+    sample: int = 4,
+) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned world bounds (min (3,), max (3,)) of every frame's valid points.
 
     Every ``sample``-th pixel per axis is back-projected (enough for bounds); the box
@@ -131,15 +137,27 @@ def _empty_volume(lo: np.ndarray, hi: np.ndarray, settings: RDESettings, device:
     dims = np.ceil((hi - lo) / settings.voxel_m).astype(np.int64) + 1
     n = int(np.prod(dims))
     if n > settings.max_voxels:
-        raise ConfigError(f"rde: the scene needs {tuple(dims)} = {n} voxels at voxel_m={settings.voxel_m} "
-                          f"(rde.max_voxels={settings.max_voxels}); raise rde.voxel_m or rde.max_voxels")
-    return TSDFVolume(origin=torch.as_tensor(lo, dtype=torch.float32, device=device), voxel_m=settings.voxel_m,
-                      trunc_m=settings.trunc_m, tsdf=torch.ones(tuple(dims), dtype=torch.float32, device=device),
-                      weight=torch.zeros(tuple(dims), dtype=torch.float32, device=device))
+        raise ConfigError(
+            f"rde: the scene needs {tuple(dims)} = {n} voxels at voxel_m={settings.voxel_m} "
+            f"(rde.max_voxels={settings.max_voxels}); raise rde.voxel_m or rde.max_voxels"
+        )
+    return TSDFVolume(
+        origin=torch.as_tensor(lo, dtype=torch.float32, device=device),
+        voxel_m=settings.voxel_m,
+        trunc_m=settings.trunc_m,
+        tsdf=torch.ones(tuple(dims), dtype=torch.float32, device=device),
+        weight=torch.zeros(tuple(dims), dtype=torch.float32, device=device),
+    )
 
 
-def integrate(volume: TSDFVolume, depth_m: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
-              max_depth_m: float = 8.0, slab: int = 16) -> None:
+def integrate(
+    volume: TSDFVolume,
+    depth_m: torch.Tensor,
+    K: torch.Tensor,
+    T_world_cam: torch.Tensor,
+    max_depth_m: float = 8.0,
+    slab: int = 16,
+) -> None:
     """Fuse one depth image into ``volume`` in place (projective TSDF, weight 1 per view).
 
     Each voxel centre is projected into the image (nearest pixel); where the pixel has
@@ -176,14 +194,19 @@ def integrate(volume: TSDFVolume, depth_m: torch.Tensor, K: torch.Tensor, T_worl
         sdf = dz - z
         upd = inside & (dz > 0) & (sdf >= -volume.trunc_m)
         val = (sdf / volume.trunc_m).clamp(max=1.0)
-        ts, wt = volume.tsdf[x0:x0 + slab], volume.weight[x0:x0 + slab]
+        ts, wt = volume.tsdf[x0 : x0 + slab], volume.weight[x0 : x0 + slab]
         w_new = wt + upd.float()
         ts.copy_(torch.where(upd, (ts * wt + val) / w_new.clamp_min(1.0), ts))
         wt.copy_(w_new)
 
 
-def fuse_tsdf(depths_m: Sequence[np.ndarray], K: np.ndarray, T_world_cam: Sequence[np.ndarray], settings: RDESettings,
-              device: torch.device | str = "cpu") -> TSDFVolume:
+def fuse_tsdf(
+    depths_m: Sequence[np.ndarray],
+    K: np.ndarray,
+    T_world_cam: Sequence[np.ndarray],
+    settings: RDESettings,
+    device: torch.device | str = "cpu",
+) -> TSDFVolume:
     """A dense TSDF of every frame (torch backend).
 
     Args:
@@ -197,16 +220,33 @@ def fuse_tsdf(depths_m: Sequence[np.ndarray], K: np.ndarray, T_world_cam: Sequen
     vol = _empty_volume(lo, hi, settings, dev)
     Kt = torch.as_tensor(np.asarray(K), dtype=torch.float32)
     for d, T in zip(depths_m, T_world_cam):  # one vectorised update per frame
-        integrate(vol, torch.from_numpy(np.array(d, dtype=np.float32)), Kt, torch.as_tensor(np.asarray(T, dtype=np.float64)),
-                  settings.max_depth_m)
-    log.info("TSDF %s voxels of %.3f m, %.1f%% observed", tuple(vol.tsdf.shape), vol.voxel_m,
-             100.0 * float((vol.weight > 0).float().mean()))
+        integrate(
+            vol,
+            torch.from_numpy(np.array(d, dtype=np.float32)),
+            Kt,
+            torch.as_tensor(np.asarray(T, dtype=np.float64)),
+            settings.max_depth_m,
+        )
+    log.info(
+        "TSDF %s voxels of %.3f m, %.1f%% observed",
+        tuple(vol.tsdf.shape),
+        vol.voxel_m,
+        100.0 * float((vol.weight > 0).float().mean()),
+    )
     return vol
 
 
-def raycast(volume: TSDFVolume, K: torch.Tensor, T_world_cam: torch.Tensor, size_hw: tuple[int, int],
-            near_m: float = 0.1, far_m: float = 8.0, step_frac: float = 0.5, block: int = 16,
-            min_seen: float = 0.5) -> torch.Tensor:
+def raycast(
+    volume: TSDFVolume,
+    K: torch.Tensor,
+    T_world_cam: torch.Tensor,
+    size_hw: tuple[int, int],
+    near_m: float = 0.1,
+    far_m: float = 8.0,
+    step_frac: float = 0.5,
+    block: int = 16,
+    min_seen: float = 0.5,
+) -> torch.Tensor:
     """Depth (H, W) float32 metres of the TSDF's zero surface seen from a camera (0 = none).
 
     Every pixel's ray is sampled at camera depths z = near_m, near_m + s, ... with
@@ -216,13 +256,18 @@ def raycast(volume: TSDFVolume, K: torch.Tensor, T_world_cam: torch.Tensor, size
     ``block`` for all pixels at once.
     """
     if tuple(K.shape) != (3, 3) or tuple(T_world_cam.shape) != (4, 4):
-        raise ValueError(f"raycast: K must be (3, 3) and T_world_cam (4, 4), got {tuple(K.shape)}, {tuple(T_world_cam.shape)}")
+        raise ValueError(
+            f"raycast: K must be (3, 3) and T_world_cam (4, 4), got {tuple(K.shape)}, {tuple(T_world_cam.shape)}"
+        )
     dev = volume.tsdf.device
     H, W = size_hw
     Kinv = torch.linalg.inv(K.double()).to(dev, torch.float32)
     T = T_world_cam.to(dev, torch.float32)
-    v, u = torch.meshgrid(torch.arange(H, device=dev, dtype=torch.float32), torch.arange(W, device=dev, dtype=torch.float32),
-                          indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(H, device=dev, dtype=torch.float32),
+        torch.arange(W, device=dev, dtype=torch.float32),
+        indexing="ij",
+    )
     pix = torch.stack([u.reshape(-1), v.reshape(-1), torch.ones(H * W, device=dev)], 0)
     dirs_w = T[:3, :3] @ (Kinv @ pix)  # (3, N): world offset per metre of camera depth
     origin_w = T[:3, 3]
@@ -235,7 +280,7 @@ def raycast(volume: TSDFVolume, K: torch.Tensor, T_world_cam: torch.Tensor, size
     found = torch.zeros(H * W, dtype=torch.bool, device=dev)
     prev_val = prev_z = prev_obs = None
     for b0 in range(0, len(zs_all), block):
-        zs = zs_all[b0:b0 + block]
+        zs = zs_all[b0 : b0 + block]
         pts = origin_w[:, None, None] + dirs_w[:, :, None] * zs[None, None, :]  # (3, N, S)
         idx = (pts - volume.origin[:, None, None]) / volume.voxel_m  # voxel coordinates
         # grid_sample's last grid dim is (x -> W = last volume axis, y -> H, z -> D = first)
@@ -276,8 +321,10 @@ def _open3d_render(depths_m, rgbs, K, T_world_cam, render_K, render_poses, size_
     try:
         import open3d as o3d
     except ImportError as err:
-        raise ConfigError("rde.backend 'open3d' needs Open3D: pip install 'depthgt[bench]' (or pip install open3d; "
-                          "on Debian also apt-get install -y libusb-1.0-0), or set rde.backend: torch") from err
+        raise ConfigError(
+            "rde.backend 'open3d' needs Open3D: pip install 'depthgt[bench]' (or pip install open3d; "
+            "on Debian also apt-get install -y libusb-1.0-0), or set rde.backend: torch"
+        ) from err
     H0, W0 = np.asarray(depths_m[0]).shape
     intr = o3d.camera.PinholeCameraIntrinsic(W0, H0, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
     # UniformTSDFVolume spans [0, length]^3 from the world origin: shift the world so
@@ -286,18 +333,27 @@ def _open3d_render(depths_m, rgbs, K, T_world_cam, render_K, render_poses, size_
     lo, hi = scene_bounds(depths_m, K, T_world_cam, settings.max_depth_m, margin_m=2 * settings.trunc_m)
     length = float((hi - lo).max())
     resolution = int(np.ceil(length / settings.voxel_m))
-    if resolution ** 3 > settings.max_voxels:
-        raise ConfigError(f"rde: the open3d backend's cubic volume needs {resolution}^3 voxels at voxel_m="
-                          f"{settings.voxel_m} (rde.max_voxels={settings.max_voxels}); raise rde.voxel_m or use backend torch")
+    if resolution**3 > settings.max_voxels:
+        raise ConfigError(
+            f"rde: the open3d backend's cubic volume needs {resolution}^3 voxels at voxel_m="
+            f"{settings.voxel_m} (rde.max_voxels={settings.max_voxels}); raise rde.voxel_m or use backend torch"
+        )
     shift = np.eye(4)
     shift[:3, 3] = -lo
-    vol = o3d.pipelines.integration.UniformTSDFVolume(length=resolution * settings.voxel_m, resolution=resolution,
-                                                      sdf_trunc=settings.trunc_m,
-                                                      color_type=o3d.pipelines.integration.TSDFVolumeColorType.NoColor)
+    vol = o3d.pipelines.integration.UniformTSDFVolume(
+        length=resolution * settings.voxel_m,
+        resolution=resolution,
+        sdf_trunc=settings.trunc_m,
+        color_type=o3d.pipelines.integration.TSDFVolumeColorType.NoColor,
+    )
     for d, c, T in zip(depths_m, rgbs, T_world_cam):
         rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
-            o3d.geometry.Image(np.ascontiguousarray(c)), o3d.geometry.Image(np.ascontiguousarray(d, dtype=np.float32)),
-            depth_scale=1.0, depth_trunc=settings.max_depth_m, convert_rgb_to_intensity=False)
+            o3d.geometry.Image(np.ascontiguousarray(c)),
+            o3d.geometry.Image(np.ascontiguousarray(d, dtype=np.float32)),
+            depth_scale=1.0,
+            depth_trunc=settings.max_depth_m,
+            convert_rgb_to_intensity=False,
+        )
         vol.integrate(rgbd, intr, np.linalg.inv(shift @ np.asarray(T)))
     render_poses = [shift @ np.asarray(T) for T in render_poses]
     mesh = o3d.t.geometry.TriangleMesh.from_legacy(vol.extract_triangle_mesh())
@@ -308,7 +364,10 @@ def _open3d_render(depths_m, rgbs, K, T_world_cam, render_K, render_poses, size_
     for Kr, T in zip(render_K, render_poses):
         rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
             intrinsic_matrix=o3d.core.Tensor(np.asarray(Kr, dtype=np.float64)),
-            extrinsic_matrix=o3d.core.Tensor(np.linalg.inv(T)), width_px=W, height_px=H)
+            extrinsic_matrix=o3d.core.Tensor(np.linalg.inv(T)),
+            width_px=W,
+            height_px=H,
+        )
         t_hit = scene.cast_rays(rays)["t_hit"].numpy()  # distance along unnormalised rays
         dirs = rays.numpy()[..., 3:]
         # ray directions are unit vectors in world; camera depth = t * (direction . optical axis)
@@ -317,10 +376,17 @@ def _open3d_render(depths_m, rgbs, K, T_world_cam, render_K, render_poses, size_
     return out
 
 
-def reconstruct_and_render(depths_m: Sequence[np.ndarray], rgbs: Sequence[np.ndarray] | None, K: np.ndarray,
-                           T_world_cam: Sequence[np.ndarray], render_K: Sequence[np.ndarray],
-                           render_poses: Sequence[np.ndarray], size_hw: tuple[int, int], settings: RDESettings,
-                           device: torch.device | str = "cpu") -> tuple[list[np.ndarray], str]:
+def reconstruct_and_render(
+    depths_m: Sequence[np.ndarray],
+    rgbs: Sequence[np.ndarray] | None,
+    K: np.ndarray,
+    T_world_cam: Sequence[np.ndarray],
+    render_K: Sequence[np.ndarray],
+    render_poses: Sequence[np.ndarray],
+    size_hw: tuple[int, int],
+    settings: RDESettings,
+    device: torch.device | str = "cpu",
+) -> tuple[list[np.ndarray], str]:
     """Fuse the whole stream into a TSDF and render it at each requested camera.
 
     Args:
@@ -342,19 +408,40 @@ def reconstruct_and_render(depths_m: Sequence[np.ndarray], rgbs: Sequence[np.nda
             rgbs = [np.zeros((*np.asarray(d).shape, 3), np.uint8) for d in depths_m]
         return _open3d_render(depths_m, rgbs, K, T_world_cam, render_K, render_poses, size_hw, settings), backend
     vol = fuse_tsdf(depths_m, K, T_world_cam, settings, device)
-    out = [raycast(vol, torch.as_tensor(np.asarray(Kr), dtype=torch.float64), torch.as_tensor(np.asarray(T)), size_hw,
-                   far_m=settings.max_depth_m).cpu().numpy().astype(np.float32)
-           for Kr, T in zip(render_K, render_poses)]
+    out = [
+        raycast(
+            vol,
+            torch.as_tensor(np.asarray(Kr), dtype=torch.float64),
+            torch.as_tensor(np.asarray(T)),
+            size_hw,
+            far_m=settings.max_depth_m,
+        )
+        .cpu()
+        .numpy()
+        .astype(np.float32)
+        for Kr, T in zip(render_K, render_poses)
+    ]
     return out, backend
-
 
 
 # --------------------------------------------------------------------------- RDE GT of a scene
 
 
 # frameset: depthgt's frame set; rde: the RDE GT's location (depthgt.gt.store), in the scene's frames.zip
-RDE_FRAMESET_COLUMNS = ["dataset", "scene", "target", "split", "status", "reason", "frameset", "rde", "has_truth",
-                        "patches_kept", "rde_missing", "backend"]
+RDE_FRAMESET_COLUMNS = [
+    "dataset",
+    "scene",
+    "target",
+    "split",
+    "status",
+    "reason",
+    "frameset",
+    "rde",
+    "has_truth",
+    "patches_kept",
+    "rde_missing",
+    "backend",
+]
 RDE_PATCH_COLUMNS = ["dataset", "scene", "target", "split", "patch", "frameset"]
 
 
@@ -417,13 +504,15 @@ def rde_scene(scene, framesets, settings: RDESettings, out_shard: str | Path, se
     rows, patch_rows = [], []
     with work_dir(out_shard) as tmp:
         built = _rde_targets(scene, ok, settings, Path(tmp), settings_doc, rows, patch_rows, str(out_shard))
-        store.write_shard(out_shard, built, [{"target": r["target"], "status": r["status"], "reason": r["reason"]}
-                                             for r in rows])
+        store.write_shard(
+            out_shard, built, [{"target": r["target"], "status": r["status"], "reason": r["reason"]} for r in rows]
+        )
     return pd.DataFrame(rows, columns=RDE_FRAMESET_COLUMNS), pd.DataFrame(patch_rows, columns=RDE_PATCH_COLUMNS)
 
 
-def _rde_targets(scene, ok, settings: RDESettings, out: Path, settings_doc: dict | None, rows: list, patch_rows: list,
-                 shard: str) -> dict[int, Path]:
+def _rde_targets(
+    scene, ok, settings: RDESettings, out: Path, settings_doc: dict | None, rows: list, patch_rows: list, shard: str
+) -> dict[int, Path]:
     """The RDE GT of every frame set of ``ok`` into ``out/{target:06d}/``; rows of the two
     tables appended; returns target -> folder of those rendered."""
     built: dict[int, Path] = {}
@@ -439,17 +528,36 @@ def _rde_targets(scene, ok, settings: RDESettings, out: Path, settings_doc: dict
     if not depths:
         raise ValueError(f"{scene.name}: no frame with depth and a finite pose for the TSDF")
     rendered, backend = reconstruct_and_render(
-        depths, rgbs, K, poses, [np.asarray(docs[t]["K"], dtype=np.float64) for t in render_targets],
-        [target_poses[t] for t in render_targets], hw, settings)
-    log.info("%s: TSDF of %d frames (%s backend), %d targets rendered", scene.name, len(depths), backend,
-             len(render_targets))
+        depths,
+        rgbs,
+        K,
+        poses,
+        [np.asarray(docs[t]["K"], dtype=np.float64) for t in render_targets],
+        [target_poses[t] for t in render_targets],
+        hw,
+        settings,
+    )
+    log.info(
+        "%s: TSDF of %d frames (%s backend), %d targets rendered", scene.name, len(depths), backend, len(render_targets)
+    )
     by_target = dict(zip(render_targets, rendered))
     doc_settings = settings_doc if settings_doc is not None else asdict(settings)
     for r in ok.itertuples():
         t = int(r.target)
-        row = {"dataset": r.dataset, "scene": r.scene, "target": t, "split": r.split, "status": Status.OK, "reason": "",
-               "frameset": r.frameset, "rde": "", "has_truth": bool(r.has_truth), "patches_kept": 0,
-               "rde_missing": np.nan, "backend": backend}
+        row = {
+            "dataset": r.dataset,
+            "scene": r.scene,
+            "target": t,
+            "split": r.split,
+            "status": Status.OK,
+            "reason": "",
+            "frameset": r.frameset,
+            "rde": "",
+            "has_truth": bool(r.has_truth),
+            "patches_kept": 0,
+            "rde_missing": np.nan,
+            "backend": backend,
+        }
         if t not in by_target:
             row.update(status=Status.SKIPPED, reason="no finite global pose for the target")
             rows.append(row)
@@ -460,7 +568,11 @@ def _rde_targets(scene, ok, settings: RDESettings, out: Path, settings_doc: dict
         boxes = store.read_npz(f"{r.frameset}/patches.npz")["all_boxes"]
         arrays = crop_pairs(fr.input_m, gt, fr.rgb, boxes, settings.max_missing, filter_on="gt")
         keep = arrays["kept"]
-        stats = {"rde_missing": float((gt <= 0).mean()), "patches_kept": int(keep.sum()), "patches_drawn": int(len(keep))}
+        stats = {
+            "rde_missing": float((gt <= 0).mean()),
+            "patches_kept": int(keep.sum()),
+            "patches_drawn": int(len(keep)),
+        }
         if fr.truth_m is not None:
             stats["rde_vs_truth"] = depth_errors(gt, fr.truth_m)
         units = {k: METRIC_UNITS[k] for k in sorted(set(stats) - {"rde_vs_truth"} | set(stats.get("rde_vs_truth", {})))}
@@ -468,17 +580,30 @@ def _rde_targets(scene, ok, settings: RDESettings, out: Path, settings_doc: dict
         for name in ("input.exr", "rgb.png"):  # the frame set's own: the patches are cut from them on read
             write_atomic(d / name, Path.write_bytes, store.member_bytes(f"{r.frameset}/{name}"))
         write_atomic(d / "patches.npz", save_npz, patch_record(arrays))
-        write_atomic(d / "frameset.json", io.write_json, {"format_version": store.FORMAT_VERSION,
-                                                          "dataset": r.dataset, "scene": r.scene, "target": t, "split": r.split,
-                                                          "K": docs[t]["K"], "backend": backend, "settings": doc_settings,
-                                                          "statistics": stats, "units": units})
+        write_atomic(
+            d / "frameset.json",
+            io.write_json,
+            {
+                "format_version": store.FORMAT_VERSION,
+                "dataset": r.dataset,
+                "scene": r.scene,
+                "target": t,
+                "split": r.split,
+                "K": docs[t]["K"],
+                "backend": backend,
+                "settings": doc_settings,
+                "statistics": stats,
+                "units": units,
+            },
+        )
         loc = store.location(shard, t)
         row.update(rde=loc, patches_kept=int(keep.sum()), rde_missing=stats["rde_missing"])
         rows.append(row)
         built[t] = d
         for j in range(int(keep.sum())):
-            patch_rows.append({"dataset": r.dataset, "scene": r.scene, "target": t, "split": r.split, "patch": j,
-                               "frameset": loc})
+            patch_rows.append(
+                {"dataset": r.dataset, "scene": r.scene, "target": t, "split": r.split, "patch": j, "frameset": loc}
+            )
     return built
 
 
@@ -488,6 +613,10 @@ def rde_dataset(scene_framesets: Sequence, scene_patches: Sequence):
     Args:
         scene_framesets, scene_patches: DataFrames of :func:`rde_scene`, one per scene.
     """
-    fs = pd.concat(scene_framesets, ignore_index=True) if len(scene_framesets) else pd.DataFrame(columns=RDE_FRAMESET_COLUMNS)
+    fs = (
+        pd.concat(scene_framesets, ignore_index=True)
+        if len(scene_framesets)
+        else pd.DataFrame(columns=RDE_FRAMESET_COLUMNS)
+    )
     pt = pd.concat(scene_patches, ignore_index=True) if len(scene_patches) else pd.DataFrame(columns=RDE_PATCH_COLUMNS)
     return fs, {split: pt[pt["split"] == split].reset_index(drop=True) for split in SPLITS}

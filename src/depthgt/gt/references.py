@@ -26,8 +26,9 @@ split and writes them to one ``.npz`` (keys ``{target:06d}/{reference}``, float3
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -40,8 +41,15 @@ from depthgt.settings import RenderSettings
 from depthgt.sources.base import Scene
 from depthgt.status import Status
 
-__all__ = ["REFERENCES", "REFERENCE_COLUMNS", "fused_neighbours", "neighbours_only_render", "scene_references",
-           "reference_key", "read_reference_table"]
+__all__ = [
+    "REFERENCES",
+    "REFERENCE_COLUMNS",
+    "fused_neighbours",
+    "neighbours_only_render",
+    "scene_references",
+    "reference_key",
+    "read_reference_table",
+]
 
 log = logging.getLogger(__name__)
 
@@ -71,8 +79,10 @@ def fused_neighbours(meta: Mapping[str, Any], poses: Mapping[str, Any], where: s
             raise ValueError(f"{where}/{name}: missing key(s) {missing}")
     offsets = [int(o) for o in meta["offsets"]]
     if len(offsets) != len(meta["members"]) or not offsets or offsets[0] != 0:
-        raise ValueError(f"{where}/frameset.json: offsets {offsets} do not start with the target (0) or do not "
-                         f"match members {meta['members']}")
+        raise ValueError(
+            f"{where}/frameset.json: offsets {offsets} do not start with the target (0) or do not "
+            f"match members {meta['members']}"
+        )
     stored = poses["T_j_to_t"]
     absent = [o for o in offsets[1:] if str(o) not in stored]
     if absent:
@@ -84,9 +94,15 @@ def fused_neighbours(meta: Mapping[str, Any], poses: Mapping[str, Any], where: s
     return [offsets.index(int(o)) for o in fused if int(o) != 0 and int(o) in offsets], T
 
 
-def neighbours_only_render(scene: Scene, meta: Mapping[str, Any], poses: Mapping[str, Any], settings: RenderSettings,
-                           size_hw: tuple[int, int], where: str = "frame set",
-                           device: torch.device = torch.device("cpu")) -> np.ndarray:
+def neighbours_only_render(
+    scene: Scene,
+    meta: Mapping[str, Any],
+    poses: Mapping[str, Any],
+    settings: RenderSettings,
+    size_hw: tuple[int, int],
+    where: str = "frame set",
+    device: torch.device = torch.device("cpu"),
+) -> np.ndarray:
     """The target's neighbours-only render (H, W) float32 metres, 0 where no neighbour
     sees: the build's fused neighbours with its stored poses (:func:`fused_neighbours`)
     rendered into the target view by :func:`depthgt.gt.build.fuse` without the target.
@@ -109,9 +125,16 @@ def neighbours_only_render(scene: Scene, meta: Mapping[str, Any], poses: Mapping
     return out.depth[0, 0].detach().cpu().numpy().astype(np.float32)
 
 
-def scene_references(scene: Scene, framesets: pd.DataFrame, rde_framesets: pd.DataFrame | None,
-                     settings: RenderSettings, size_hw: tuple[int, int], split: str, out_npz: str | Path,
-                     device: torch.device = torch.device("cpu")) -> pd.DataFrame:
+def scene_references(
+    scene: Scene,
+    framesets: pd.DataFrame,
+    rde_framesets: pd.DataFrame | None,
+    settings: RenderSettings,
+    size_hw: tuple[int, int],
+    split: str,
+    out_npz: str | Path,
+    device: torch.device = torch.device("cpu"),
+) -> pd.DataFrame:
     """Build the references of one scene's ``split`` frame sets (status ok) and write
     them to ``out_npz`` (:func:`reference_key` -> (H, W) float32 metres).
 
@@ -133,7 +156,9 @@ def scene_references(scene: Scene, framesets: pd.DataFrame, rde_framesets: pd.Da
     tsdf = {}
     if rde_framesets is not None and len(rde_framesets):
         if not {"frameset", "status", "rde"} <= set(rde_framesets.columns):
-            raise ValueError(f"RDE frame-set table: needs columns frameset, status, rde (has {list(rde_framesets.columns)})")
+            raise ValueError(
+                f"RDE frame-set table: needs columns frameset, status, rde (has {list(rde_framesets.columns)})"
+            )
         good = rde_framesets[(rde_framesets["status"] == Status.OK) & (rde_framesets["rde"] != "")]
         tsdf = dict(zip(good["frameset"], good["rde"]))
     arrays: dict[str, np.ndarray] = {}
@@ -141,8 +166,11 @@ def scene_references(scene: Scene, framesets: pd.DataFrame, rde_framesets: pd.Da
     for rec in ok.itertuples():
         meta = store.read_json(f"{rec.frameset}/frameset.json")
         poses = store.read_json(f"{rec.frameset}/poses.json")
-        images = {"neighbours": neighbours_only_render(scene, meta, poses, settings, size_hw, where=rec.frameset,
-                                                           device=device)}
+        images = {
+            "neighbours": neighbours_only_render(
+                scene, meta, poses, settings, size_hw, where=rec.frameset, device=device
+            )
+        }
         if rec.frameset in tsdf:
             images["tsdf"] = store.read_exr_member(f"{tsdf[rec.frameset]}/gt.exr")["Z"].astype(np.float32)
         for name, img in images.items():
@@ -150,10 +178,22 @@ def scene_references(scene: Scene, framesets: pd.DataFrame, rde_framesets: pd.Da
                 raise ValueError(f"{rec.frameset}: reference {name} has shape {img.shape}, expected {tuple(size_hw)}")
             key = reference_key(rec.target, name)
             arrays[key] = img
-            rows.append({"dataset": rec.dataset, "scene": rec.scene, "target": int(rec.target), "reference": name,
-                         "file": str(out_npz), "key": key, "completeness": float((img > 0).mean())})
-        log.info("%s: references %s", rec.frameset, ", ".join(f"{n} {float((i > 0).mean()):.3f} valid"
-                                                              for n, i in images.items()))
+            rows.append(
+                {
+                    "dataset": rec.dataset,
+                    "scene": rec.scene,
+                    "target": int(rec.target),
+                    "reference": name,
+                    "file": str(out_npz),
+                    "key": key,
+                    "completeness": float((img > 0).mean()),
+                }
+            )
+        log.info(
+            "%s: references %s",
+            rec.frameset,
+            ", ".join(f"{n} {float((i > 0).mean()):.3f} valid" for n, i in images.items()),
+        )
     Path(out_npz).parent.mkdir(parents=True, exist_ok=True)
     write_atomic(out_npz, save_npz, arrays)
     return pd.DataFrame(rows, columns=REFERENCE_COLUMNS)
@@ -169,5 +209,8 @@ def read_reference_table(paths: list[str | Path]) -> dict[tuple[str, str, int], 
         if missing:
             raise ValueError(f"{p}: not a references table, missing columns {sorted(missing)}")
         for rec in t.itertuples():
-            out.setdefault((str(rec.dataset), str(rec.scene), int(rec.target)), {})[str(rec.reference)] = (rec.file, rec.key)
+            out.setdefault((str(rec.dataset), str(rec.scene), int(rec.target)), {})[str(rec.reference)] = (
+                rec.file,
+                rec.key,
+            )
     return out

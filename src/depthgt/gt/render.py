@@ -36,17 +36,33 @@ from kornia.geometry.linalg import transform_points
 
 from depthgt.device import plain_cpu_convolutions
 from depthgt.geometry import backproject
-from depthgt.noise_law import (KINECT_SIGMA_1M, Residuals, depth_sigma_m, estimate_noise_sigma_1m, noise_sigma_1m_from,
-                               second_difference_residuals)
+from depthgt.noise_law import (
+    KINECT_SIGMA_1M,
+    Residuals,
+    depth_sigma_m,
+    estimate_noise_sigma_1m,
+    noise_sigma_1m_from,
+    second_difference_residuals,
+)
 from depthgt.rasterise import candidates, check_points, front_to_back, rank_in_pixel, resampled_positions, sort_by_pixel
 from depthgt.settings import RenderSettings
 from depthgt.splatting import SoftSplat, splat_soft  # re-exported: the renderer's public names
 
-__all__ = ["SoftSplat", "splat_soft", "GTRender", "RenderCandidates", "render_gt", "rasterise_gt", "composite_gt",
-           "TargetCloud", "cloud_in_target",
-           "depth_sigma_m", "estimate_noise_sigma_1m", "resampled_positions", "KINECT_SIGMA_1M"]
-
-
+__all__ = [
+    "SoftSplat",
+    "splat_soft",
+    "GTRender",
+    "RenderCandidates",
+    "render_gt",
+    "rasterise_gt",
+    "composite_gt",
+    "TargetCloud",
+    "cloud_in_target",
+    "depth_sigma_m",
+    "estimate_noise_sigma_1m",
+    "resampled_positions",
+    "KINECT_SIGMA_1M",
+]
 
 
 # --------------------------------------------------------------------------- GT renderer (eq. 5)
@@ -96,7 +112,7 @@ class GTRender(NamedTuple):
     sigma: torch.Tensor
     agreement: torch.Tensor
     disagreement: torch.Tensor | None = None
-    left_out: "GTRender | None" = None
+    left_out: GTRender | None = None
 
 
 class RenderCandidates(NamedTuple):
@@ -138,13 +154,13 @@ class RenderCandidates(NamedTuple):
     size: tuple[int, int, int]
     n_frames: int
 
-    def select(self, index: torch.Tensor) -> "RenderCandidates":
+    def select(self, index: torch.Tensor) -> RenderCandidates:
         """The candidates at ``index`` (C',) long (ascending keeps the sort)."""
         names = ("pixel", "point", "ox", "oy", "d2", "iz", "s")
         picked = {k: getattr(self, k).index_select(0, index) for k in names}
         return self._replace(**picked, frame=None if self.frame is None else self.frame.index_select(0, index))
 
-    def without_frame(self, frame: int, *, stride: int = 1, sigma_m: torch.Tensor | None = None) -> "RenderCandidates":
+    def without_frame(self, frame: int, *, stride: int = 1, sigma_m: torch.Tensor | None = None) -> RenderCandidates:
         """The candidates of every frame but ``frame`` (the leave-target-out render's).
 
         Args:
@@ -158,8 +174,9 @@ class RenderCandidates(NamedTuple):
             raise ValueError("without_frame needs candidates with frame ids (render with frame=...)")
         b, h, w = self.size
         if sigma_m is not None and sigma_m.numel() != self.iz_point.numel():
-            raise ValueError(f"sigma_m must hold one sigma per point ({self.iz_point.numel()}), "
-                             f"got {tuple(sigma_m.shape)}")
+            raise ValueError(
+                f"sigma_m must hold one sigma per point ({self.iz_point.numel()}), got {tuple(sigma_m.shape)}"
+            )
         with torch.no_grad():
             keep = self.frame != frame
             if stride > 1:
@@ -194,8 +211,9 @@ def _inverse_depth_planes(points_cam, normals_cam, K, st: RenderSettings) -> tor
     return (grad * ok[..., None]).reshape(-1, 2)
 
 
-def _keep_m_nearest(pixel: torch.Tensor, d2: torch.Tensor, keep: torch.Tensor, *, m: int, r2: float,
-                    n_pix: int) -> torch.Tensor:
+def _keep_m_nearest(
+    pixel: torch.Tensor, d2: torch.Tensor, keep: torch.Tensor, *, m: int, r2: float, n_pix: int
+) -> torch.Tensor:
     """Restrict ``keep`` to the m kept candidates of smallest d2 in every pixel.
 
     Avoids sorting all candidates: a per-pixel histogram of d2 in ``nb`` bins finds the
@@ -212,8 +230,12 @@ def _keep_m_nearest(pixel: torch.Tensor, d2: torch.Tensor, keep: torch.Tensor, *
     cum = hist.view(n_pix, nb).cumsum(dim=1)
     full = cum >= m
     # first bin reaching m (nb = none: every kept candidate stays)
-    boundary = torch.where(full.any(dim=1), full.to(torch.int8).argmax(dim=1), torch.full((n_pix,), nb, device=pixel.device))
-    before = torch.where(boundary > 0, cum.gather(1, (boundary - 1).clamp_min(0)[:, None]).squeeze(1), torch.zeros_like(boundary))
+    boundary = torch.where(
+        full.any(dim=1), full.to(torch.int8).argmax(dim=1), torch.full((n_pix,), nb, device=pixel.device)
+    )
+    before = torch.where(
+        boundary > 0, cum.gather(1, (boundary - 1).clamp_min(0)[:, None]).squeeze(1), torch.zeros_like(boundary)
+    )
     bnd = boundary.index_select(0, pixel)
     out = keep & (bins <= bnd)
     at_bnd = (out & (bins == bnd)).nonzero().squeeze(1)
@@ -286,7 +308,9 @@ def _choose_surfaces(c: RenderCandidates, st: RenderSettings, target_frame: int 
     first_q = none.scatter_reduce(0, cl_pixel, torch.where(qualified, idx, n_cl), reduce="amin")
     first = none.scatter_reduce(0, cl_pixel, idx, reduce="amin")
     front = torch.where(first_q < n_cl, first_q, first)
-    behind = none.scatter_reduce(0, cl_pixel, torch.where(qualified & (idx > front.index_select(0, cl_pixel)), idx, n_cl), reduce="amin")
+    behind = none.scatter_reduce(
+        0, cl_pixel, torch.where(qualified & (idx > front.index_select(0, cl_pixel)), idx, n_cl), reduce="amin"
+    )
     has_f, has_b = front < n_cl, behind < n_cl
     # coverage: how far each surface's samples reach beyond the sample position,
     # measured opposite their centroid (negative: they all lie on one side)
@@ -309,13 +333,20 @@ def _choose_surfaces(c: RenderCandidates, st: RenderSettings, target_frame: int 
         # The voters: the frames with samples on the surface or behind it at the pixel (a
         # frame that sees only what lies behind has its edge before the position).
         cf = cluster * n_frames + frame
-        r_cf = -torch.full((n_cl * n_frames,), float("inf"), dtype=ox.dtype, device=dev).scatter_reduce(0, cf, t, reduce="amin")
+        r_cf = -torch.full((n_cl * n_frames,), float("inf"), dtype=ox.dtype, device=dev).scatter_reduce(
+            0, cf, t, reduce="amin"
+        )
         r_sorted = r_cf.view(n_cl, n_frames).sort(dim=1, descending=True).values  # absent frames: -inf, last
-        last = torch.full((n_pix * n_frames,), -1, dtype=torch.long, device=dev).scatter_reduce(
-            0, pixel * n_frames + frame, cluster, reduce="amax").view(n_pix, n_frames)  # back-most cluster of each frame
+        last = (
+            torch.full((n_pix * n_frames,), -1, dtype=torch.long, device=dev)
+            .scatter_reduce(0, pixel * n_frames + frame, cluster, reduce="amax")
+            .view(n_pix, n_frames)
+        )  # back-most cluster of each frame
         voters = (last.index_select(0, cl_pixel) >= idx[:, None]).sum(1)
         k = torch.ceil(st.edge_vote * voters.to(ox.dtype)).long().clamp(1, n_frames) - 1
-        reach = torch.where(centred, reach, torch.minimum(reach, r_sorted.gather(1, k[:, None]).squeeze(1) + st.edge_vote_slack_px))
+        reach = torch.where(
+            centred, reach, torch.minimum(reach, r_sorted.gather(1, k[:, None]).squeeze(1) + st.edge_vote_slack_px)
+        )
     d_near = torch.full((n_cl,), float("inf"), dtype=d2.dtype, device=dev).scatter_reduce(0, cluster, d2, reduce="amin")
     hit = d_near <= _HIT_PX**2  # a sample at the position itself (the target's own, typically)
     covered = (reach >= st.edge_margin_px) | hit
@@ -323,7 +354,12 @@ def _choose_surfaces(c: RenderCandidates, st: RenderSettings, target_frame: int 
     cov_f, cov_b = covered.index_select(0, fi), covered.index_select(0, bi)
     take_b = has_b & ~cov_f & (cov_b | (d_near.index_select(0, bi) < d_near.index_select(0, fi)))
     use = has_f & (cov_f | has_b | st.extend_uncovered)
-    ambiguous = has_f & has_b & ~hit.index_select(0, fi) & ((reach.index_select(0, fi) - st.edge_margin_px).abs() < st.ambiguous_px)
+    ambiguous = (
+        has_f
+        & has_b
+        & ~hit.index_select(0, fi)
+        & ((reach.index_select(0, fi) - st.edge_margin_px).abs() < st.ambiguous_px)
+    )
     chosen = torch.where(use & ~(ambiguous & st.drop_ambiguous), torch.where(take_b, bi, fi), torch.full_like(fi, -1))
     if st.target_resolves_ambiguous and target_frame is not None and frame is not None:
         # the target's own sample at the position decides a pixel left undecided, on a
@@ -370,11 +406,15 @@ def rasterise_gt(
     """
     valid = check_points(points_cam, K, valid, size_hw)
     b, n = points_cam.shape[:2]
-    for name, t, shape in (("normals_cam", normals_cam, (b, n, 3)), ("sigma_m", sigma_m, (b, n)),
-                           ("frame", frame, (b, n))):
+    for name, t, shape in (
+        ("normals_cam", normals_cam, (b, n, 3)),
+        ("sigma_m", sigma_m, (b, n)),
+        ("frame", frame, (b, n)),
+    ):
         if t is not None and tuple(t.shape) != shape:
-            raise ValueError(f"{name} must be {shape} to match points_cam {tuple(points_cam.shape)}, "
-                             f"got {tuple(t.shape)}")
+            raise ValueError(
+                f"{name} must be {shape} to match points_cam {tuple(points_cam.shape)}, got {tuple(t.shape)}"
+            )
     st = settings
     h, w = int(size_hw[0]), int(size_hw[1])
     dev, dt = points_cam.device, points_cam.dtype
@@ -385,8 +425,16 @@ def rasterise_gt(
     iz_all = 1.0 / z_all.clamp_min(st.min_depth_m)
     with torch.no_grad():  # the candidates come front first: one sort of the points, not of the candidates
         by_depth = front_to_back(iz_all)
-    cand, _ = candidates(points_cam, K, valid, (h, w), radius_px=st.radius_px, min_depth=st.min_depth_m, grid_uv=grid,
-                         point_order=by_depth)
+    cand, _ = candidates(
+        points_cam,
+        K,
+        valid,
+        (h, w),
+        radius_px=st.radius_px,
+        min_depth=st.min_depth_m,
+        grid_uv=grid,
+        point_order=by_depth,
+    )
     n_frames = 0 if frame is None or frame.numel() == 0 else int(frame.max()) + 1
     with torch.no_grad():
         if sigma_m is None:
@@ -403,12 +451,29 @@ def rasterise_gt(
     ox, oy = (-cand.dx).index_select(0, order), (-cand.dy).index_select(0, order)
     d2 = ox * ox + oy * oy  # as the rasteriser computes it (dx^2 + dy^2, dx = -ox): bit for bit, cheaper than a gather
     fr = None if frame is None else frame.reshape(-1).index_select(0, point)
-    return RenderCandidates(pixel, point, ox, oy, d2, iz=iz_all.index_select(0, point), s=s_all.index_select(0, point),
-                            frame=fr, grad=grad, iz_point=iz_all.detach(), size=(b, h, w), n_frames=n_frames)
+    return RenderCandidates(
+        pixel,
+        point,
+        ox,
+        oy,
+        d2,
+        iz=iz_all.index_select(0, point),
+        s=s_all.index_select(0, point),
+        frame=fr,
+        grad=grad,
+        iz_point=iz_all.detach(),
+        size=(b, h, w),
+        n_frames=n_frames,
+    )
 
 
-def composite_gt(cands: RenderCandidates, settings: RenderSettings = RenderSettings(), *,
-                 target_frame: int | None = None, with_sigma: bool = True) -> GTRender:
+def composite_gt(
+    cands: RenderCandidates,
+    settings: RenderSettings = RenderSettings(),
+    *,
+    target_frame: int | None = None,
+    with_sigma: bool = True,
+) -> GTRender:
     """Steps 2-5 of :func:`render_gt` on the rasteriser's candidates: with
     ``target_frame`` the frames (or regions) that disagree with the target's own depth
     are left out first (:attr:`GTRender.agreement`); then surfaces, visibility, the
@@ -429,11 +494,13 @@ def composite_gt(cands: RenderCandidates, settings: RenderSettings = RenderSetti
         with torch.no_grad():
             bad, agreement, disagreement = _frame_agreement(cands, st, target_frame)
             if bad.any():  # a frame (or a region of it) that disagrees with the target stays out
-                slot = _agreement_slot(cands.pixel, cands.frame, size=cands.size, n_frames=cands.n_frames,
-                                       tile_px=st.agreement_tile_px)
+                slot = _agreement_slot(
+                    cands.pixel, cands.frame, size=cands.size, n_frames=cands.n_frames, tile_px=st.agreement_tile_px
+                )
                 cands = cands.select((~bad[slot]).nonzero().squeeze(1))
-    return _estimate(cands, st, target_frame=target_frame, agreement=agreement, disagreement=disagreement,
-                     with_sigma=with_sigma)
+    return _estimate(
+        cands, st, target_frame=target_frame, agreement=agreement, disagreement=disagreement, with_sigma=with_sigma
+    )
 
 
 def render_gt(
@@ -511,8 +578,17 @@ def render_gt(
     Returns:
         :class:`GTRender` (depth, weight_sum, count, sigma), each (B, 1, H, W).
     """
-    cands = rasterise_gt(points_cam, K, size_hw, settings, valid=valid, normals_cam=normals_cam, sigma_m=sigma_m,
-                         frame=frame, src_hw=src_hw)
+    cands = rasterise_gt(
+        points_cam,
+        K,
+        size_hw,
+        settings,
+        valid=valid,
+        normals_cam=normals_cam,
+        sigma_m=sigma_m,
+        frame=frame,
+        src_hw=src_hw,
+    )
     return composite_gt(cands, settings, target_frame=target_frame)
 
 
@@ -520,12 +596,25 @@ def _empty_render(c: RenderCandidates, agreement: torch.Tensor, disagreement: to
     """The :class:`GTRender` of no candidates: zero depth, weights, counts and sigmas."""
     b, h, w = c.size
     zeros_img = torch.zeros(b, 1, h, w, dtype=c.iz_point.dtype, device=c.pixel.device)
-    return GTRender(zeros_img, zeros_img.clone(), torch.zeros(b, 1, h, w, dtype=torch.int64, device=zeros_img.device),
-                    zeros_img.clone(), agreement, disagreement)
+    return GTRender(
+        zeros_img,
+        zeros_img.clone(),
+        torch.zeros(b, 1, h, w, dtype=torch.int64, device=zeros_img.device),
+        zeros_img.clone(),
+        agreement,
+        disagreement,
+    )
 
 
-def _estimate(c: RenderCandidates, st: RenderSettings, *, target_frame: int | None, agreement: torch.Tensor,
-              disagreement: torch.Tensor | None, with_sigma: bool = True) -> GTRender:
+def _estimate(
+    c: RenderCandidates,
+    st: RenderSettings,
+    *,
+    target_frame: int | None,
+    agreement: torch.Tensor,
+    disagreement: torch.Tensor | None,
+    with_sigma: bool = True,
+) -> GTRender:
     """Steps 2-5 of :func:`render_gt` on the candidates ``c``: surfaces,
     visibility, the m nearest samples, the plane fit and the confidence (with
     ``with_sigma`` or ``max_sigma_m``; else ``sigma`` is zero)."""
@@ -548,15 +637,22 @@ def _estimate(c: RenderCandidates, st: RenderSettings, *, target_frame: int | No
     else:
         g = c.grad.index_select(0, kept.point)
         gx, gy = g[:, 0], g[:, 1]
-    sw, s_iz, s_x, s_y, s_gx, s_gy, wsum = _segment_sums(pixel, [wt, wt * iz, wt * ox, wt * oy, wt * gx, wt * gy, w_sp], n_pix)
+    sw, s_iz, s_x, s_y, s_gx, s_gy, wsum = _segment_sums(
+        pixel, [wt, wt * iz, wt * ox, wt * oy, wt * gx, wt * gy, w_sp], n_pix
+    )
     has = sw > 0
     sw_safe = torch.where(has, sw, torch.ones_like(sw))
     mean_iz, mean_x, mean_y, mean_gx, mean_gy = (v / sw_safe for v in (s_iz, s_x, s_y, s_gx, s_gy))
-    cxo, cyo = ox - mean_x.index_select(0, pixel), oy - mean_y.index_select(0, pixel)  # offsets about the weighted centroid
+    cxo, cyo = (
+        ox - mean_x.index_select(0, pixel),
+        oy - mean_y.index_select(0, pixel),
+    )  # offsets about the weighted centroid
     if st.plane == "fit":
         diz = iz - mean_iz.index_select(0, pixel)
         wx, wy = wt * cxo, wt * cyo
-        cxx, cyy, cxy, cxz, cyz = (v / sw_safe for v in _segment_sums(pixel, [wx * cxo, wy * cyo, wx * cyo, wx * diz, wy * diz], n_pix))
+        cxx, cyy, cxy, cxz, cyz = (
+            v / sw_safe for v in _segment_sums(pixel, [wx * cxo, wy * cyo, wx * cyo, wx * diz, wy * diz], n_pix)
+        )
         lam = st.slope_prior
         a11, a22, a12 = cxx + lam, cyy + lam, cxy
         v1, v2 = cxz + lam * mean_gx, cyz + lam * mean_gy
@@ -566,7 +662,9 @@ def _estimate(c: RenderCandidates, st: RenderSettings, *, target_frame: int | No
         slope_x = torch.where(ok, (a22 * v1 - a12 * v2) / det_safe, torch.zeros_like(det))
         slope_y = torch.where(ok, (a11 * v2 - a12 * v1) / det_safe, torch.zeros_like(det))
         iz_hat = mean_iz - slope_x * mean_x - slope_y * mean_y  # the plane at the sample position
-        resid = iz - (iz_hat.index_select(0, pixel) + slope_x.index_select(0, pixel) * ox + slope_y.index_select(0, pixel) * oy)
+        resid = iz - (
+            iz_hat.index_select(0, pixel) + slope_x.index_select(0, pixel) * ox + slope_y.index_select(0, pixel) * oy
+        )
     else:
         wx, wy = wt * cxo, wt * cyo
         cxx, cyy, cxy = (v / sw_safe for v in _segment_sums(pixel, [wx * cxo, wy * cyo, wx * cyo], n_pix))
@@ -583,16 +681,30 @@ def _estimate(c: RenderCandidates, st: RenderSettings, *, target_frame: int | No
     with torch.no_grad():
         if with_sigma or st.max_sigma_m is not None:
             moments = (mean_x.detach(), mean_y.detach(), cxx.detach(), cyy.detach(), cxy.detach())
-            sigma = _confidence(kept, st, wt=wt.detach(), resid=resid.detach(), depth=depth.detach(),
-                                sw=sw_safe.detach(), moments=moments, surf=surf)
+            sigma = _confidence(
+                kept,
+                st,
+                wt=wt.detach(),
+                resid=resid.detach(),
+                depth=depth.detach(),
+                sw=sw_safe.detach(),
+                moments=moments,
+                surf=surf,
+            )
             sigma = torch.where(good, sigma, torch.zeros_like(sigma))
         else:
             sigma = torch.zeros_like(depth.detach())
         if st.max_sigma_m is not None:
             good = good & (sigma <= st.max_sigma_m)
     depth = torch.where(good, depth, torch.zeros_like(depth))
-    return GTRender(depth.reshape(b, 1, h, w), wsum.reshape(b, 1, h, w), count.reshape(b, 1, h, w), sigma.reshape(b, 1, h, w),
-                    agreement, disagreement)
+    return GTRender(
+        depth.reshape(b, 1, h, w),
+        wsum.reshape(b, 1, h, w),
+        count.reshape(b, 1, h, w),
+        sigma.reshape(b, 1, h, w),
+        agreement,
+        disagreement,
+    )
 
 
 def _tile_grid(hw: tuple[int, int], tile_px: int) -> tuple[int, int]:
@@ -602,8 +714,9 @@ def _tile_grid(hw: tuple[int, int], tile_px: int) -> tuple[int, int]:
     return -(-hw[0] // tile_px), -(-hw[1] // tile_px)
 
 
-def _agreement_slot(pixel: torch.Tensor, fr: torch.Tensor, *, size: tuple[int, int, int], n_frames: int,
-                    tile_px: int) -> torch.Tensor:
+def _agreement_slot(
+    pixel: torch.Tensor, fr: torch.Tensor, *, size: tuple[int, int, int], n_frames: int, tile_px: int
+) -> torch.Tensor:
     """Index of each sample's (image, frame, tile) in the flat decisions of
     :func:`_frame_agreement`: ((image * J + frame) * tiles + tile), from a per-pixel
     table (one gather, no integer division per sample). ``pixel``, ``fr``: (C,) long;
@@ -616,7 +729,9 @@ def _agreement_slot(pixel: torch.Tensor, fr: torch.Tensor, *, size: tuple[int, i
     if tile_px <= 0:
         tile = torch.zeros(1, h, w, dtype=torch.long, device=pixel.device)
     else:
-        tile = (torch.arange(h, device=pixel.device)[:, None] // tile_px) * tx + torch.arange(w, device=pixel.device)[None] // tile_px
+        tile = (torch.arange(h, device=pixel.device)[:, None] // tile_px) * tx + torch.arange(w, device=pixel.device)[
+            None
+        ] // tile_px
     table = (img * (n_fr * n_t) + tile).reshape(-1)  # per pixel of the B images: image and tile part
     return table.index_select(0, pixel) + fr * n_t
 
@@ -674,28 +789,49 @@ def _frame_agreement(c: RenderCandidates, st: RenderSettings, target_frame: int)
     slot = torch.div(p, h_w, rounding_mode="floor") * n_fr + f
     n_cmp = torch.bincount(slot, minlength=b * n_fr).reshape(b, n_fr)
     n_ok = torch.bincount(slot[agree], minlength=b * n_fr).reshape(b, n_fr)
-    share = torch.where(n_cmp >= _MIN_COMPARED, n_ok / n_cmp.clamp_min(1), torch.full_like(n_cmp, float("nan"), dtype=torch.float32))
+    share = torch.where(
+        n_cmp >= _MIN_COMPARED, n_ok / n_cmp.clamp_min(1), torch.full_like(n_cmp, float("nan"), dtype=torch.float32)
+    )
     bad = share < st.min_frame_agreement  # (NaN: not judged)
     if st.agreement_tile_px > 0:
         ty, tx = _tile_grid(hw, st.agreement_tile_px)
         tslot = _agreement_slot(p, f, size=c.size, n_frames=n_fr, tile_px=st.agreement_tile_px)
-        counts = torch.stack([torch.bincount(tslot, minlength=b * n_fr * ty * tx),
-                              torch.bincount(tslot[agree], minlength=b * n_fr * ty * tx)]).to(torch.float32)
+        counts = torch.stack(
+            [
+                torch.bincount(tslot, minlength=b * n_fr * ty * tx),
+                torch.bincount(tslot[agree], minlength=b * n_fr * ty * tx),
+            ]
+        ).to(torch.float32)
         # comparisons pooled over each tile's 3x3 neighbourhood (sums: average x 9)
-        pooled = F.avg_pool2d(counts.reshape(2 * b * n_fr, 1, ty, tx), 3, stride=1, padding=1, count_include_pad=True) * 9
+        pooled = (
+            F.avg_pool2d(counts.reshape(2 * b * n_fr, 1, ty, tx), 3, stride=1, padding=1, count_include_pad=True) * 9
+        )
         n_cmp_t, n_ok_t = pooled.reshape(2, b, n_fr, ty, tx).round()
         judged = n_cmp_t >= _MIN_TILE_COMPARED
         bad_t = torch.where(judged, n_ok_t < st.min_frame_agreement * n_cmp_t, bad[..., None, None])
         bad = bad_t | (share < st.min_whole_frame_agreement)[..., None, None]
     kept = ~bad.reshape(-1)[_agreement_slot(p, f, size=c.size, n_frames=n_fr, tile_px=st.agreement_tile_px)]
-    diag = torch.stack([torch.bincount(p, minlength=n_pix), torch.bincount(p[~agree], minlength=n_pix),
-                        torch.bincount(p[kept], minlength=n_pix)]).to(torch.float32)
+    diag = torch.stack(
+        [
+            torch.bincount(p, minlength=n_pix),
+            torch.bincount(p[~agree], minlength=n_pix),
+            torch.bincount(p[kept], minlength=n_pix),
+        ]
+    ).to(torch.float32)
     return bad.reshape(-1), share.to(torch.float32), diag.reshape(3, b, h, w).transpose(0, 1)
 
 
-def _confidence(kept: RenderCandidates, st: RenderSettings, *, wt: torch.Tensor, resid: torch.Tensor,
-                depth: torch.Tensor, sw: torch.Tensor, moments: tuple[torch.Tensor, ...],
-                surf: _Surfaces) -> torch.Tensor:
+def _confidence(
+    kept: RenderCandidates,
+    st: RenderSettings,
+    *,
+    wt: torch.Tensor,
+    resid: torch.Tensor,
+    depth: torch.Tensor,
+    sw: torch.Tensor,
+    moments: tuple[torch.Tensor, ...],
+    surf: _Surfaces,
+) -> torch.Tensor:
     """(P,) expected std of the fused depth in metres (see :func:`render_gt`, step 5) from
     the ``kept`` samples, their weights ``wt`` (C,) and plane-fit residuals ``resid`` (C,),
     the fused ``depth`` (P,), the weight sums ``sw`` (P,), the samples' weighted
@@ -734,7 +870,9 @@ def _backproject_resampled(depth_m: torch.Tensor, K: torch.Tensor, src_hw: tuple
     """
     h, w = depth_m.shape[-2:]
     dev, dt = depth_m.device, depth_m.dtype
-    v, u = torch.meshgrid(resampled_positions(src_hw[0], h, dev, dt), resampled_positions(src_hw[1], w, dev, dt), indexing="ij")
+    v, u = torch.meshgrid(
+        resampled_positions(src_hw[0], h, dev, dt), resampled_positions(src_hw[1], w, dev, dt), indexing="ij"
+    )
     z = depth_m[:, 0]
     fx, fy = K[:, 0, 0, None, None], K[:, 1, 1, None, None]
     cx, cy, s = K[:, 0, 2, None, None], K[:, 1, 2, None, None], K[:, 0, 1, None, None]
@@ -832,7 +970,9 @@ def cloud_in_target(
         with plain_cpu_convolutions():  # 3x3 filters: ~3x faster than oneDNN's on one thread
             nrm = depth_to_normals(depth_m, K)  # (J, 3, H, W)
     elif normals.shape != (j, 3, *depth_m.shape[-2:]):
-        raise ValueError(f"normals must be ({j}, 3, H, W) to match depth_m {tuple(depth_m.shape)}, got {tuple(normals.shape)}")
+        raise ValueError(
+            f"normals must be ({j}, 3, H, W) to match depth_m {tuple(depth_m.shape)}, got {tuple(normals.shape)}"
+        )
     else:
         nrm = normals
     flat = _smooth_3x3(res, normal_max_jump_rel, sigma_1m)
@@ -841,5 +981,6 @@ def cloud_in_target(
     valid = (depth_m > 0).reshape(j, -1)
     sigma = depth_sigma_m(depth_m.reshape(j, -1), sigma_1m, noise_sigma_abs_m)  # each point's own sensor depth
     frame = torch.arange(j, device=depth_m.device)[:, None].expand(j, depth_m.shape[-2] * depth_m.shape[-1])
-    return TargetCloud(pts.reshape(1, -1, 3), nrm.reshape(1, -1, 3), valid.reshape(1, -1), frame.reshape(1, -1),
-                       sigma.reshape(1, -1))
+    return TargetCloud(
+        pts.reshape(1, -1, 3), nrm.reshape(1, -1, 3), valid.reshape(1, -1), frame.reshape(1, -1), sigma.reshape(1, -1)
+    )

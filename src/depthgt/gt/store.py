@@ -51,9 +51,10 @@ import tempfile
 import zipfile
 import zlib
 from collections import OrderedDict
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -63,20 +64,50 @@ from depthgt.errors import DepthGTError
 from depthgt.gt.patches import CUT_KEYS, cut_patches
 from depthgt.status import Status
 
-__all__ = ["FRAMESET_FILES", "FrameSetRecord", "location", "shard_path", "write_shard", "shard_targets", "read_batch",
-           "read_batch_frames", "ShardReader", "member_bytes", "read_json", "read_npz", "read_exr_member",
-           "frameset_files", "find_frameset", "read_frameset", "read_frameset_at", "FrameImages", "FRAME_DEPTHS",
-           "read_frame_images", "extract_frameset", "FORMAT_VERSION", "GT_UNITS", "TRUTH_UNITS", "SENSOR_UNITS",
-           "CHANNELS", "shard_format_version", "rebuild_command", "stored_gt", "stored_input", "write_gt_exr", "write_input_exr", "read_patches_at"]
+__all__ = [
+    "FRAMESET_FILES",
+    "FrameSetRecord",
+    "location",
+    "shard_path",
+    "write_shard",
+    "shard_targets",
+    "read_batch",
+    "read_batch_frames",
+    "ShardReader",
+    "member_bytes",
+    "read_json",
+    "read_npz",
+    "read_exr_member",
+    "frameset_files",
+    "find_frameset",
+    "read_frameset",
+    "read_frameset_at",
+    "FrameImages",
+    "FRAME_DEPTHS",
+    "read_frame_images",
+    "extract_frameset",
+    "FORMAT_VERSION",
+    "GT_UNITS",
+    "TRUTH_UNITS",
+    "SENSOR_UNITS",
+    "CHANNELS",
+    "shard_format_version",
+    "rebuild_command",
+    "stored_gt",
+    "stored_input",
+    "write_gt_exr",
+    "write_input_exr",
+    "read_patches_at",
+]
 
 #: the version of the shard format this code writes and reads (module docstring)
 FORMAT_VERSION = 2
 #: gt.exr's channels as fixed point, units per value: Z and S in units of 2^-15 m and
 #: 2^-14 m (steps 20x and 10x finer than the smallest median GT sigma seen on real
 #: data, 0.6 mm), N exact, W in 1/16 (nothing downstream reads W: a diagnostic)
-GT_UNITS = {"Z": 2 ** 15, "S": 2 ** 14, "N": 1, "W": 16}
+GT_UNITS = {"Z": 2**15, "S": 2**14, "N": 1, "W": 16}
 #: input.exr's clean truth (synthetic sources), units per metre
-TRUTH_UNITS = 2 ** 15
+TRUTH_UNITS = 2**15
 #: raw depth units per metre of the sensors whose depth input.exr stores as integers
 #: when it is exactly a multiple of them: millimetres (ScanNet, 7-Scenes, most PNG
 #: depth) and TUM's 1/5000 m
@@ -92,13 +123,15 @@ CHANNELS = {
     },
     "input.exr": {
         "Z": "resized raw sensor depth, m, 0 = none; exact (integers in the sensor's units, mm or 1/5000 m, "
-             "or float32)",
+        "or float32)",
         "T": "clean truth depth of synthetic sources, m, 0 = none; fixed point in units of 2^-15 m "
-             "(max rounding error 1.53e-05 m)",
+        "(max rounding error 1.53e-05 m)",
     },
     "rgb.png": {"RGB": "target colour, 8-bit sRGB, lossless"},
-    "patches.npz": {"boxes": "crop boxes (y0, x0, h, w) in pixels, with missing ratios and kept flags; "
-                             "the crops are cut from the images above on read"},
+    "patches.npz": {
+        "boxes": "crop boxes (y0, x0, h, w) in pixels, with missing ratios and kept flags; "
+        "the crops are cut from the images above on read"
+    },
 }
 
 FRAMESET_FILES = ("gt.exr", "input.exr", "rgb.png", "poses.json", "patches.npz", "frameset.json")
@@ -122,16 +155,18 @@ def _split(loc: str | Path) -> tuple[Path | None, str]:
     cut = text.find(marker)
     if cut < 0:
         return None, text
-    return Path(text[:cut + 4]), text[cut + len(marker):]
+    return Path(text[: cut + 4]), text[cut + len(marker) :]
 
 
-def write_shard(path: str | Path, built: dict[int, Path], batch: list[dict[str, Any]],
-                frames: list[dict[str, Any]] | None = None) -> Path:
+def write_shard(
+    path: str | Path, built: dict[int, Path], batch: list[dict[str, Any]], frames: list[dict[str, Any]] | None = None
+) -> Path:
     """Write a shard atomically: the files of each built frame set (``target -> folder``,
     e.g. holding :data:`FRAMESET_FILES`) as ``{target:06d}/<name>`` and ``batch.json``
     (one record per target of the slice; with ``frames``, one record per frame the
     batch read, :meth:`depthgt.gt.cache.FrameCheck.to_dict`).
     """
+
     def member(name: str) -> zipfile.ZipInfo:
         # a fixed time stamp: the same frame sets give the same bytes (reruns compare equal)
         info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))
@@ -157,8 +192,8 @@ def shard_format_version(z: zipfile.ZipFile) -> int:
     """The format version an open shard records in its comment (1: written before
     versions were recorded)."""
     comment = z.comment
-    if comment.startswith(_COMMENT) and comment[len(_COMMENT):].isdigit():
-        return int(comment[len(_COMMENT):])
+    if comment.startswith(_COMMENT) and comment[len(_COMMENT) :].isdigit():
+        return int(comment[len(_COMMENT) :])
     return 1
 
 
@@ -176,8 +211,10 @@ def rebuild_command(path: str | Path) -> str:
 
 
 def _old_format(where: str | Path, version: int, shard: str | Path) -> DepthGTError:
-    return DepthGTError(f"{where} is in frame-set format version {version}; this depthgt reads version "
-                        f"{FORMAT_VERSION} only: rebuild it (`{rebuild_command(shard)}`)")
+    return DepthGTError(
+        f"{where} is in frame-set format version {version}; this depthgt reads version "
+        f"{FORMAT_VERSION} only: rebuild it (`{rebuild_command(shard)}`)"
+    )
 
 
 def _zip(path: Path) -> zipfile.ZipFile:
@@ -223,8 +260,10 @@ def _read_member(z: zipfile.ZipFile, archive: Path, inner: str) -> bytes:
         raise DepthGTError(f"{archive} has no member {inner} (frame set not built in this shard)") from None
     except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as exc:
         # a stored member whose bytes changed fails its CRC-32 check here
-        raise DepthGTError(f"frame-set shard {archive} is corrupt: member {inner} does not read back ({exc}); "
-                           "rebuild the shard (`depthgt verify` lists every damaged one)") from exc
+        raise DepthGTError(
+            f"frame-set shard {archive} is corrupt: member {inner} does not read back ({exc}); "
+            "rebuild the shard (`depthgt verify` lists every damaged one)"
+        ) from exc
 
 
 def member_bytes(member: str | Path) -> bytes:
@@ -270,7 +309,7 @@ class ShardReader:
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__init__(state["max_open"])
 
-    def __enter__(self) -> "ShardReader":
+    def __enter__(self) -> ShardReader:
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -339,14 +378,20 @@ def stored_gt(channels: dict[str, np.ndarray], where: str = "gt.exr") -> dict[st
     unknown = sorted(set(channels) - set(GT_UNITS))
     if unknown:
         raise ValueError(f"{where}: unknown GT channels {unknown} (known: {sorted(GT_UNITS)})")
-    return {k: io.on_fixed_point_grid(np.asarray(v, dtype=np.float32), GT_UNITS[k], f"{where} channel {k}")
-            for k, v in channels.items()}
+    return {
+        k: io.on_fixed_point_grid(np.asarray(v, dtype=np.float32), GT_UNITS[k], f"{where} channel {k}")
+        for k, v in channels.items()
+    }
 
 
 def write_gt_exr(path: str | Path, channels: dict[str, np.ndarray]) -> None:
     """Write gt.exr: the channels (:func:`stored_gt`'s names) as fixed point, HTJ2K."""
-    io.write_exr(path, {k: np.asarray(v, dtype=np.float32) for k, v in channels.items()},
-                 fixed={k: GT_UNITS[k] for k in channels}, compression="htj2k")
+    io.write_exr(
+        path,
+        {k: np.asarray(v, dtype=np.float32) for k, v in channels.items()},
+        fixed={k: GT_UNITS[k] for k in channels},
+        compression="htj2k",
+    )
 
 
 def _sensor_units(depth_m: np.ndarray) -> int | None:
@@ -360,12 +405,16 @@ def _sensor_units(depth_m: np.ndarray) -> int | None:
     return None
 
 
-def stored_input(input_m: np.ndarray, truth_m: np.ndarray | None = None,
-                 where: str = "input.exr") -> tuple[np.ndarray, np.ndarray | None]:
+def stored_input(
+    input_m: np.ndarray, truth_m: np.ndarray | None = None, where: str = "input.exr"
+) -> tuple[np.ndarray, np.ndarray | None]:
     """(input depth, clean truth) as :func:`write_input_exr` stores them: the input
     exactly, the truth on the grid of :data:`TRUTH_UNITS` (float32 metres)."""
-    truth = None if truth_m is None else io.on_fixed_point_grid(np.asarray(truth_m, dtype=np.float32), TRUTH_UNITS,
-                                                                  f"{where} channel T")
+    truth = (
+        None
+        if truth_m is None
+        else io.on_fixed_point_grid(np.asarray(truth_m, dtype=np.float32), TRUTH_UNITS, f"{where} channel T")
+    )
     return np.asarray(input_m, dtype=np.float32), truth
 
 
@@ -407,17 +456,24 @@ def _patch_record(data: bytes, loc: str | Path, keys: tuple[str, ...] | None = N
         raise DepthGTError(f"{where}: not a readable npz file ({exc})") from exc
 
 
-def _cut(record: dict[str, np.ndarray], gt: dict[str, np.ndarray], inp: dict[str, np.ndarray], rgb: np.ndarray,
-         loc: str | Path) -> dict[str, np.ndarray]:
+def _cut(
+    record: dict[str, np.ndarray],
+    gt: dict[str, np.ndarray],
+    inp: dict[str, np.ndarray],
+    rgb: np.ndarray,
+    loc: str | Path,
+) -> dict[str, np.ndarray]:
     try:
-        return cut_patches(record, inp["Z"], gt["Z"], rgb, truth_m=inp.get("T"), gt_sigma_m=gt.get("S"),
-                           where=f"{loc}/patches.npz")
+        return cut_patches(
+            record, inp["Z"], gt["Z"], rgb, truth_m=inp.get("T"), gt_sigma_m=gt.get("S"), where=f"{loc}/patches.npz"
+        )
     except ValueError as exc:
         raise DepthGTError(str(exc)) from exc
 
 
-def read_patches_at(loc: str | Path, reader: ShardReader | None = None, with_record: bool = True
-                    ) -> dict[str, np.ndarray]:
+def read_patches_at(
+    loc: str | Path, reader: ShardReader | None = None, with_record: bool = True
+) -> dict[str, np.ndarray]:
     """The patches of the frame set at ``loc``: the crops cut from its images at the
     recorded boxes (``input``, ``gt``, ``rgb``[, ``gt_sigma``, ``truth``]), their
     ``boxes``, and with ``with_record`` the rest of the record (``missing_input``,
@@ -450,9 +506,11 @@ def frameset_files(loc: str | Path) -> Iterator[Path]:
     with _zip(archive) as z, tempfile.TemporaryDirectory(prefix="depthgt-fs-") as tmp:
         names = [n for n in z.namelist() if n.startswith(inner.rstrip("/") + "/")]
         if not names:
-            raise DepthGTError(f"{archive} holds no frame set {inner} (skipped or not in this batch; see its batch.json)")
+            raise DepthGTError(
+                f"{archive} holds no frame set {inner} (skipped or not in this batch; see its batch.json)"
+            )
         for n in names:
-            dest = Path(tmp) / n[len(inner.rstrip('/')) + 1:]
+            dest = Path(tmp) / n[len(inner.rstrip("/")) + 1 :]
             dest.parent.mkdir(parents=True, exist_ok=True)
             dest.write_bytes(z.read(n))
         yield Path(tmp)
@@ -505,10 +563,17 @@ def read_frameset_at(loc: str | Path, reader: ShardReader | None = None) -> Fram
     inp = io.decode_exr(*member("input.exr"))
     rgb = io.decode_color(*member("rgb.png"), formats=("PNG",))
     return FrameSetRecord(
-        gt_m=gt["Z"], gt_sigma_m=gt.get("S", np.zeros_like(gt["Z"])), gt_weight=gt["W"], gt_count=gt["N"],
-        input_m=inp["Z"], truth_m=inp.get("T"), rgb=rgb,
-        poses=json.loads(member("poses.json")[0]), meta=json.loads(member("frameset.json")[0]),
-        patches=_cut(record, gt, inp, rgb, loc))
+        gt_m=gt["Z"],
+        gt_sigma_m=gt.get("S", np.zeros_like(gt["Z"])),
+        gt_weight=gt["W"],
+        gt_count=gt["N"],
+        input_m=inp["Z"],
+        truth_m=inp.get("T"),
+        rgb=rgb,
+        poses=json.loads(member("poses.json")[0]),
+        meta=json.loads(member("frameset.json")[0]),
+        patches=_cut(record, gt, inp, rgb, loc),
+    )
 
 
 class FrameImages(NamedTuple):
@@ -552,10 +617,16 @@ def read_frame_images(loc: str | Path) -> FrameImages:
     for path, chans in ((d / "input.exr", inp), (d / "gt.exr", gt)):
         if "Z" not in chans:
             raise ValueError(f"{path}: no channel 'Z' (has {sorted(chans)})")
-    frame = FrameImages(input_m=inp["Z"].astype(np.float32), gt_m=gt["Z"].astype(np.float32),
-                        truth_m=inp["T"].astype(np.float32) if "T" in inp else None, rgb=rgb)
+    frame = FrameImages(
+        input_m=inp["Z"].astype(np.float32),
+        gt_m=gt["Z"].astype(np.float32),
+        truth_m=inp["T"].astype(np.float32) if "T" in inp else None,
+        rgb=rgb,
+    )
     if rgb.shape[:2] != frame.input_m.shape or frame.gt_m.shape != frame.input_m.shape:
-        raise ValueError(f"{d}: image sizes differ: input {frame.input_m.shape}, gt {frame.gt_m.shape}, rgb {rgb.shape}")
+        raise ValueError(
+            f"{d}: image sizes differ: input {frame.input_m.shape}, gt {frame.gt_m.shape}, rgb {rgb.shape}"
+        )
     return frame
 
 
@@ -583,8 +654,10 @@ def find_frameset(results: str | Path, dataset: str, scene: str, target: int) ->
             for rec in read_batch(shard):
                 if int(rec["target"]) == target:
                     if rec["status"] != Status.OK:
-                        raise DepthGTError(f"frame set {dataset}/{scene}/{target:06d} was not built: "
-                                           f"{rec['status']} ({rec.get('reason', '')}) [{shard}]")
+                        raise DepthGTError(
+                            f"frame set {dataset}/{scene}/{target:06d} was not built: "
+                            f"{rec['status']} ({rec.get('reason', '')}) [{shard}]"
+                        )
                     return location(shard, target)
     raise DepthGTError(f"frame set {dataset}/{scene}/{target:06d} not built: no shard in {folder} holds it")
 

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import logging
 import shutil
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from depthgt.errors import ConfigError
 from depthgt.sources.base import open_scene, source_kind
@@ -74,7 +75,9 @@ def open_source_scene(source: dict[str, Any], scene: str, need_poses: bool = Tru
     try:
         opened = open_scene(source["kind"], source.get("root"), scene, **options)
     except TypeError as err:
-        raise ConfigError(f"config sources entry {source.get('name')!r} (kind {source['kind']}): bad options: {err}") from err
+        raise ConfigError(
+            f"config sources entry {source.get('name')!r} (kind {source['kind']}): bad options: {err}"
+        ) from err
     colour = source.get("colour_matches_depth", "auto")
     if colour != "auto":
         opened.colour_matches_depth = bool(colour)

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import logging
 import shutil
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import pandas as pd
 
@@ -24,8 +25,14 @@ __all__ = ["run_train", "run_rde_scene", "run_rde_dataset"]
 log = logging.getLogger("depthgt")
 
 
-def run_train(model: str, config: Mapping[str, Any], train_manifest: str, val_manifest: str | None,
-              outputs: Mapping[str, str], threads: int = 1) -> dict:
+def run_train(
+    model: str,
+    config: Mapping[str, Any],
+    train_manifest: str,
+    val_manifest: str | None,
+    outputs: Mapping[str, str],
+    threads: int = 1,
+) -> dict:
     """Train the registry model ``model`` (its :class:`~depthgt.settings.TrainSettings`
     from the config sections of stage ``train``, :data:`depthgt.settings.STAGES`).
 
@@ -43,15 +50,29 @@ def run_train(model: str, config: Mapping[str, Any], train_manifest: str, val_ma
     st = stage_settings(config, "train", model=registry.METHODS[model].settings_key).train(model)
     out = TrainOutputs(**{k: Path(outputs[k]) for k in TrainOutputs._fields if outputs.get(k) is not None})
     result = train(train_manifest, val_manifest, out, st)
-    log.info("trained %s (%s) -> %s: best epoch %d (val %.5f), %d epochs run", model, st.model, out.best,
-             result["best_epoch"], result["best_val"], result["epochs_run"])
+    log.info(
+        "trained %s (%s) -> %s: best epoch %d (val %.5f), %d epochs run",
+        model,
+        st.model,
+        out.best,
+        result["best_epoch"],
+        result["best_val"],
+        result["epochs_run"],
+    )
     if out.resume is not None:
         shutil.rmtree(out.resume, ignore_errors=True)
     return result
 
 
-def run_rde_scene(source: dict[str, Any], scene: str, scene_framesets: str, config: Mapping[str, Any], out_shard: str,
-                  out_framesets: str, out_patches: str) -> None:
+def run_rde_scene(
+    source: dict[str, Any],
+    scene: str,
+    scene_framesets: str,
+    config: Mapping[str, Any],
+    out_shard: str,
+    out_framesets: str,
+    out_patches: str,
+) -> None:
     """RDE GT of every frame set of one scene (:func:`depthgt.gt.rde.rde_scene`) into the
     shard ``out_shard``, and its two tables. Frames come from the source at the working
     resolution (:class:`depthgt.gt.cache.ResizedScene`), the frames the frame sets saw.

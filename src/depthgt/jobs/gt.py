@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import pandas as pd
 from tqdm import tqdm
@@ -30,35 +31,64 @@ from depthgt.jobs.common import open_source_scene
 from depthgt.settings import STAGES, stage_settings
 from depthgt.status import Status
 
-__all__ = ["run_scene_references", "run_scene_index", "run_frameset_batch", "run_scene_summary", "run_dataset", "run_pretrain_registration"]
+__all__ = [
+    "run_scene_references",
+    "run_scene_index",
+    "run_frameset_batch",
+    "run_scene_summary",
+    "run_dataset",
+    "run_pretrain_registration",
+]
 
 log = logging.getLogger("depthgt")
 
 
-
-def run_scene_index(source: dict[str, Any], scene: str, config: Mapping[str, Any], out_parquet: str,
-                    out_json: str) -> None:
+def run_scene_index(
+    source: dict[str, Any], scene: str, config: Mapping[str, Any], out_parquet: str, out_json: str
+) -> None:
     """List a scene's frames and frame sets from its metadata (no frame is read) and
     write its index (parquet + json); ``config``: the sections of stage ``index``
     (:data:`depthgt.settings.STAGES`; a whole config is narrowed to them)."""
     settings = stage_settings(config, "index")
     sc = open_source_scene(source, scene, need_poses=False)  # reads no frame: poses do not matter here
-    index = build_index(sc, source["name"], source.get("split", "auto"), fs_settings=settings.frameset,
-                        split_settings=settings.split, seed=settings.seed)
+    index = build_index(
+        sc,
+        source["name"],
+        source.get("split", "auto"),
+        fs_settings=settings.frameset,
+        split_settings=settings.split,
+        seed=settings.seed,
+    )
     meta = dict(index.meta)
-    meta["framesets_planned"] = [int(t) for t in index.framesets.loc[index.framesets["status"] == Status.PLANNED, "target"]]
+    meta["framesets_planned"] = [
+        int(t) for t in index.framesets.loc[index.framesets["status"] == Status.PLANNED, "target"]
+    ]
     meta["source"] = source
     Path(out_parquet).parent.mkdir(parents=True, exist_ok=True)
     index.to_table().to_parquet(out_parquet, index=False)
     io.write_json(out_json, meta)
-    log.info("%s/%s: %d frames, %d frame sets planned (%d skipped)", source["name"], scene, meta["n_frames"],
-             meta["n_framesets_planned"], meta["n_framesets_skipped"])
+    log.info(
+        "%s/%s: %d frames, %d frame sets planned (%d skipped)",
+        source["name"],
+        scene,
+        meta["n_frames"],
+        meta["n_framesets_planned"],
+        meta["n_framesets_skipped"],
+    )
     for p in meta["problems"]:
         log.warning("%s/%s: %s", source["name"], scene, p)
 
 
-def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int, config: Mapping[str, Any],
-                       index_parquet: str, out_shard: str, encoder: str | None = None) -> list[dict[str, Any]]:
+def run_frameset_batch(
+    source: dict[str, Any],
+    scene: str,
+    first: int,
+    last: int,
+    config: Mapping[str, Any],
+    index_parquet: str,
+    out_shard: str,
+    encoder: str | None = None,
+) -> list[dict[str, Any]]:
     """Build the frame sets of targets ``first``..``last`` of a scene in turn and write
     them as one shard (:func:`depthgt.gt.store.write_shard`); the encoder and the scene
     are loaded once.
@@ -101,8 +131,12 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
         state = torch.load(encoder, map_location="cpu", weights_only=True) or None  # {}: no pretraining
     fs = settings.frameset
     span = max(fs.reach, fs.coverage_span) if fs.selection == "coverage" else fs.reach  # frames a target may read
-    scene_obj = ResizedScene(open_source_scene(source, scene, need_poses=need_poses), settings.size_hw,
-                             keep=2 * span + 2, need_pose=need_poses)
+    scene_obj = ResizedScene(
+        open_source_scene(source, scene, need_poses=need_poses),
+        settings.size_hw,
+        keep=2 * span + 2,
+        need_pose=need_poses,
+    )
     splits = table.sort_values("position")["split"].to_numpy(dtype=object)  # the index's split of every frame
     records: list[dict[str, Any]] = []
     built: dict[int, Path] = {}
@@ -110,33 +144,79 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
         for target in tqdm(planned, desc=f"frame sets {source['name']}/{scene} {first:06d}-{last:06d}", unit="set"):
             row = rows.get(target)
             if row is None:
-                records.append({"target": target, "status": Status.SKIPPED, "reason": "not_in_scene: the scene holds "
-                                f"{len(table)} frames, fewer than planned for this target", "members": [], "split": ""})
-                log.warning("%s/%s: target %d skipped: not in the scene (%d frames)", source["name"], scene, target,
-                            len(table))
+                records.append(
+                    {
+                        "target": target,
+                        "status": Status.SKIPPED,
+                        "reason": "not_in_scene: the scene holds "
+                        f"{len(table)} frames, fewer than planned for this target",
+                        "members": [],
+                        "split": "",
+                    }
+                )
+                log.warning(
+                    "%s/%s: target %d skipped: not in the scene (%d frames)", source["name"], scene, target, len(table)
+                )
                 continue
             members = [int(m) for m in row.members]
             if row.frameset_status != Status.PLANNED:
-                records.append({"target": target, "status": row.frameset_status, "reason": row.frameset_reason,
-                                "members": members, "split": row.frameset_split})
+                records.append(
+                    {
+                        "target": target,
+                        "status": row.frameset_status,
+                        "reason": row.frameset_reason,
+                        "members": members,
+                        "split": row.frameset_split,
+                    }
+                )
                 continue
             checks = [scene_obj.check(m) for m in members]
             bad = member_problems(members, {c.position: c.problem for c in checks if not c.valid})
             if bad:
-                records.append({"target": target, "status": Status.SKIPPED, "reason": bad, "members": members,
-                                "split": row.frameset_split})
+                records.append(
+                    {
+                        "target": target,
+                        "status": Status.SKIPPED,
+                        "reason": bad,
+                        "members": members,
+                        "split": row.frameset_split,
+                    }
+                )
                 log.warning("frame set %s/%s/%06d skipped: %s", source["name"], scene, target, bad)
                 continue
             out = FrameSetOutputs.in_dir(Path(tmp) / f"{target:06d}")
-            doc = process_frameset(scene_obj, source["name"], target, members, row.frameset_split, out, settings,
-                                   encoder_state=state, candidates=coverage_candidates(splits, target, members, fs))
+            doc = process_frameset(
+                scene_obj,
+                source["name"],
+                target,
+                members,
+                row.frameset_split,
+                out,
+                settings,
+                encoder_state=state,
+                candidates=coverage_candidates(splits, target, members, fs),
+            )
             built[target] = Path(tmp) / f"{target:06d}"
-            records.append({"target": target, "status": doc["status"], "reason": doc["reason"], "members": members,
-                            "split": row.frameset_split})
-            log.info("frame set %s/%s/%06d: status %s, %d/%d patches kept, GT missing %.3f (input %.3f)",
-                     source["name"], scene, target, doc["status"], doc["statistics"]["patches_kept"],
-                     doc["statistics"]["patches_drawn"], doc["statistics"]["gt_missing"],
-                     doc["statistics"]["input_missing"])
+            records.append(
+                {
+                    "target": target,
+                    "status": doc["status"],
+                    "reason": doc["reason"],
+                    "members": members,
+                    "split": row.frameset_split,
+                }
+            )
+            log.info(
+                "frame set %s/%s/%06d: status %s, %d/%d patches kept, GT missing %.3f (input %.3f)",
+                source["name"],
+                scene,
+                target,
+                doc["status"],
+                doc["statistics"]["patches_kept"],
+                doc["statistics"]["patches_drawn"],
+                doc["statistics"]["gt_missing"],
+                doc["statistics"]["input_missing"],
+            )
         frames = [c.to_dict() for c in scene_obj.checks]
         store.write_shard(out_shard, built, records, frames=frames)
     n_bad = sum(not f["valid"] for f in frames)
@@ -144,8 +224,15 @@ def run_frameset_batch(source: dict[str, Any], scene: str, first: int, last: int
     return records
 
 
-def run_scene_references(source: dict[str, Any], scene: str, scene_framesets: str, rde_framesets: str,
-                         config: Mapping[str, Any], out_npz: str, out_table: str) -> None:
+def run_scene_references(
+    source: dict[str, Any],
+    scene: str,
+    scene_framesets: str,
+    rde_framesets: str,
+    config: Mapping[str, Any],
+    out_npz: str,
+    out_table: str,
+) -> None:
     """The references of a real scene's ``evaluation.split`` frame sets that no method
     was trained to imitate (:func:`depthgt.gt.references.scene_references`): the
     neighbours-only render of each target with the build's poses, and the TSDF GT
@@ -155,19 +242,29 @@ def run_scene_references(source: dict[str, Any], scene: str, scene_framesets: st
     from depthgt.gt.references import scene_references
 
     settings = stage_settings(config, "references")
-    sc = ResizedScene(open_source_scene(source, scene, need_poses=False), settings.size_hw,
-                      keep=2 * settings.frameset.reach + 2)
-    table = scene_references(sc, pd.read_parquet(scene_framesets), pd.read_parquet(rde_framesets), settings.render,
-                             settings.size_hw, settings.evaluation.split, out_npz,
-                             device=resolve_device(settings.device))
+    sc = ResizedScene(
+        open_source_scene(source, scene, need_poses=False), settings.size_hw, keep=2 * settings.frameset.reach + 2
+    )
+    table = scene_references(
+        sc,
+        pd.read_parquet(scene_framesets),
+        pd.read_parquet(rde_framesets),
+        settings.render,
+        settings.size_hw,
+        settings.evaluation.split,
+        out_npz,
+        device=resolve_device(settings.device),
+    )
     Path(out_table).parent.mkdir(parents=True, exist_ok=True)
     table.to_parquet(out_table, index=False)
-    log.info("%s/%s: %d reference images of the %s frame sets", source["name"], scene, len(table),
-             settings.evaluation.split)
+    log.info(
+        "%s/%s: %d reference images of the %s frame sets", source["name"], scene, len(table), settings.evaluation.split
+    )
 
 
-def run_scene_summary(index_parquet: str, shards: list[str], out_framesets: str, out_patches: str,
-                      out_quality: str, out_frames: str) -> None:
+def run_scene_summary(
+    index_parquet: str, shards: list[str], out_framesets: str, out_patches: str, out_quality: str, out_frames: str
+) -> None:
     """Summarise a scene's frame sets (from its shards), patches, GT quality and the
     frames its batches read into four parquet tables
     (:func:`depthgt.gt.assemble.summarize_scene`)."""
@@ -178,9 +275,16 @@ def run_scene_summary(index_parquet: str, shards: list[str], out_framesets: str,
     log.info("%d frame sets, %d frames read (%d unusable)", len(tables[0]), len(frames), int((~frames["valid"]).sum()))
 
 
-def run_dataset(scene_framesets: list[str], scene_patches: list[str], scene_quality: list[str], scene_frames: list[str],
-                index_jsons: list[str], outputs: Mapping[str, str], shards: list[str] | None = None,
-                config: Mapping[str, Any] | None = None) -> None:
+def run_dataset(
+    scene_framesets: list[str],
+    scene_patches: list[str],
+    scene_quality: list[str],
+    scene_frames: list[str],
+    index_jsons: list[str],
+    outputs: Mapping[str, str],
+    shards: list[str] | None = None,
+    config: Mapping[str, Any] | None = None,
+) -> None:
     """Assemble the dataset manifests from the per-scene summaries and write the dataset
     card (:mod:`depthgt.gt.card`).
 
@@ -195,20 +299,35 @@ def run_dataset(scene_framesets: list[str], scene_patches: list[str], scene_qual
     """
     out = DatasetOutputs(**{k: outputs[k] for k in DatasetOutputs._fields})
     summary = assemble(scene_framesets, scene_patches, scene_quality, scene_frames, index_jsons, out)
-    log.info("dataset: %s pairs, %d frame sets skipped, %d of %d frames read unusable", summary["pairs"],
-             len(summary["framesets_skipped"]), len(summary["frames_skipped"]), summary["frames_read"])
+    log.info(
+        "dataset: %s pairs, %d frame sets skipped, %d of %d frames read unusable",
+        summary["pairs"],
+        len(summary["framesets_skipped"]),
+        len(summary["frames_skipped"]),
+        summary["frames_read"],
+    )
     results = Path(outputs["card"]).parent.parent
-    card = build_card(results, summary, pd.read_parquet(out.framesets), pd.read_csv(out.quality),
-                      [json.loads(Path(p).read_text()) for p in index_jsons],
-                      stage_settings(config or {}, "dataset").doc(*STAGES["dataset"].top),
-                      [*(shards or []), *out])
+    card = build_card(
+        results,
+        summary,
+        pd.read_parquet(out.framesets),
+        pd.read_csv(out.quality),
+        [json.loads(Path(p).read_text()) for p in index_jsons],
+        stage_settings(config or {}, "dataset").doc(*STAGES["dataset"].top),
+        [*(shards or []), *out],
+    )
     write_card(card, outputs["card"], outputs["card_md"])
-    log.info("dataset card: %d files checksummed (depthgt %s, commit %s)", len(card["files"]),
-             card["depthgt"]["version"], card["depthgt"]["commit"])
+    log.info(
+        "dataset card: %d files checksummed (depthgt %s, commit %s)",
+        len(card["files"]),
+        card["depthgt"]["version"],
+        card["depthgt"]["commit"],
+    )
 
 
-def run_pretrain_registration(sources: Mapping[str, dict[str, Any]], index_jsons: list[str], config: Mapping[str, Any],
-                              out_path: str) -> None:
+def run_pretrain_registration(
+    sources: Mapping[str, dict[str, Any]], index_jsons: list[str], config: Mapping[str, Any], out_path: str
+) -> None:
     """Stream-only pretraining of the registration encoder on frame sets of the training
     split (no poses used), written as a torch ``state_dict``.
 
@@ -236,13 +355,20 @@ def run_pretrain_registration(sources: Mapping[str, dict[str, Any]], index_jsons
             data = load_frameset(scenes[dataset, scene], members, settings.size_hw, need_poses=False, device=device)
         except FrameError as err:
             skipped += 1
-            log.warning("pretraining: frame set %s/%s/%06d skipped, a frame is unusable: %s", dataset, scene, members[0],
-                        err)
+            log.warning(
+                "pretraining: frame set %s/%s/%06d skipped, a frame is unusable: %s", dataset, scene, members[0], err
+            )
             continue
         framesets.append((data.rgb, data.depth_m, data.K, [m - members[0] for m in members]))
     if len(framesets) < min(pre.framesets, len(candidates)):
-        log.warning("pretraining: only %d usable frame sets of the train split (%d asked for, %d skipped)",
-                    len(framesets), pre.framesets, skipped)
+        log.warning(
+            "pretraining: only %d usable frame sets of the train split (%d asked for, %d skipped)",
+            len(framesets),
+            pre.framesets,
+            skipped,
+        )
     log.info("pretraining the registration encoder on %d frame sets, %d epoch(s)", len(framesets), pre.epochs)
-    state = pretrain_encoder(framesets, settings.registration, epochs=pre.epochs, seed=settings.seed) if framesets else {}
+    state = (
+        pretrain_encoder(framesets, settings.registration, epochs=pre.epochs, seed=settings.seed) if framesets else {}
+    )
     write_atomic(out_path, lambda tmp: torch.save(state, tmp))

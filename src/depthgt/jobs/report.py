@@ -8,8 +8,9 @@ nothing heavy (torch) is imported at module level.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import pandas as pd
 
@@ -23,8 +24,16 @@ __all__ = ["run_evaluate", "run_tables", "run_figures"]
 log = logging.getLogger("depthgt")
 
 
-def run_evaluate(method: str, config: Mapping[str, Any], framesets: str, out_table: str, pred_dir: str,
-                 checkpoint: str | None = None, threads: int = 1, reference_tables: list[str] = ()) -> None:
+def run_evaluate(
+    method: str,
+    config: Mapping[str, Any],
+    framesets: str,
+    out_table: str,
+    pred_dir: str,
+    checkpoint: str | None = None,
+    threads: int = 1,
+    reference_tables: list[str] = (),
+) -> None:
     """Run the registry method ``method`` on the ``evaluation.split`` frame sets and
     score it against depthgt's GT, where present the clean truth, and for real frames
     the references built apart (``neighbours``, ``tsdf``:
@@ -46,8 +55,14 @@ def run_evaluate(method: str, config: Mapping[str, Any], framesets: str, out_tab
     settings = stage_settings(config, "evaluate")
     spec = method_spec(method, checkpoint, device=str(resolve_device(settings.device)) if checkpoint else None)
     split = settings.evaluation.split
-    table = evaluate_frames(framesets, {method: spec}, references=("gt", "truth", *REFERENCES), split=split,
-                            pred_dirs={method: pred_dir}, reference_files=read_reference_table(list(reference_tables)))
+    table = evaluate_frames(
+        framesets,
+        {method: spec},
+        references=("gt", "truth", *REFERENCES),
+        split=split,
+        pred_dirs={method: pred_dir},
+        reference_files=read_reference_table(list(reference_tables)),
+    )
     Path(pred_dir).mkdir(parents=True, exist_ok=True)
     Path(out_table).parent.mkdir(parents=True, exist_ok=True)
     table.to_parquet(out_table, index=False)
@@ -57,8 +72,14 @@ def run_evaluate(method: str, config: Mapping[str, Any], framesets: str, out_tab
 TABLES = ("table1", "table2", "table3", "table2_paired", "table3_paired", "quality")
 
 
-def run_tables(eval_tables: list[str], framesets: str, rde_framesets: str, gt_quality: str, kinds: Mapping[str, str],
-               outputs: Mapping[str, str]) -> None:
+def run_tables(
+    eval_tables: list[str],
+    framesets: str,
+    rde_framesets: str,
+    gt_quality: str,
+    kinds: Mapping[str, str],
+    outputs: Mapping[str, str],
+) -> None:
     """Tables 1-3, the paired comparisons of Tables 2 and 3 and the GT-quality table as
     CSV + Markdown.
 
@@ -78,14 +99,24 @@ def run_tables(eval_tables: list[str], framesets: str, rde_framesets: str, gt_qu
         "table3": (tables.table3(ev, kinds), tables.TABLE3_CAPTION),
         "table2_paired": (tables.table2_paired(ev, kinds), tables.TABLE2_PAIRED_CAPTION),
         "table3_paired": (tables.table3_paired(ev, kinds), tables.TABLE3_PAIRED_CAPTION),
-        "quality": (tables.table_gt_quality(pd.read_csv(gt_quality), tables.rde_quality_long(rde)), tables.GT_QUALITY_CAPTION),
+        "quality": (
+            tables.table_gt_quality(pd.read_csv(gt_quality), tables.rde_quality_long(rde)),
+            tables.GT_QUALITY_CAPTION,
+        ),
     }
     for key, (table, caption) in built.items():
         tables.write_table(table, outputs[f"{key}_csv"], outputs[key], caption)
 
 
-def run_figures(framesets: str, pred_dirs: Mapping[str, str], loss_logs: Mapping[str, str], out_comparison: str,
-                out_curves: Mapping[str, str], split: str = "test", frames_per_scene: int = 2) -> None:
+def run_figures(
+    framesets: str,
+    pred_dirs: Mapping[str, str],
+    loss_logs: Mapping[str, str],
+    out_comparison: str,
+    out_curves: Mapping[str, str],
+    split: str = "test",
+    frames_per_scene: int = 2,
+) -> None:
     """The comparison figure (rows: up to ``frames_per_scene`` frames of each scene of
     ``split``; predictions read from ``pred_dirs``: method -> folder) and one
     training-curve plot per model (``out_curves``: model -> png)."""

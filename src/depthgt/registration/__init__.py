@@ -13,5 +13,11 @@ from depthgt.registration.overfit import pretrain_encoder, register_frameset
 from depthgt.registration.refine import refine_poses
 from depthgt.registration.result import RegistrationResult
 
-__all__ = ["RegistrationResult", "build_encoder", "pretrain_encoder", "refine_poses", "refine_source_poses",
-           "register_frameset"]
+__all__ = [
+    "RegistrationResult",
+    "build_encoder",
+    "pretrain_encoder",
+    "refine_poses",
+    "refine_source_poses",
+    "register_frameset",
+]

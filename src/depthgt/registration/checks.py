@@ -16,8 +16,9 @@ from depthgt.settings import RegistrationSettings
 __all__ = ["check_neighbours", "set_status"]
 
 
-def check_neighbours(T: torch.Tensor, n_corr: torch.Tensor | None, refined, s: RegistrationSettings,
-                     T_start: torch.Tensor | None = None) -> tuple[list[str], list[str]]:
+def check_neighbours(
+    T: torch.Tensor, n_corr: torch.Tensor | None, refined, s: RegistrationSettings, T_start: torch.Tensor | None = None
+) -> tuple[list[str], list[str]]:
     """Status ("ok" | "failed") and reasons of every neighbour (see the failure checks of
     :class:`~depthgt.settings.RegistrationSettings`).
 

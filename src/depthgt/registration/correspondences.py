@@ -34,7 +34,9 @@ class Correspondences(NamedTuple):
     weights: torch.Tensor
 
 
-def sample_candidates(valid: torch.Tensor, n: int, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def sample_candidates(
+    valid: torch.Tensor, n: int, generator: torch.Generator | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Draw up to ``n`` valid pixels per frame, uniformly without replacement.
 
     Args:
@@ -55,8 +57,9 @@ def sample_candidates(valid: torch.Tensor, n: int, generator: torch.Generator | 
     return index, torch.gather(flat, 1, index)
 
 
-def knn2_both(f_a: torch.Tensor, f_b: torch.Tensor, mask_a: torch.Tensor, mask_b: torch.Tensor,
-              max_block: int = 1 << 25) -> tuple[torch.Tensor, torch.Tensor]:
+def knn2_both(
+    f_a: torch.Tensor, f_b: torch.Tensor, mask_a: torch.Tensor, mask_b: torch.Tensor, max_block: int = 1 << 25
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Two nearest neighbours in both directions from the similarity matrix of each pair.
 
     Features must be L2-normalised, so that the Euclidean ranking equals the ranking
@@ -117,9 +120,14 @@ def _one_direction(pts_q, f_q, m_q, pts_r, f_r, nn_idx, top_k):
 
 
 def find_correspondences(
-    points_a: torch.Tensor, feats_a: torch.Tensor, mask_a: torch.Tensor,
-    points_b: torch.Tensor, feats_b: torch.Tensor, mask_b: torch.Tensor,
-    top_k: int = 200, max_block: int = 1 << 25,
+    points_a: torch.Tensor,
+    feats_a: torch.Tensor,
+    mask_a: torch.Tensor,
+    points_b: torch.Tensor,
+    feats_b: torch.Tensor,
+    mask_b: torch.Tensor,
+    top_k: int = 200,
+    max_block: int = 1 << 25,
 ) -> Correspondences:
     """Bidirectional ratio-test matches between frames b (source) and a (destination).
 

@@ -71,5 +71,7 @@ def candidate_points(depth_m: torch.Tensor, K: torch.Tensor, index: torch.Tensor
     row-major) of ``depth_m`` (B, 1, H, W) with intrinsics ``K`` (B, 3, 3); their features
     come from :func:`depthgt.registration.overfit.encode_at`."""
     if depth_m.ndim != 4 or depth_m.shape[1] != 1 or index.shape[0] != depth_m.shape[0]:
-        raise ValueError(f"depth_m must be (B, 1, H, W) and index (B, N), got {tuple(depth_m.shape)}, {tuple(index.shape)}")
+        raise ValueError(
+            f"depth_m must be (B, 1, H, W) and index (B, N), got {tuple(depth_m.shape)}, {tuple(index.shape)}"
+        )
     return torch.gather(backproject(depth_m, K), 1, index[..., None].expand(-1, -1, 3))

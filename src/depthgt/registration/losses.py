@@ -14,7 +14,7 @@ implementation.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 
@@ -72,12 +72,15 @@ def render_losses(
     m_depth = (rendered & (depth_dst > 0)).to(pts.dtype)
     m_photo = rendered.to(pts.dtype)
     l_depth = ((out.depth - depth_dst).abs() * m_depth).flatten(1).sum(1) / m_depth.flatten(1).sum(1).clamp(min=1)
-    l_photo = ((out.features - rgb_dst).abs().mean(1, keepdim=True) * m_photo).flatten(1).sum(1) / m_photo.flatten(1).sum(1).clamp(min=1)
+    l_photo = ((out.features - rgb_dst).abs().mean(1, keepdim=True) * m_photo).flatten(1).sum(1) / m_photo.flatten(
+        1
+    ).sum(1).clamp(min=1)
     return l_depth, l_photo
 
 
-def correspondence_loss(T_src_to_dst: torch.Tensor, points_src: torch.Tensor, points_dst: torch.Tensor,
-                        weights: torch.Tensor) -> torch.Tensor:
+def correspondence_loss(
+    T_src_to_dst: torch.Tensor, points_src: torch.Tensor, points_dst: torch.Tensor, weights: torch.Tensor
+) -> torch.Tensor:
     """``|M|^-1 sum_M w |T p - q|^2`` per pair: (P,) in m^2 (paper eq. 3, L_C)."""
     R = T_src_to_dst[:, :3, :3].to(points_src.dtype)
     t = T_src_to_dst[:, :3, 3].to(points_src.dtype)

@@ -14,17 +14,17 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Callable, Iterable
 
 import torch
 import torch.nn.functional as F
 
+from depthgt.geometry import backproject
 from depthgt.metric_vocabulary import pose_delta
 from depthgt.registration.checks import check_neighbours, set_status
 from depthgt.registration.correspondences import find_correspondences, sample_candidates
-from depthgt.geometry import backproject
 from depthgt.registration.encoder import build_encoder, candidate_points
 from depthgt.registration.losses import correspondence_loss, default_render_fn, render_losses
 from depthgt.registration.procrustes import procrustes_random_subsets
@@ -59,8 +59,11 @@ class _Frameset:
         xs = torch.arange(0, W, self.render_stride, device=self.depth.device)
         ridx = (ys[:, None] * W + xs[None, :]).reshape(-1)
         pts = backproject(self.depth, self.K.expand(Fn, 3, 3).to(self.depth.dtype))
-        return (pts.index_select(1, ridx), self.rgb.flatten(2).index_select(2, ridx).transpose(1, 2),
-                (self.depth > 0).flatten(1).index_select(1, ridx))
+        return (
+            pts.index_select(1, ridx),
+            self.rgb.flatten(2).index_select(2, ridx).transpose(1, 2),
+            (self.depth > 0).flatten(1).index_select(1, ridx),
+        )
 
     @property
     def rpts(self) -> torch.Tensor:
@@ -134,7 +137,9 @@ def autocast_dtype(device: torch.device | str, precision: str) -> torch.dtype | 
     return None
 
 
-def encode_at(encoder: torch.nn.Module, rgb: torch.Tensor, index: torch.Tensor, precision: str = "fp32") -> torch.Tensor:
+def encode_at(
+    encoder: torch.nn.Module, rgb: torch.Tensor, index: torch.Tensor, precision: str = "fp32"
+) -> torch.Tensor:
     """Unit-length float32 features (B, N, C) of the pixels ``index`` (B, N) (flat,
     row-major) of ``rgb`` (B, 3, H, W), with the encoder's convolutions in the dtype
     :func:`autocast_dtype` picks (channels-last memory on CPU, the fast layout of
@@ -150,8 +155,14 @@ def encode_at(encoder: torch.nn.Module, rgb: torch.Tensor, index: torch.Tensor, 
     return F.normalize(f, dim=1).transpose(1, 2)
 
 
-def frameset_loss(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettings, gen: torch.Generator,
-                  render_fn: Callable | None, with_render: bool = True):
+def frameset_loss(
+    encoder: torch.nn.Module,
+    fs: _Frameset,
+    s: RegistrationSettings,
+    gen: torch.Generator,
+    render_fn: Callable | None,
+    with_render: bool = True,
+):
     """Set-wide loss (eq. 4) and the pairwise Procrustes estimates.
 
     Returns:
@@ -168,10 +179,12 @@ def frameset_loss(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettin
     # find_correspondences reduces in the same order (bit-identical)
     sel = lambda x, i: x.index_select(0, i)  # noqa: E731
     fsel = lambda i: f.transpose(1, 2).index_select(0, i).transpose(1, 2)  # noqa: E731
-    corr = find_correspondences(sel(pts, a), fsel(a), sel(fs.cand_mask, a), sel(pts, b), fsel(b),
-                                sel(fs.cand_mask, b), s.top_k, s.knn_block)
-    T_ba, _ = procrustes_random_subsets(corr.points_src, corr.points_dst, corr.weights, s.n_subsets,
-                                        s.subset_fraction, gen)
+    corr = find_correspondences(
+        sel(pts, a), fsel(a), sel(fs.cand_mask, a), sel(pts, b), fsel(b), sel(fs.cand_mask, b), s.top_k, s.knn_block
+    )
+    T_ba, _ = procrustes_random_subsets(
+        corr.points_src, corr.points_dst, corr.weights, s.n_subsets, s.subset_fraction, gen
+    )
     l_corr = correspondence_loss(T_ba, corr.points_src, corr.points_dst, corr.weights)
     n_conf = (corr.weights.detach() >= s.confident_weight).sum(1)
     loss = s.w_corr * l_corr.sum()
@@ -182,8 +195,18 @@ def frameset_loss(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettin
         src = torch.cat([b, a])
         dst = torch.cat([a, b])
         T = torch.cat([T_ba, T_ab])
-        l_d, l_p = render_losses(fs.rpts[src], fs.rrgb[src], fs.rmask[src], T, fs.depth[dst], fs.rgb[dst],
-                                 Kb[dst], render_fn, s.render_radius_px, s.render_max_points)
+        l_d, l_p = render_losses(
+            fs.rpts[src],
+            fs.rrgb[src],
+            fs.rmask[src],
+            T,
+            fs.depth[dst],
+            fs.rgb[dst],
+            Kb[dst],
+            render_fn,
+            s.render_radius_px,
+            s.render_max_points,
+        )
         loss = loss + s.w_depth * l_d.sum() + s.w_photo * l_p.sum()
         terms["depth"] = float(l_d.detach().mean())
         terms["photo"] = float(l_p.detach().mean())
@@ -305,8 +328,9 @@ def _setup(rgb, depth_m, K, s: RegistrationSettings, encoder_state: dict | None,
     return fs, encoder, gen, render_fn
 
 
-def _overfit(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettings, gen: torch.Generator,
-             render_fn: Callable | None) -> _Overfit:
+def _overfit(
+    encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettings, gen: torch.Generator, render_fn: Callable | None
+) -> _Overfit:
     """The paper's overfit training of the encoder on the single frame set (Adam,
     ``s.iterations`` steps of the set-wide loss, eq. 4)."""
     Fn = fs.rgb.shape[0]
@@ -334,8 +358,14 @@ def _overfit(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettings, g
     return trace
 
 
-def _final_estimate(encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettings, gen: torch.Generator,
-                    render_fn: Callable | None, trace: _Overfit):
+def _final_estimate(
+    encoder: torch.nn.Module,
+    fs: _Frameset,
+    s: RegistrationSettings,
+    gen: torch.Generator,
+    render_fn: Callable | None,
+    trace: _Overfit,
+):
     """The paper's output poses from the trained encoder (or the best-loss iteration).
 
     Returns:

@@ -68,8 +68,13 @@ def weighted_procrustes(
     return T.to(dtype)
 
 
-def weighted_residual(T_src_to_dst: torch.Tensor, points_src: torch.Tensor, points_dst: torch.Tensor,
-                      weights: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+def weighted_residual(
+    T_src_to_dst: torch.Tensor,
+    points_src: torch.Tensor,
+    points_dst: torch.Tensor,
+    weights: torch.Tensor,
+    eps: float = 1e-12,
+) -> torch.Tensor:
     """Weighted mean squared residual ``sum w |T p - q|^2 / sum w`` per pair, (B,) in m^2."""
     _check(points_src, points_dst, weights)
     R = T_src_to_dst[:, :3, :3].to(points_src.dtype)

@@ -32,8 +32,18 @@ from depthgt.geometry import backproject, resize_depth_nearest, resize_rgb, scal
 from depthgt.noise_law import estimate_noise_sigma_1m
 from depthgt.settings import RefineSettings
 
-__all__ = ["RefineResult", "Level", "LevelSettings", "frame_pairs", "refine_poses", "adjoint", "normal_system",
-           "pair_mean_cost", "pair_information", "target_residuals"]
+__all__ = [
+    "RefineResult",
+    "Level",
+    "LevelSettings",
+    "frame_pairs",
+    "refine_poses",
+    "adjoint",
+    "normal_system",
+    "pair_mean_cost",
+    "pair_information",
+    "target_residuals",
+]
 
 
 @dataclass
@@ -104,7 +114,9 @@ def frame_pairs(n_frames: int, mode: str, offsets: list[int] | None = None) -> t
 
 def _skew(v: torch.Tensor) -> torch.Tensor:
     z = torch.zeros_like(v[..., 0])
-    return torch.stack([z, -v[..., 2], v[..., 1], v[..., 2], z, -v[..., 0], -v[..., 1], v[..., 0], z], -1).reshape(*v.shape[:-1], 3, 3)
+    return torch.stack([z, -v[..., 2], v[..., 1], v[..., 2], z, -v[..., 0], -v[..., 1], v[..., 0], z], -1).reshape(
+        *v.shape[:-1], 3, 3
+    )
 
 
 def adjoint(T: torch.Tensor) -> torch.Tensor:
@@ -187,7 +199,7 @@ def _cross(a, b):
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-def _residuals(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "LevelSettings", gate: float):
+def _residuals(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: LevelSettings, gate: float):
     """Scaled residuals r (P, 2N) (N geometric, then N photometric), Jacobians
     J (P, 6, 2N) w.r.t. a left twist (v, w) of T_ab, validity (P, 2N) (associated:
     seen and within the gate) and visibility (P, 2N) (a valid source point that lands
@@ -200,7 +212,7 @@ def _residuals(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "LevelS
     return r, jac(), valid, vis, r_geo
 
 
-def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "LevelSettings", gate: float):
+def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: LevelSettings, gate: float):
     """:func:`_residuals` with the Jacobians left to a function ``jac()`` (same values):
     r, valid, vis, r_geo, jac. A trial pose that the LM step rejects (or a cost-only
     evaluation) never builds them. Without the photometric term (``photo_weight`` 0)
@@ -264,8 +276,9 @@ def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: "L
         gx, gy = smp[:, 7] * fx * zi, smp[:, 8] * fy * zi
         ga = (gx, gy, -(gx * qx + gy * qy) * zi)
         J_ph = torch.stack([*ga, *_cross(qv, ga)], 1)
-        return torch.cat([J_geo * (inv_geo[:, None] if torch.is_tensor(inv_geo) else inv_geo),
-                          J_ph * (wp / s.photo_scale)], 2)
+        return torch.cat(
+            [J_geo * (inv_geo[:, None] if torch.is_tensor(inv_geo) else inv_geo), J_ph * (wp / s.photo_scale)], 2
+        )
 
     return r, valid, vis, r_geo, jac
 
@@ -302,7 +315,9 @@ def _sample_grouped(maps: torch.Tensor, grid: torch.Tensor, a: torch.Tensor) -> 
         # every frame the destination of m pairs, the pairs in frame order (a frame set's
         # pairs, typically): the grid is already in the frames' layout (the same samples,
         # no padding slots to fill and no gather back)
-        out = F.grid_sample(maps, grid.reshape(Fn, m * N, 1, 2), mode="bilinear", padding_mode="zeros", align_corners=False)
+        out = F.grid_sample(
+            maps, grid.reshape(Fn, m * N, 1, 2), mode="bilinear", padding_mode="zeros", align_corners=False
+        )
         return out.reshape(Fn, C, m, N).transpose(1, 2).reshape(P, C, N)
     order = torch.argsort(a, stable=True)
     start = torch.cumsum(counts, 0) - counts
@@ -327,7 +342,7 @@ def _robust(r: torch.Tensor, kind: str) -> tuple[torch.Tensor, torch.Tensor]:
     return w, rho
 
 
-def _gate_cost(gate: float, s: "LevelSettings") -> float:
+def _gate_cost(gate: float, s: LevelSettings) -> float:
     # A point that lands on a surface of the destination but outside the gate pays the
     # cost of a residual at the gate (a truncated robust cost).
     _, rho = _robust(torch.tensor([gate / s.geo_scale_m]), s.robust)
@@ -414,8 +429,9 @@ def normal_system(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSe
     return _system(level, T, pairs, s, gate).astuple()
 
 
-def pair_mean_cost(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings,
-                   gate: float) -> tuple[torch.Tensor, torch.Tensor]:
+def pair_mean_cost(
+    level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings, gate: float
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean robust cost per visible point (P,) and the visible points (P,) of every pair:
     a score that compares poses of different overlap (e.g. candidate initialisations)."""
     sys_ = _system(level, T, pairs, s, gate)
@@ -427,8 +443,10 @@ def _accept(old: _System, new: _System) -> tuple[float, float]:
     """Costs of two linearisations over the points visible in both (old, new): a fair
     comparison whatever the change of overlap."""
     both = old.vis & new.vis
-    return (float((old.cost_pts * both).sum(dtype=torch.float64)),
-            float((new.cost_pts * both).sum(dtype=torch.float64)))
+    return (
+        float((old.cost_pts * both).sum(dtype=torch.float64)),
+        float((new.cost_pts * both).sum(dtype=torch.float64)),
+    )
 
 
 def _assemble(H_rel, g_rel, Tinv, pairs, n_frames):
@@ -450,8 +468,11 @@ def _assemble(H_rel, g_rel, Tinv, pairs, n_frames):
 def pair_information(level_H_rel: torch.Tensor, median_depth: float) -> torch.Tensor:
     """Condition numbers (P,) of 6x6 information matrices with rotation columns scaled
     by ``median_depth`` (so both blocks are in metres)."""
-    S = torch.diag(torch.tensor([1, 1, 1, median_depth, median_depth, median_depth], dtype=level_H_rel.dtype,
-                                device=level_H_rel.device)).inverse()
+    S = torch.diag(
+        torch.tensor(
+            [1, 1, 1, median_depth, median_depth, median_depth], dtype=level_H_rel.dtype, device=level_H_rel.device
+        )
+    ).inverse()
     Hs = S @ level_H_rel @ S
     ev = torch.linalg.eigvalsh(Hs)
     return ev[..., -1] / ev[..., 0].clamp(min=1e-30)
@@ -497,12 +518,19 @@ def refine_poses(
     out = RefineResult(T_f_to_t=T)
     eye6 = torch.eye(6 * (Fn - 1), dtype=torch.float64, device=dev)
     last = None
-    for li, (scale, n_it, stride, gate) in enumerate(zip(settings.scales, settings.iters, settings.point_stride, settings.max_dist_m)):
+    for li, (scale, n_it, stride, gate) in enumerate(
+        zip(settings.scales, settings.iters, settings.point_stride, settings.max_dist_m)
+    ):
         level = Level(rgb, depth_m, K, scale, stride, maps_of)
         if scale == 1:
             out.normals = level.maps[:, 3:6]  # channels X(3) N(3) ...
-        ls = LevelSettings(settings.geo_scale_m[li], settings.photo_scale, settings.photo_weight, settings.robust,
-                           settings.geo_ref_depth_m)
+        ls = LevelSettings(
+            settings.geo_scale_m[li],
+            settings.photo_scale,
+            settings.photo_weight,
+            settings.robust,
+            settings.geo_ref_depth_m,
+        )
         lam = settings.damping
         cur = _system(level, T, pairs, ls, gate)
         if li == len(settings.scales) - 1:
@@ -536,7 +564,7 @@ def refine_poses(
     n_valid = level.valid.sum(1).clamp(min=1)
     frac = torch.ones(Fn, dtype=torch.float64, device=dev)
     sel = pairs[:, 0] == 0  # neighbour b into the target
-    frac[pairs[sel, 1]] = (inl[sel].to(torch.float64) / n_valid[pairs[sel, 1]].to(torch.float64))
+    frac[pairs[sel, 1]] = inl[sel].to(torch.float64) / n_valid[pairs[sel, 1]].to(torch.float64)
     out.inlier_fraction = frac
     cond = torch.ones(Fn, dtype=torch.float64, device=dev)
     H_tgt = torch.zeros(Fn, 6, 6, dtype=torch.float64, device=dev)
@@ -547,22 +575,31 @@ def refine_poses(
     # in metres and in units of the sensor noise the frame set shows
     out.noise_sigma_1m = estimate_noise_sigma_1m(depth_m.detach().cpu())
     out.residual_m, out.residual_sigmas = target_residual_stats(
-        level, T, pairs[sel], replace(ls, geo_ref_depth_m=0.0), settings.max_dist_m[-1], Fn, out.noise_sigma_1m)
+        level, T, pairs[sel], replace(ls, geo_ref_depth_m=0.0), settings.max_dist_m[-1], Fn, out.noise_sigma_1m
+    )
     return out
 
 
 NOISE_GATE_SIGMAS = 4.0  # association gate of the noise-relative residual (sigmas; the renderer's gap_sigmas)
 
 
-def target_residuals(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings, gate: float,
-                     n_frames: int) -> torch.Tensor:
+def target_residuals(
+    level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings, gate: float, n_frames: int
+) -> torch.Tensor:
     """(F,) median |point-to-plane residual| (metres) of the associated points of the
     pairs (0, b), b's points in the target."""
     return target_residual_stats(level, T, pairs, s, gate, n_frames, None)[0]
 
 
-def target_residual_stats(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings, gate: float,
-                          n_frames: int, sigma_1m: float | None) -> tuple[torch.Tensor, torch.Tensor]:
+def target_residual_stats(
+    level: Level,
+    T: torch.Tensor,
+    pairs: torch.Tensor,
+    s: LevelSettings,
+    gate: float,
+    n_frames: int,
+    sigma_1m: float | None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Per frame (F,): the median |point-to-plane residual| (metres) of the associated
     points of the pairs (0, b), b's points in the target, and the median of the same
     residuals in units of the depth noise at each point's depth, ``sigma_1m * z^2``

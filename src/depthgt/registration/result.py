@@ -54,8 +54,13 @@ class RegistrationResult:
             "status": self.status,
             "reason": self.reason,
             "neighbours": [
-                {"offset": int(o), "T_j_to_t": T[i].tolist(), "status": self.neighbour_status[i],
-                 "reason": self.neighbour_reasons[i], "n_correspondences": int(self.n_correspondences[i])}
+                {
+                    "offset": int(o),
+                    "T_j_to_t": T[i].tolist(),
+                    "status": self.neighbour_status[i],
+                    "reason": self.neighbour_reasons[i],
+                    "n_correspondences": int(self.n_correspondences[i]),
+                }
                 for i, o in enumerate(self.offsets[1:])
             ],
             "loss_curve": [float(x) for x in self.loss_curve],

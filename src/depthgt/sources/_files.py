@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -25,7 +25,9 @@ def require_root(root: str | Path | None, kind: str) -> Path:
     return path
 
 
-def probe_depth_size(depth_paths: Sequence[Path], scene_path: Path, samples: int = 15) -> tuple[tuple[int, int], str, list[str]]:
+def probe_depth_size(
+    depth_paths: Sequence[Path], scene_path: Path, samples: int = 15
+) -> tuple[tuple[int, int], str, list[str]]:
     """The scene's depth image size: the most common declared size (PNG headers only,
     nothing decoded) among up to ``samples`` depth images spread evenly over the scene.
 
@@ -52,15 +54,19 @@ def probe_depth_size(depth_paths: Sequence[Path], scene_path: Path, samples: int
         except FrameError as exc:
             log.warning("%s", exc)
     if not sizes:
-        raise SourceError(f"{scene_path}: none of the {len(picks)} sampled depth images is readable, cannot tell the image size")
+        raise SourceError(
+            f"{scene_path}: none of the {len(picks)} sampled depth images is readable, cannot tell the image size"
+        )
     (h, w), count = sizes.most_common(1)[0]  # ties: the size met first
     total = sum(sizes.values())
     what = f"the scene's depth size (that of {count} of {total} sampled depth images)"
     problems = []
     if len(sizes) > 1:
         seen = ", ".join(f"{sw}x{sh} ({c})" for (sh, sw), c in sizes.most_common())
-        problems.append(f"{scene_path}: depth images differ in size ({seen} of {total} sampled); the scene uses {w}x{h}, "
-                        "frames of another size are skipped as size_mismatch")
+        problems.append(
+            f"{scene_path}: depth images differ in size ({seen} of {total} sampled); the scene uses {w}x{h}, "
+            "frames of another size are skipped as size_mismatch"
+        )
         log.warning("%s", problems[-1])
     return (h, w), what, problems
 

@@ -35,9 +35,10 @@ from __future__ import annotations
 
 import importlib
 import re
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Mapping, Protocol, Sequence, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -87,7 +88,7 @@ def known_kinds() -> list[str]:
     return sorted(KINDS)
 
 
-def source_kind(kind: str) -> "SourceKind":
+def source_kind(kind: str) -> SourceKind:
     """The registry entry of ``kind``.
 
     Raises:
@@ -189,7 +190,10 @@ def pose_problem(T: np.ndarray | None) -> tuple[str, str] | None:
         return "invalid_pose", f"pose rotation is not orthonormal (max |R R^T - I| = {err:.3g})"
     det = float(np.linalg.det(R))
     if abs(det - 1.0) > ROTATION_TOL:
-        return "invalid_pose", f"pose rotation has determinant {det:.4g}, expected +1 (a reflection is not a rigid motion)"
+        return (
+            "invalid_pose",
+            f"pose rotation has determinant {det:.4g}, expected +1 (a reflection is not a rigid motion)",
+        )
     return None
 
 
@@ -208,7 +212,9 @@ def check_frame(frame: Frame, expected_hw: tuple[int, int], where: str, need_pos
     """
     h, w = expected_hw
     if frame.depth_m.shape != (h, w):
-        raise FrameError(f"{where}: depth is {frame.depth_m.shape[1]}x{frame.depth_m.shape[0]}, expected {w}x{h}", "size_mismatch")
+        raise FrameError(
+            f"{where}: depth is {frame.depth_m.shape[1]}x{frame.depth_m.shape[0]}, expected {w}x{h}", "size_mismatch"
+        )
     if frame.rgb.shape != (h, w, 3):
         raise FrameError(f"{where}: colour has shape {frame.rgb.shape}, expected {(h, w, 3)}", "size_mismatch")
     if not np.isfinite(frame.depth_m).all():
@@ -234,7 +240,11 @@ class OptionCheck:
 
 
 def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_)) and bool(np.isfinite(v))
+    return (
+        isinstance(v, (int, float, np.integer, np.floating))
+        and not isinstance(v, (bool, np.bool_))
+        and bool(np.isfinite(v))
+    )
 
 
 def _is_seq_of_numbers(v: Any, n: int) -> bool:
@@ -259,7 +269,9 @@ def _intrinsics_ok(shapes: tuple[tuple[int, int], ...]) -> Callable[[Any], bool]
 _BOOL = OptionCheck("true or false", lambda v: isinstance(v, (bool, np.bool_)))
 _DEPTH_SCALE = OptionCheck("a number > 0 (raw depth units per metre)", lambda v: _is_number(v) and v > 0)
 _K33 = OptionCheck("a finite 3x3 matrix with positive focal lengths", _intrinsics_ok(((3, 3),)))
-_K_ANY = OptionCheck("a finite 3x3 (or 4x4) matrix with positive focal lengths", _intrinsics_ok(((3, 3), (4, 4), (3, 4), (4, 3))))
+_K_ANY = OptionCheck(
+    "a finite 3x3 (or 4x4) matrix with positive focal lengths", _intrinsics_ok(((3, 3), (4, 4), (3, 4), (4, 3)))
+)
 
 
 def _int_in(lo: int, hi: int) -> OptionCheck:
@@ -267,7 +279,9 @@ def _int_in(lo: int, hi: int) -> OptionCheck:
 
 
 def _number(lo: float, strict: bool) -> OptionCheck:
-    return OptionCheck(f"a number {'>' if strict else '>='} {lo:g}", lambda v: _is_number(v) and (v > lo if strict else v >= lo))
+    return OptionCheck(
+        f"a number {'>' if strict else '>='} {lo:g}", lambda v: _is_number(v) and (v > lo if strict else v >= lo)
+    )
 
 
 _OPTIONAL_POSITIVE = OptionCheck("null or a number > 0", lambda v: v is None or (_is_number(v) and v > 0))
@@ -280,13 +294,28 @@ SYNTHETIC_FAMILIES = ("room", "varied")
 #: Fields of depthgt.synth.noise.KinectNoise (option ``noise_<field>``); a test keeps
 #: this list equal to the dataclass, which is not imported here (it needs OpenCV).
 SYNTHETIC_NOISE_FIELDS = (
-    "baseline_m", "disparity_step_px", "sigma_disp_px", "sigma_disp_smooth_px", "sigma_disp_falloff", "jitter_px", "shadow_tol_px",
-    "shadow_grow_px", "edge_band_px", "edge_rel_jump", "edge_drop_prob", "grazing_cos", "dark_level", "min_range_m",
-    "max_range_m", "far_ramp_m", "blob_fraction", "border_right_px", "round_mm",
+    "baseline_m",
+    "disparity_step_px",
+    "sigma_disp_px",
+    "sigma_disp_smooth_px",
+    "sigma_disp_falloff",
+    "jitter_px",
+    "shadow_tol_px",
+    "shadow_grow_px",
+    "edge_band_px",
+    "edge_rel_jump",
+    "edge_drop_prob",
+    "grazing_cos",
+    "dark_level",
+    "min_range_m",
+    "max_range_m",
+    "far_ramp_m",
+    "blob_fraction",
+    "border_right_px",
+    "round_mm",
 )
 #: Default of the synthetic ``seed`` option (part of a synthetic scene's identity).
 SYNTHETIC_DEFAULT_SEED = 0
-
 
 
 @dataclass(frozen=True)
@@ -334,42 +363,59 @@ KINDS: dict[str, SourceKind] = {
     "scannet": SourceKind(
         "depthgt.sources.scannet",
         {"depth_scale": _DEPTH_SCALE, "require_pose": _BOOL, "intrinsics": _K_ANY},
-        poses_optional=True, single_file=True),  # colour: another camera, calibrated apart
+        poses_optional=True,
+        single_file=True,
+    ),  # colour: another camera, calibrated apart
     "sevenscenes": SourceKind(
         "depthgt.sources.sevenscenes",
         {"depth_scale": _DEPTH_SCALE, "require_pose": _BOOL, "intrinsics": _K33},
-        poses_optional=True),  # colour: another camera, not registered to depth
-    "tum": SourceKind("depthgt.sources.tum", {
-        "max_dt": _number(0.0, strict=False),
-        "camera": OptionCheck("one of fr1, fr2, fr3, ros_default", lambda v: v in ("fr1", "fr2", "fr3", "ros_default")),
-        "intrinsics": _K33,
-        "depth_scale": _DEPTH_SCALE,
-        "require_pose": _BOOL,
-        "undistort": _BOOL,
-        "distortion": OptionCheck("5 finite numbers k1, k2, p1, p2, k3", lambda v: _is_seq_of_numbers(v, 5)),
-        "interpolate_poses": _BOOL,
-    }, poses_optional=True),  # colour: 10-20 ms from the depth's instant
-    "synthetic": SourceKind("depthgt.sources.synthetic", {
-        "seed": _int_in(0, 2**63 - 1),
-        "n_frames": _int_in(1, 1_000_000),
-        "n_scenes": _int_in(1, 1_000_000),
-        "width": _int_in(32, 4096),
-        "height": _int_in(32, 4096),
-        "fx": _OPTIONAL_POSITIVE,
-        "fy": _OPTIONAL_POSITIVE,
-        "cx": _OPTIONAL_POSITIVE,
-        "cy": _OPTIONAL_POSITIVE,
-        "noise": _BOOL,
-        "rgb_noise": _number(0.0, strict=False),
-        "step_mm": _number(0.0, strict=True),
-        "sweep_m": _number(0.0, strict=False),
-        # names mirror depthgt.synth.noise.SENSOR_PROFILES and synthetic.FAMILIES (a test keeps them equal)
-        "sensor": OptionCheck("one of kinect_v1, coarse_stereo", lambda v: v in SYNTHETIC_SENSORS),
-        "family": OptionCheck("one of room, varied", lambda v: v in SYNTHETIC_FAMILIES),
-        **{f"noise_{name}": OptionCheck("a number >= 0 (or true/false for round_mm)",
-                                        lambda v: isinstance(v, (bool, np.bool_)) or (_is_number(v) and v >= 0))
-           for name in SYNTHETIC_NOISE_FIELDS},
-    }, colour_matches_depth=True),  # rendered from the depth's camera at its instant
+        poses_optional=True,
+    ),  # colour: another camera, not registered to depth
+    "tum": SourceKind(
+        "depthgt.sources.tum",
+        {
+            "max_dt": _number(0.0, strict=False),
+            "camera": OptionCheck(
+                "one of fr1, fr2, fr3, ros_default", lambda v: v in ("fr1", "fr2", "fr3", "ros_default")
+            ),
+            "intrinsics": _K33,
+            "depth_scale": _DEPTH_SCALE,
+            "require_pose": _BOOL,
+            "undistort": _BOOL,
+            "distortion": OptionCheck("5 finite numbers k1, k2, p1, p2, k3", lambda v: _is_seq_of_numbers(v, 5)),
+            "interpolate_poses": _BOOL,
+        },
+        poses_optional=True,
+    ),  # colour: 10-20 ms from the depth's instant
+    "synthetic": SourceKind(
+        "depthgt.sources.synthetic",
+        {
+            "seed": _int_in(0, 2**63 - 1),
+            "n_frames": _int_in(1, 1_000_000),
+            "n_scenes": _int_in(1, 1_000_000),
+            "width": _int_in(32, 4096),
+            "height": _int_in(32, 4096),
+            "fx": _OPTIONAL_POSITIVE,
+            "fy": _OPTIONAL_POSITIVE,
+            "cx": _OPTIONAL_POSITIVE,
+            "cy": _OPTIONAL_POSITIVE,
+            "noise": _BOOL,
+            "rgb_noise": _number(0.0, strict=False),
+            "step_mm": _number(0.0, strict=True),
+            "sweep_m": _number(0.0, strict=False),
+            # names mirror depthgt.synth.noise.SENSOR_PROFILES and synthetic.FAMILIES (a test keeps them equal)
+            "sensor": OptionCheck("one of kinect_v1, coarse_stereo", lambda v: v in SYNTHETIC_SENSORS),
+            "family": OptionCheck("one of room, varied", lambda v: v in SYNTHETIC_FAMILIES),
+            **{
+                f"noise_{name}": OptionCheck(
+                    "a number >= 0 (or true/false for round_mm)",
+                    lambda v: isinstance(v, (bool, np.bool_)) or (_is_number(v) and v >= 0),
+                )
+                for name in SYNTHETIC_NOISE_FIELDS
+            },
+        },
+        colour_matches_depth=True,
+    ),  # rendered from the depth's camera at its instant
 }
 
 
@@ -378,7 +424,6 @@ def register(kind: str, entry: SourceKind) -> None:
     if not isinstance(entry, SourceKind):
         raise TypeError(f"register({kind!r}, ...): a SourceKind, got {type(entry).__name__}")
     KINDS[kind] = entry
-
 
 
 def option_names(kind: str) -> list[str] | None:
@@ -477,15 +522,21 @@ def check_scene_identity(sources: Sequence[Mapping[str, Any]], scenes: Mapping[s
             what = f"scene {scene!r}" if other_scene == scene else f"scenes {other_scene!r} and {scene!r}"
             if other == name:
                 twice = "is listed twice" if other_scene == scene else "are the same data"
-                problems.append(f"sources {name!r}: {what} {twice} ({_describe(key)}); every frame set would be built "
-                                f"and counted twice")
+                problems.append(
+                    f"sources {name!r}: {what} {twice} ({_describe(key)}); every frame set would be built "
+                    f"and counted twice"
+                )
             elif other_split != split or "auto" in (split, other_split):
                 # ``auto`` splits by blocks drawn per source: the copies land in different splits
-                problems.append(f"sources {other!r} (split: {other_split}) and {name!r} (split: {split}) hold the same "
-                                f"data, {what} ({_describe(key)}): identical ground truth would end up in two splits")
+                problems.append(
+                    f"sources {other!r} (split: {other_split}) and {name!r} (split: {split}) hold the same "
+                    f"data, {what} ({_describe(key)}): identical ground truth would end up in two splits"
+                )
             else:
-                problems.append(f"sources {other!r} and {name!r} (both split: {split}) hold the same data, {what} "
-                                f"({_describe(key)}): its frame sets would be counted twice")
+                problems.append(
+                    f"sources {other!r} and {name!r} (both split: {split}) hold the same data, {what} "
+                    f"({_describe(key)}): its frame sets would be counted twice"
+                )
     if problems:
         raise ConfigError("config sources: " + "; ".join(problems))
 

@@ -71,7 +71,9 @@ def _check_intrinsics(K: np.ndarray, where: str) -> np.ndarray:
     if K.shape in ((4, 4), (3, 4), (4, 3)):
         K = K[:3, :3]
     if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise SourceError(f"{where}: intrinsics must be a finite 3x3 matrix with positive focal lengths, got {K.tolist()}")
+        raise SourceError(
+            f"{where}: intrinsics must be a finite 3x3 matrix with positive focal lengths, got {K.tolist()}"
+        )
     return K.copy()
 
 
@@ -131,7 +133,9 @@ class ScanNetExportedScene(NumberedFrames):
             pose_path = self._pose.get(n, self.path / "pose" / f"{n}.txt")
             if pose_path.is_file() or self.require_pose:
                 T = read_pose_txt(pose_path)
-        return _finish(Frame(rgb, depth_m, T), self.image_size, f"{self.path} frame {n}", self.require_pose and self.has_poses)
+        return _finish(
+            Frame(rgb, depth_m, T), self.image_size, f"{self.path} frame {n}", self.require_pose and self.has_poses
+        )
 
 
 class ScanNetSensScene:
@@ -148,7 +152,9 @@ class ScanNetSensScene:
         self.problems = list(self.sens.problems)
         self.image_size = self.sens.header.depth_hw
         where = f"{self.path} (option intrinsics)" if intrinsics is not None else f"{self.path} header intrinsic_depth"
-        self.intrinsics = _check_intrinsics(self.sens.header.intrinsic_depth if intrinsics is None else intrinsics, where)
+        self.intrinsics = _check_intrinsics(
+            self.sens.header.intrinsic_depth if intrinsics is None else intrinsics, where
+        )
 
     def __len__(self) -> int:
         return len(self.sens)
@@ -227,7 +233,9 @@ def open_scene(
     path = _root(root)
     folder = path / scene
     if folder.is_dir() and _is_exported(folder):
-        return ScanNetExportedScene(folder, scene, depth_scale=depth_scale, require_pose=require_pose, intrinsics=intrinsics)
+        return ScanNetExportedScene(
+            folder, scene, depth_scale=depth_scale, require_pose=require_pose, intrinsics=intrinsics
+        )
     for sens in (folder / f"{scene}.sens", path / f"{scene}.sens"):
         if sens.is_file():
             return ScanNetSensScene(sens, scene, require_pose=require_pose, intrinsics=intrinsics)

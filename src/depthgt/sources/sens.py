@@ -140,9 +140,13 @@ def read_header(path: str | Path) -> SensHeader:
     color_compression = COLOR_COMPRESSION.get(c_comp, f"invalid({c_comp})")
     depth_compression = DEPTH_COMPRESSION.get(d_comp, f"invalid({d_comp})")
     if color_compression not in SUPPORTED_COLOR:
-        raise SourceError(f"{path}: colour compression {color_compression!r} is not supported ({sorted(SUPPORTED_COLOR)})")
+        raise SourceError(
+            f"{path}: colour compression {color_compression!r} is not supported ({sorted(SUPPORTED_COLOR)})"
+        )
     if depth_compression not in SUPPORTED_DEPTH:
-        raise SourceError(f"{path}: depth compression {depth_compression!r} is not supported ({sorted(SUPPORTED_DEPTH)})")
+        raise SourceError(
+            f"{path}: depth compression {depth_compression!r} is not supported ({sorted(SUPPORTED_DEPTH)})"
+        )
     if min(cw, ch, dw, dh) == 0 or max(cw, ch, dw, dh) > MAX_IMAGE_SIDE or max(cw * ch, dw * dh) > MAX_IMAGE_PIXELS:
         raise SourceError(
             f"{path}: corrupt .sens header (colour {cw}x{ch}, depth {dw}x{dh}; at most {MAX_IMAGE_SIDE} pixels per "
@@ -247,9 +251,17 @@ class SensFile:
             if rest == _IMU_COUNT.size + n_imu * _IMU_FRAME_BYTES:
                 return
         more = _count_frame_records(f, pos, file_size)
-        hint = (f"it holds {more} more frame record(s): the header's frame count ({self.header.num_frames}) is "
-                "probably too low and those frames are not read") if more else "it is not a valid IMU block"
-        self._problem(f"{self.path}: {rest} unexpected bytes after the {self.header.num_frames} announced frames ({hint})")
+        hint = (
+            (
+                f"it holds {more} more frame record(s): the header's frame count ({self.header.num_frames}) is "
+                "probably too low and those frames are not read"
+            )
+            if more
+            else "it is not a valid IMU block"
+        )
+        self._problem(
+            f"{self.path}: {rest} unexpected bytes after the {self.header.num_frames} announced frames ({hint})"
+        )
 
     def __len__(self) -> int:
         return int(self.poses.shape[0])
@@ -263,7 +275,9 @@ class SensFile:
         if size == 0:
             raise FrameError(f"{where}: empty payload (0 bytes)", "unreadable")
         if size > limit:
-            raise FrameError(f"{where}: payload of {size} bytes, more than a frame of this size can take ({limit})", "unreadable")
+            raise FrameError(
+                f"{where}: payload of {size} bytes, more than a frame of this size can take ({limit})", "unreadable"
+            )
         with self.path.open("rb") as f:
             f.seek(offset)
             data = f.read(size)
@@ -284,8 +298,9 @@ class SensFile:
         h, w = self.header.color_hw
         comp = self.header.color_compression
         where = f"{self.path} frame {i} colour"
-        data = self._payload(int(self.color_offsets[i]), int(self.color_sizes[i]), where,
-                             max_payload_bytes(comp, (h, w), 3))
+        data = self._payload(
+            int(self.color_offsets[i]), int(self.color_sizes[i]), where, max_payload_bytes(comp, (h, w), 3)
+        )
         if comp == "raw":
             if len(data) != h * w * 3:
                 raise FrameError(f"{where}: raw payload has {len(data)} bytes, expected {h * w * 3}", "unreadable")
@@ -305,8 +320,9 @@ class SensFile:
         expected = h * w * 2
         comp = self.header.depth_compression
         where = f"{self.path} frame {i} depth"
-        data = self._payload(int(self.depth_offsets[i]), int(self.depth_sizes[i]), where,
-                             max_payload_bytes(comp, (h, w), 2))
+        data = self._payload(
+            int(self.depth_offsets[i]), int(self.depth_sizes[i]), where, max_payload_bytes(comp, (h, w), 2)
+        )
         if comp == "zlib_ushort":
             data = _inflate_bounded(data, expected, where)
         if len(data) != expected:
@@ -357,7 +373,9 @@ def _inflate_bounded(data: bytes, expected: int, where: str) -> bytes:
         out = inflater.decompress(data, expected)
         # input left over once ``expected`` bytes are out: only the stream's end may remain
         if inflater.unconsumed_tail and inflater.decompress(inflater.unconsumed_tail, 1):
-            raise FrameError(f"{where}: zlib payload inflates beyond the {expected} bytes of a depth image", "unreadable")
+            raise FrameError(
+                f"{where}: zlib payload inflates beyond the {expected} bytes of a depth image", "unreadable"
+            )
     except zlib.error as exc:
         raise FrameError(f"{where}: corrupt zlib payload ({exc})", "unreadable") from exc
     if not inflater.eof:

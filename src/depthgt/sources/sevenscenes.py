@@ -95,10 +95,14 @@ class SevenScenesScene(NumberedFrames):
                 except ValueError as exc:
                     raise SourceError(f"{where}: cannot parse intrinsics ({exc})") from exc
             else:
-                log.info("%s: no camera-intrinsics.txt, using the 7-Scenes default fx=fy=585, cx=320, cy=240", self.path)
+                log.info(
+                    "%s: no camera-intrinsics.txt, using the 7-Scenes default fx=fy=585, cx=320, cy=240", self.path
+                )
                 K, where = DEFAULT_INTRINSICS, "7-Scenes default"
         if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise SourceError(f"{where}: intrinsics must be a finite 3x3 matrix with positive focal lengths, got {K.tolist()}")
+            raise SourceError(
+                f"{where}: intrinsics must be a finite 3x3 matrix with positive focal lengths, got {K.tolist()}"
+            )
         return K.copy()
 
     def _file(self, table: dict[int, Path], n: int, suffix: str) -> Path:
@@ -111,7 +115,9 @@ class SevenScenesScene(NumberedFrames):
         n = int(self._ids[i])
         depth_path = self._file(self._depth, n, "depth.png")
         depth_m = self._read_depth(depth_path)
-        depth_m[depth_m >= np.float32((INVALID_RAW - 0.5) / self.depth_scale)] = 0.0  # half a unit below: no float rounding issue
+        depth_m[depth_m >= np.float32((INVALID_RAW - 0.5) / self.depth_scale)] = (
+            0.0  # half a unit below: no float rounding issue
+        )
         color_path = self._file(self._color, n, "color.png")
         rgb = fit_rgb_to_depth(read_rgb(color_path), self.image_size, str(color_path))
         T = None

@@ -99,8 +99,9 @@ def parse_scene_name(scene: str) -> tuple[str, int]:
     SourceError naming it."""
     m = _NAME.match(str(scene))
     if m is None:
-        raise SourceError(f"synthetic scene name {scene!r} is not of the form room_000, room_001, ... or "
-                          f"varied_000, varied_001, ...")
+        raise SourceError(
+            f"synthetic scene name {scene!r} is not of the form room_000, room_001, ... or varied_000, varied_001, ..."
+        )
     return m.group(1), int(m.group(2))
 
 
@@ -113,7 +114,12 @@ def _int_option(opts, key, lo):
 
 def _float_option(opts, key, lo, strict=True):
     v = opts[key]
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not np.isfinite(v) or (v <= lo if strict else v < lo):
+    if (
+        isinstance(v, bool)
+        or not isinstance(v, (int, float, np.floating, np.integer))
+        or not np.isfinite(v)
+        or (v <= lo if strict else v < lo)
+    ):
         raise ConfigError(f"synthetic option {key!r} must be a number {'>' if strict else '>='} {lo}, got {v!r}")
     return float(v)
 
@@ -137,7 +143,9 @@ def _resolve_options(options: dict[str, Any], family: str = "room") -> tuple[dic
     if not isinstance(opts["noise"], (bool, np.bool_)):
         raise ConfigError(f"synthetic option 'noise' must be true or false, got {opts['noise']!r}")
     if opts["sensor"] not in SENSOR_PROFILES:
-        raise ConfigError(f"synthetic option 'sensor' must be one of {', '.join(SENSOR_PROFILES)}, got {opts['sensor']!r}")
+        raise ConfigError(
+            f"synthetic option 'sensor' must be one of {', '.join(SENSOR_PROFILES)}, got {opts['sensor']!r}"
+        )
     if opts["family"] not in FAMILIES:
         raise ConfigError(f"synthetic option 'family' must be one of {', '.join(FAMILIES)}, got {opts['family']!r}")
     opts["rgb_noise"] = _float_option(opts, "rgb_noise", 0.0, strict=False)
@@ -161,7 +169,12 @@ def _intrinsics(opts: dict[str, Any], family: str, rng: np.random.Generator) -> 
         cx, cy = 319.5 + rng.uniform(-8.0, 8.0), 239.5 + rng.uniform(-6.0, 6.0)
     else:
         fx, fy, cx, cy = 585.0, 585.0, 320.0, 240.0
-    defaults = {"fx": fx * w / 640, "fy": fy * h / 480, "cx": (cx + 0.5) * w / 640 - 0.5, "cy": (cy + 0.5) * h / 480 - 0.5}
+    defaults = {
+        "fx": fx * w / 640,
+        "fy": fy * h / 480,
+        "cx": (cx + 0.5) * w / 640 - 0.5,
+        "cy": (cy + 0.5) * h / 480 - 0.5,
+    }
     v = {k: (opts[k] if opts[k] is not None else defaults[k]) for k in defaults}
     return np.array([[v["fx"], 0.0, v["cx"]], [0.0, v["fy"], v["cy"]], [0.0, 0.0, 1.0]])
 
@@ -208,8 +221,13 @@ class SyntheticScene:
         """The room (its geometry and textures)."""
         gen = generate_space_layout if self.family == "varied" else generate_layout
         layout = gen(self._rng(_STREAM_LAYOUT))
-        log.debug("built synthetic %s (seed %d): room %s m, %d primitives", self.name, self.seed,
-                  layout.size.round(2).tolist(), len(layout.primitives))
+        log.debug(
+            "built synthetic %s (seed %d): room %s m, %d primitives",
+            self.name,
+            self.seed,
+            layout.size.round(2).tolist(),
+            len(layout.primitives),
+        )
         return layout
 
     @cached_property
@@ -217,10 +235,18 @@ class SyntheticScene:
         """The camera path over the ``n_frames`` frames."""
         step_m = self.options["step_mm"] / 1000.0
         if self.family == "varied":
-            return make_walk_path(self.layout, self._rng(_STREAM_PATH), self.n_frames, self.intrinsics, self.image_size,
-                                  step_m=step_m)
-        return make_path(self.layout, self._rng(_STREAM_PATH), self.n_frames, self.intrinsics, self.image_size,
-                         step_m=step_m, sweep_m=self.options["sweep_m"])
+            return make_walk_path(
+                self.layout, self._rng(_STREAM_PATH), self.n_frames, self.intrinsics, self.image_size, step_m=step_m
+            )
+        return make_path(
+            self.layout,
+            self._rng(_STREAM_PATH),
+            self.n_frames,
+            self.intrinsics,
+            self.image_size,
+            step_m=step_m,
+            sweep_m=self.options["sweep_m"],
+        )
 
     @cached_property
     def _ir_return(self) -> np.ndarray:
@@ -268,7 +294,9 @@ class SyntheticScene:
             if self._gloss.any():  # glossy surfaces return little at oblique angles, saturate head-on
                 cos = _cos_incidence(normals_cam, self.intrinsics, self.image_size)
                 ir = infrared_return(alb.mean(-1), self._ir_return[hits.material], self._gloss[hits.material], cos)
-            depth = kinect_noise(clean, self.intrinsics, self._rng(_STREAM_DEPTH, int(i)), self.noise_settings, normals_cam, ir)
+            depth = kinect_noise(
+                clean, self.intrinsics, self._rng(_STREAM_DEPTH, int(i)), self.noise_settings, normals_cam, ir
+            )
         else:
             depth = clean.copy()
         return Frame(rgb=rgb_u8, depth_m=depth, T_world_cam=T_world_cam, clean_depth_m=clean)
@@ -293,7 +321,9 @@ def _cos_incidence(normals_cam: np.ndarray, K: np.ndarray, hw: tuple[int, int]) 
     x_n = (u - np.float32(K[0, 2])) / np.float32(K[0, 0])
     y_n = (v - np.float32(K[1, 2])) / np.float32(K[1, 1])
     norm = np.sqrt(x_n * x_n + y_n * y_n + 1)
-    return (np.abs(normals_cam[..., 0] * x_n + normals_cam[..., 1] * y_n + normals_cam[..., 2]) / norm).astype(np.float32)
+    return (np.abs(normals_cam[..., 0] * x_n + normals_cam[..., 1] * y_n + normals_cam[..., 2]) / norm).astype(
+        np.float32
+    )
 
 
 def open_scene(root: str | None, scene: str, **options: Any) -> SyntheticScene:

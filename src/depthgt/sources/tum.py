@@ -51,7 +51,16 @@ from depthgt.io import fit_rgb_to_depth, read_rgb
 from depthgt.sources._files import FileScene, list_sequences, probe_depth_size, require_root
 from depthgt.sources.base import Frame, check_frame, usable_pose
 
-__all__ = ["CAMERAS", "DISTORTION", "DEPTH_SCALE", "TumScene", "associate", "poses_from_tum", "open_scene", "list_scenes"]
+__all__ = [
+    "CAMERAS",
+    "DISTORTION",
+    "DEPTH_SCALE",
+    "TumScene",
+    "associate",
+    "poses_from_tum",
+    "open_scene",
+    "list_scenes",
+]
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +101,9 @@ def _read_list(path: Path, columns: int) -> tuple[np.ndarray, np.ndarray]:
     return np.array(rows, dtype=str).reshape(len(rows), columns), np.array(numbers, dtype=np.int64)
 
 
-def _numbers(col: np.ndarray, lines: np.ndarray, path: Path, what: str = "timestamp", finite: bool = True) -> np.ndarray:
+def _numbers(
+    col: np.ndarray, lines: np.ndarray, path: Path, what: str = "timestamp", finite: bool = True
+) -> np.ndarray:
     """(N,) float64 of a column; SourceError naming the file and line of the first value
     that does not parse or (with ``finite``) is not finite: a ``nan`` timestamp would
     pair with anything. Non-finite pose values are left to the per-frame pose check."""
@@ -107,8 +118,9 @@ def _numbers(col: np.ndarray, lines: np.ndarray, path: Path, what: str = "timest
         raise
     bad = np.flatnonzero(~np.isfinite(values)) if finite else ()
     if len(bad):
-        raise SourceError(f"{path}: line {lines[bad[0]]}: {what} {str(col[bad[0]])!r} is not finite "
-                          f"({len(bad)} such value(s))")
+        raise SourceError(
+            f"{path}: line {lines[bad[0]]}: {what} {str(col[bad[0]])!r} is not finite ({len(bad)} such value(s))"
+        )
     return values
 
 
@@ -132,8 +144,10 @@ def clean_list(t: np.ndarray, files: np.ndarray, lines: np.ndarray, path: Path) 
     order = np.argsort(t, kind="stable")
     backwards = np.flatnonzero(np.diff(t) < 0)
     if backwards.size:
-        problems.append(f"{path}: {backwards.size} entries out of time order (first at line {lines[backwards[0] + 1]}); "
-                        "sorted by timestamp")
+        problems.append(
+            f"{path}: {backwards.size} entries out of time order (first at line {lines[backwards[0] + 1]}); "
+            "sorted by timestamp"
+        )
     keep, seen_t, seen_f, dropped = [], {}, {}, []
     for k in order.tolist():
         earlier = seen_t.get(t[k], seen_f.get(files[k]))
@@ -144,8 +158,10 @@ def clean_list(t: np.ndarray, files: np.ndarray, lines: np.ndarray, path: Path) 
         keep.append(k)
     if dropped:
         first, of = min(dropped)
-        problems.append(f"{path}: {len(dropped)} repeated entries dropped (same timestamp or file; first: line {first} "
-                        f"repeats line {of})")
+        problems.append(
+            f"{path}: {len(dropped)} repeated entries dropped (same timestamp or file; first: line {first} "
+            f"repeats line {of})"
+        )
     return np.array(keep, dtype=np.int64), problems
 
 
@@ -172,8 +188,9 @@ def associate(t_query: np.ndarray, t_ref: np.ndarray) -> tuple[np.ndarray, np.nd
     return order[nearest].astype(np.int64), np.abs(ts[nearest] - t_query)
 
 
-def interpolate_rows(t_query: np.ndarray, t_ref: np.ndarray, rows: np.ndarray, max_dt: float
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def interpolate_rows(
+    t_query: np.ndarray, t_ref: np.ndarray, rows: np.ndarray, max_dt: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Trajectory rows ``tx ty tz qx qy qz qw`` at the query times.
 
     Between the two reference rows around a query time, when both are within ``max_dt``
@@ -276,7 +293,9 @@ class TumScene(FileScene):
         if self.has_poses:
             gt, gt_lines = _read_list(gt_path, 8)
             t_gt = _numbers(gt[:, 0], gt_lines, gt_path)
-            values = np.stack([_numbers(gt[:, c], gt_lines, gt_path, "pose value", finite=False) for c in range(1, 8)], axis=1)
+            values = np.stack(
+                [_numbers(gt[:, c], gt_lines, gt_path, "pose value", finite=False) for c in range(1, 8)], axis=1
+            )
             if interpolate_poses:
                 rows, self._pose_dt = interpolate_rows(t_depth, t_gt, values, self.max_dt)
                 self._poses = poses_from_tum(rows)
@@ -286,7 +305,9 @@ class TumScene(FileScene):
                 self._pose_index, self._pose_dt = associate(t_depth, t_gt)
         n_rgb = int((self._rgb_dt > self.max_dt).sum())
         if n_rgb:
-            log.info("%s: %d of %d depth frames have no colour within %.3f s", self.path, n_rgb, t_depth.size, self.max_dt)
+            log.info(
+                "%s: %d of %d depth frames have no colour within %.3f s", self.path, n_rgb, t_depth.size, self.max_dt
+            )
         self.image_size = self._probe_size()
 
     def _intrinsics(self, camera: str | None, intrinsics) -> np.ndarray:
@@ -319,7 +340,9 @@ class TumScene(FileScene):
             distortion = DISTORTION[self.camera]
         d = np.asarray(distortion, dtype=np.float64).reshape(-1)
         if d.shape != (5,) or not np.isfinite(d).all():
-            raise SourceError(f"{self.path} (option distortion): need 5 finite numbers k1, k2, p1, p2, k3, got {distortion!r}")
+            raise SourceError(
+                f"{self.path} (option distortion): need 5 finite numbers k1, k2, p1, p2, k3, got {distortion!r}"
+            )
         return None if not d.any() else d
 
     def _undistort(self, image: np.ndarray, nearest: bool) -> np.ndarray:
@@ -330,8 +353,9 @@ class TumScene(FileScene):
             return image
         if self._maps is None:
             h, w = self.image_size
-            self._maps = cv2.initUndistortRectifyMap(self.intrinsics, self.distortion, None, self.intrinsics, (w, h),
-                                                     cv2.CV_32FC1)
+            self._maps = cv2.initUndistortRectifyMap(
+                self.intrinsics, self.distortion, None, self.intrinsics, (w, h), cv2.CV_32FC1
+            )
         interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
         return cv2.remap(image, self._maps[0], self._maps[1], interp, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
@@ -367,7 +391,8 @@ class TumScene(FileScene):
         where = f"{self.path} depth {self._depth_ids[i]}"
         if self._rgb_dt[i] > self.max_dt:
             raise FrameError(
-                f"{depth_path}: no colour image within {self.max_dt} s (nearest {self._rgb_dt[i]:.4f} s)", "no_association"
+                f"{depth_path}: no colour image within {self.max_dt} s (nearest {self._rgb_dt[i]:.4f} s)",
+                "no_association",
             )
         need_pose = self.require_pose and self.has_poses
         T = None
@@ -419,8 +444,16 @@ def open_scene(
             malformed lists, unknown camera.
     """
     path = _root(root)
-    opts = dict(max_dt=max_dt, camera=camera, intrinsics=intrinsics, depth_scale=depth_scale, require_pose=require_pose,
-                undistort=undistort, distortion=distortion, interpolate_poses=interpolate_poses)
+    opts = dict(
+        max_dt=max_dt,
+        camera=camera,
+        intrinsics=intrinsics,
+        depth_scale=depth_scale,
+        require_pose=require_pose,
+        undistort=undistort,
+        distortion=distortion,
+        interpolate_poses=interpolate_poses,
+    )
     if _is_sequence(path) and scene in (".", path.resolve().name):
         return TumScene(path, path.resolve().name, **opts)
     folder = path / scene

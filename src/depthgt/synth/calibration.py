@@ -16,7 +16,7 @@ and tests/test_synth.py).
 
 from __future__ import annotations
 
-from typing import Iterable, Sequence
+from collections.abc import Iterable, Sequence
 
 import cv2
 import numpy as np
@@ -114,12 +114,35 @@ def sensor_statistics(
     r = np.concatenate(rs)
     n_img = len(overall)
     rows = [
-        dict(metric="holes_overall", bin_lo_m=np.nan, bin_hi_m=np.nan, value=float(np.mean(overall)), unit="fraction", n_pixels=n_img),
-        dict(metric="holes_interior", bin_lo_m=np.nan, bin_hi_m=np.nan, value=float(np.mean(interior)), unit="fraction", n_pixels=n_img),
+        dict(
+            metric="holes_overall",
+            bin_lo_m=np.nan,
+            bin_hi_m=np.nan,
+            value=float(np.mean(overall)),
+            unit="fraction",
+            n_pixels=n_img,
+        ),
+        dict(
+            metric="holes_interior",
+            bin_lo_m=np.nan,
+            bin_hi_m=np.nan,
+            value=float(np.mean(interior)),
+            unit="fraction",
+            n_pixels=n_img,
+        ),
     ]
     for lo, hi in zip(bins_m[:-1], bins_m[1:]):
         sel = (z >= lo) & (z < hi)
-        rows.append(dict(metric="noise_std", bin_lo_m=float(lo), bin_hi_m=float(hi), value=_robust_std(r[sel]), unit="m", n_pixels=int(sel.sum())))
+        rows.append(
+            dict(
+                metric="noise_std",
+                bin_lo_m=float(lo),
+                bin_hi_m=float(hi),
+                value=_robust_std(r[sel]),
+                unit="m",
+                n_pixels=int(sel.sum()),
+            )
+        )
     return pd.DataFrame(rows)
 
 

@@ -93,14 +93,20 @@ class CameraPath:
         """Camera centre, gaze target (world, metres) and roll (rad) at frame ``i``."""
         # arc around the focus; radius and height breathe slowly
         # speed varies by +-speed_var around step_m over speed_period frames
-        walked = i + self.speed_var * self.speed_period / (2 * np.pi) * np.sin(2 * np.pi * i / self.speed_period + self.phase0)
+        walked = i + self.speed_var * self.speed_period / (2 * np.pi) * np.sin(
+            2 * np.pi * i / self.speed_period + self.phase0
+        )
         ang = self.phase0 + self.step_m * walked / self.radius_m
         rad = self.radius_m + 0.1 * np.sin(2 * np.pi * i / 170.0 + self.phase0)
         height = self.height_m + 0.06 * np.sin(2 * np.pi * i / 130.0 + 2 * self.phase0)
         pos = np.array([self.focus[0] + rad * np.cos(ang), self.focus[1] + rad * np.sin(ang), height])
         # gaze: across the focus to the furniture behind it, sweeping slowly
         radial = np.array([np.cos(ang), np.sin(ang), 0.0])
-        target = self.focus - self.beyond_m * radial + self.gaze_amp_m * np.sin(2 * np.pi * i / self.gaze_period + self.gaze_phase)
+        target = (
+            self.focus
+            - self.beyond_m * radial
+            + self.gaze_amp_m * np.sin(2 * np.pi * i / self.gaze_period + self.gaze_phase)
+        )
         roll = self.roll0_rad
         for amp, period, phase, axis, roll_amp in self.shake:
             w = np.sin(2 * np.pi * i / period + phase)
@@ -250,7 +256,9 @@ class WalkPath:
 
     def position_and_target(self, i: float) -> tuple[np.ndarray, np.ndarray, float]:
         """Camera centre, a gaze target 1 m ahead (world, metres) and roll (rad) at frame ``i``."""
-        walked = i + self.speed_var * self.speed_period / (2 * np.pi) * np.sin(2 * np.pi * i / self.speed_period + self.yaw_phase)
+        walked = i + self.speed_var * self.speed_period / (2 * np.pi) * np.sin(
+            2 * np.pi * i / self.speed_period + self.yaw_phase
+        )
         direction = np.array([np.cos(self.heading), np.sin(self.heading), 0.0])
         pos = self.start + self.step_m * walked * direction
         yaw = self.heading + self.yaw0 + self.yaw_amp * np.sin(2 * np.pi * i / self.yaw_period + self.yaw_phase)
@@ -272,15 +280,25 @@ class WalkPath:
 def _random_walk(layout: Layout, rng: np.random.Generator, step_m: float) -> WalkPath:
     size = layout.size
     margin = 0.45
-    start = np.array([rng.uniform(margin, size[0] - margin), rng.uniform(margin, size[1] - margin), rng.uniform(1.15, 1.8)])
+    start = np.array(
+        [rng.uniform(margin, size[0] - margin), rng.uniform(margin, size[1] - margin), rng.uniform(1.15, 1.8)]
+    )
     # walk along the long axis, towards its farther end, so that the far wall is in view
     axis = 0 if size[0] >= size[1] else 1
     towards = 1.0 if start[axis] < size[axis] / 2 else -1.0
     heading = (0.0 if towards > 0 else np.pi) if axis == 0 else towards * np.pi / 2
     heading += rng.uniform(-0.5, 0.5)
     k = 4
-    shake = np.stack([rng.uniform(0.0005, 0.0015, k), rng.uniform(6, 25, k), rng.uniform(0, 2 * np.pi, k),
-                      rng.integers(0, 3, k).astype(np.float64), np.radians(rng.uniform(0.05, 0.15, k))], 1)
+    shake = np.stack(
+        [
+            rng.uniform(0.0005, 0.0015, k),
+            rng.uniform(6, 25, k),
+            rng.uniform(0, 2 * np.pi, k),
+            rng.integers(0, 3, k).astype(np.float64),
+            np.radians(rng.uniform(0.05, 0.15, k)),
+        ],
+        1,
+    )
     return WalkPath(
         start=start,
         heading=float(heading),

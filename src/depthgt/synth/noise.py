@@ -94,7 +94,9 @@ class KinectNoise:
         if self.disparity_step_px <= 0 or self.baseline_m <= 0:
             raise ValueError("KinectNoise.baseline_m and disparity_step_px must be > 0")
         if self.max_range_m <= self.min_range_m:
-            raise ValueError(f"KinectNoise.max_range_m ({self.max_range_m}) must exceed min_range_m ({self.min_range_m})")
+            raise ValueError(
+                f"KinectNoise.max_range_m ({self.max_range_m}) must exceed min_range_m ({self.min_range_m})"
+            )
 
 
 SENSOR_PROFILES: dict[str, KinectNoise] = {
@@ -124,8 +126,13 @@ def sensor_profile(name: str, **overrides) -> KinectNoise:
     return replace(SENSOR_PROFILES[name], **overrides)
 
 
-def infrared_return(albedo_gray: np.ndarray, ir_return: np.ndarray, gloss: np.ndarray, cos_incidence: np.ndarray,
-                    saturate_cos: float = 0.97) -> np.ndarray:
+def infrared_return(
+    albedo_gray: np.ndarray,
+    ir_return: np.ndarray,
+    gloss: np.ndarray,
+    cos_incidence: np.ndarray,
+    saturate_cos: float = 0.97,
+) -> np.ndarray:
     """Infrared reflectance seen by the sensor, the ``ir_reflectance`` of :func:`kinect_noise`.
 
     The matte share ``1 - gloss`` returns ``albedo * ir_return`` at any angle; the
@@ -207,9 +214,21 @@ def kinect_noise(
     map_y = v + s.jitter_px * px * smooth_field(rng, (h, w), 3.0 * px)
     z = cv2.remap(depth_m, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
     if normals_cam is not None:
-        normals_cam = cv2.remap(np.ascontiguousarray(normals_cam, np.float32), map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+        normals_cam = cv2.remap(
+            np.ascontiguousarray(normals_cam, np.float32),
+            map_x,
+            map_y,
+            cv2.INTER_NEAREST,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
     if ir_reflectance is not None:
-        ir_reflectance = cv2.remap(np.ascontiguousarray(ir_reflectance, np.float32), map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+        ir_reflectance = cv2.remap(
+            np.ascontiguousarray(ir_reflectance, np.float32),
+            map_x,
+            map_y,
+            cv2.INTER_NEAREST,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
     valid = z > 0
     zs = np.where(valid, z, np.float32(np.inf))
 

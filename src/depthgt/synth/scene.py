@@ -26,16 +26,25 @@ import numpy as np
 
 from depthgt.synth.textures import make_texture
 
-__all__ = ["Material", "Primitive", "Layout", "RayHits", "THIN_WIDTH_M", "generate_layout", "raycast", "albedo", "shade",
-           "camera_rays", "thin_mask"]
+__all__ = [
+    "Material",
+    "Primitive",
+    "Layout",
+    "RayHits",
+    "THIN_WIDTH_M",
+    "generate_layout",
+    "raycast",
+    "albedo",
+    "shade",
+    "camera_rays",
+    "thin_mask",
+]
 
 _NEAR_M = 0.05
 THIN_WIDTH_M = 0.03  # poles, legs and rods at most this wide count as thin structures
 _CORNER_SIGNS = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij"), np.float64).reshape(3, -1).T
 # inward normals of the room faces, in hit-id order: x=0, x=Lx, y=0, y=Ly, floor, ceiling
-_FACE_NORMALS = np.array(
-    [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float32
-)
+_FACE_NORMALS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float32)
 
 
 @dataclass(frozen=True)
@@ -193,8 +202,14 @@ def _table(prims, rng, cx, cy, yaw, mats):
         bx, by = rng.uniform(-lx + 0.15, lx - 0.15), rng.uniform(-ly + 0.12, ly - 0.12)
         x, y = _local(cx, cy, yaw, bx, by)
         hz = rng.uniform(0.005, 0.025)
-        _add_box(prims, (x, y, h + hz), (rng.uniform(0.1, 0.17), rng.uniform(0.08, 0.13), hz),
-                 mats[rng.choice(["poster", "books", "dark"])], yaw + rng.uniform(-0.5, 0.5), rng)
+        _add_box(
+            prims,
+            (x, y, h + hz),
+            (rng.uniform(0.1, 0.17), rng.uniform(0.08, 0.13), hz),
+            mats[rng.choice(["poster", "books", "dark"])],
+            yaw + rng.uniform(-0.5, 0.5),
+            rng,
+        )
     x, y = _local(cx, cy, yaw, rng.uniform(-lx + 0.1, lx - 0.1), rng.uniform(-ly + 0.1, ly - 0.1))
     _add_cyl(prims, x, y, h, h + rng.uniform(0.08, 0.2), rng.uniform(0.035, 0.06), mats["fabric"], rng)
     x, y = _local(cx, cy, yaw, rng.uniform(-lx + 0.15, lx - 0.15), rng.uniform(-ly + 0.15, ly - 0.15))
@@ -213,8 +228,14 @@ def _clutter(prims, rng, cx, cy, yaw, z, half_depth, half_length, mats):
             _add_cyl(prims, x, y, z, z + 2 * hz, r, mats[rng.choice(["metal", "fabric", "fabric2"])], rng)
         else:
             half = rng.uniform([0.03, 0.03, 0.04], [0.1, 0.1, 0.15])
-            _add_box(prims, (x, y, z + half[2]), half, mats[rng.choice(["poster", "poster2", "books", "wood2"])],
-                     yaw + rng.uniform(-0.8, 0.8), rng)
+            _add_box(
+                prims,
+                (x, y, z + half[2]),
+                half,
+                mats[rng.choice(["poster", "poster2", "books", "wood2"])],
+                yaw + rng.uniform(-0.8, 0.8),
+                rng,
+            )
 
 
 def _chair(prims, rng, cx, cy, yaw, mats):
@@ -276,17 +297,55 @@ def generate_layout(rng: np.random.Generator, texture_size: int = 512) -> Layout
     a television, posters and a door on the walls.
     """
     size = np.array([rng.uniform(3.8, 5.0), rng.uniform(3.5, 4.6), rng.uniform(2.5, 2.8)])
-    kinds = ["wood", "wood", "tiles", "carpet", "plaster", "plaster", "poster", "poster", "books",
-             "metal", "fabric", "fabric", "dark", "plaster"]
+    kinds = [
+        "wood",
+        "wood",
+        "tiles",
+        "carpet",
+        "plaster",
+        "plaster",
+        "poster",
+        "poster",
+        "books",
+        "metal",
+        "fabric",
+        "fabric",
+        "dark",
+        "plaster",
+    ]
     textures = [(make_texture(k, rng, texture_size) * 255 + 0.5).astype(np.uint8) for k in kinds]
     materials = [
-        Material(0, 1.2), Material(1, 1.0), Material(2, rng.uniform(1.2, 2.2)), Material(3, 2.0),
-        Material(4, 2.0), Material(5, 2.0), Material(6, 0.8), Material(7, 0.6), Material(8, 0.7),
-        Material(9, 0.8, 0.9), Material(10, 0.5), Material(11, 0.4), Material(12, 0.8, ir_return=0.4),
+        Material(0, 1.2),
+        Material(1, 1.0),
+        Material(2, rng.uniform(1.2, 2.2)),
+        Material(3, 2.0),
+        Material(4, 2.0),
+        Material(5, 2.0),
+        Material(6, 0.8),
+        Material(7, 0.6),
+        Material(8, 0.7),
+        Material(9, 0.8, 0.9),
+        Material(10, 0.5),
+        Material(11, 0.4),
+        Material(12, 0.8, ir_return=0.4),
         Material(13, 2.5),
     ]
-    mats = {"wood": 0, "wood2": 1, "tiles": 2, "carpet": 3, "wall": 4, "wall2": 5, "poster": 6, "poster2": 7,
-            "books": 8, "metal": 9, "fabric": 10, "fabric2": 11, "dark": 12, "ceiling": 13}
+    mats = {
+        "wood": 0,
+        "wood2": 1,
+        "tiles": 2,
+        "carpet": 3,
+        "wall": 4,
+        "wall2": 5,
+        "poster": 6,
+        "poster2": 7,
+        "books": 8,
+        "metal": 9,
+        "fabric": 10,
+        "fabric2": 11,
+        "dark": 12,
+        "ceiling": 13,
+    }
     floor = mats[rng.choice(["tiles", "carpet", "wood2"])]
     wall_a, wall_b = (mats["wall"], mats["wall2"]) if rng.uniform() < 0.5 else (mats["wall2"], mats["wall"])
     face_materials = [wall_a, wall_a, wall_b, wall_b, floor, mats["ceiling"]]
@@ -362,7 +421,7 @@ def generate_layout(rng: np.random.Generator, texture_size: int = 512) -> Layout
             xt, yt = _local(x, y, wyaw, 0.0, rng.uniform(-0.3, 0.3) * length)
             _add_box(prims, (xt, yt, hb + 0.32), (0.03, rng.uniform(0.3, 0.45), 0.22), mats["dark"], wyaw, rng)
     # posters and a door, flat on the walls
-    for k in range(int(rng.integers(3, 6))):
+    for _k in range(int(rng.integers(3, 6))):
         wall = int(rng.integers(0, 4))
         w, hh = rng.uniform(0.2, 0.5), rng.uniform(0.25, 0.45)
         z = rng.uniform(1.3, 1.9)
@@ -383,8 +442,16 @@ def generate_layout(rng: np.random.Generator, texture_size: int = 512) -> Layout
         _add_box(prims, (x, 0.02 if wall == 2 else size[1] - 0.02, 1.02), (0.45, 0.02, 1.02), mats["wood2"], 0.0, rng)
 
     light = np.array([size[0] * rng.uniform(0.3, 0.7), size[1] * rng.uniform(0.3, 0.7), size[2] - 0.05])
-    return Layout(size, face_materials, prims, materials, textures, light, np.array([cx, cy, h_table]),
-                  ambient=float(rng.uniform(0.3, 0.4)))
+    return Layout(
+        size,
+        face_materials,
+        prims,
+        materials,
+        textures,
+        light,
+        np.array([cx, cy, h_table]),
+        ambient=float(rng.uniform(0.3, 0.4)),
+    )
 
 
 # ---------------------------------------------------------------------------- casting
@@ -589,7 +656,12 @@ def raycast(layout: Layout, T_world_cam: np.ndarray, K: np.ndarray, hw: tuple[in
     order = np.argsort(flat_id, kind="stable")  # groups pixels by what they hit
     ids, starts = np.unique(flat_id[order], return_index=True)
     bounds = list(starts[1:]) + [len(order)]
-    pts_flat, n_flat, uv_flat, m_flat = points.reshape(-1, 3), normals.reshape(-1, 3), uv.reshape(-1, 2), material.ravel()
+    pts_flat, n_flat, uv_flat, m_flat = (
+        points.reshape(-1, 3),
+        normals.reshape(-1, 3),
+        uv.reshape(-1, 2),
+        material.ravel(),
+    )
     for pid, s, e in zip(ids, starts, bounds):
         idx = order[s:e]
         p = pts_flat[idx]
@@ -627,7 +699,9 @@ def _sample_bilinear(tex: np.ndarray, uv: np.ndarray) -> np.ndarray:
     maps = np.zeros((2, rows * cols), np.float32)
     maps[0, :n] = (uv[:, 0] % 1.0) * s - 0.5
     maps[1, :n] = (uv[:, 1] % 1.0) * s - 0.5
-    out = cv2.remap(tex, maps[0].reshape(rows, cols), maps[1].reshape(rows, cols), cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    out = cv2.remap(
+        tex, maps[0].reshape(rows, cols), maps[1].reshape(rows, cols), cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP
+    )
     return out.reshape(-1, 3)[:n].astype(np.float32) * np.float32(1.0 / 255.0)
 
 

@@ -25,13 +25,40 @@ __all__ = ["SPACE_KINDS", "generate_space_layout"]
 SPACE_KINDS = ("open_room", "corridor", "office")
 
 # texture kinds and materials (texture index, period m, infrared return, gloss)
-_TEXTURES = ["wood", "wood", "tiles", "carpet", "plaster", "plaster", "poster", "poster", "books", "metal", "fabric",
-             "fabric", "dark", "plaster", "tiles", "dark", "plaster"]
+_TEXTURES = [
+    "wood",
+    "wood",
+    "tiles",
+    "carpet",
+    "plaster",
+    "plaster",
+    "poster",
+    "poster",
+    "books",
+    "metal",
+    "fabric",
+    "fabric",
+    "dark",
+    "plaster",
+    "tiles",
+    "dark",
+    "plaster",
+]
 _MATS = {
-    "wood": (0, 1.2, 1.0, 0.0), "wood2": (1, 1.0, 1.0, 0.0), "tiles": (2, 1.6, 1.0, 0.0), "carpet": (3, 2.0, 1.0, 0.0),
-    "wall": (4, 2.0, 1.0, 0.0), "wall2": (5, 2.0, 1.0, 0.0), "poster": (6, 0.8, 1.0, 0.0), "poster2": (7, 0.6, 1.0, 0.0),
-    "books": (8, 0.7, 1.0, 0.0), "metal": (9, 0.8, 0.9, 0.2), "fabric": (10, 0.5, 1.0, 0.0),
-    "fabric2": (11, 0.4, 1.0, 0.0), "dark": (12, 0.8, 0.4, 0.0), "ceiling": (13, 2.5, 1.0, 0.0),
+    "wood": (0, 1.2, 1.0, 0.0),
+    "wood2": (1, 1.0, 1.0, 0.0),
+    "tiles": (2, 1.6, 1.0, 0.0),
+    "carpet": (3, 2.0, 1.0, 0.0),
+    "wall": (4, 2.0, 1.0, 0.0),
+    "wall2": (5, 2.0, 1.0, 0.0),
+    "poster": (6, 0.8, 1.0, 0.0),
+    "poster2": (7, 0.6, 1.0, 0.0),
+    "books": (8, 0.7, 1.0, 0.0),
+    "metal": (9, 0.8, 0.9, 0.2),
+    "fabric": (10, 0.5, 1.0, 0.0),
+    "fabric2": (11, 0.4, 1.0, 0.0),
+    "dark": (12, 0.8, 0.4, 0.0),
+    "ceiling": (13, 2.5, 1.0, 0.0),
     # polished stone / lacquered floor: a glossy floor drops out at a distance and under the camera
     "glossy_floor": (14, 1.8, 0.8, 0.6),
     # screens, black lacquer: dark and glossy
@@ -59,7 +86,9 @@ def _room_size(rng: np.random.Generator, kind: str) -> np.ndarray:
 
 def _free(fp, avoid, margin=0.05):
     """Whether the footprint (x0, y0, x1, y1) misses every footprint in ``avoid``."""
-    return all(fp[2] + margin < a[0] or fp[0] - margin > a[2] or fp[3] + margin < a[1] or fp[1] - margin > a[3] for a in avoid)
+    return all(
+        fp[2] + margin < a[0] or fp[0] - margin > a[2] or fp[3] + margin < a[1] or fp[1] - margin > a[3] for a in avoid
+    )
 
 
 def _place(rng, size, half_xy, avoid, margin_wall=0.05, tries=30):
@@ -91,8 +120,14 @@ def _thin_table(prims, rng, cx, cy, yaw, mats):
     for _ in range(int(rng.integers(1, 4))):
         x, y = _local(cx, cy, yaw, rng.uniform(-lx + 0.15, lx - 0.15), rng.uniform(-ly + 0.12, ly - 0.12))
         hz = rng.uniform(0.005, 0.03)
-        _add_box(prims, (x, y, h + hz), (rng.uniform(0.08, 0.17), rng.uniform(0.06, 0.12), hz),
-                 mats[rng.choice(["poster", "books", "screen", "dark"])], yaw + rng.uniform(-0.5, 0.5), rng)
+        _add_box(
+            prims,
+            (x, y, h + hz),
+            (rng.uniform(0.08, 0.17), rng.uniform(0.06, 0.12), hz),
+            mats[rng.choice(["poster", "books", "screen", "dark"])],
+            yaw + rng.uniform(-0.5, 0.5),
+            rng,
+        )
     if rng.uniform() < 0.6:  # a monitor on a thin stand
         x, y = _local(cx, cy, yaw, rng.uniform(-0.3, 0.3) * lx, -ly + 0.12)
         hs = rng.uniform(0.12, 0.2)
@@ -172,8 +207,14 @@ def _shelf(prims, rng, x, y, yaw, mats):
             bl = lx * rng.uniform(0.3, 0.9)
             bh = rng.uniform(0.08, 0.14)
             bx, by = _local(x, y, yaw, rng.uniform(-(lx - bl), lx - bl + 1e-6), 0.0)
-            _add_box(prims, (bx, by, z + 0.01 + bh), (bl, ly * 0.8, bh), mats[rng.choice(["books", "poster2", "dark"])],
-                     yaw, rng)
+            _add_box(
+                prims,
+                (bx, by, z + 0.01 + bh),
+                (bl, ly * 0.8, bh),
+                mats[rng.choice(["books", "poster2", "dark"])],
+                yaw,
+                rng,
+            )
 
 
 def _railing(prims, rng, size, mats):
@@ -199,19 +240,37 @@ def _ceiling(prims, rng, size, mats, kind):
             depth = rng.uniform(0.1, 0.3)
             if along_x:  # a beam across the room (spanning y) at some x
                 x = size[0] * (k + 1) / (n + 1) + rng.uniform(-0.3, 0.3)
-                _add_box(prims, (x, size[1] / 2, lz - depth / 2), (rng.uniform(0.08, 0.2), size[1] / 2 - 0.001, depth / 2),
-                         mats["ceiling"], 0.0, rng)
+                _add_box(
+                    prims,
+                    (x, size[1] / 2, lz - depth / 2),
+                    (rng.uniform(0.08, 0.2), size[1] / 2 - 0.001, depth / 2),
+                    mats["ceiling"],
+                    0.0,
+                    rng,
+                )
             else:
                 y = size[1] * (k + 1) / (n + 1) + rng.uniform(-0.3, 0.3)
-                _add_box(prims, (size[0] / 2, y, lz - depth / 2), (size[0] / 2 - 0.001, rng.uniform(0.08, 0.2), depth / 2),
-                         mats["ceiling"], 0.0, rng)
+                _add_box(
+                    prims,
+                    (size[0] / 2, y, lz - depth / 2),
+                    (size[0] / 2 - 0.001, rng.uniform(0.08, 0.2), depth / 2),
+                    mats["ceiling"],
+                    0.0,
+                    rng,
+                )
     for _ in range(int(rng.integers(2, 6))):
         x, y = rng.uniform(0.5, size[0] - 0.5), rng.uniform(0.4, size[1] - 0.4)
         drop = rng.uniform(0.3, 0.8)
         _add_cyl(prims, x, y, lz - drop, lz, rng.uniform(0.003, 0.006), mats["dark"], rng)  # cable (sub-pixel)
         if rng.uniform() < 0.5:
-            _add_box(prims, (x, y, lz - drop - 0.03), (rng.uniform(0.3, 0.6), rng.uniform(0.08, 0.15), 0.03),
-                     mats[rng.choice(["metal", "ceiling"])], rng.uniform(0, np.pi), rng)
+            _add_box(
+                prims,
+                (x, y, lz - drop - 0.03),
+                (rng.uniform(0.3, 0.6), rng.uniform(0.08, 0.15), 0.03),
+                mats[rng.choice(["metal", "ceiling"])],
+                rng.uniform(0, np.pi),
+                rng,
+            )
         else:
             _add_cyl(prims, x, y, lz - drop - 0.2, lz - drop, rng.uniform(0.12, 0.22), mats["fabric"], rng)
 
@@ -279,8 +338,14 @@ def generate_space_layout(rng: np.random.Generator, texture_size: int = 512) -> 
                     _shelf(prims, rng, x, wall_y, 0.0, mats)
                 else:
                     hb = rng.uniform(0.6, 1.1)
-                    _add_box(prims, (x, wall_y, hb / 2), (0.4, 0.18, hb / 2), mats[rng.choice(["dark", "wood", "screen"])],
-                             0.0, rng)
+                    _add_box(
+                        prims,
+                        (x, wall_y, hb / 2),
+                        (0.4, 0.18, hb / 2),
+                        mats[rng.choice(["dark", "wood", "screen"])],
+                        0.0,
+                        rng,
+                    )
                     _clutter(prims, rng, x, wall_y, 0.0, hb, 0.3, 0.12, mats)
         n_tables = int(rng.integers(0, 2))
         n_pillars = 0
@@ -291,15 +356,23 @@ def generate_space_layout(rng: np.random.Generator, texture_size: int = 512) -> 
             x = rng.uniform(0.35, 0.65) * size[0]
             length = rng.uniform(0.35, 0.6) * size[1]
             y0 = 0.0 if rng.uniform() < 0.5 else size[1] - length
-            _add_box(prims, (x, y0 + length / 2, size[2] / 2), (0.05, length / 2, size[2] / 2 - 0.001),
-                     mats[rng.choice(["wall", "wall2", "wood2"])], 0.0, rng)
+            _add_box(
+                prims,
+                (x, y0 + length / 2, size[2] / 2),
+                (0.05, length / 2, size[2] / 2 - 0.001),
+                mats[rng.choice(["wall", "wall2", "wood2"])],
+                0.0,
+                rng,
+            )
             avoid.append((x - 0.15, y0, x + 0.15, y0 + length))
     for _ in range(n_pillars):
         spot = _place(rng, size, (0.25, 0.25), avoid, margin_wall=0.8)
         if spot is not None:
             half = rng.uniform(0.12, 0.25)
             if rng.uniform() < 0.5:
-                _add_box(prims, (spot[0], spot[1], size[2] / 2), (half, half, size[2] / 2 - 0.001), mats["wall"], 0.0, rng)
+                _add_box(
+                    prims, (spot[0], spot[1], size[2] / 2), (half, half, size[2] / 2 - 0.001), mats["wall"], 0.0, rng
+                )
             else:
                 _add_cyl(prims, spot[0], spot[1], 0.0, size[2] - 0.001, half, mats[rng.choice(["wall", "metal"])], rng)
     for _ in range(n_tables):
@@ -343,15 +416,37 @@ def generate_space_layout(rng: np.random.Generator, texture_size: int = 512) -> 
             continue
         r = rng.uniform()
         if r < 0.5:
-            _add_box(prims, (spot[0], spot[1], half[2]), half, mats[rng.choice(["wood2", "poster", "dark", "books"])],
-                     rng.uniform(0, np.pi), rng)
+            _add_box(
+                prims,
+                (spot[0], spot[1], half[2]),
+                half,
+                mats[rng.choice(["wood2", "poster", "dark", "books"])],
+                rng.uniform(0, np.pi),
+                rng,
+            )
         elif r < 0.8:
-            _add_cyl(prims, spot[0], spot[1], 0.0, 2 * half[2], min(half[0], half[1]), mats[rng.choice(["metal", "fabric", "dark"])],
-                     rng)
+            _add_cyl(
+                prims,
+                spot[0],
+                spot[1],
+                0.0,
+                2 * half[2],
+                min(half[0], half[1]),
+                mats[rng.choice(["metal", "fabric", "dark"])],
+                rng,
+            )
         else:
             _add_sphere(prims, (spot[0], spot[1], min(half[:2])), min(half[:2]), mats["fabric2"], rng)
     _ceiling(prims, rng, size, mats, kind)
     _wall_items(prims, rng, size, mats, int(rng.integers(3, 7)))
     light = np.array([size[0] * rng.uniform(0.3, 0.7), size[1] * rng.uniform(0.3, 0.7), size[2] - 0.1])
-    return Layout(size, face_materials, prims, materials, textures, light, np.array([size[0] / 2, size[1] / 2, 1.0]),
-                  ambient=float(rng.uniform(0.3, 0.45)))
+    return Layout(
+        size,
+        face_materials,
+        prims,
+        materials,
+        textures,
+        light,
+        np.array([size[0] / 2, size[1] / 2, 1.0]),
+        ambient=float(rng.uniform(0.3, 0.45)),
+    )

@@ -62,7 +62,7 @@ def _wood(rng, s):
     grain = cv2.resize(grain[:, : s // 8], (s, s), interpolation=cv2.INTER_LINEAR)  # streaks along x
     base = rng.uniform([0.45, 0.28, 0.12], [0.72, 0.50, 0.28]).astype(np.float32)
     dark = base * rng.uniform(0.55, 0.75)
-    tex = _mix(base, dark, rings ** 3 + 0.15 * grain)
+    tex = _mix(base, dark, rings**3 + 0.15 * grain)
     return tex * (1 + 0.06 * fbm(rng, s, octaves=6, base_cells=16))[..., None]
 
 
@@ -75,7 +75,7 @@ def _tiles(rng, s):
     per_tile = rng.uniform(0.85, 1.1, size=(n, n)).astype(np.float32)
     tex = base * per_tile[iy % n, ix % n][..., None]
     tex *= (1 + 0.12 * fbm(rng, s, octaves=6, base_cells=8))[..., None]
-    grout = (np.minimum(np.minimum(fx, 1 - fx), np.minimum(fy, 1 - fy)) < 0.025 * n / 4)
+    grout = np.minimum(np.minimum(fx, 1 - fx), np.minimum(fy, 1 - fy)) < 0.025 * n / 4
     tex[grout] = base * 0.45
     return tex
 
