@@ -18,7 +18,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 # import name -> distribution name, where the two differ
 DISTRIBUTION_OF = {
-    "cv2": "opencv-python-headless",
+    "cv2": "opencv-contrib-python-headless",  # the contrib build (cv2.ximgproc), pyproject.toml
     "yaml": "pyyaml",
     "PIL": "pillow",
     "OpenEXR": "openexr",
@@ -130,7 +130,7 @@ def test_the_check_finds_an_undeclared_import(tmp_path):
     )
     assert third_party(tmp_path / "mod.py") == {"sklearn", "scipy"}
     req = {"dependencies": {"numpy"}}
-    assert distribution("sklearn") == "scikit-learn" and distribution("cv2") == "opencv-python-headless"
+    assert distribution("sklearn") == "scikit-learn" and distribution("cv2") == "opencv-contrib-python-headless"
     missing = undeclared(tmp_path, ("dependencies",), req)
     assert len(missing) == 2 and "sklearn (distribution scikit-learn)" in missing[1]
 
