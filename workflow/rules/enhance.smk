@@ -24,8 +24,8 @@ rule rde_scene:
 
 rule rde_dataset:
     input:
-        framesets=[f"results/rde/{d}/{s}/framesets.parquet" for d, s in SCENES],
-        patches=[f"results/rde/{d}/{s}/patches.parquet" for d, s in SCENES],
+        framesets=[f"results/rde/{d}/{s}/framesets.parquet" for d, s in RDE_SCENES],
+        patches=[f"results/rde/{d}/{s}/patches.parquet" for d, s in RDE_SCENES],
     output:
         train="results/rde/train.parquet",
         val="results/rde/val.parquet",
