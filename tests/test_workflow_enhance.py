@@ -136,7 +136,11 @@ def test_rde_gt_and_figures(synthetic_only):
     wd = synthetic_only
     rde = pd.read_parquet(wd / "results/rde/framesets.parquet")
     fs = pd.read_parquet(wd / "results/dataset/framesets.parquet")
-    assert len(rde) == int((fs["status"] == "ok").sum()) and (rde["status"] == "ok").all()
+    # the RDE GT of the scenes RDE trains and validates on; not of the synthetic test room,
+    # which no method needs (evaluation.rde_synthetic_test off)
+    assert set(rde["dataset"]) == {"syn", "synval"} and not (wd / "results/rde/syntest").exists()
+    trained_on = fs[fs["dataset"].isin(["syn", "synval"]) & (fs["status"] == "ok")]
+    assert len(rde) == len(trained_on) and (rde["status"] == "ok").all()
     assert (rde["rde_missing"] < 0.5).all()
     loc = rde.iloc[0]["rde"]  # a location in the scene's RDE shard, relative to the working directory
     doc = store.read_json(f"{loc if Path(loc).is_absolute() else wd / loc}/frameset.json")
@@ -144,6 +148,17 @@ def test_rde_gt_and_figures(synthetic_only):
     assert doc["statistics"]["rde_vs_truth"]["mae_m"] < 0.05 and doc["units"]["mae_m"] == "m"
     for png in ("comparison.png",):
         assert (wd / "results/figures" / png).stat().st_size > 1000
+
+
+def test_rde_synthetic_test_adds_the_test_rooms_rde_gt(tmp_path):
+    """evaluation.rde_synthetic_test: the DAG gains the test room's RDE GT job (without it,
+    test_rde_gt_and_figures finds none)."""
+    import re
+
+    cfg = copy.deepcopy(TINY)
+    cfg["evaluation"]["rde_synthetic_test"] = True
+    text = snakemake(make_workdir(tmp_path, cfg), "-n", "tables").stdout
+    assert set(re.findall(r"results/rde/(\w+)/room_\d+/framesets.parquet", text)) == {"syn", "synval", "syntest"}
 
 
 def test_html_report(synthetic_only):
