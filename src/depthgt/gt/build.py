@@ -17,16 +17,16 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 import torch
 
-from depthgt import geometry, io
+from depthgt import geometry, io, registration
 from depthgt.atomic import save_npz, write_atomic
 from depthgt.device import resolve_device
-from depthgt.errors import FrameError
 from depthgt.gt import store
 from depthgt.gt.patches import make_patches, patch_record
 from depthgt.gt.planning import coverage_candidates, stable_seed
 from depthgt.gt.render import GTRender, cloud_in_target, composite_gt, rasterise_gt
 from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
 from depthgt.noise_law import depth_sigma_m, noise_sigma_1m_from, second_difference_residuals
+from depthgt.registration.frameset import FrameSetData, poses_from_source
 from depthgt.settings import STAGES, RegistrationSettings, RenderSettings, Settings
 from depthgt.sources.base import Scene, check_frame
 from depthgt.status import Status
@@ -82,32 +82,6 @@ class FrameSetOutputs(NamedTuple):
 OUTPUT_FILES = tuple(p.name for p in FrameSetOutputs.in_dir("."))
 
 
-@dataclass
-class FrameSetData:
-    """The members of one frame set at the working resolution (target first).
-
-    Attributes:
-        rgb: (F, 3, H, W) float in [0, 1].
-        depth_m: (F, 1, H, W) raw depth, 0 = invalid.
-        K: (3, 3) float64 intrinsics at (H, W).
-        T_world_cam: (F, 4, 4) float64 camera-to-world poses, or None.
-        truth_m: (F, 1, H, W) clean depth when the source knows it, else None.
-        frame_ids: the source's ids of the members.
-        src_hw: (H, W) of the source's depth images before resizing.
-        colour_matches_depth: the source's colour is taken by the depth's camera at the
-            depth's instant (``Scene.colour_matches_depth``).
-    """
-
-    rgb: torch.Tensor
-    depth_m: torch.Tensor
-    K: torch.Tensor
-    T_world_cam: torch.Tensor | None
-    truth_m: torch.Tensor | None
-    frame_ids: list[str]
-    src_hw: tuple[int, int] | None = None
-    colour_matches_depth: bool = True
-
-
 def load_frameset(
     scene: Scene, members: list[int], size_hw: tuple[int, int], need_poses: bool, device: torch.device
 ) -> FrameSetData:
@@ -155,17 +129,6 @@ def load_frameset(
     )
 
 
-def poses_from_source(data: FrameSetData) -> torch.Tensor:
-    """``T_j_to_t`` (F-1, 4, 4) float64 of each neighbour from the source's poses."""
-    if data.T_world_cam is None:
-        raise FrameError(
-            "registration.method 'given' needs poses, but this source provides none or some are non-finite",
-            "missing_pose",
-        )
-    T = data.T_world_cam
-    return torch.linalg.inv(T[:1]) @ T[1:]
-
-
 @dataclass
 class Alignment:
     """The neighbours' poses in the target camera and what enters the GT.
@@ -190,40 +153,31 @@ class Alignment:
 def align(
     data: FrameSetData, offsets: list[int], settings: RegistrationSettings, seed: int, encoder_state: dict | None = None
 ) -> Alignment:
-    """Poses of the neighbours in the target camera by ``settings.method``: the source's
-    (``given``), the source's refined on the set (``refine``) or the overfit
-    registration (``overfit``). A neighbour that did not
-    register never enters the GT; with ``on_failure: exclude`` the set fails.
+    """Poses of the neighbours in the target camera by the method ``settings.method``
+    names in :data:`depthgt.registration.METHODS` (the source's, the source's refined
+    on the set, or the overfit registration's), with the photometric rule of
+    :func:`photometric_for`. A neighbour that did not register never enters the GT;
+    with ``on_failure: exclude`` the set fails.
 
     Args:
         offsets: frame offsets of the members, ``offsets[0] == 0``.
         seed: seed of the registration (initialisation, candidates, subsets).
     """
-    info: dict[str, Any] = {"method": settings.method}
-    if settings.method == "given":
-        return Alignment(poses_from_source(data), list(range(len(offsets))), info=info)
-    from depthgt import registration  # torch-heavy; looked up at call time so tests can replace it
-
     settings = photometric_for(settings, data.colour_matches_depth)
-    info["photometric_weight"] = settings.refine_settings.photo_weight
-
-    if settings.method == "refine":
-        result = registration.refine_source_poses(
-            data.rgb, data.depth_m, data.K, offsets, poses_from_source(data), settings
-        )
-    else:
-        result = registration.register_frameset(
-            data.rgb, data.depth_m, data.K, offsets, settings, encoder_state=encoder_state, seed=seed
-        )
+    register = registration.METHODS[settings.method]  # looked up at call time so tests can replace it
+    result = register(data, offsets, settings, seed=seed, encoder_state=encoder_state)
     T_j_to_t = torch.as_tensor(result.T_j_to_t, dtype=torch.float64, device=data.depth_m.device)
-    info.update(result.to_dict())
     status, reason = result.status, result.reason
     failed = [o for o, st in zip(offsets[1:], result.neighbour_status) if st != Status.OK]
     if failed and status == Status.OK and settings.on_failure == "exclude":
         status, reason = Status.FAILED, f"neighbours_not_registered(offsets {','.join(f'{o:+d}' for o in failed)})"
     fused = [0] + [i + 1 for i, st in enumerate(result.neighbour_status) if st == Status.OK]
-    info["fused_offsets"] = [offsets[i] for i in fused]
-    return Alignment(T_j_to_t, fused, status, reason, info, getattr(result, "normals", None))
+    info: dict[str, Any] = {"method": settings.method}
+    if result.estimated:
+        info["photometric_weight"] = settings.refine_settings.photo_weight
+        info.update(result.to_dict())
+        info["fused_offsets"] = [offsets[i] for i in fused]
+    return Alignment(T_j_to_t, fused, status, reason, info, result.normals)
 
 
 def photometric_for(settings: RegistrationSettings, colour_matches_depth: bool) -> RegistrationSettings:
