@@ -206,6 +206,10 @@ def add_coverage_views(
         fs: the limits and counts (``coverage_*``); reg, render: the frame set's
             registration and renderer settings.
 
+    Long because its steps (usable candidates, limits, fill maps, choice, registration,
+    the render with the added views, the merge, the record of each view) share the
+    candidate views' tensors and records; the computations are functions of their own
+    (:func:`view_limits`, :func:`fill_maps`, :func:`choose_views`, ``_register``).
     """
     h, w = data.depth_m.shape[-2:]
     empty = core.depth[0, 0] <= 0

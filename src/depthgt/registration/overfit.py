@@ -31,7 +31,7 @@ from depthgt.registration.encoder import build_encoder, candidate_points
 from depthgt.registration.frameset import FrameSetData
 from depthgt.registration.losses import correspondence_loss, default_render_fn, render_losses
 from depthgt.registration.procrustes import procrustes_random_subsets
-from depthgt.registration.refine import Level, LevelSettings, pair_mean_cost, refine_poses
+from depthgt.registration.refine import Level, LevelSettings, RefineResult, pair_mean_cost, refine_poses
 from depthgt.registration.result import RegistrationResult
 from depthgt.settings import RegistrationSettings
 
@@ -396,6 +396,45 @@ def _final_estimate(
     return T_ba, T_paper, n_corr
 
 
+def _beyond_the_paper(
+    fs: _Frameset,
+    T_paper: torch.Tensor,
+    T_ba: torch.Tensor,
+    offsets: list[int],
+    s: RegistrationSettings,
+    extra: torch.Tensor | None,
+) -> tuple[torch.Tensor, RefineResult | None, dict, dict[str, float]]:
+    """The steps beyond the paper on its poses ``T_paper`` (F, 4, 4): the chaining of far
+    neighbours through nearer ones (``s.chaining``, or an initial guess ``extra``) and the
+    joint SE(3) refinement (``s.refine``).
+
+    Returns:
+        T (F, 4, 4) the final poses, the refinement's
+        :class:`~depthgt.registration.refine.RefineResult` (or None), the diagnostics of
+        the two steps and their seconds.
+    """
+    diagnostics: dict = {}
+    timings: dict[str, float] = {}
+    T = T_paper
+    maps_of: dict = {}  # the refinement pyramid's maps by scale, shared by the chaining and the refinement
+    if s.chaining or extra is not None:
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            table = _pair_table(T_ba, fs.pairs, len(offsets)) if s.chaining else {}
+            T, choice = _chain(fs, T, table, offsets, s, extra, maps_of)
+        diagnostics["chaining"] = choice
+        timings["chaining"] = time.perf_counter() - t0
+    refined = None
+    if s.refine:
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            refined = refine_poses(fs.rgb, fs.depth, fs.K, T, s.refine_settings, offsets, maps_of)
+        T = refined.T_f_to_t
+        diagnostics.update(refined.diagnostics())
+        timings["refine"] = time.perf_counter() - t0
+    return T, refined, diagnostics, timings
+
+
 def register_frameset(
     rgb: torch.Tensor,
     depth_m: torch.Tensor,
@@ -449,28 +488,12 @@ def register_frameset(
     timings["estimate"] = time.perf_counter() - t0
 
     diagnostics: dict = {"poses_paper": T_paper[1:].cpu().numpy().tolist()}
-    T = T_paper
-    maps_of: dict = {}  # the refinement pyramid's maps by scale, shared by the chaining and the refinement
     extra = None
     if init_T_j_to_t is not None:
         extra = torch.cat([torch.eye(4, dtype=torch.float64)[None], init_T_j_to_t.to(torch.float64).cpu()]).to(dev)
-    if s.chaining or extra is not None:
-        t0 = time.perf_counter()
-        with torch.no_grad():
-            table = _pair_table(T_ba, fs.pairs, Fn) if s.chaining else {}
-            T, choice = _chain(fs, T, table, offsets, s, extra, maps_of)
-        diagnostics["chaining"] = choice
-        timings["chaining"] = time.perf_counter() - t0
-
-    refined = None
-    if s.refine:
-        t0 = time.perf_counter()
-        with torch.no_grad():
-            refined = refine_poses(fs.rgb, fs.depth, fs.K, T, s.refine_settings, offsets, maps_of)
-        T = refined.T_f_to_t
-        diagnostics.update(refined.diagnostics())
-        timings["refine"] = time.perf_counter() - t0
-
+    T, refined, notes, seconds = _beyond_the_paper(fs, T_paper, T_ba, offsets, s, extra)
+    diagnostics.update(notes)
+    timings.update(seconds)
     statuses, reasons = check_neighbours(T, n_corr, refined, s.checks)
     status, reason = set_status(statuses, [] if s.refine else trace.loss_curve, s.checks)
     timings["total"] = time.perf_counter() - t_start
