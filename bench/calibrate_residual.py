@@ -65,7 +65,9 @@ def main(argv=None):
     ]
     if SEVEN.exists():
         data.append(("7scenes", open_scene("sevenscenes", str(SEVEN), ".")))
-    print(f"bounds: max_residual_m {s.max_residual_m * 1000:g} mm, max_residual_sigmas {s.max_residual_sigmas:g}")
+    print(
+        f"bounds: max_residual_m {s.checks.max_residual_m * 1000:g} mm, max_residual_sigmas {s.checks.max_residual_sigmas:g}"
+    )
     print(
         "data       offset  median residual (mm): min / median / max | in noise sigmas: min / median / max"
         " | failed: metric bound alone / both bounds"
@@ -89,8 +91,8 @@ def main(argv=None):
                 vals.append(residuals(rgb, depth, K, T, s))
             v = np.concatenate([m for m, _ in vals]) * 1000
             q = np.concatenate([x for _, x in vals])
-            fixed = ~(v <= s.max_residual_m * 1000)
-            both = fixed & ~(q <= s.max_residual_sigmas)
+            fixed = ~(v <= s.checks.max_residual_m * 1000)
+            both = fixed & ~(q <= s.checks.max_residual_sigmas)
             print(
                 f"{name:10s} {off:4.1f}cm  {np.nanmin(v):6.2f} / {np.nanmedian(v):6.2f} / {np.nanmax(v):6.2f} | "
                 f"{np.nanmin(q):5.2f} / {np.nanmedian(q):5.2f} / {np.nanmax(q):5.2f} | "

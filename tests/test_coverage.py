@@ -183,16 +183,16 @@ def test_failing_added_view_left_out_with_its_reason(window, tmp_path, monkeypat
     fused: the GT is the window's, the view is recorded with the registration's reason."""
     from depthgt import registration
 
-    real = registration.refine_source_poses
+    real = registration.METHODS["refine"]
     calls = []
 
-    def refine(rgb, depth_m, K, offsets, T_j_to_t, settings):
+    def refine(data, offsets, settings, **kwargs):
         calls.append(list(offsets))
         if len(calls) == 1:  # the core: refined for real
-            return real(rgb, depth_m, K, offsets, T_j_to_t, settings)
+            return real(data, offsets, settings, **kwargs)
         n = len(offsets) - 1
         return RegistrationResult(
-            T_j_to_t.cpu(),
+            registration.poses_from_source(data).cpu(),
             list(offsets),
             ["failed"] * n,
             ["residual 9.0 noise sigmas > 3"] * n,
@@ -201,7 +201,7 @@ def test_failing_added_view_left_out_with_its_reason(window, tmp_path, monkeypat
             n_correspondences=[0] * n,
         )
 
-    monkeypatch.setattr(registration, "refine_source_poses", refine)
+    monkeypatch.setitem(registration.METHODS, "refine", refine)
     settings = settings_from_config(
         {
             "resize": 64,
@@ -215,7 +215,7 @@ def test_failing_added_view_left_out_with_its_reason(window, tmp_path, monkeypat
     assert len(calls) == 2 and calls[1][0] == 0 and calls[1][1:] == [v["offset"] for v in added]
     assert added and all(v["status"] == "failed" and v["reason"] == "residual 9.0 noise sigmas > 3" for v in added)
     assert "filled_px" not in doc["coverage"] and poses["coverage_T_j_to_t"] == {}
-    monkeypatch.setattr(registration, "refine_source_poses", real)
+    monkeypatch.setitem(registration.METHODS, "refine", real)
     settings_w = settings_from_config({"resize": 64, "patches": {"size": 32}, "registration": {"method": "refine"}})
     _, gt_w, _ = _build(tmp_path, "fail_w", settings_w)
     for ch in ("Z", "W", "N", "S"):

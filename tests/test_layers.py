@@ -179,3 +179,39 @@ def test_the_checker_sees_imports_inside_functions(tmp_path):
     edges = [("depthgt.gt.fake", dst, f"fake.py:{line}") for dst, line in internal_imports(fake, "depthgt.gt.fake")]
     assert edges == [("depthgt.gt.fake", "depthgt.eval.metrics", "fake.py:2")]
     assert set(upward(edges)) == {("depthgt.gt.fake", "depthgt.eval.metrics")}
+
+
+#: A function in src longer than this (lines, docstring included) says why in its
+#: docstring (issue 28): "long because ...", "longer than ..." or "long for its docstring".
+MAX_FUNCTION_LINES = 80
+LENGTH_REASONS = ("long because", "longer than", "long for its docstring")
+
+
+def long_functions(path: Path, limit: int = MAX_FUNCTION_LINES) -> list[tuple[str, int, bool]]:
+    """(name, lines, whether its docstring gives a reason) of the functions of ``path``
+    longer than ``limit`` lines."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            lines = node.end_lineno - node.lineno + 1
+            if lines > limit:
+                doc = (ast.get_docstring(node) or "").lower()
+                found.append((node.name, lines, any(r in doc for r in LENGTH_REASONS)))
+    return found
+
+
+def test_long_functions_say_why(tmp_path):
+    silent = [
+        f"{path.relative_to(SRC)}: {name} ({lines} lines)"
+        for path in sorted(PACKAGE.rglob("*.py"))
+        for name, lines, why in long_functions(path)
+        if not why
+    ]
+    assert not silent, (
+        f"functions over {MAX_FUNCTION_LINES} lines without a reason in their docstring (split them, or say "
+        f"'long because ...'):\n" + "\n".join(silent)
+    )
+    fake = tmp_path / "fake.py"
+    body = "".join(f"    x{i} = {i}\n" for i in range(MAX_FUNCTION_LINES))
+    fake.write_text(f'def f():\n    """Short."""\n{body}\n\ndef g():\n    """Long because."""\n{body}')
+    assert long_functions(fake) == [("f", MAX_FUNCTION_LINES + 2, False), ("g", MAX_FUNCTION_LINES + 2, True)]

@@ -306,7 +306,7 @@ def test_chaining_keeps_the_right_pose_next_to_holes():
 
     offsets = [0, -2, 2]
     rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64), step_t=0.01, step_deg=1.5, noise_m=0.0005, holes=0.1)
-    s = RegistrationSettings(**FAST_TEST, iterations=0)
+    s = RegistrationSettings.from_keys(dict(**FAST_TEST, iterations=0))
     fs = _prepare(rgb, depth, K, s, torch.Generator().manual_seed(0))
     T_init = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
     T_init[1:] = torch.from_numpy(T_true)
@@ -333,21 +333,23 @@ def test_residual_size_separates_aligned_from_settled_off_poses():
     assert aligned[0] == 0 and off[0] == 0
     assert aligned[1:].max() < 0.004, aligned
     assert off[1:].min() > 2 * aligned[1:].max(), (aligned, off)
-    assert off[1:].min() > RegistrationSettings().max_residual_m, off
+    assert off[1:].min() > RegistrationSettings().checks.max_residual_m, off
 
 
 def test_high_residual_neighbours_are_flagged_not_kept():
     offsets = [0, -2, 2]
     rgb, depth, K, _ = _frameset(offsets, hw=(48, 48))
     # a bound below any real residual: every neighbour must fail with the reason named
-    s = RegistrationSettings(
-        **FAST_TEST,
-        iterations=0,
-        max_residual_m=1e-6,
-        max_residual_sigmas=1e-6,
-        refine_settings=RefineSettings(
-            scales=(1,), iters=(3,), point_stride=(1,), max_dist_m=(0.05,), geo_scale_m=(0.005,)
-        ),
+    s = RegistrationSettings.from_keys(
+        dict(
+            **FAST_TEST,
+            iterations=0,
+            max_residual_m=1e-6,
+            max_residual_sigmas=1e-6,
+            refine_settings=RefineSettings(
+                scales=(1,), iters=(3,), point_stride=(1,), max_dist_m=(0.05,), geo_scale_m=(0.005,)
+            ),
+        )
     )
     res = register_frameset(rgb, depth, K, offsets, s, seed=0)
     assert res.status == "failed" and res.neighbour_status == ["failed", "failed"]
@@ -372,13 +374,15 @@ def test_residual_check_adapts_to_the_sensor_noise():
     T[3] = dT @ T[3]
     refined = refine_poses(rgb, depth, K, T, rs, offsets)
     assert 0.0025 < refined.noise_sigma_1m < 0.0035, refined.noise_sigma_1m
-    s = RegistrationSettings(**FAST_TEST, refine_settings=rs)
-    assert (refined.residual_m[1:] > s.max_residual_m).all(), refined.residual_m  # the fixed bound fails them all
+    s = RegistrationSettings.from_keys(dict(**FAST_TEST, refine_settings=rs))
+    assert (refined.residual_m[1:] > s.checks.max_residual_m).all(), (
+        refined.residual_m
+    )  # the fixed bound fails them all
     n_corr = torch.full((4,), 1000)
-    fixed = dataclasses.replace(s, max_residual_sigmas=0.0)
-    statuses, reasons = check_neighbours(refined.T_f_to_t, n_corr, refined, fixed)
+    fixed = s.with_keys(max_residual_sigmas=0.0)
+    statuses, reasons = check_neighbours(refined.T_f_to_t, n_corr, refined, fixed.checks)
     assert statuses == ["failed", "failed", "failed"], reasons
-    statuses, reasons = check_neighbours(refined.T_f_to_t, n_corr, refined, s)
+    statuses, reasons = check_neighbours(refined.T_f_to_t, n_corr, refined, s.checks)
     assert statuses == ["ok", "ok", "failed"], (reasons, refined.residual_sigmas)
     assert "high_residual" in reasons[2] and "sigma" in reasons[2]
     assert refined.residual_sigmas[1:3].max() < 0.8 and refined.residual_sigmas[3] > 1.2, refined.residual_sigmas
@@ -408,11 +412,11 @@ FAST_TEST = dict(n_blocks=1, channels=16, feat_dim=16, n_candidates=600, top_k=6
 def test_overfit_training_reduces_the_pose_error():
     offsets = [0, -2, 2]
     rgb, depth, K, T_true = _frameset(offsets, hw=(48, 48), step_t=0.03, step_deg=2.0)
-    s = RegistrationSettings(**FAST_TEST, iterations=25, lr=1e-3, chaining=False, refine=False)
+    s = RegistrationSettings.from_keys(dict(**FAST_TEST, iterations=25, lr=1e-3, chaining=False, refine=False))
     res = register_frameset(rgb, depth, K, offsets, s, seed=0)
     T0 = torch.tensor(res.diagnostics["poses_paper"])
     assert len(res.loss_curve) == 25 and len(res.pose_history) == 25
-    s0 = RegistrationSettings(**FAST_TEST, iterations=0, chaining=False, refine=False)
+    s0 = RegistrationSettings.from_keys(dict(**FAST_TEST, iterations=0, chaining=False, refine=False))
     res0 = register_frameset(rgb, depth, K, offsets, s0, seed=0)
     r_before, t_before = pose_errors(res0.T_j_to_t, T_true)
     r_after, t_after = pose_errors(T0, T_true)
@@ -425,12 +429,14 @@ def test_full_pipeline_reaches_millimetre_accuracy_and_writes_json():
 
     offsets = [0, -4, -2, 2, 4]
     rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64), step_t=0.01, step_deg=0.7)
-    s = RegistrationSettings(
-        **FAST_TEST,
-        iterations=3,
-        refine_settings=RefineSettings(
-            scales=(2, 1), iters=(10, 8), point_stride=(1, 1), max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)
-        ),
+    s = RegistrationSettings.from_keys(
+        dict(
+            **FAST_TEST,
+            iterations=3,
+            refine_settings=RefineSettings(
+                scales=(2, 1), iters=(10, 8), point_stride=(1, 1), max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)
+            ),
+        )
     )
     res = register_frameset(rgb, depth, K, offsets, s, seed=0)
     r, t = pose_errors(res.T_j_to_t, T_true)
@@ -446,24 +452,28 @@ def test_pretrained_encoder_state_changes_and_loads():
 
     offsets = [0, -2, 2]
     rgb, depth, K, _ = _frameset(offsets, hw=(32, 32))
-    s = RegistrationSettings(**{**FAST_TEST, "n_candidates": 300}, lr=1e-2, chaining=False, refine=False)
+    s = RegistrationSettings.from_keys(
+        {**FAST_TEST, "n_candidates": 300, "lr": 1e-2, "chaining": False, "refine": False}
+    )
     state = pretrain_encoder([(rgb, depth, K, offsets)], s, epochs=2, seed=0)
-    fresh = build_encoder(s.n_blocks, s.channels, s.feat_dim, seed=0).state_dict()
+    fresh = build_encoder(s.encoder.n_blocks, s.encoder.channels, s.encoder.feat_dim, seed=0).state_dict()
     assert set(state) == set(fresh)
     assert any(not torch.equal(state[k], fresh[k]) for k in state if state[k].is_floating_point())
-    res = register_frameset(rgb, depth, K, offsets, dataclasses.replace(s, iterations=1), encoder_state=state)
+    res = register_frameset(rgb, depth, K, offsets, s.with_keys(iterations=1), encoder_state=state)
     assert res.T_j_to_t.shape == (2, 4, 4)
 
 
 def test_textureless_flat_wall_is_flagged():
     offsets = [0, -2, 2]
     rgb, depth, K, _ = _frameset(offsets, hw=(48, 48), flat=True, textured=False)
-    s = RegistrationSettings(
-        **FAST_TEST,
-        iterations=2,
-        refine_settings=RefineSettings(
-            scales=(2, 1), iters=(5, 5), point_stride=(1, 1), max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)
-        ),
+    s = RegistrationSettings.from_keys(
+        dict(
+            **FAST_TEST,
+            iterations=2,
+            refine_settings=RefineSettings(
+                scales=(2, 1), iters=(5, 5), point_stride=(1, 1), max_dist_m=(0.1, 0.05), geo_scale_m=(0.02, 0.005)
+            ),
+        )
     )
     res = register_frameset(rgb, depth, K, offsets, s, seed=0)
     assert res.status == "failed"
@@ -473,7 +483,7 @@ def test_textureless_flat_wall_is_flagged():
 
 def test_settings_presets_and_bad_inputs():
     fast = registration_settings({"preset": "fast"})
-    assert fast.n_blocks <= registration_settings({"preset": "paper"}).n_blocks
+    assert fast.encoder.n_blocks <= registration_settings({"preset": "paper"}).encoder.n_blocks
     assert set(REGISTRATION_PRESETS) >= {"paper", "fast"}
     # a nested override merges with the preset's refinement values
     tuned = registration_settings({"preset": "fast", "refine_settings": {"iters": [4, 4, 2]}})
@@ -561,7 +571,7 @@ def test_refine_source_poses_ends_closer_to_the_truth():
     # every neighbour ends closer, rotation to a twentieth; translation to the few mm that
     # are this 64x64 scene's floor (see test_refinement_recovers_poses_from_a_perturbed_start)
     assert (r1 < 0.1 * r0).all() and (t1 < 0.5 * t0).all() and t1.max() < 0.5, (r0, r1, t0, t1)
-    tight = dataclasses.replace(s, max_correction_m=0.002)
+    tight = s.with_keys(max_correction_m=0.002)
     res = refine_source_poses(rgb, depth, K, offsets, T_given, tight)
     assert all(st == "failed" for st in res.neighbour_status)
     assert all("large_correction" in why for why in res.neighbour_reasons)
@@ -605,3 +615,57 @@ def test_align_refine_uses_source_poses_and_photometric_rule():
     assert photometric_for(s, True).refine_settings.photo_weight == s.refine_settings.photo_weight > 0
     assert photometric_for(dataclasses.replace(s, photometric="on"), False).refine_settings.photo_weight > 0
     assert photometric_for(dataclasses.replace(s, photometric="off"), True).refine_settings.photo_weight == 0
+
+
+def test_every_method_is_one_entry_of_the_table(monkeypatch):
+    """The methods share one signature and are picked from registration.METHODS by the
+    config's name: the table, the settings' names and the schema's enum agree; ``align``
+    calls the entry with the frame set, its offsets, the settings, the seed and the
+    encoder state, and applies ``on_failure`` to what it returns; ``given`` is the
+    source's poses, every neighbour ok, nothing estimated (poses.json records the method
+    alone)."""
+    import yaml
+
+    from depthgt import registration
+    from depthgt.errors import FrameError
+    from depthgt.gt.build import FrameSetData, align
+    from depthgt.registration.result import RegistrationResult
+    from depthgt.settings import REGISTRATION_METHODS
+
+    schema = yaml.safe_load((Path(__file__).resolve().parents[1] / "workflow/schemas/config.schema.yaml").read_text())
+    assert tuple(registration.METHODS) == REGISTRATION_METHODS
+    assert tuple(schema["properties"]["registration"]["properties"]["method"]["enum"]) == REGISTRATION_METHODS
+    offsets = [0, -2, 2]
+    gen = torch.Generator().manual_seed(0)
+    T_world = torch.stack([_random_T(gen, 5.0, 0.1) for _ in offsets])
+    data = FrameSetData(
+        rgb=torch.rand(3, 3, 8, 8, generator=gen),
+        depth_m=torch.ones(3, 1, 8, 8),
+        K=torch.eye(3, dtype=torch.float64),
+        T_world_cam=T_world,
+        truth_m=None,
+        frame_ids=["a", "b", "c"],
+    )
+    given = registration.METHODS["given"](data, offsets, RegistrationSettings())
+    assert torch.equal(given.T_j_to_t, torch.linalg.inv(T_world[:1]) @ T_world[1:])
+    assert given.neighbour_status == ["ok", "ok"] and given.status == "ok" and not given.estimated
+    al = align(data, offsets, RegistrationSettings(), seed=0)
+    assert al.info == {"method": "given"} and al.fused == [0, 1, 2] and torch.equal(al.T_j_to_t, given.T_j_to_t)
+    for method in ("given", "refine"):  # both start from the source's poses
+        with pytest.raises(FrameError, match="needs poses"):
+            registration.METHODS[method](dataclasses.replace(data, T_world_cam=None), offsets, RegistrationSettings())
+
+    calls = []
+
+    def fake(data, offsets, settings, *, seed=0, encoder_state=None):
+        calls.append((list(offsets), settings.method, seed, encoder_state))
+        return RegistrationResult(
+            given.T_j_to_t, list(offsets), ["failed", "ok"], ["pose_jump", ""], "ok", "", [], [], [1, 2]
+        )
+
+    monkeypatch.setitem(registration.METHODS, "overfit", fake)
+    settings = RegistrationSettings(method="overfit", on_failure="exclude")
+    al = align(data, offsets, settings, seed=7, encoder_state={"w": 1})
+    assert calls == [(offsets, "overfit", 7, {"w": 1})]
+    assert al.status == "failed" and al.reason == "neighbours_not_registered(offsets -2)" and al.fused == [0, 2]
+    assert al.info["fused_offsets"] == [0, 2] and al.info["neighbours"][0]["reason"] == "pose_jump"

@@ -32,10 +32,10 @@ def scene_and_truth():
 
 
 def _fake_registration(T_true: torch.Tensor, bad: set[int]):
-    """A register_frameset that returns the true poses, except for the offsets in
+    """A registration method that returns the true poses, except for the offsets in
     ``bad``: moved 0.4 m and flagged failed (what a real failure looks like)."""
 
-    def fake(rgb, depth_m, K, offsets, settings, **kwargs):
+    def fake(data, offsets, settings, **kwargs):
         T = T_true.clone()
         status, reasons = [], []
         for i, o in enumerate(offsets[1:]):
@@ -62,7 +62,7 @@ def _fake_registration(T_true: torch.Tensor, bad: set[int]):
 @pytest.mark.parametrize("on_failure", ["drop_neighbours", "exclude"])
 def test_failed_neighbours_are_dropped_or_the_set_excluded(scene_and_truth, tmp_path, monkeypatch, on_failure):
     scene, members, data, T_true = scene_and_truth
-    monkeypatch.setattr(registration, "register_frameset", _fake_registration(T_true, {-6, 6}))
+    monkeypatch.setitem(registration.METHODS, "overfit", _fake_registration(T_true, {-6, 6}))
     settings = settings_from_config(
         {"device": "cpu", "registration": {"method": "overfit", "preset": "fast", "on_failure": on_failure}}
     )
@@ -74,7 +74,7 @@ def test_failed_neighbours_are_dropped_or_the_set_excluded(scene_and_truth, tmp_
     keep = [0, 2, 3, 4, 5]  # positions of offsets 0, -4, -2, 2, 4
     expected = fuse(data, T_true, settings.render, members=keep).depth[0, 0].numpy()
     np.testing.assert_allclose(gt, expected, atol=1e-6 + 0.5 / store.GT_UNITS["Z"])  # stored on the GT's grid
-    T_bad = _fake_registration(T_true, {-6, 6})(None, None, None, [0, -6, -4, -2, 2, 4, 6], None).T_j_to_t
+    T_bad = _fake_registration(T_true, {-6, 6})(None, [0, -6, -4, -2, 2, 4, 6], None).T_j_to_t
     no_check = replace(settings.render, min_frame_agreement=0.0, min_whole_frame_agreement=0.0)
     with_bad = fuse(data, T_bad, no_check).depth[0, 0].numpy()
     assert np.abs(with_bad - gt).max() > 0.1  # the moved neighbours would have shown in the GT

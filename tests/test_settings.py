@@ -13,11 +13,14 @@ import yaml
 
 from depthgt.errors import ConfigError
 from depthgt.settings import (
+    REGISTRATION_KEYS,
+    REGISTRATION_PRESETS,
     FrameSetSettings,
     RegistrationSettings,
     Settings,
     TrainSettings,
     check_config,
+    registration_settings,
     settings_from_config,
 )
 
@@ -34,7 +37,11 @@ def test_default_config_builds_every_stage():
     s = settings_from_config(config)
     assert isinstance(s, Settings) and s.size_hw == (256, 256)
     assert s.frameset == FrameSetSettings(neighbours=3, stride=2, target_step=2)
-    assert s.registration.method == "given" and s.registration.preset == "paper" and s.registration.precision == "auto"
+    assert (
+        s.registration.method == "given"
+        and s.registration.preset == "paper"
+        and s.registration.encoder.precision == "auto"
+    )
     assert [src.name for src in s.sources] == ["synthetic", "synthetic_test"]
     # every trainable model of the registry has its training settings; RDE trains LapDEN with LapDEN's entry
     assert set(s.enhance.models) == {"lapden", "ddrnet", "sdd", "rde"}
@@ -158,7 +165,7 @@ def test_bad_values_name_the_key(config, key):
 def test_registration_presets_and_types():
     fast = settings_from_config({"registration": {"method": "overfit", "preset": "fast", "iterations": 2}}).registration
     assert isinstance(fast, RegistrationSettings)
-    assert (fast.channels, fast.iterations, fast.refine_settings.iters) == (32, 2, (8, 5, 3))
+    assert (fast.encoder.channels, fast.training.iterations, fast.refine_settings.iters) == (32, 2, (8, 5, 3))
     assert fast.pretrain.framesets == 16
     # numbers given as ints where floats are expected are accepted and stored as floats
     s = settings_from_config({"render": {"radius_px": 2}, "enhance": {"rde": {"trunc_voxels": 4}}})
@@ -198,6 +205,35 @@ def test_settings_doc_is_json_ready():
     assert doc["registration"]["refine_settings"]["scales"] == [4, 2, 1]
 
 
+def test_registration_parts_keep_the_flat_config_keys():
+    """RegistrationSettings holds the parts each step reads (encoder, matching, training,
+    checks); the config section stays flat: every key the schema names in ``registration``
+    is one of REGISTRATION_KEYS, each lands in exactly one place, and the section round-trips
+    (as_config -> from_keys) for the default and every preset."""
+    schema = yaml.safe_load((REPO / "workflow/schemas/config.schema.yaml").read_text())
+    # (the schema spells out some of them; the settings check every key)
+    assert set(schema["properties"]["registration"]["properties"]) <= set(REGISTRATION_KEYS)
+    top = {f.name for f in dataclasses.fields(RegistrationSettings)}
+    parts = [
+        {f.name for f in dataclasses.fields(type(getattr(RegistrationSettings(), p)))}
+        for p in ("encoder", "matching", "training", "checks")
+    ]
+    places = [k for k in REGISTRATION_KEYS for names in [top, *parts] if k in names]
+    assert sorted(places) == sorted(REGISTRATION_KEYS)  # each key in exactly one place
+    for preset in (None, *REGISTRATION_PRESETS):
+        s = registration_settings({} if preset is None else {"preset": preset, "method": "overfit"})
+        assert list(s.as_config()) == list(REGISTRATION_KEYS)
+        assert RegistrationSettings.from_keys(s.as_config()) == s
+    s = registration_settings({"top_k": 50, "max_residual_m": 0.01, "precision": "bf16", "lr": 0.5})
+    assert (s.matching.top_k, s.checks.max_residual_m, s.encoder.precision, s.training.lr) == (50, 0.01, "bf16", 0.5)
+    assert s.with_keys(min_ok_fraction=0.25).checks.min_ok_fraction == 0.25
+    assert s.with_keys(min_ok_fraction=0.25).matching == s.matching
+    with pytest.raises(ConfigError, match="registration.top_k"):
+        s.with_keys(top_k=2)
+    with pytest.raises(ConfigError, match="registration.encoder"):  # the parts are not config keys
+        registration_settings({"encoder": {"n_blocks": 1}})
+
+
 def _schema_defaults(node: dict, path: tuple = ()):
     """(path, default) of every ``default`` in the schema, items of arrays as ``[]``."""
     if "default" in node:
@@ -224,7 +260,9 @@ def test_schema_defaults_equal_the_dataclass_defaults():
     schema_path = REPO / "workflow/schemas/config.schema.yaml"
     schema = yaml.safe_load(schema_path.read_text())
     bare = {"sources": [{"name": "s", "kind": "synthetic"}]}
-    doc = json.loads(json.dumps(dataclasses.asdict(settings_from_config(bare))))
+    built = settings_from_config(bare)
+    # the registration section as the config writes it (flat), the others as the dataclasses hold them
+    doc = json.loads(json.dumps({**dataclasses.asdict(built), "registration": built.registration.as_config()}))
     checked = []
     for path, default in _schema_defaults(schema):
         if isinstance(default, dict):

@@ -239,6 +239,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _parser() -> argparse.ArgumentParser:
+    """The command line: one sub-parser per command (long because argparse declares each
+    command and each of its options with a call of its own, one entry of the help each)."""
     p = argparse.ArgumentParser(
         prog="depthgt", description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )

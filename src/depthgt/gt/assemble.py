@@ -90,6 +90,10 @@ def summarize_scene(
 
     Raises:
         FileNotFoundError: a target of the index that no shard given records.
+
+    Long because the rows of its four tables are written out column by column
+    (:data:`FRAMESET_COLUMNS`, :data:`PATCH_COLUMNS`, the quality and frame columns) in
+    one pass over the shards.
     """
     table, meta = read_index(index_parquet)
     dataset, scene = meta["dataset"], meta["scene"]

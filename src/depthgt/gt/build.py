@@ -12,24 +12,27 @@ import logging
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import torch
 
-from depthgt import geometry, io
+from depthgt import geometry, io, registration
 from depthgt.atomic import save_npz, write_atomic
 from depthgt.device import resolve_device
-from depthgt.errors import FrameError
 from depthgt.gt import store
 from depthgt.gt.patches import make_patches, patch_record
 from depthgt.gt.planning import coverage_candidates, stable_seed
 from depthgt.gt.render import GTRender, cloud_in_target, composite_gt, rasterise_gt
 from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
 from depthgt.noise_law import depth_sigma_m, noise_sigma_1m_from, second_difference_residuals
-from depthgt.settings import RegistrationSettings, RenderSettings, Settings
+from depthgt.registration.frameset import FrameSetData, poses_from_source
+from depthgt.settings import STAGES, RegistrationSettings, RenderSettings, Settings
 from depthgt.sources.base import Scene, check_frame
 from depthgt.status import Status
+
+if TYPE_CHECKING:  # depthgt.gt.coverage imports this module
+    from depthgt.gt.coverage import CoverageResult
 
 __all__ = [
     "FrameSetData",
@@ -41,7 +44,17 @@ __all__ = [
     "photometric_for",
     "fuse",
     "quality_statistics",
+    "FrameSetId",
+    "StoredImages",
     "process_frameset",
+    "render_target",
+    "cover",
+    "stored_images",
+    "frameset_statistics",
+    "draw_patches",
+    "write_images",
+    "poses_record",
+    "frameset_record",
 ]
 
 log = logging.getLogger(__name__)
@@ -67,32 +80,6 @@ class FrameSetOutputs(NamedTuple):
 
 
 OUTPUT_FILES = tuple(p.name for p in FrameSetOutputs.in_dir("."))
-
-
-@dataclass
-class FrameSetData:
-    """The members of one frame set at the working resolution (target first).
-
-    Attributes:
-        rgb: (F, 3, H, W) float in [0, 1].
-        depth_m: (F, 1, H, W) raw depth, 0 = invalid.
-        K: (3, 3) float64 intrinsics at (H, W).
-        T_world_cam: (F, 4, 4) float64 camera-to-world poses, or None.
-        truth_m: (F, 1, H, W) clean depth when the source knows it, else None.
-        frame_ids: the source's ids of the members.
-        src_hw: (H, W) of the source's depth images before resizing.
-        colour_matches_depth: the source's colour is taken by the depth's camera at the
-            depth's instant (``Scene.colour_matches_depth``).
-    """
-
-    rgb: torch.Tensor
-    depth_m: torch.Tensor
-    K: torch.Tensor
-    T_world_cam: torch.Tensor | None
-    truth_m: torch.Tensor | None
-    frame_ids: list[str]
-    src_hw: tuple[int, int] | None = None
-    colour_matches_depth: bool = True
 
 
 def load_frameset(
@@ -142,17 +129,6 @@ def load_frameset(
     )
 
 
-def poses_from_source(data: FrameSetData) -> torch.Tensor:
-    """``T_j_to_t`` (F-1, 4, 4) float64 of each neighbour from the source's poses."""
-    if data.T_world_cam is None:
-        raise FrameError(
-            "registration.method 'given' needs poses, but this source provides none or some are non-finite",
-            "missing_pose",
-        )
-    T = data.T_world_cam
-    return torch.linalg.inv(T[:1]) @ T[1:]
-
-
 @dataclass
 class Alignment:
     """The neighbours' poses in the target camera and what enters the GT.
@@ -177,40 +153,31 @@ class Alignment:
 def align(
     data: FrameSetData, offsets: list[int], settings: RegistrationSettings, seed: int, encoder_state: dict | None = None
 ) -> Alignment:
-    """Poses of the neighbours in the target camera by ``settings.method``: the source's
-    (``given``), the source's refined on the set (``refine``) or the overfit
-    registration (``overfit``). A neighbour that did not
-    register never enters the GT; with ``on_failure: exclude`` the set fails.
+    """Poses of the neighbours in the target camera by the method ``settings.method``
+    names in :data:`depthgt.registration.METHODS` (the source's, the source's refined
+    on the set, or the overfit registration's), with the photometric rule of
+    :func:`photometric_for`. A neighbour that did not register never enters the GT;
+    with ``on_failure: exclude`` the set fails.
 
     Args:
         offsets: frame offsets of the members, ``offsets[0] == 0``.
         seed: seed of the registration (initialisation, candidates, subsets).
     """
-    info: dict[str, Any] = {"method": settings.method}
-    if settings.method == "given":
-        return Alignment(poses_from_source(data), list(range(len(offsets))), info=info)
-    from depthgt import registration  # torch-heavy; looked up at call time so tests can replace it
-
     settings = photometric_for(settings, data.colour_matches_depth)
-    info["photometric_weight"] = settings.refine_settings.photo_weight
-
-    if settings.method == "refine":
-        result = registration.refine_source_poses(
-            data.rgb, data.depth_m, data.K, offsets, poses_from_source(data), settings
-        )
-    else:
-        result = registration.register_frameset(
-            data.rgb, data.depth_m, data.K, offsets, settings, encoder_state=encoder_state, seed=seed
-        )
+    register = registration.METHODS[settings.method]  # looked up at call time so tests can replace it
+    result = register(data, offsets, settings, seed=seed, encoder_state=encoder_state)
     T_j_to_t = torch.as_tensor(result.T_j_to_t, dtype=torch.float64, device=data.depth_m.device)
-    info.update(result.to_dict())
     status, reason = result.status, result.reason
     failed = [o for o, st in zip(offsets[1:], result.neighbour_status) if st != Status.OK]
     if failed and status == Status.OK and settings.on_failure == "exclude":
         status, reason = Status.FAILED, f"neighbours_not_registered(offsets {','.join(f'{o:+d}' for o in failed)})"
     fused = [0] + [i + 1 for i, st in enumerate(result.neighbour_status) if st == Status.OK]
-    info["fused_offsets"] = [offsets[i] for i in fused]
-    return Alignment(T_j_to_t, fused, status, reason, info, getattr(result, "normals", None))
+    info: dict[str, Any] = {"method": settings.method}
+    if result.estimated:
+        info["photometric_weight"] = settings.refine_settings.photo_weight
+        info.update(result.to_dict())
+        info["fused_offsets"] = [offsets[i] for i in fused]
+    return Alignment(T_j_to_t, fused, status, reason, info, result.normals)
 
 
 def photometric_for(settings: RegistrationSettings, colour_matches_depth: bool) -> RegistrationSettings:
@@ -339,6 +306,56 @@ def quality_statistics(
     return stats
 
 
+class FrameSetId(NamedTuple):
+    """Which frame set is built: its dataset (source name), scene, target position,
+    member positions (target first) and split tag."""
+
+    dataset: str
+    scene: str
+    target: int
+    members: list[int]
+    split: str
+
+    @property
+    def offsets(self) -> list[int]:
+        """The members' frame offsets from the target (``offsets[0] == 0``)."""
+        return [m - self.target for m in self.members]
+
+
+class StoredImages(NamedTuple):
+    """The target's images as the shard stores them (fixed point,
+    :data:`depthgt.gt.store.GT_UNITS`): the statistics and the patches are those of what
+    every reader gets.
+
+    Attributes:
+        gt: gt.exr's channels, (H, W) float32 each: ``Z`` depth (m, 0 = none), ``S``
+            sigma (m), ``N`` points, ``W`` weight sum.
+        depth_in: (H, W) float32 the target's raw depth (m, 0 = invalid).
+        truth: (H, W) float32 its clean depth (m), or None.
+        rgb8: (H, W, 3) uint8 its colour.
+    """
+
+    gt: dict[str, np.ndarray]
+    depth_in: np.ndarray
+    truth: np.ndarray | None
+    rgb8: np.ndarray
+
+
+class _StepClock:
+    """Wall and process CPU seconds (all threads) of each named step, in the order the
+    steps ran (poses.json's ``timings_s`` and ``cpu_s``)."""
+
+    def __init__(self) -> None:
+        self.wall_s: dict[str, float] = {}
+        self.cpu_s: dict[str, float] = {}
+        self._wall, self._cpu = time.perf_counter(), time.process_time()
+
+    def lap(self, name: str) -> None:
+        wall, cpu = time.perf_counter(), time.process_time()
+        self.wall_s[name], self.cpu_s[name] = round(wall - self._wall, 4), round(cpu - self._cpu, 4)
+        self._wall, self._cpu = wall, cpu
+
+
 def process_frameset(
     scene: Scene,
     dataset: str,
@@ -350,7 +367,8 @@ def process_frameset(
     encoder_state: dict | None = None,
     candidates: list[int] | None = None,
 ) -> dict[str, Any]:
-    """Build every output of one frame set and return frameset.json's content.
+    """Build every output of one frame set and return frameset.json's content: read,
+    align, render (with the coverage views when selected), statistics, patches, write.
 
     Args:
         scene: the scene (:class:`~depthgt.gt.cache.ResizedScene` in the
@@ -365,140 +383,213 @@ def process_frameset(
             :func:`~depthgt.gt.planning.coverage_candidates`); None: every frame within
             ``coverage_span`` (the scene in one split).
     """
+    fid = FrameSetId(dataset, scene.name, target, list(members), split)
     out = FrameSetOutputs(*(Path(p) for p in out))
-    device = resolve_device(settings.device)
-    timings: dict[str, float] = {}  # wall seconds per step
-    cpu: dict[str, float] = {}  # CPU seconds of the process per step (all threads)
-    clock, cpu_clock = time.perf_counter(), time.process_time()
-
-    def lap(name: str) -> None:
-        nonlocal clock, cpu_clock
-        now, cpu_now = time.perf_counter(), time.process_time()
-        timings[name], cpu[name] = round(now - clock, 4), round(cpu_now - cpu_clock, 4)
-        clock, cpu_clock = now, cpu_now
-
+    clock = _StepClock()
     reg = settings.registration
-    data = load_frameset(scene, members, settings.size_hw, need_poses=reg.uses_source_poses, device=device)
-    lap("load_resize")
+    device = resolve_device(settings.device)
+    data = load_frameset(scene, fid.members, settings.size_hw, need_poses=reg.uses_source_poses, device=device)
+    clock.lap("load_resize")
+    alignment = align(data, fid.offsets, reg, stable_seed(settings.seed, dataset, scene.name, target), encoder_state)
+    clock.lap("align")
+    gt = render_target(data, alignment, settings.render)
+    clock.lap("render")
+    coverage = None
+    if settings.frameset.selection == "coverage":
+        coverage = cover(scene, fid, data, alignment, gt, settings, candidates=candidates)
+        gt = coverage.render  # the core's GT where it has one, the added views' only where it has none
+        clock.lap("coverage")
+    images = stored_images(data, gt, out)
+    stats = frameset_statistics(data, alignment, gt, images, fid.offsets, settings.render)
+    if coverage is not None:
+        stats.update(coverage.statistics)
+    clock.lap("quality")
+    patches = draw_patches(images, fid, settings)
+    stats["patches_drawn"] = int(len(patches["kept"]))
+    stats["patches_kept"] = int(patches["kept"].sum())
+    clock.lap("patches")
+    write_images(out, images, patch_record(patches, settings.patches.max_gt_sigma_m))
+    poses_doc = poses_record(data, alignment, fid.offsets, coverage)
+    clock.lap("write")
+    write_atomic(out.poses, io.write_json, {**poses_doc, "timings_s": clock.wall_s, "cpu_s": clock.cpu_s})
+    doc = frameset_record(fid, data, alignment, stats, settings, coverage)
+    write_atomic(out.meta, io.write_json, doc)
+    return doc
 
-    offsets = [m - target for m in members]
-    alignment = align(data, offsets, reg, stable_seed(settings.seed, dataset, scene.name, target), encoder_state)
-    lap("align")
 
+def render_target(data: FrameSetData, alignment: Alignment, settings: RenderSettings) -> GTRender:
+    """The GT of the target from the members the alignment fused (:func:`fuse`); without
+    a clean truth also the leave-target-out render that :func:`quality_statistics`
+    checks the GT with (real data)."""
     fused = alignment.fused
-    gt = fuse(
+    return fuse(
         data,
         alignment.T_j_to_t,
-        settings.render,
-        members=fused if len(fused) < len(members) else slice(None),
+        settings,
+        members=fused if len(fused) < data.depth_m.shape[0] else slice(None),
         leave_target_out=data.truth_m is None,
         normals=alignment.normals,
     )
-    lap("render")
 
-    coverage = None
-    if settings.frameset.selection == "coverage":
-        # depthgt.gt.coverage builds on this module (load_frameset, fuse): imported here, where it is used
-        from depthgt.gt.coverage import add_coverage_views
 
-        if candidates is None:
-            candidates = coverage_candidates(
-                np.full(len(scene), split, dtype=object), target, members, settings.frameset
-            )
-        coverage = add_coverage_views(
-            scene, target, list(candidates), data, alignment, gt, settings.frameset, reg, settings.render
-        )
-        gt = coverage.render  # the core's GT where it has one, the added views' only where it has none
-        lap("coverage")
+def cover(
+    scene: Scene,
+    fid: FrameSetId,
+    data: FrameSetData,
+    alignment: Alignment,
+    gt: GTRender,
+    settings: Settings,
+    candidates: list[int] | None = None,
+) -> CoverageResult:
+    """The GT with views added where ``gt`` (the core's) has none
+    (:func:`depthgt.gt.coverage.add_coverage_views`, ``frameset.selection: coverage``).
 
-    depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
-    gt_raw = gt.depth[0, 0].detach().cpu().numpy().astype(np.float32)
-    truth = data.truth_m[0, 0].cpu().numpy().astype(np.float32) if data.truth_m is not None else None
-    rgb8 = (data.rgb[0].permute(1, 2, 0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
-    # the images as the shard stores them (fixed point, store.GT_UNITS): the statistics
-    # and the patches are those of what every reader gets
-    gt_images = store.stored_gt(
-        {
-            "Z": gt_raw,
-            "S": gt.sigma[0, 0].detach().cpu().numpy().astype(np.float32),
-            "N": gt.count[0, 0].cpu().numpy().astype(np.float32),
-            "W": gt.weight_sum[0, 0].detach().cpu().numpy().astype(np.float32),
-        },
-        str(out.gt),
+    Args:
+        candidates: the frames the added views may come from; None: every frame of the
+            scene within ``frameset.coverage_span`` (the scene in one split).
+    """
+    # depthgt.gt.coverage builds on this module (load_frameset, fuse): imported here, where it is used
+    from depthgt.gt.coverage import add_coverage_views
+
+    if candidates is None:
+        splits = np.full(len(scene), fid.split, dtype=object)
+        candidates = coverage_candidates(splits, fid.target, fid.members, settings.frameset)
+    return add_coverage_views(
+        scene,
+        fid.target,
+        list(candidates),
+        data,
+        alignment,
+        gt,
+        settings.frameset,
+        settings.registration,
+        settings.render,
     )
-    depth_in, truth = store.stored_input(depth_in, truth, str(out.input))
-    gt_depth, gt_sigma = gt_images["Z"], gt_images["S"]
 
+
+def stored_images(data: FrameSetData, gt: GTRender, out: FrameSetOutputs) -> StoredImages:
+    """The target's GT, raw depth, truth and colour as the shard stores them
+    (:func:`depthgt.gt.store.stored_gt`, :func:`depthgt.gt.store.stored_input`)."""
+    channels = {
+        "Z": gt.depth[0, 0].detach().cpu().numpy().astype(np.float32),
+        "S": gt.sigma[0, 0].detach().cpu().numpy().astype(np.float32),
+        "N": gt.count[0, 0].cpu().numpy().astype(np.float32),
+        "W": gt.weight_sum[0, 0].detach().cpu().numpy().astype(np.float32),
+    }
+    gt_images = store.stored_gt(channels, str(out.gt))
+    depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
+    truth = data.truth_m[0, 0].cpu().numpy().astype(np.float32) if data.truth_m is not None else None
+    depth_in, truth = store.stored_input(depth_in, truth, str(out.input))
+    rgb8 = (data.rgb[0].permute(1, 2, 0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+    return StoredImages(gt_images, depth_in, truth, rgb8)
+
+
+def frameset_statistics(
+    data: FrameSetData,
+    alignment: Alignment,
+    gt: GTRender,
+    images: StoredImages,
+    offsets: list[int],
+    settings: RenderSettings,
+) -> dict[str, Any]:
+    """frameset.json's ``statistics`` of the render (missing shares, points and sigma of
+    the stored GT, the neighbours fused, the renderer's agreement per neighbour) and of
+    its accuracy (:func:`quality_statistics`)."""
+    gt_depth, gt_sigma = images.gt["Z"], images.gt["S"]
     stats: dict[str, Any] = {
-        "input_missing": float((depth_in <= 0).mean()),
+        "input_missing": float((images.depth_in <= 0).mean()),
         "gt_missing": float((gt_depth <= 0).mean()),
-        "gt_mean_points": float(gt_images["N"].mean()),
+        "gt_mean_points": float(images.gt["N"].mean()),
         "gt_median_sigma_m": float(np.median(gt_sigma[gt_depth > 0])) if (gt_depth > 0).any() else float("nan"),
-        "neighbours_fused": len(fused) - 1,
+        "neighbours_fused": len(alignment.fused) - 1,
     }
     # neighbours the renderer left out: too few of their samples agree with the target's depth
-    offsets_fused = [members[i] - target for i in fused]
+    offsets_fused = [offsets[i] for i in alignment.fused]
     share = gt.agreement[0].cpu().numpy()
     stats["render_agreement"] = {f"{o:+d}": round(float(a), 4) for o, a in zip(offsets_fused, share) if np.isfinite(a)}
-    whole = (
-        settings.render.min_whole_frame_agreement
-        if settings.render.agreement_tile_px > 0
-        else settings.render.min_frame_agreement
-    )  # with tiles a frame is left out whole only below this
+    # with tiles a frame is left out whole only below min_whole_frame_agreement
+    whole = settings.min_whole_frame_agreement if settings.agreement_tile_px > 0 else settings.min_frame_agreement
     stats["render_left_out"] = [o for o, a in zip(offsets_fused, share) if np.isfinite(a) and a < whole and o != 0]
     if gt.disagreement is not None and float(gt.disagreement[0, 0].sum()) > 0:
         # share of the neighbours' compared samples that the agreement check kept
         stats["render_kept_share"] = round(float(gt.disagreement[0, 2].sum() / gt.disagreement[0, 0].sum()), 4)
-    stats.update(quality_statistics(data, alignment, gt_depth, settings.render, left_out=gt.left_out))
-    if coverage is not None:
-        stats.update(coverage.statistics)
-    lap("quality")
+    stats.update(quality_statistics(data, alignment, gt_depth, settings, left_out=gt.left_out))
+    return stats
 
-    rng = np.random.default_rng(stable_seed(settings.seed, dataset, scene.name, target, "patches"))
-    patches = make_patches(depth_in, gt_depth, rgb8, settings.patches, rng, truth_m=truth, gt_sigma_m=gt_sigma)
-    stats["patches_drawn"] = int(len(patches["kept"]))
-    stats["patches_kept"] = int(patches["kept"].sum())
-    lap("patches")
 
-    write_atomic(out.gt, store.write_gt_exr, gt_images)
-    write_atomic(out.input, store.write_input_exr, depth_in, truth)
-    write_atomic(out.rgb, io.write_rgb_png, rgb8)
-    write_atomic(out.patches, save_npz, patch_record(patches, settings.patches.max_gt_sigma_m))
+def draw_patches(images: StoredImages, fid: FrameSetId, settings: Settings) -> dict[str, np.ndarray]:
+    """The patch crops of the stored images (:func:`depthgt.gt.patches.make_patches`),
+    drawn with the frame set's own seed (the same crops whatever else the job builds)."""
+    rng = np.random.default_rng(stable_seed(settings.seed, fid.dataset, fid.scene, fid.target, "patches"))
+    return make_patches(
+        images.depth_in,
+        images.gt["Z"],
+        images.rgb8,
+        settings.patches,
+        rng,
+        truth_m=images.truth,
+        gt_sigma_m=images.gt["S"],
+    )
+
+
+def write_images(out: FrameSetOutputs, images: StoredImages, patches: dict[str, np.ndarray]) -> None:
+    """Write gt.exr, input.exr, rgb.png and patches.npz (``patches``: the record of
+    :func:`depthgt.gt.patches.patch_record`), each atomically."""
+    write_atomic(out.gt, store.write_gt_exr, images.gt)
+    write_atomic(out.input, store.write_input_exr, images.depth_in, images.truth)
+    write_atomic(out.rgb, io.write_rgb_png, images.rgb8)
+    write_atomic(out.patches, save_npz, patches)
+
+
+def poses_record(
+    data: FrameSetData, alignment: Alignment, offsets: list[int], coverage: CoverageResult | None = None
+) -> dict[str, Any]:
+    """poses.json's content but the timings: the neighbours' poses keyed by offset, the
+    registration's record, the source's poses when it has them, the added views'."""
     T_np = alignment.T_j_to_t.detach().cpu().numpy().astype(np.float64)
-    poses_doc = {
+    doc: dict[str, Any] = {
         "T_j_to_t": {str(o): T_np[i].tolist() for i, o in enumerate(offsets[1:])},
         "registration": alignment.info,
     }
     if data.T_world_cam is not None:
         ref = poses_from_source(data).cpu().numpy()
-        poses_doc["T_j_to_t_reference"] = {str(o): ref[i].tolist() for i, o in enumerate(offsets[1:])}
+        doc["T_j_to_t_reference"] = {str(o): ref[i].tolist() for i, o in enumerate(offsets[1:])}
     if coverage is not None:
-        poses_doc["coverage_T_j_to_t"] = {str(o): T for o, T in coverage.T_j_to_t.items()}
-    lap("write")
-    poses_doc["timings_s"] = timings
-    poses_doc["cpu_s"] = cpu
-    write_atomic(out.poses, io.write_json, poses_doc)
+        doc["coverage_T_j_to_t"] = {str(o): T for o, T in coverage.T_j_to_t.items()}
+    return doc
+
+
+def frameset_record(
+    fid: FrameSetId,
+    data: FrameSetData,
+    alignment: Alignment,
+    stats: dict,
+    settings: Settings,
+    coverage: CoverageResult | None = None,
+) -> dict[str, Any]:
+    """frameset.json's content: the frame set, its status, statistics with their units
+    and the settings that decide it (the sections of :data:`depthgt.settings.STAGES`
+    ``frameset``, less ``frameset.batch_size``: how jobs are cut, not what a frame set is)."""
     doc = {
         "format_version": store.FORMAT_VERSION,
-        "dataset": dataset,
-        "scene": scene.name,
-        "target": target,
-        "members": members,
-        "offsets": offsets,
+        "dataset": fid.dataset,
+        "scene": fid.scene,
+        "target": fid.target,
+        "members": fid.members,
+        "offsets": fid.offsets,
         "frame_ids": data.frame_ids,
-        "split": split,
+        "split": fid.split,
         "status": alignment.status,
         "reason": alignment.reason,
         "K": data.K.cpu().numpy().tolist(),
         "size_hw": list(settings.size_hw),
         "statistics": stats,
         "units": _units(stats),
-        "settings": settings.doc("seed", "device", "resize", "frameset", "patches", "render", "registration"),
+        "settings": settings.doc(*STAGES["frameset"].top),
     }
     if coverage is not None:
         doc["coverage"] = coverage.record
-    doc["settings"]["frameset"].pop("batch_size", None)  # how jobs are cut, not what a frame set is
-    write_atomic(out.meta, io.write_json, doc)
+    doc["settings"]["frameset"].pop("batch_size", None)
     return doc
 
 

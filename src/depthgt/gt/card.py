@@ -116,6 +116,9 @@ def build_card(
 
     Raises:
         DepthGTError: a file that is missing or outside ``results``.
+
+    Long because the card's nested record is written out key by key, each section next
+    to the few lines that count it.
     """
     results = Path(results).resolve()
     sources: dict[str, dict[str, Any]] = {}
@@ -196,7 +199,10 @@ def build_card(
 
 
 def card_markdown(card: Mapping[str, Any]) -> str:
-    """card.md: the card for a person (checksums stay in card.json)."""
+    """card.md: the card for a person (checksums stay in card.json).
+
+    Long because it writes card.md line by line, one markdown table after the other.
+    """
     code = card["depthgt"]
     lines = [
         "# Dataset card",

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from depthgt import geometry
+from depthgt import geometry, registration
 from depthgt.errors import FrameError
 from depthgt.gt.build import Alignment, FrameSetData, fuse, load_frameset, photometric_for
 from depthgt.gt.render import GTRender
@@ -172,20 +172,15 @@ def _usable(scene: Scene, positions: list[int]) -> tuple[list[int], dict[int, st
 
 
 def _register(
-    data: FrameSetData, offsets: list[int], T_start: torch.Tensor, reg: RegistrationSettings
+    data: FrameSetData, offsets: list[int], reg: RegistrationSettings
 ) -> tuple[torch.Tensor, list[str], list[str]]:
-    """Poses of the added views (target first in ``data``) by the frame set's method."""
-    if reg.method == "given":
-        return T_start, [Status.OK] * len(offsets[1:]), [""] * len(offsets[1:])
-    from depthgt import (
-        registration,  # torch-heavy; looked up at call time so tests can replace it
-    )
-
-    if reg.method != "refine":
+    """Poses of the added views (target first in ``data``, with the source's poses) by
+    the frame set's method (:data:`depthgt.registration.METHODS`, one that starts from
+    the source's poses)."""
+    if not reg.uses_source_poses:
         raise ValueError(f"coverage views need the source's poses (given or refine), not {reg.method!r}")
-    res = registration.refine_source_poses(
-        data.rgb, data.depth_m, data.K, offsets, T_start, photometric_for(reg, data.colour_matches_depth)
-    )
+    register = registration.METHODS[reg.method]  # looked up at call time so tests can replace it
+    res = register(data, offsets, photometric_for(reg, data.colour_matches_depth))
     T = torch.as_tensor(res.T_j_to_t, dtype=torch.float64, device=data.depth_m.device)
     return T, list(res.neighbour_status), list(res.neighbour_reasons)
 
@@ -210,6 +205,11 @@ def add_coverage_views(
         data, alignment, core: the core frame set, its registration and its render.
         fs: the limits and counts (``coverage_*``); reg, render: the frame set's
             registration and renderer settings.
+
+    Long because its steps (usable candidates, limits, fill maps, choice, registration,
+    the render with the added views, the merge, the record of each view) share the
+    candidate views' tensors and records; the computations are functions of their own
+    (:func:`view_limits`, :func:`fill_maps`, :func:`choose_views`, ``_register``).
     """
     h, w = data.depth_m.shape[-2:]
     empty = core.depth[0, 0] <= 0
@@ -253,7 +253,7 @@ def add_coverage_views(
         cand.src_hw,
         cand.colour_matches_depth,
     )
-    T_added, status, reasons = _register(added, offsets, T_c_to_t[chosen], reg)
+    T_added, status, reasons = _register(added, offsets, reg)
     views = [
         {
             "offset": o,

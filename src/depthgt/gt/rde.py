@@ -514,7 +514,12 @@ def _rde_targets(
     scene, ok, settings: RDESettings, out: Path, settings_doc: dict | None, rows: list, patch_rows: list, shard: str
 ) -> dict[int, Path]:
     """The RDE GT of every frame set of ``ok`` into ``out/{target:06d}/``; rows of the two
-    tables appended; returns target -> folder of those rendered."""
+    tables appended; returns target -> folder of those rendered.
+
+    Long because it writes every target's RDE frame set (its files, its statistics, its
+    rows of the two tables) in one loop over the targets after the one TSDF render of
+    the scene.
+    """
     built: dict[int, Path] = {}
     if ok.empty:
         log.info("%s: no runnable frame set, no RDE GT", scene.name)

@@ -577,6 +577,8 @@ def render_gt(
             thin pole that only the target caught stays).
     Returns:
         :class:`GTRender` (depth, weight_sum, count, sigma), each (B, 1, H, W).
+
+    Long for its docstring, the rule step by step; its code is 25 lines.
     """
     cands = rasterise_gt(
         points_cam,
@@ -617,7 +619,12 @@ def _estimate(
 ) -> GTRender:
     """Steps 2-5 of :func:`render_gt` on the candidates ``c``: surfaces,
     visibility, the m nearest samples, the plane fit and the confidence (with
-    ``with_sigma`` or ``max_sigma_m``; else ``sigma`` is zero)."""
+    ``with_sigma`` or ``max_sigma_m``; else ``sigma`` is zero).
+
+    Long because the plane fit and the confidence reuse the weighted sums of the same
+    kept samples (a dozen per-pixel tensors); split, they would travel between functions
+    as long argument lists.
+    """
     if c.pixel.numel() == 0:  # every candidate left out by the agreement check
         return _empty_render(c, agreement, disagreement)
     b, h, w = c.size
@@ -758,6 +765,8 @@ def _frame_agreement(c: RenderCandidates, st: RenderSettings, target_frame: int)
         float share of agreeing samples per frame (NaN: fewer than ``_MIN_COMPARED``
         comparisons, e.g. the target itself) and the (B, 3, H, W) diagnostic counts of
         :class:`GTRender`.
+
+    Long for its docstring (the rule and its thresholds); its code is 61 lines.
     """
     pixel, s, fr, iz, d2 = c.pixel, c.s, c.frame, c.iz.detach(), c.d2.detach()
     b, h, w = c.size

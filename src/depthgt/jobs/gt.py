@@ -112,6 +112,10 @@ def run_frameset_batch(
 
     Returns:
         The frame-set records of ``batch.json``.
+
+    Long because every candidate target ends in one of the records of batch.json (not in
+    the scene, not planned, unusable members, built), each written where the loop
+    decides it.
     """
     # heavy (torch): only the jobs that build frame sets need them
     from depthgt.gt.build import FrameSetOutputs, process_frameset

@@ -1,23 +1,45 @@
-"""Overfit-trained unsupervised registration of local frame sets (paper Sec. 3.2).
+"""Registration of local frame sets: the neighbours' poses in the target camera.
 
-Entry points: :func:`register_frameset` (one frame set -> :class:`RegistrationResult`),
-:func:`refine_source_poses` (a source's poses refined on the frame set),
-:func:`pretrain_encoder` (stream-only pretraining), :func:`build_encoder`. Settings and
-presets: :class:`depthgt.settings.RegistrationSettings`,
+Every method is a :class:`~depthgt.registration.frameset.Registration`, a function
+``(data, offsets, settings, *, seed, encoder_state) -> RegistrationResult`` in its own
+module, picked by ``registration.method`` from :data:`METHODS`: ``given``
+(:func:`~depthgt.registration.given.register_given`, the source's poses), ``refine``
+(:func:`~depthgt.registration.local.register_refine`, the source's poses refined on the
+set) and ``overfit`` (:func:`~depthgt.registration.overfit.register_overfit`, the
+paper's registration, Sec. 3.2). Their failure checks: :mod:`depthgt.registration.checks`.
+Also :func:`pretrain_encoder` (stream-only pretraining) and :func:`build_encoder`.
+Settings and presets: :class:`depthgt.settings.RegistrationSettings`,
 :func:`depthgt.settings.registration_settings`. Imported lazily by callers (torch is heavy).
 """
 
 from depthgt.registration.encoder import build_encoder
-from depthgt.registration.local import refine_source_poses
-from depthgt.registration.overfit import pretrain_encoder, register_frameset
+from depthgt.registration.frameset import FrameSetData, Registration, poses_from_source
+from depthgt.registration.given import register_given
+from depthgt.registration.local import refine_source_poses, register_refine
+from depthgt.registration.overfit import pretrain_encoder, register_frameset, register_overfit
 from depthgt.registration.refine import refine_poses
 from depthgt.registration.result import RegistrationResult
 
+#: The registration methods by their ``registration.method`` name
+#: (:data:`depthgt.settings.REGISTRATION_METHODS`, the same names, is what the config checks).
+METHODS: dict[str, Registration] = {
+    "given": register_given,
+    "refine": register_refine,
+    "overfit": register_overfit,
+}
+
 __all__ = [
+    "METHODS",
+    "FrameSetData",
+    "Registration",
     "RegistrationResult",
     "build_encoder",
+    "poses_from_source",
     "pretrain_encoder",
     "refine_poses",
     "refine_source_poses",
     "register_frameset",
+    "register_given",
+    "register_overfit",
+    "register_refine",
 ]

@@ -2,8 +2,8 @@
 per neighbour (:func:`check_neighbours`: too few confident matches, a pose jump, a
 correction of the source's pose beyond its bounds, a low inlier fraction, a degenerate
 alignment, a high residual, a non-finite pose) and for the whole set
-(:func:`set_status`). The thresholds are fields of
-:class:`~depthgt.settings.RegistrationSettings` (docs/method.md "Registration checks")."""
+(:func:`set_status`). The thresholds: :class:`~depthgt.settings.CheckSettings`
+(``RegistrationSettings.checks``; docs/method.md "Registration checks")."""
 
 from __future__ import annotations
 
@@ -11,16 +11,16 @@ import numpy as np
 import torch
 
 from depthgt.metric_vocabulary import pose_delta
-from depthgt.settings import RegistrationSettings
+from depthgt.settings import CheckSettings
 
 __all__ = ["check_neighbours", "set_status"]
 
 
 def check_neighbours(
-    T: torch.Tensor, n_corr: torch.Tensor | None, refined, s: RegistrationSettings, T_start: torch.Tensor | None = None
+    T: torch.Tensor, n_corr: torch.Tensor | None, refined, s: CheckSettings, T_start: torch.Tensor | None = None
 ) -> tuple[list[str], list[str]]:
-    """Status ("ok" | "failed") and reasons of every neighbour (see the failure checks of
-    :class:`~depthgt.settings.RegistrationSettings`).
+    """Status ("ok" | "failed") and reasons of every neighbour (see
+    :class:`~depthgt.settings.CheckSettings`).
 
     Args:
         T: (F, 4, 4) final poses in the target camera; n_corr: (F,) confident matches
@@ -61,12 +61,13 @@ def check_neighbours(
     return statuses, reasons
 
 
-def set_status(statuses: list[str], loss_curve: list[float], s: RegistrationSettings) -> tuple[str, str]:
-    """Status of the whole set: failed when too few neighbours registered or (without
-    refinement) when the training loss did not decrease."""
+def set_status(statuses: list[str], loss_curve: list[float], s: CheckSettings) -> tuple[str, str]:
+    """Status of the whole set: failed when too few neighbours registered or when the
+    training loss ``loss_curve`` did not decrease (the overfit registration without
+    refinement passes its loss; a method whose poses are refined passes [])."""
     n_ok, n = statuses.count("ok"), len(statuses)
     status, reason = "ok", ""
-    if not s.refine and len(loss_curve) >= 4:
+    if len(loss_curve) >= 4:
         k = max(1, len(loss_curve) // 4)
         if np.mean(loss_curve[-k:]) > np.mean(loss_curve[:k]):
             status, reason = "failed", "loss_not_decreasing"

@@ -19,11 +19,30 @@ import time
 import torch
 
 from depthgt.registration.checks import check_neighbours, set_status
+from depthgt.registration.frameset import FrameSetData, poses_from_source
 from depthgt.registration.refine import refine_poses
 from depthgt.registration.result import RegistrationResult
 from depthgt.settings import RegistrationSettings
 
-__all__ = ["refine_source_poses"]
+__all__ = ["register_refine", "refine_source_poses"]
+
+
+def register_refine(
+    data: FrameSetData,
+    offsets: list[int],
+    settings: RegistrationSettings,
+    *,
+    seed: int = 0,
+    encoder_state: dict | None = None,
+) -> RegistrationResult:
+    """The source's poses of the neighbours refined on the frame set
+    (:func:`refine_source_poses`; :class:`~depthgt.registration.frameset.Registration`,
+    deterministic: ``seed`` and ``encoder_state`` are not used).
+
+    Raises:
+        FrameError: the source has no finite poses for the members ("missing_pose").
+    """
+    return refine_source_poses(data.rgb, data.depth_m, data.K, offsets, poses_from_source(data), settings)
 
 
 def refine_source_poses(
@@ -41,7 +60,7 @@ def refine_source_poses(
             K: (3, 3) intrinsics at (H, W) (the target first in each).
         offsets: frame offsets, ``offsets[0] == 0``.
         T_j_to_t: (F-1, 4, 4) the source's poses of the neighbours in the target camera.
-        settings: ``refine_settings`` and the neighbour checks.
+        settings: its ``refine_settings`` and ``checks``.
 
     Returns:
         :class:`~depthgt.registration.result.RegistrationResult` (no correspondences,
@@ -60,8 +79,8 @@ def refine_source_poses(
     T_start = torch.cat([eye, T_j_to_t.to(dev, torch.float64)])
     refined = refine_poses(rgb, depth_m, K.to(depth_m.dtype), T_start, settings.refine_settings, offsets)
     T = refined.T_f_to_t
-    statuses, reasons = check_neighbours(T, None, refined, settings, T_start=T_start)
-    status, reason = set_status(statuses, [], settings)
+    statuses, reasons = check_neighbours(T, None, refined, settings.checks, T_start=T_start)
+    status, reason = set_status(statuses, [], settings.checks)
     correction = torch.linalg.inv(T_start[1:]) @ T[1:]
     diagnostics = {**refined.diagnostics(), "correction_translation_m": correction[:, :3, 3].norm(dim=1).cpu().tolist()}
     return RegistrationResult(

@@ -1,7 +1,9 @@
 """Overfit-trained unsupervised registration of one local frame set (paper Sec. 3.2).
 
-``register_frameset`` is the entry point: the R&R encoder is trained (Adam) on the
-single frame set with the consistency losses of every pair (eq. 4); the poses of the
+``register_frameset`` is the entry point (``register_overfit``, the method of the
+table ``depthgt.registration.METHODS``, calls it on a
+:class:`~depthgt.registration.frameset.FrameSetData`): the R&R encoder is trained
+(Adam) on the single frame set with the consistency losses of every pair (eq. 4); the poses of the
 neighbours in the target camera come from the weighted Procrustes of the last (or
 best-loss) iteration; then, beyond the paper, far neighbours may be initialised by
 chaining through nearer ones and all poses are refined jointly over SE(3)
@@ -26,13 +28,14 @@ from depthgt.metric_vocabulary import pose_delta
 from depthgt.registration.checks import check_neighbours, set_status
 from depthgt.registration.correspondences import find_correspondences, sample_candidates
 from depthgt.registration.encoder import build_encoder, candidate_points
+from depthgt.registration.frameset import FrameSetData
 from depthgt.registration.losses import correspondence_loss, default_render_fn, render_losses
 from depthgt.registration.procrustes import procrustes_random_subsets
-from depthgt.registration.refine import Level, LevelSettings, pair_mean_cost, refine_poses
+from depthgt.registration.refine import Level, LevelSettings, RefineResult, pair_mean_cost, refine_poses
 from depthgt.registration.result import RegistrationResult
 from depthgt.settings import RegistrationSettings
 
-__all__ = ["register_frameset", "pretrain_encoder", "frameset_loss"]
+__all__ = ["register_overfit", "register_frameset", "pretrain_encoder", "frameset_loss"]
 
 log = logging.getLogger(__name__)
 
@@ -95,14 +98,14 @@ def _check_inputs(rgb, depth_m, K, offsets):
 
 def _prepare(rgb, depth_m, K, s: RegistrationSettings, gen: torch.Generator) -> _Frameset:
     Fn = depth_m.shape[0]
-    cand_idx, cand_mask = sample_candidates(depth_m > 0, s.n_candidates, gen)
-    if s.pairs == "all":
+    cand_idx, cand_mask = sample_candidates(depth_m > 0, s.matching.n_candidates, gen)
+    if s.training.pairs == "all":
         a, b = torch.triu_indices(Fn, Fn, offset=1)
     else:
         b = torch.arange(1, Fn)
         a = torch.zeros_like(b)
     pairs = torch.stack([a, b], 1).to(depth_m.device)
-    return _Frameset(rgb, depth_m, K, cand_idx, cand_mask, pairs, s.render_stride)
+    return _Frameset(rgb, depth_m, K, cand_idx, cand_mask, pairs, s.training.render_stride)
 
 
 # --------------------------------------------------------------------------- loss
@@ -170,7 +173,7 @@ def frameset_loss(
         and a dict of the mean loss terms.
     """
     Fn = fs.rgb.shape[0]
-    f = encode_at(encoder, fs.rgb, fs.cand_idx, s.precision)  # (F, n, C)
+    f = encode_at(encoder, fs.rgb, fs.cand_idx, s.encoder.precision)  # (F, n, C)
     Kb = fs.K.expand(Fn, 3, 3).to(fs.depth.dtype)
     pts = candidate_points(fs.depth, Kb, fs.cand_idx)
     a, b = fs.pairs[:, 0], fs.pairs[:, 1]
@@ -180,16 +183,23 @@ def frameset_loss(
     sel = lambda x, i: x.index_select(0, i)  # noqa: E731
     fsel = lambda i: f.transpose(1, 2).index_select(0, i).transpose(1, 2)  # noqa: E731
     corr = find_correspondences(
-        sel(pts, a), fsel(a), sel(fs.cand_mask, a), sel(pts, b), fsel(b), sel(fs.cand_mask, b), s.top_k, s.knn_block
+        sel(pts, a),
+        fsel(a),
+        sel(fs.cand_mask, a),
+        sel(pts, b),
+        fsel(b),
+        sel(fs.cand_mask, b),
+        s.matching.top_k,
+        s.matching.knn_block,
     )
     T_ba, _ = procrustes_random_subsets(
-        corr.points_src, corr.points_dst, corr.weights, s.n_subsets, s.subset_fraction, gen
+        corr.points_src, corr.points_dst, corr.weights, s.matching.n_subsets, s.matching.subset_fraction, gen
     )
     l_corr = correspondence_loss(T_ba, corr.points_src, corr.points_dst, corr.weights)
-    n_conf = (corr.weights.detach() >= s.confident_weight).sum(1)
-    loss = s.w_corr * l_corr.sum()
+    n_conf = (corr.weights.detach() >= s.checks.confident_weight).sum(1)
+    loss = s.training.w_corr * l_corr.sum()
     terms = {"corr": float(l_corr.detach().mean())}
-    if with_render and (s.w_depth > 0 or s.w_photo > 0):
+    if with_render and (s.training.w_depth > 0 or s.training.w_photo > 0):
         T_ab = torch.linalg.inv(T_ba)
         # both directions: b rendered into a with T_ba, a rendered into b with T_ab
         src = torch.cat([b, a])
@@ -204,10 +214,10 @@ def frameset_loss(
             fs.rgb[dst],
             Kb[dst],
             render_fn,
-            s.render_radius_px,
-            s.render_max_points,
+            s.training.render_radius_px,
+            s.training.render_max_points,
         )
-        loss = loss + s.w_depth * l_d.sum() + s.w_photo * l_p.sum()
+        loss = loss + s.training.w_depth * l_d.sum() + s.training.w_photo * l_p.sum()
         terms["depth"] = float(l_d.detach().mean())
         terms["photo"] = float(l_p.detach().mean())
     return loss, T_ba, n_conf, terms
@@ -315,11 +325,11 @@ def _setup(rgb, depth_m, K, s: RegistrationSettings, encoder_state: dict | None,
         torch.set_num_threads(s.num_threads)
     dev = rgb.device
     rgb, depth_m, K = rgb.float(), depth_m.float(), K.to(dev, torch.float32)
-    if render_fn is None and (s.w_depth > 0 or s.w_photo > 0) and s.iterations > 0:
+    if render_fn is None and (s.training.w_depth > 0 or s.training.w_photo > 0) and s.training.iterations > 0:
         render_fn = default_render_fn()
     gen = torch.Generator().manual_seed(seed)
     fs = _prepare(rgb, depth_m, K, s, gen)
-    encoder = build_encoder(s.n_blocks, s.channels, s.feat_dim, seed=seed).to(dev)
+    encoder = build_encoder(s.encoder.n_blocks, s.encoder.channels, s.encoder.feat_dim, seed=seed).to(dev)
     if encoder_state is not None:
         encoder.load_state_dict(encoder_state)
     if dev.type == "cpu":
@@ -332,11 +342,11 @@ def _overfit(
     encoder: torch.nn.Module, fs: _Frameset, s: RegistrationSettings, gen: torch.Generator, render_fn: Callable | None
 ) -> _Overfit:
     """The paper's overfit training of the encoder on the single frame set (Adam,
-    ``s.iterations`` steps of the set-wide loss, eq. 4)."""
+    ``s.training.iterations`` steps of the set-wide loss, eq. 4)."""
     Fn = fs.rgb.shape[0]
-    opt = torch.optim.Adam(encoder.parameters(), lr=s.lr, weight_decay=s.weight_decay)
+    opt = torch.optim.Adam(encoder.parameters(), lr=s.training.lr, weight_decay=s.training.weight_decay)
     trace = _Overfit()
-    for _ in range(s.iterations):
+    for _ in range(s.training.iterations):
         opt.zero_grad(set_to_none=True)
         loss, T_ba, n_conf, _terms = frameset_loss(encoder, fs, s, gen, render_fn)
         if not torch.isfinite(loss):
@@ -375,7 +385,7 @@ def _final_estimate(
     Fn = fs.rgb.shape[0]
     with torch.no_grad():
         _, T_ba, n_conf, _ = frameset_loss(encoder, fs, s, gen, render_fn, with_render=False)
-    if s.pose_from == "best" and trace.best[1] is not None:
+    if s.training.pose_from == "best" and trace.best[1] is not None:
         T_ba, n_conf = trace.best[1], trace.best[2]
     T_paper = _target_poses(T_ba, fs.pairs, Fn)
     if trace.prev is not None:
@@ -384,6 +394,45 @@ def _final_estimate(
     n_corr = torch.zeros(Fn, dtype=torch.long)
     n_corr[fs.pairs[tsel, 1].cpu()] = n_conf[tsel].cpu()
     return T_ba, T_paper, n_corr
+
+
+def _beyond_the_paper(
+    fs: _Frameset,
+    T_paper: torch.Tensor,
+    T_ba: torch.Tensor,
+    offsets: list[int],
+    s: RegistrationSettings,
+    extra: torch.Tensor | None,
+) -> tuple[torch.Tensor, RefineResult | None, dict, dict[str, float]]:
+    """The steps beyond the paper on its poses ``T_paper`` (F, 4, 4): the chaining of far
+    neighbours through nearer ones (``s.chaining``, or an initial guess ``extra``) and the
+    joint SE(3) refinement (``s.refine``).
+
+    Returns:
+        T (F, 4, 4) the final poses, the refinement's
+        :class:`~depthgt.registration.refine.RefineResult` (or None), the diagnostics of
+        the two steps and their seconds.
+    """
+    diagnostics: dict = {}
+    timings: dict[str, float] = {}
+    T = T_paper
+    maps_of: dict = {}  # the refinement pyramid's maps by scale, shared by the chaining and the refinement
+    if s.chaining or extra is not None:
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            table = _pair_table(T_ba, fs.pairs, len(offsets)) if s.chaining else {}
+            T, choice = _chain(fs, T, table, offsets, s, extra, maps_of)
+        diagnostics["chaining"] = choice
+        timings["chaining"] = time.perf_counter() - t0
+    refined = None
+    if s.refine:
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            refined = refine_poses(fs.rgb, fs.depth, fs.K, T, s.refine_settings, offsets, maps_of)
+        T = refined.T_f_to_t
+        diagnostics.update(refined.diagnostics())
+        timings["refine"] = time.perf_counter() - t0
+    return T, refined, diagnostics, timings
 
 
 def register_frameset(
@@ -439,30 +488,14 @@ def register_frameset(
     timings["estimate"] = time.perf_counter() - t0
 
     diagnostics: dict = {"poses_paper": T_paper[1:].cpu().numpy().tolist()}
-    T = T_paper
-    maps_of: dict = {}  # the refinement pyramid's maps by scale, shared by the chaining and the refinement
     extra = None
     if init_T_j_to_t is not None:
         extra = torch.cat([torch.eye(4, dtype=torch.float64)[None], init_T_j_to_t.to(torch.float64).cpu()]).to(dev)
-    if s.chaining or extra is not None:
-        t0 = time.perf_counter()
-        with torch.no_grad():
-            table = _pair_table(T_ba, fs.pairs, Fn) if s.chaining else {}
-            T, choice = _chain(fs, T, table, offsets, s, extra, maps_of)
-        diagnostics["chaining"] = choice
-        timings["chaining"] = time.perf_counter() - t0
-
-    refined = None
-    if s.refine:
-        t0 = time.perf_counter()
-        with torch.no_grad():
-            refined = refine_poses(fs.rgb, fs.depth, fs.K, T, s.refine_settings, offsets, maps_of)
-        T = refined.T_f_to_t
-        diagnostics.update(refined.diagnostics())
-        timings["refine"] = time.perf_counter() - t0
-
-    statuses, reasons = check_neighbours(T, n_corr, refined, s)
-    status, reason = set_status(statuses, trace.loss_curve, s)
+    T, refined, notes, seconds = _beyond_the_paper(fs, T_paper, T_ba, offsets, s, extra)
+    diagnostics.update(notes)
+    timings.update(seconds)
+    statuses, reasons = check_neighbours(T, n_corr, refined, s.checks)
+    status, reason = set_status(statuses, [] if s.refine else trace.loss_curve, s.checks)
     timings["total"] = time.perf_counter() - t_start
     return RegistrationResult(
         T_j_to_t=T[1:].detach().cpu().to(torch.float64),
@@ -478,6 +511,19 @@ def register_frameset(
         diagnostics=diagnostics,
         normals=None if refined is None else refined.normals,
     )
+
+
+def register_overfit(
+    data: FrameSetData,
+    offsets: list[int],
+    settings: RegistrationSettings,
+    *,
+    seed: int = 0,
+    encoder_state: dict | None = None,
+) -> RegistrationResult:
+    """:func:`register_frameset` of the members of one frame set (the source's poses,
+    if any, are not used; :class:`~depthgt.registration.frameset.Registration`)."""
+    return register_frameset(data.rgb, data.depth_m, data.K, offsets, settings, encoder_state=encoder_state, seed=seed)
 
 
 def pretrain_encoder(
@@ -508,12 +554,14 @@ def pretrain_encoder(
         for rgb, depth_m, K, offsets in framesets:
             _check_inputs(rgb, depth_m, K, offsets)
             if encoder is None:
-                encoder = build_encoder(s.n_blocks, s.channels, s.feat_dim, seed=seed).to(rgb.device)
+                encoder = build_encoder(s.encoder.n_blocks, s.encoder.channels, s.encoder.feat_dim, seed=seed).to(
+                    rgb.device
+                )
                 if rgb.device.type == "cpu":
                     encoder = encoder.to(memory_format=torch.channels_last)
                 encoder.train()
-                opt = torch.optim.Adam(encoder.parameters(), lr=s.lr, weight_decay=s.weight_decay)
-                if render_fn is None and (s.w_depth > 0 or s.w_photo > 0):
+                opt = torch.optim.Adam(encoder.parameters(), lr=s.training.lr, weight_decay=s.training.weight_decay)
+                if render_fn is None and (s.training.w_depth > 0 or s.training.w_photo > 0):
                     render_fn = default_render_fn()
             fs = _prepare(rgb.float(), depth_m.float(), K.to(rgb.device, torch.float32), s, gen)
             opt.zero_grad(set_to_none=True)

@@ -503,6 +503,10 @@ def refine_poses(
 
     Returns:
         :class:`RefineResult` with float64 poses on the input device.
+
+    Long because the coarse-to-fine Levenberg-Marquardt loop carries the poses, the
+    damping and the accepted system across scales and iterations; its parts
+    (``_system``, ``_accept``, ``_assemble``, the per-frame statistics) are functions.
     """
     Fn = depth_m.shape[0]
     if rgb.shape != (Fn, 3, *depth_m.shape[-2:]):

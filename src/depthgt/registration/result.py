@@ -1,5 +1,5 @@
-"""The outcome of registering one frame set, whatever the method (overfit registration,
-refinement of the source's poses): the neighbours' poses in the target camera, each
+"""The outcome of registering one frame set, whatever the method (the source's poses,
+their refinement, the overfit registration): the neighbours' poses in the target camera, each
 neighbour's status and the record written to poses.json."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ __all__ = ["RegistrationResult"]
 
 @dataclass
 class RegistrationResult:
-    """Outcome of :func:`register_frameset`.
+    """Outcome of a registration method (:class:`~depthgt.registration.frameset.Registration`).
 
     Attributes:
         T_j_to_t: (F-1, 4, 4) float64, neighbour j's camera points into the target camera.
@@ -33,6 +33,8 @@ class RegistrationResult:
         normals: (F, 3, H, W) the refinement's full-resolution normals of the members
             (:attr:`RefineResult.normals`; the GT renderer reuses them), or None. Not
             written to poses.json.
+        estimated: False when the poses are the source's as they are (method
+            ``given``): nothing was estimated, poses.json records the method alone.
     """
 
     T_j_to_t: torch.Tensor
@@ -47,6 +49,7 @@ class RegistrationResult:
     timings: dict[str, float] = field(default_factory=dict)
     diagnostics: dict = field(default_factory=dict)
     normals: torch.Tensor | None = None
+    estimated: bool = True
 
     def to_dict(self) -> dict:
         T = self.T_j_to_t.detach().cpu().numpy()

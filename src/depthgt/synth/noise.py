@@ -193,6 +193,10 @@ def kinect_noise(
 
     Returns:
         (H, W) float32 noisy depth in metres, 0 = invalid.
+
+    Long because it is one sequence of draws from ``rng`` in the order the sensor's
+    effects apply; split, the order that every frame's noise depends on would be spread
+    over functions.
     """
     depth_m = np.asarray(depth_m, np.float32)
     if depth_m.ndim != 2:

@@ -295,6 +295,10 @@ def generate_layout(rng: np.random.Generator, texture_size: int = 512) -> Layout
     kitchen run of cabinets with a dark counter top and jars and boxes on it, a shelf
     unit with books, a floor lamp (thin pole), a sideboard with objects and sometimes
     a television, posters and a door on the walls.
+
+    Long because it is one sequence of draws from ``rng``, object after object; split,
+    the order that every room depends on (the default dataset's rooms) would be spread
+    over functions.
     """
     size = np.array([rng.uniform(3.8, 5.0), rng.uniform(3.5, 4.6), rng.uniform(2.5, 2.8)])
     kinds = [
@@ -612,6 +616,10 @@ def raycast(layout: Layout, T_world_cam: np.ndarray, K: np.ndarray, hw: tuple[in
 
     Returns:
         :class:`RayHits` (all pixels hit something inside the closed room).
+
+    Long because its checks, the ray set-up and the hit attributes (depth, normal,
+    material, texture coordinates) share the per-pixel rays; the intersection tests
+    themselves are vectorised functions.
     """
     T_world_cam = np.asarray(T_world_cam, np.float64)
     if T_world_cam.shape != (4, 4):

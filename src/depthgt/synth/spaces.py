@@ -307,6 +307,9 @@ def generate_space_layout(rng: np.random.Generator, texture_size: int = 512) -> 
     legs, partition walls, pillars, shelves). All get ceiling beams or lamps, wall
     items and some dark and glossy surfaces. ``Layout.focus`` is the room's centre
     at 1 m (the walk path does not circle it).
+
+    Long because it is one sequence of draws from ``rng``, kind by kind and object after
+    object; split, the order that every space depends on would be spread over functions.
     """
     kind = SPACE_KINDS[int(rng.integers(0, len(SPACE_KINDS)))]
     size = _room_size(rng, kind)
