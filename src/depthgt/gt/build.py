@@ -62,7 +62,7 @@ class FrameSetOutputs(NamedTuple):
         """The standard names (``gt.exr`` ... ``frameset.json``) in ``out_dir``."""
         d = Path(out_dir)
         return cls(
-            d / "gt.exr", d / "input.exr", d / "rgb.png", d / "poses.json", d / "patches.npz", d / "frameset.json"
+            d / "gt.exr", d / "input.exr", d / "rgb.webp", d / "poses.json", d / "patches.npz", d / "frameset.json"
         )
 
 
@@ -421,8 +421,6 @@ def process_frameset(
         {
             "Z": gt_raw,
             "S": gt.sigma[0, 0].detach().cpu().numpy().astype(np.float32),
-            "N": gt.count[0, 0].cpu().numpy().astype(np.float32),
-            "W": gt.weight_sum[0, 0].detach().cpu().numpy().astype(np.float32),
         },
         str(out.gt),
     )
@@ -432,7 +430,7 @@ def process_frameset(
     stats: dict[str, Any] = {
         "input_missing": float((depth_in <= 0).mean()),
         "gt_missing": float((gt_depth <= 0).mean()),
-        "gt_mean_points": float(gt_images["N"].mean()),
+        "gt_mean_points": float(gt.count[0, 0].cpu().numpy().astype(np.float32).mean()),
         "gt_median_sigma_m": float(np.median(gt_sigma[gt_depth > 0])) if (gt_depth > 0).any() else float("nan"),
         "neighbours_fused": len(fused) - 1,
     }
@@ -462,7 +460,7 @@ def process_frameset(
 
     write_atomic(out.gt, store.write_gt_exr, gt_images)
     write_atomic(out.input, store.write_input_exr, depth_in, truth)
-    write_atomic(out.rgb, io.write_rgb_png, rgb8)
+    write_atomic(out.rgb, io.write_rgb_webp, rgb8)
     write_atomic(out.patches, save_npz, patch_record(patches, settings.patches.max_gt_sigma_m))
     T_np = alignment.T_j_to_t.detach().cpu().numpy().astype(np.float64)
     poses_doc = {
