@@ -40,7 +40,7 @@ def test_gt_exr_round_trip_within_the_stated_precision(tmp_path):
     rng = np.random.default_rng(0)
     gt, sigma, *_ = _scene(rng)
     gt[0, :8] = np.linspace(0.2, 10.0, 8)  # the range the issue names: 0-10 m
-    sigma[0, :8] = np.geomspace(2e-4, 0.2, 8)  # real sigmas span 0.3 mm to 0.1 m
+    sigma[0, :8] = np.geomspace(2e-4, 0.2, 8)  # real sigmas span 0.3 mm to 0.14 m
     chans = {"Z": gt, "S": sigma}
     store.write_gt_exr(tmp_path / "a.exr", chans)
     store.write_gt_exr(tmp_path / "b.exr", dict(reversed(list(chans.items()))))

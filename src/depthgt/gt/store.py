@@ -114,7 +114,7 @@ GT_UNITS = {"Z": 2**14}
 #: gt.exr's log-grid channel, (steps per octave, smallest value in m): S at 8 steps per
 #: octave (a relative step of 2^(1/8), max relative rounding error 4.4 %, well below
 #: the spread of a sigma estimated from a few dozen samples; values below 2^-20 m,
-#: 0.95 um, are stored as 2^-20 m). The sigma spans 0.3 mm to 0.1 m on real data, so
+#: 0.95 um, are stored as 2^-20 m). The sigma spans 0.3 mm to 0.14 m on real data, so
 #: a relative grid keeps its small values as well as its large ones
 #: (bench/README.md "Bytes per frame set").
 GT_LOG_GRID = {"S": (8, 2.0**-20)}
