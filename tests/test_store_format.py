@@ -97,7 +97,7 @@ def test_colour_is_stored_lossless_as_webp(tmp_path):
     data = (tmp_path / "c.webp").read_bytes()
     assert data[:4] == b"RIFF" and data[8:12] == b"WEBP"
     np.testing.assert_array_equal(io.decode_color(data, "c.webp", formats=("WEBP",)), rgb)
-    with pytest.raises(FrameError, match="c.webp: not a readable WEBP image"):
+    with pytest.raises(FrameError, match="c.webp: not a readable JPEG or PNG or WEBP image"):
         io.decode_color(data[: len(data) // 2], "c.webp", formats=("WEBP",))
     with pytest.raises(FrameError, match="not a readable JPEG or PNG"):  # sources still take JPEG and PNG only
         io.decode_color(data, "c.webp")

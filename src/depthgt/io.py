@@ -228,7 +228,8 @@ def decode_color(
     Raises:
         FrameError: ("unreadable") or ("size_mismatch") naming ``where``.
     """
-    header = probe_image(data, where, formats)
+    # JPEG and PNG are always recognised, so that a payload of the other one is named
+    header = probe_image(data, where, tuple(dict.fromkeys(("JPEG", "PNG", *formats))))
     if header.format not in formats:
         raise FrameError(f"{where}: colour payload is {header.format}, expected {' or '.join(formats)}", "unreadable")
     if header.mode not in _COLOR_MODES:
