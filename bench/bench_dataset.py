@@ -11,8 +11,8 @@ only public API, so it runs against older checkouts too)::
     python3 bench/bench_dataset.py compare a.npz b.npz
 
 * ``bytes``: per frame-set shard, bytes per built frame set (the shard's size over its
-  frame sets) and per member (gt.exr, input.exr, rgb.png, patches.npz, JSON), in bytes
-  as stored in the shard;
+  frame sets) and per member (gt.exr, input.exr, the colour, patches.npz, JSON), in
+  bytes as stored in the shard; 1 MB = 10^6 bytes;
 * ``loader``: samples per second of ``GTDataset(kind)`` through a ``DataLoader`` with
   ``--workers`` workers (default 2), ``--batch`` samples per batch, ``--epochs`` passes
   in a fresh loader each (the first pass includes the workers' start); with
@@ -20,8 +20,8 @@ only public API, so it runs against older checkouts too)::
 * ``export``: wall seconds of ``depthgt export`` (``export_dataset``) of the split to a
   temporary folder, png16;
 * ``dump`` / ``compare``: every sample of a split (input, gt, sigma, truth, rgb and the
-  ids) to an npz; the largest absolute difference per array between two dumps and
-  whether the patch pairs' ids and boxes agree.
+  ids) to an npz; the largest absolute difference per array between two dumps (for
+  ``sigma`` also the largest relative one) and whether the patch pairs' ids agree.
 """
 
 from __future__ import annotations
@@ -115,9 +115,15 @@ def _compare(a: Path, b: Path) -> None:
                 continue
             d = np.abs(x[k].astype(np.float64) - y[k].astype(np.float64))
             same = np.array_equal(x[k], y[k])
+            both = (x[k] > 0) & (y[k] > 0)
+            rel = f", max rel diff {(d[both] / np.abs(x[k][both])).max():.3g}" if k == "sigma" and both.any() else ""
             print(
-                f"{k}: identical {same}, max abs diff {d.max():.3g}, differing elements {(d > 0).mean():.4f}"
-                + (f", validity equal {np.array_equal(x[k] > 0, y[k] > 0)}" if k in ("input", "gt", "truth") else "")
+                f"{k}: identical {same}, max abs diff {d.max():.3g}{rel}, differing elements {(d > 0).mean():.4f}"
+                + (
+                    f", validity equal {np.array_equal(x[k] > 0, y[k] > 0)}"
+                    if k in ("input", "gt", "truth", "sigma")
+                    else ""
+                )
             )
 
 

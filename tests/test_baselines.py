@@ -224,8 +224,8 @@ def test_evaluate_frames_on_a_synthetic_frame_set(tmp_path):
     truth, noisy, holes, rgb = _plane(32)
     d = tmp_path / "fs" / "000010"
     io.write_exr(d / "input.exr", {"Z": noisy, "T": truth})
-    io.write_exr(d / "gt.exr", {"Z": truth + 0.001, "W": np.ones_like(truth), "N": np.ones_like(truth)})
-    io.write_rgb_png(d / "rgb.png", rgb)
+    io.write_exr(d / "gt.exr", {"Z": truth + 0.001, "S": np.full_like(truth, 0.001)})
+    io.write_rgb_webp(d / "rgb.webp", rgb)
     frames = pd.DataFrame(
         [
             {"dataset": "synth", "scene": "s0", "target": 10, "frameset": str(d), "split": "test", "status": "ok"},

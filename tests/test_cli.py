@@ -101,7 +101,7 @@ def test_show_names_a_frame_set_that_was_not_built(built):
 def test_extract_writes_the_frame_set_files(built, tmp_path):
     proc = depthgt("extract", "-d", str(built), "syn", "room_001", "2", str(tmp_path / "fs"))
     names = sorted(Path(p).name for p in proc.stdout.split())
-    assert names == sorted(["gt.exr", "input.exr", "rgb.png", "poses.json", "patches.npz", "frameset.json"])
+    assert names == sorted(["gt.exr", "input.exr", "rgb.webp", "poses.json", "patches.npz", "frameset.json"])
     from depthgt.io import read_exr
 
     assert read_exr(tmp_path / "fs" / "gt.exr")["Z"].shape == (64, 64)

@@ -199,13 +199,13 @@ from depthgt.enhance.train import (  # noqa: E402
 from depthgt.errors import ConfigError, DepthGTError  # noqa: E402
 from depthgt.gt import store  # noqa: E402
 from depthgt.gt.patches import crop_pairs, patch_record  # noqa: E402
-from depthgt.io import write_rgb_png  # noqa: E402
+from depthgt.io import write_rgb_webp  # noqa: E402
 from depthgt.settings import TrainSettings  # noqa: E402
 
 
 def _write_frameset(folder, seed, n_patches=4, size=16):
     """A frame set folder (store format): a noisy slanted plane (gt.exr, input.exr,
-    rgb.png), ``n_patches`` crop boxes in patches.npz, and frameset.json."""
+    rgb.webp), ``n_patches`` crop boxes in patches.npz, and frameset.json."""
     rng = np.random.default_rng(seed)
     folder.mkdir(parents=True)
     yy, xx = np.mgrid[0:48, 0:48]
@@ -216,7 +216,7 @@ def _write_frameset(folder, seed, n_patches=4, size=16):
     boxes = np.array([[4 * i, 2 * i, size, size] for i in range(n_patches)])
     store.write_gt_exr(folder / "gt.exr", {"Z": gt})
     store.write_input_exr(folder / "input.exr", inp)
-    write_rgb_png(folder / "rgb.png", rgb)
+    write_rgb_webp(folder / store.RGB_MEMBER, rgb)
     save_npz(folder / "patches.npz", patch_record(crop_pairs(inp, gt, rgb, boxes, max_missing=1.0)))
     K = [[100.0, 0.0, 127.5], [0.0, 100.0, 127.5], [0.0, 0.0, 1.0]]
     (folder / "frameset.json").write_text(json.dumps({"K": K}))

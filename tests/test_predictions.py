@@ -39,7 +39,7 @@ def build(tmp_path):
         truth, noisy, gt, rgb = _frame(rng)
         io.write_exr(tmp_path / loc / "input.exr", {"Z": noisy, "T": truth})
         io.write_exr(tmp_path / loc / "gt.exr", {"Z": gt})
-        io.write_rgb_png(tmp_path / loc / "rgb.png", rgb)
+        io.write_rgb_webp(tmp_path / loc / "rgb.webp", rgb)
         rows.append(
             {
                 "dataset": "syn",

@@ -19,7 +19,7 @@ from conftest import REPO, digest_outputs, make_workdir, snakemake
 from depthgt.gt import store
 from depthgt.io import read_exr
 
-FRAMESET_FILES = ("gt.exr", "input.exr", "rgb.png", "poses.json", "patches.npz", "frameset.json")
+FRAMESET_FILES = ("gt.exr", "input.exr", "rgb.webp", "poses.json", "patches.npz", "frameset.json")
 
 TINY = {
     "seed": 3,
@@ -90,7 +90,7 @@ def test_layout(built):
                 assert sorted(p.name for p in fdir.iterdir()) == sorted(FRAMESET_FILES)
                 gt = read_exr(fdir / "gt.exr")
                 inp = read_exr(fdir / "input.exr")
-            assert set(gt) == {"Z", "W", "N", "S"} and gt["Z"].shape == (128, 128)
+            assert set(gt) == {"Z", "S"} and gt["Z"].shape == (128, 128)
             # S: the GT's expected std (metres), positive wherever there is GT depth
             assert (gt["S"][gt["Z"] > 0] > 0).all() and np.isfinite(gt["S"]).all()
             assert {"Z", "T"} <= set(inp)

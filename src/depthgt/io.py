@@ -5,13 +5,14 @@ reason tag: ``"missing_file"`` (no such file), ``"unreadable"`` (the decoder fai
 the file is not an image of the expected kind), ``"size_mismatch"`` (the image's
 declared size is not the size the caller expects). Writers create parent folders.
 
-Encoded images (JPEG/PNG files and ``.sens`` payloads) are untrusted input. Before any
+Encoded images (JPEG/PNG files, ``.sens`` payloads, a frame set's WebP colour) are untrusted input. Before any
 pixel is decoded, :func:`probe_image` reads the declared format, size and mode from the
 header (Pillow's lazy ``Image.open``, which decodes nothing) and the size is checked
 against the caller's expectation and :data:`MAX_IMAGE_PIXELS`, so that a header
-claiming 60000x60000 pixels costs nothing. A JPEG must end with its end-of-image marker
-and a PNG with its ``IEND`` chunk: libjpeg decodes a truncated JPEG with only a warning
-on stderr, so truncation is detected here. OpenCV then decodes; whatever it reports
+claiming 60000x60000 pixels costs nothing. A JPEG must end with its end-of-image marker,
+a PNG with its ``IEND`` chunk and a WebP must hold the bytes its RIFF header declares:
+libjpeg decodes a truncated JPEG with only a warning on stderr, so truncation is
+detected here. OpenCV then decodes; whatever it reports
 (``None`` or ``cv2.error``) becomes a FrameError.
 
 Conventions: depth (H, W) float32 metres, 0 = invalid; colour (H, W, 3) uint8 RGB
@@ -31,7 +32,10 @@ from typing import Any
 
 import cv2
 import numpy as np
-from PIL import Image, UnidentifiedImageError
+
+# WebPImagePlugin registers WEBP with Pillow: without it the first WebP open imports every
+# Pillow plugin (~0.1 s in each process, each DataLoader worker)
+from PIL import Image, UnidentifiedImageError, WebPImagePlugin  # noqa: F401
 
 from depthgt.errors import FrameError
 
@@ -46,10 +50,14 @@ __all__ = [
     "read_depth_png",
     "read_rgb",
     "write_rgb_png",
+    "write_rgb_webp",
     "EXR_COMPRESSIONS",
     "fixed_point",
     "from_fixed_point",
     "on_fixed_point_grid",
+    "log_quantised",
+    "from_log_quantised",
+    "on_log_grid",
     "write_exr",
     "read_exr",
     "decode_exr",
@@ -68,6 +76,7 @@ MAX_IMAGE_FILE_BYTES = 256 * 1024 * 1024
 
 _PNG_IEND = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # the fixed last chunk of every PNG
 _JPEG_EOI = b"\xff\xd9"  # end-of-image marker
+_RIFF, _WEBP = b"RIFF", b"WEBP"  # a WebP file: RIFF, the byte count after these 8 bytes, WEBP
 # What Pillow's header parsers raise on malformed input (Image.open tries its plugins
 # and ends in UnidentifiedImageError, an OSError; DecompressionBombError above
 # 2 * Image.MAX_IMAGE_PIXELS; the others from plugins that accepted the first bytes).
@@ -90,7 +99,7 @@ class ImageHeader:
     """What an encoded image declares in its header (nothing decoded).
 
     Attributes:
-        format: ``"JPEG"`` or ``"PNG"``.
+        format: ``"JPEG"``, ``"PNG"`` or ``"WEBP"`` (as the caller allowed).
         width, height: declared size in pixels.
         mode: Pillow's mode, e.g. ``"L"`` (8-bit grey), ``"RGB"``, ``"RGBA"``,
             ``"I;16"`` (16-bit grey), ``"CMYK"``.
@@ -111,34 +120,34 @@ def _require_file(path: Path) -> None:
         raise FrameError(f"{path}: file not found", "missing_file")
 
 
-def _open_header(source, where: str) -> ImageHeader:
+def _open_header(source, where: str, formats: tuple[str, ...] = ("JPEG", "PNG")) -> ImageHeader:
+    kinds = " or ".join(formats)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # the size is checked by the caller
-            with Image.open(source, formats=("JPEG", "PNG")) as im:
+            with Image.open(source, formats=formats) as im:
                 return ImageHeader(str(im.format), int(im.size[0]), int(im.size[1]), str(im.mode))
     except Image.DecompressionBombError as exc:
         raise FrameError(f"{where}: image header declares an absurd size ({exc})", "unreadable") from exc
     except UnidentifiedImageError as exc:
         raise FrameError(
-            f"{where}: not a readable JPEG or PNG image (unknown format or corrupt header)", "unreadable"
+            f"{where}: not a readable {kinds} image (unknown format or corrupt header)", "unreadable"
         ) from exc
     except _PIL_ERRORS as exc:
-        raise FrameError(
-            f"{where}: not a readable JPEG or PNG image ({type(exc).__name__}: {exc})", "unreadable"
-        ) from exc
+        raise FrameError(f"{where}: not a readable {kinds} image ({type(exc).__name__}: {exc})", "unreadable") from exc
 
 
-def probe_image(data: bytes, where: str) -> ImageHeader:
-    """Format, declared size and mode of an encoded JPEG/PNG image, from its header only.
+def probe_image(data: bytes, where: str, formats: tuple[str, ...] = ("JPEG", "PNG")) -> ImageHeader:
+    """Format, declared size and mode of an encoded image of one of ``formats`` (Pillow's
+    names: ``"JPEG"``, ``"PNG"``, ``"WEBP"``), from its header only.
 
     Raises:
-        FrameError: ("unreadable") empty data, not a JPEG or PNG (TIFF, garbage), or a
-            header that does not parse; the message names ``where``.
+        FrameError: ("unreadable") empty data, not one of ``formats`` (TIFF, garbage), or
+            a header that does not parse; the message names ``where``.
     """
     if not data:
         raise FrameError(f"{where}: empty image payload (0 bytes)", "unreadable")
-    return _open_header(io.BytesIO(data), where)
+    return _open_header(io.BytesIO(data), where, tuple(formats))
 
 
 def probe_image_file(path: str | Path) -> ImageHeader:
@@ -174,6 +183,12 @@ def _check_complete(data: bytes, header: ImageHeader, where: str) -> None:
         raise FrameError(f"{where}: truncated JPEG (no end-of-image marker after {len(data)} bytes)", "unreadable")
     if header.format == "PNG" and not data.endswith(_PNG_IEND):
         raise FrameError(f"{where}: truncated PNG (no IEND chunk after {len(data)} bytes)", "unreadable")
+    if header.format == "WEBP":
+        declared = int.from_bytes(data[4:8], "little") + 8 if data[:4] == _RIFF and data[8:12] == _WEBP else -1
+        if declared < 0 or len(data) < declared:
+            raise FrameError(
+                f"{where}: truncated WebP ({len(data)} bytes, its RIFF header declares {declared})", "unreadable"
+            )
 
 
 def _imdecode(data: bytes, header: ImageHeader, where: str) -> np.ndarray:
@@ -199,7 +214,8 @@ def decode_color(
     """Decode an encoded colour image to (H, W, 3) uint8 RGB.
 
     Accepted: 8-bit grey (expanded to three channels), 8-bit RGB and 8-bit palette
-    images, JPEG or PNG (``formats``). Rejected before decoding: empty data, other
+    images of ``formats`` (JPEG or PNG by default; a frame set's colour is ``("WEBP",)``).
+    Rejected before decoding: empty data, other
     formats (TIFF, ...), modes with alpha, 16 bits or CMYK, declared sizes other than
     ``expected_hw`` or beyond :data:`MAX_IMAGE_PIXELS`, truncated files; after decoding:
     anything OpenCV does not return as 8-bit with 1 or 3 channels (16-bit RGB PNG).
@@ -212,7 +228,8 @@ def decode_color(
     Raises:
         FrameError: ("unreadable") or ("size_mismatch") naming ``where``.
     """
-    header = probe_image(data, where)
+    # JPEG and PNG are always recognised, so that a payload of the other one is named
+    header = probe_image(data, where, tuple(dict.fromkeys(("JPEG", "PNG", *formats))))
     if header.format not in formats:
         raise FrameError(f"{where}: colour payload is {header.format}, expected {' or '.join(formats)}", "unreadable")
     if header.mode not in _COLOR_MODES:
@@ -322,12 +339,39 @@ def write_rgb_png(path: str | Path, rgb: np.ndarray) -> None:
         raise OSError(f"{path}: cv2.imwrite failed")
 
 
+#: libwebp's lossless effort for :func:`write_rgb_webp`: method 3 at quality 0. On 11
+#: real 256x256 frames (bench/README.md "Bytes per frame set", format 3): 86.3 kB in
+#: 25 ms CPU, against 84.0 kB in 79 ms (method 4), 84.0 kB in 124 ms (OpenCV's lossless
+#: WebP, which has no effort setting) and PNG's 116 kB in 3.5 ms.
+WEBP_METHOD, WEBP_EFFORT = 3, 0
+
+
+def write_rgb_webp(path: str | Path, rgb: np.ndarray) -> None:
+    """Write (H, W, 3) uint8 RGB as a lossless WebP (every value kept; a quarter smaller
+    than PNG on camera frames), with Pillow: OpenCV offers no effort setting for it.
+
+    Raises:
+        ValueError: wrong shape or dtype.
+        OSError: the encoder could not write ``path``.
+    """
+    path = Path(path)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"{path}: rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.ascontiguousarray(rgb), "RGB").save(
+        path, "WEBP", lossless=True, quality=WEBP_EFFORT, method=WEBP_METHOD
+    )
+
+
 #: EXR compressions :func:`write_exr` offers: ``zip`` (zlib, every OpenEXR reader) and
 #: ``htj2k`` (lossless high-throughput JPEG 2000, OpenEXR >= 3.4: on a frame set's
 #: fixed-point GT 42 % smaller than zip, bench/README.md "Bytes per frame set").
 EXR_COMPRESSIONS = ("zip", "htj2k")
 #: The header attribute that names the fixed-point channels: JSON ``{channel: units per value}``.
 FIXED_POINT_ATTRIBUTE = "depthgt_fixed_point"
+#: The header attribute that names the channels on a logarithmic grid: JSON
+#: ``{channel: [steps per octave, smallest value]}`` (:func:`log_quantised`).
+LOG_GRID_ATTRIBUTE = "depthgt_log2"
 _UINT32_MAX = float(np.iinfo(np.uint32).max)
 
 
@@ -362,16 +406,61 @@ def on_fixed_point_grid(values: np.ndarray, units_per_value: int, where: str = "
     return from_fixed_point(fixed_point(values, units_per_value, where), units_per_value)
 
 
+def _check_log_grid(steps_per_octave: int, smallest: float, where: str) -> None:
+    if int(steps_per_octave) != steps_per_octave or not 1 <= steps_per_octave <= 1024 or not smallest > 0:
+        raise ValueError(
+            f"{where}: a log grid needs whole steps per octave in [1, 1024] and a smallest value > 0, "
+            f"got {steps_per_octave} and {smallest}"
+        )
+
+
+def log_quantised(values: np.ndarray, steps_per_octave: int, smallest: float, where: str = "array") -> np.ndarray:
+    """(H, W) uint32 codes of a non-negative image on a logarithmic grid: 0 for 0, else
+    ``1 + round(steps_per_octave * log2(v / smallest))``: a constant relative step of
+    2^(1 / steps_per_octave), so the largest relative rounding error is
+    2^(1 / (2 steps_per_octave)) - 1 (4.4 % at 8 steps per octave) at any magnitude.
+    Values in (0, ``smallest``] are stored as ``smallest``. Written by hand: no image
+    library stores a channel on a log grid losslessly (EXR's half floats are one, at a
+    fixed 1/1024-octave step that compresses poorly).
+
+    Raises:
+        ValueError: a negative or non-finite value (named with ``where``), or a bad grid.
+    """
+    _check_log_grid(steps_per_octave, smallest, where)
+    raw = np.asarray(values)
+    v = raw.astype(np.float64)
+    bad = ~np.isfinite(v) | (v < 0)
+    if bad.any():
+        y, x = np.argwhere(bad)[0]
+        raise ValueError(f"{where}: value {raw[y, x]!s} at pixel ({y}, {x}) is not a finite number >= 0 (log grid)")
+    with np.errstate(divide="ignore"):  # log2(0) is masked out below
+        steps = np.round(steps_per_octave * np.log2(np.maximum(v, smallest) / smallest))
+    return np.where(v > 0, steps + 1, 0).astype(np.uint32)
+
+
+def from_log_quantised(codes: np.ndarray, steps_per_octave: int, smallest: float) -> np.ndarray:
+    """(H, W) float32 values of :func:`log_quantised` codes (0 stays 0)."""
+    codes = np.asarray(codes)
+    values = smallest * np.exp2((codes.astype(np.float64) - 1.0) / steps_per_octave)
+    return np.where(codes > 0, values, 0.0).astype(np.float32)
+
+
+def on_log_grid(values: np.ndarray, steps_per_octave: int, smallest: float, where: str = "array") -> np.ndarray:
+    """``values`` (float32) as a log-grid channel of :func:`write_exr` reads back."""
+    return from_log_quantised(log_quantised(values, steps_per_octave, smallest, where), steps_per_octave, smallest)
+
+
 def write_exr(
     path: str | Path,
     channels: Mapping[str, np.ndarray],
     fixed: Mapping[str, int] | None = None,
     compression: str = "zip",
+    log_grid: Mapping[str, tuple[int, float]] | None = None,
 ) -> None:
     """Write float32 channels to a scanline EXR.
 
-    The header holds only the standard attributes (no timestamps) and, with ``fixed``,
-    the fixed-point table, so identical input gives identical bytes.
+    The header holds only the standard attributes (no timestamps) and, with ``fixed`` or
+    ``log_grid``, their tables, so identical input gives identical bytes.
 
     Args:
         channels: name -> (H, W) float32 array; all of the same shape.
@@ -379,6 +468,9 @@ def write_exr(
             channels of ``round(value * units)``, :func:`fixed_point`); :func:`read_exr`
             turns them back to float32. Other channels are stored as FLOAT.
         compression: one of :data:`EXR_COMPRESSIONS`.
+        log_grid: name -> (steps per octave, smallest value) of the channels stored on a
+            logarithmic grid (UINT channels of :func:`log_quantised` codes), read back
+            likewise.
 
     Raises:
         ValueError: no channel, a channel that is not 2-D float32, shapes that differ,
@@ -392,10 +484,15 @@ def write_exr(
         raise ValueError(f"{path}: no channel to write")
     if compression not in EXR_COMPRESSIONS:
         raise ValueError(f"{path}: compression must be one of {', '.join(EXR_COMPRESSIONS)}, got {compression!r}")
-    fixed = dict(fixed or {})
+    fixed, log_grid = dict(fixed or {}), dict(log_grid or {})
     unknown = sorted(set(fixed) - set(channels))
     if unknown:
         raise ValueError(f"{path}: fixed-point channels {unknown} are not among the channels {sorted(channels)}")
+    unknown = sorted(set(log_grid) - set(channels)) + sorted(set(log_grid) & set(fixed))
+    if unknown:
+        raise ValueError(
+            f"{path}: log-grid channels {unknown} are not among the channels {sorted(channels)} or are also fixed point"
+        )
     shapes = {}
     for name, arr in channels.items():
         if not isinstance(arr, np.ndarray) or arr.ndim != 2 or arr.dtype != np.float32:
@@ -411,17 +508,24 @@ def write_exr(
     }
     if fixed:
         header[FIXED_POINT_ATTRIBUTE] = json.dumps({k: int(v) for k, v in sorted(fixed.items())})
-    data = {
-        name: (fixed_point(arr, fixed[name], f"{path} channel {name}") if name in fixed else np.ascontiguousarray(arr))
-        for name, arr in sorted(channels.items())
-    }
+    if log_grid:
+        header[LOG_GRID_ATTRIBUTE] = json.dumps({k: [int(n), float(m)] for k, (n, m) in sorted(log_grid.items())})
+
+    def stored(name: str, arr: np.ndarray) -> np.ndarray:
+        if name in fixed:
+            return fixed_point(arr, fixed[name], f"{path} channel {name}")
+        if name in log_grid:
+            return log_quantised(arr, *log_grid[name], f"{path} channel {name}")
+        return np.ascontiguousarray(arr)
+
+    data = {name: stored(name, arr) for name, arr in sorted(channels.items())}
     with OpenEXR.File(header, data) as f:
         f.write(str(path))
 
 
 def _exr_channels(source: str | io.BytesIO, where: str) -> dict[str, np.ndarray]:
-    """Every channel of an EXR (a path or the bytes in a stream), fixed-point channels
-    divided back (see :func:`read_exr`)."""
+    """Every channel of an EXR (a path or the bytes in a stream), fixed-point and log-grid
+    channels turned back to values (see :func:`read_exr`)."""
     import OpenEXR  # heavy binding, imported only when EXR is used
 
     try:
@@ -429,8 +533,17 @@ def _exr_channels(source: str | io.BytesIO, where: str) -> dict[str, np.ndarray]
         with OpenEXR.File(source, separate_channels=True, num_threads=1) as f:
             chans = {name: np.array(ch.pixels) for name, ch in f.channels().items()}
             table = f.header().get(FIXED_POINT_ATTRIBUTE)
+            log_table = f.header().get(LOG_GRID_ATTRIBUTE)
     except (RuntimeError, OSError, ValueError) as exc:
         raise FrameError(f"{where}: cannot read EXR ({exc})", "unreadable") from exc
+
+    def uint_channel(name: str, what: str) -> None:
+        if name not in chans or chans[name].dtype != np.uint32:
+            raise FrameError(
+                f"{where}: {what} channel {name!r} is not a UINT channel of the file (channels {sorted(chans)})",
+                "unreadable",
+            )
+
     if table is not None:
         try:
             fixed = {str(k): int(v) for k, v in json.loads(table).items()}
@@ -439,13 +552,22 @@ def _exr_channels(source: str | io.BytesIO, where: str) -> dict[str, np.ndarray]
                 f"{where}: header {FIXED_POINT_ATTRIBUTE} is not a JSON table of units ({exc})", "unreadable"
             ) from exc
         for name, units in fixed.items():
-            if name not in chans or chans[name].dtype != np.uint32 or units <= 0:
-                raise FrameError(
-                    f"{where}: fixed-point channel {name!r} ({units} units per value) is not a UINT channel "
-                    f"of the file (channels {sorted(chans)})",
-                    "unreadable",
-                )
+            uint_channel(name, f"fixed-point ({units} units per value)")
+            if units <= 0:
+                raise FrameError(f"{where}: fixed-point channel {name!r} has {units} units per value", "unreadable")
             chans[name] = from_fixed_point(chans[name], units)
+    if log_table is not None:
+        try:
+            grids = {str(k): (int(n), float(m)) for k, (n, m) in json.loads(log_table).items()}
+            for name, grid in grids.items():
+                _check_log_grid(*grid, f"{where} channel {name}")
+        except (ValueError, TypeError, AttributeError) as exc:
+            raise FrameError(
+                f"{where}: header {LOG_GRID_ATTRIBUTE} is not a JSON table of log grids ({exc})", "unreadable"
+            ) from exc
+        for name, (steps, smallest) in grids.items():
+            uint_channel(name, f"log-grid ({steps} steps per octave from {smallest:g})")
+            chans[name] = from_log_quantised(chans[name], steps, smallest)
     return chans
 
 
@@ -453,9 +575,9 @@ def read_exr(path: str | Path) -> dict[str, np.ndarray]:
     """Read every channel of an EXR file.
 
     Returns:
-        name -> (H, W) array: float32 for FLOAT channels and for the fixed-point
-        channels :func:`write_exr` wrote (divided back to values); other UINT or HALF
-        channels as stored.
+        name -> (H, W) array: float32 for FLOAT channels and for the fixed-point and
+        log-grid channels :func:`write_exr` wrote (turned back to values); other UINT
+        or HALF channels as stored.
 
     Raises:
         FrameError: missing file ("missing_file") or not a readable EXR, or a

@@ -7,7 +7,7 @@ demand from its shard (:mod:`depthgt.gt.store`; nothing is extracted):
   (cut from the frame set's images at the boxes of ``patches.npz``; 128x128 by default).
 * ``kind="frames"``: one sample per built frame set of the split in
   ``results/dataset/framesets.parquet`` (the full frame at the working resolution,
-  256x256 by default: ``gt.exr``, ``input.exr``, ``rgb.png``).
+  256x256 by default: ``gt.exr``, ``input.exr``, ``rgb.webp``).
 
 A sample is a dict::
 

@@ -3,7 +3,7 @@
 A frame set's location gives the images of one test frame
 (:func:`depthgt.gt.store.read_frame_images`): ``input`` (input.exr Z, the resized
 raw depth), ``gt`` (gt.exr Z, depthgt's GT), ``truth`` (input.exr T, the clean depth
-of synthetic sources, when present) and ``rgb`` (rgb.png).
+of synthetic sources, when present) and ``rgb`` (rgb.webp).
 
 A method is a mapping ``{"baseline": name, "params": {...}}`` (a baseline of
 :mod:`depthgt.enhance.baselines`, e.g. ``{"baseline": "learned", "params":

@@ -75,7 +75,7 @@ class FrameSetOutputs(NamedTuple):
         """The standard names (``gt.exr`` ... ``frameset.json``) in ``out_dir``."""
         d = Path(out_dir)
         return cls(
-            d / "gt.exr", d / "input.exr", d / "rgb.png", d / "poses.json", d / "patches.npz", d / "frameset.json"
+            d / "gt.exr", d / "input.exr", d / "rgb.webp", d / "poses.json", d / "patches.npz", d / "frameset.json"
         )
 
 
@@ -473,8 +473,6 @@ def stored_images(data: FrameSetData, gt: GTRender, out: FrameSetOutputs) -> Sto
     channels = {
         "Z": gt.depth[0, 0].detach().cpu().numpy().astype(np.float32),
         "S": gt.sigma[0, 0].detach().cpu().numpy().astype(np.float32),
-        "N": gt.count[0, 0].cpu().numpy().astype(np.float32),
-        "W": gt.weight_sum[0, 0].detach().cpu().numpy().astype(np.float32),
     }
     gt_images = store.stored_gt(channels, str(out.gt))
     depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
@@ -499,7 +497,7 @@ def frameset_statistics(
     stats: dict[str, Any] = {
         "input_missing": float((images.depth_in <= 0).mean()),
         "gt_missing": float((gt_depth <= 0).mean()),
-        "gt_mean_points": float(images.gt["N"].mean()),
+        "gt_mean_points": float(gt.count[0, 0].cpu().numpy().astype(np.float32).mean()),
         "gt_median_sigma_m": float(np.median(gt_sigma[gt_depth > 0])) if (gt_depth > 0).any() else float("nan"),
         "neighbours_fused": len(alignment.fused) - 1,
     }
@@ -533,11 +531,11 @@ def draw_patches(images: StoredImages, fid: FrameSetId, settings: Settings) -> d
 
 
 def write_images(out: FrameSetOutputs, images: StoredImages, patches: dict[str, np.ndarray]) -> None:
-    """Write gt.exr, input.exr, rgb.png and patches.npz (``patches``: the record of
+    """Write gt.exr, input.exr, rgb.webp and patches.npz (``patches``: the record of
     :func:`depthgt.gt.patches.patch_record`), each atomically."""
     write_atomic(out.gt, store.write_gt_exr, images.gt)
     write_atomic(out.input, store.write_input_exr, images.depth_in, images.truth)
-    write_atomic(out.rgb, io.write_rgb_png, images.rgb8)
+    write_atomic(out.rgb, io.write_rgb_webp, images.rgb8)
     write_atomic(out.patches, save_npz, patches)
 
 

@@ -484,7 +484,7 @@ def rde_scene(scene, framesets, settings: RDESettings, out_shard: str | Path, se
     poses) into a TSDF, renders it at each frame set's target (the working-resolution K
     of its frameset.json) and writes the shard ``out_shard`` (:mod:`depthgt.gt.store`)
     with ``{target:06d}/``: ``gt.exr`` (Z, fixed point as the frame sets' GT),
-    ``input.exr`` and ``rgb.png`` (the frame set's, copied), ``patches.npz`` (the record
+    ``input.exr`` and ``rgb.webp`` (the frame set's, copied), ``patches.npz`` (the record
     of the frame set's drawn crop boxes applied to (input, RDE GT, rgb) by
     :func:`depthgt.gt.patches.crop_pairs`, kept when the RDE GT misses less than
     ``settings.max_missing``; the crops are cut on read) and ``frameset.json`` (K, split,
@@ -582,7 +582,7 @@ def _rde_targets(
             stats["rde_vs_truth"] = depth_errors(gt, fr.truth_m)
         units = {k: METRIC_UNITS[k] for k in sorted(set(stats) - {"rde_vs_truth"} | set(stats.get("rde_vs_truth", {})))}
         write_atomic(d / "gt.exr", store.write_gt_exr, {"Z": gt})
-        for name in ("input.exr", "rgb.png"):  # the frame set's own: the patches are cut from them on read
+        for name in ("input.exr", store.RGB_MEMBER):  # the frame set's own: the patches are cut from them on read
             write_atomic(d / name, Path.write_bytes, store.member_bytes(f"{r.frameset}/{name}"))
         write_atomic(d / "patches.npz", save_npz, patch_record(arrays))
         write_atomic(

@@ -2,35 +2,38 @@
 
 A batch job builds a contiguous slice of one scene's frame sets and writes them as one
 **shard**, an uncompressed zip archive ``{first:06d}-{last:06d}.zip`` whose members are
-``{target:06d}/gt.exr``, ``input.exr``, ``rgb.png``, ``poses.json``, ``patches.npz``,
+``{target:06d}/gt.exr``, ``input.exr``, ``rgb.webp``, ``poses.json``, ``patches.npz``,
 ``frameset.json`` per built frame set, plus ``batch.json``: every target of the slice
 with its status and, for a skipped one, the reason (``framesets``), and every frame the
 batch read with whether it was usable and, if not, the reason and message naming the
 file (``frames``). One file per batch instead of six
 per frame set keeps a ScanNet-size build (250k frame sets) at a few thousand files and
 Snakemake metadata records; zip is a standard container every language and tool opens
-(``unzip -l``). Image members are stored (EXR and PNG compress themselves), the JSON
+(``unzip -l``). Image members are stored (EXR and WebP compress themselves), the JSON
 members deflated.
 
 **Format version** :data:`FORMAT_VERSION`, recorded in the archive's comment (read
 with its directory, at no cost), in ``batch.json`` and in each ``frameset.json``. Every
 read checks it: a shard of another version fails with a :class:`DepthGTError` that
 names the shard, its version and the command that rebuilds it (nothing is misread).
-Version 2 stores (version 1, before: float32 images and the patch crops themselves):
+Version 3 stores (:data:`CHANNELS`; version 2 had Z at 2^-15 m, S at 2^-14 m, the
+fused samples' count N and weight sum W, and rgb.png; version 1 float32 images and the
+patch crops themselves):
 
-* ``gt.exr``: lossless HTJ2K; channels as fixed-point integers (:data:`GT_UNITS`):
-  ``Z`` the GT depth in units of 2^-15 m (30.5 um, max rounding error 15.3 um),
-  ``S`` its expected standard deviation in units of 2^-14 m (61 um), ``N`` the number
-  of fused samples (exact), ``W`` their weight sum in units of 1/16;
+* ``gt.exr``: lossless HTJ2K, two channels as integers: ``Z`` the GT depth in fixed
+  point, units of 2^-14 m (:data:`GT_UNITS`: 61 um, max rounding error 30.5 um), ``S``
+  its expected standard deviation on a logarithmic grid of 8 steps per octave
+  (:data:`GT_LOG_GRID`: max relative error 4.4 %);
 * ``input.exr``: ZIP or HTJ2K, the smaller; ``Z`` exactly as the sensor measured it: fixed point in the
   sensor's units when the depth is a multiple of them (:data:`SENSOR_UNITS`: mm, TUM's
   1/5000 m), float32 otherwise; ``T`` (clean truth) in units of 2^-15 m;
+* ``rgb.webp`` (:data:`RGB_MEMBER`): the target colour, lossless WebP;
 * ``patches.npz``: the crop boxes, missing ratios and kept flags
   (:func:`depthgt.gt.patches.patch_record`); the crops are cut from the frame images
   on read (:func:`read_patches_at`), the arrays the build kept.
 
-The readers return what they always returned: float32 metres (0 = invalid), the same
-channel names, the patch crops.
+The readers return float32 metres (0 = invalid) and (H, W, 3) uint8 colour, the patch
+crops as the build cut them.
 
 A frame set is addressed by its **location** ``<shard path>/<target:06d>`` (the
 ``frameset`` column of the manifests); a member by ``<location>/<name>``. A location may
@@ -88,6 +91,8 @@ __all__ = [
     "extract_frameset",
     "FORMAT_VERSION",
     "GT_UNITS",
+    "GT_LOG_GRID",
+    "RGB_MEMBER",
     "TRUTH_UNITS",
     "SENSOR_UNITS",
     "CHANNELS",
@@ -101,11 +106,20 @@ __all__ = [
 ]
 
 #: the version of the shard format this code writes and reads (module docstring)
-FORMAT_VERSION = 2
-#: gt.exr's channels as fixed point, units per value: Z and S in units of 2^-15 m and
-#: 2^-14 m (steps 20x and 10x finer than the smallest median GT sigma seen on real
-#: data, 0.6 mm), N exact, W in 1/16 (nothing downstream reads W: a diagnostic)
-GT_UNITS = {"Z": 2**15, "S": 2**14, "N": 1, "W": 16}
+FORMAT_VERSION = 3
+#: gt.exr's fixed-point channel, units per metre: Z in units of 2^-14 m (61 um; max
+#: rounding error 30.5 um, 20x below the smallest median GT sigma seen on real data,
+#: 0.6 mm; up to 262 km)
+GT_UNITS = {"Z": 2**14}
+#: gt.exr's log-grid channel, (steps per octave, smallest value in m): S at 8 steps per
+#: octave (a relative step of 2^(1/8), max relative rounding error 4.4 %, well below
+#: the spread of a sigma estimated from a few dozen samples; values below 2^-20 m,
+#: 0.95 um, are stored as 2^-20 m). The sigma spans 0.3 mm to 0.14 m on real data, so
+#: a relative grid keeps its small values as well as its large ones
+#: (bench/README.md "Bytes per frame set").
+GT_LOG_GRID = {"S": (8, 2.0**-20)}
+#: the frame set's colour member: lossless WebP (:func:`depthgt.io.write_rgb_webp`)
+RGB_MEMBER = "rgb.webp"
 #: input.exr's clean truth (synthetic sources), units per metre
 TRUTH_UNITS = 2**15
 #: raw depth units per metre of the sensors whose depth input.exr stores as integers
@@ -116,10 +130,9 @@ _COMMENT = b"depthgt frame-set shard, format version "
 #: every stored channel's meaning, unit and precision (the dataset card's ``encoding``)
 CHANNELS = {
     "gt.exr": {
-        "Z": "GT depth, m, 0 = none; fixed point in units of 2^-15 m (max rounding error 1.53e-05 m)",
-        "S": "expected standard deviation of Z, m; fixed point in units of 2^-14 m (max rounding error 3.05e-05 m)",
-        "N": "number of fused samples, exact integer",
-        "W": "weight sum of the fused samples; fixed point in units of 1/16 (max rounding error 1/32)",
+        "Z": "GT depth, m, 0 = none; fixed point in units of 2^-14 m (max rounding error 3.05e-05 m)",
+        "S": "expected standard deviation of Z, m, 0 = none; log grid of 8 steps per octave from 2^-20 m "
+        "(max relative rounding error 4.4 %)",
     },
     "input.exr": {
         "Z": "resized raw sensor depth, m, 0 = none; exact (integers in the sensor's units, mm or 1/5000 m, "
@@ -127,14 +140,14 @@ CHANNELS = {
         "T": "clean truth depth of synthetic sources, m, 0 = none; fixed point in units of 2^-15 m "
         "(max rounding error 1.53e-05 m)",
     },
-    "rgb.png": {"RGB": "target colour, 8-bit sRGB, lossless"},
+    RGB_MEMBER: {"RGB": "target colour, 8-bit sRGB, lossless WebP (every value exact)"},
     "patches.npz": {
         "boxes": "crop boxes (y0, x0, h, w) in pixels, with missing ratios and kept flags; "
         "the crops are cut from the images above on read"
     },
 }
 
-FRAMESET_FILES = ("gt.exr", "input.exr", "rgb.png", "poses.json", "patches.npz", "frameset.json")
+FRAMESET_FILES = ("gt.exr", "input.exr", RGB_MEMBER, "poses.json", "patches.npz", "frameset.json")
 BATCH_MEMBER = "batch.json"
 
 
@@ -367,29 +380,37 @@ def read_npz(member: str | Path) -> dict[str, np.ndarray]:
 
 
 def stored_gt(channels: dict[str, np.ndarray], where: str = "gt.exr") -> dict[str, np.ndarray]:
-    """gt.exr's channels (any of ``Z``, ``S``, ``N``, ``W``) as :func:`write_gt_exr`
-    stores them and every reader gets them back: float32 on the grids of
-    :data:`GT_UNITS`. The build cuts its patches from these, so that the crops a reader
-    cuts again are the ones the build kept.
+    """gt.exr's channels (``Z``, optionally ``S``) as :func:`write_gt_exr` stores them
+    and every reader gets them back: float32 on the grids of :data:`GT_UNITS` and
+    :data:`GT_LOG_GRID`. The build cuts its patches from these, so that the crops a
+    reader cuts again are the ones the build kept.
 
     Raises:
         ValueError: an unknown channel, or a negative or non-finite value (named).
     """
-    unknown = sorted(set(channels) - set(GT_UNITS))
+    unknown = sorted(set(channels) - set(GT_UNITS) - set(GT_LOG_GRID))
     if unknown:
-        raise ValueError(f"{where}: unknown GT channels {unknown} (known: {sorted(GT_UNITS)})")
-    return {
-        k: io.on_fixed_point_grid(np.asarray(v, dtype=np.float32), GT_UNITS[k], f"{where} channel {k}")
-        for k, v in channels.items()
-    }
+        raise ValueError(f"{where}: unknown GT channels {unknown} (known: {sorted({*GT_UNITS, *GT_LOG_GRID})})")
+
+    def grid(k: str, v: np.ndarray) -> np.ndarray:
+        v = np.asarray(v, dtype=np.float32)
+        if k in GT_UNITS:
+            return io.on_fixed_point_grid(v, GT_UNITS[k], f"{where} channel {k}")
+        return io.on_log_grid(v, *GT_LOG_GRID[k], f"{where} channel {k}")
+
+    return {k: grid(k, v) for k, v in channels.items()}
 
 
 def write_gt_exr(path: str | Path, channels: dict[str, np.ndarray]) -> None:
-    """Write gt.exr: the channels (:func:`stored_gt`'s names) as fixed point, HTJ2K."""
+    """Write gt.exr: the channels (:func:`stored_gt`'s names) on their grids, HTJ2K."""
+    unknown = sorted(set(channels) - set(GT_UNITS) - set(GT_LOG_GRID))
+    if unknown:
+        raise ValueError(f"{path}: unknown GT channels {unknown} (known: {sorted({*GT_UNITS, *GT_LOG_GRID})})")
     io.write_exr(
         path,
         {k: np.asarray(v, dtype=np.float32) for k, v in channels.items()},
-        fixed={k: GT_UNITS[k] for k in channels},
+        fixed={k: u for k, u in GT_UNITS.items() if k in channels},
+        log_grid={k: g for k, g in GT_LOG_GRID.items() if k in channels},
         compression="htj2k",
     )
 
@@ -456,6 +477,31 @@ def _patch_record(data: bytes, loc: str | Path, keys: tuple[str, ...] | None = N
         raise DepthGTError(f"{where}: not a readable npz file ({exc})") from exc
 
 
+def _refuse_old_folder(loc: str | Path) -> None:
+    """Raise the old-format error for a frame-set folder of an older format (its colour
+    in rgb.png): the version its frameset.json records (1 when none)."""
+    archive, inner = _split(loc)
+    folder = Path(inner)
+    if archive is not None or not (folder / "rgb.png").is_file():
+        return
+    try:
+        version = int(json.loads((folder / "frameset.json").read_text()).get("format_version", 1))
+    except (OSError, ValueError, TypeError, AttributeError):
+        version = 1
+    raise _old_format(f"frame-set folder {folder}", version, folder)
+
+
+def _colour(reader: ShardReader, loc: str | Path) -> np.ndarray:
+    """(H, W, 3) uint8 RGB of the frame set at ``loc`` (:data:`RGB_MEMBER`)."""
+    where = f"{loc}/{RGB_MEMBER}"
+    try:
+        data = reader.read(where)
+    except DepthGTError:
+        _refuse_old_folder(loc)
+        raise
+    return io.decode_color(data, where, formats=("WEBP",))
+
+
 def _cut(
     record: dict[str, np.ndarray],
     gt: dict[str, np.ndarray],
@@ -490,8 +536,7 @@ def read_patches_at(
     record = _patch_record(reader.read(f"{loc}/patches.npz"), loc, None if with_record else CUT_KEYS)
     gt = io.decode_exr(reader.read(f"{loc}/gt.exr"), f"{loc}/gt.exr")
     inp = io.decode_exr(reader.read(f"{loc}/input.exr"), f"{loc}/input.exr")
-    rgb = io.decode_color(reader.read(f"{loc}/rgb.png"), f"{loc}/rgb.png", formats=("PNG",))
-    return _cut(record, gt, inp, rgb, loc)
+    return _cut(record, gt, inp, _colour(reader, loc), loc)
 
 
 @contextlib.contextmanager
@@ -523,8 +568,6 @@ class FrameSetRecord:
     Attributes:
         gt_m: (H, W) float32 GT depth in metres (0 = none).
         gt_sigma_m: (H, W) float32 expected standard deviation of the GT in metres.
-        gt_weight: (H, W) float32 weight sum of the fused samples.
-        gt_count: (H, W) float32 number of fused samples.
         input_m: (H, W) float32 resized raw target depth (0 = none).
         truth_m: (H, W) float32 clean depth (synthetic sources) or None.
         rgb: (H, W, 3) uint8 target colour.
@@ -535,8 +578,6 @@ class FrameSetRecord:
 
     gt_m: np.ndarray
     gt_sigma_m: np.ndarray
-    gt_weight: np.ndarray
-    gt_count: np.ndarray
     input_m: np.ndarray
     truth_m: np.ndarray | None
     rgb: np.ndarray
@@ -561,12 +602,10 @@ def read_frameset_at(loc: str | Path, reader: ShardReader | None = None) -> Fram
     record = _patch_record(member("patches.npz")[0], loc)
     gt = io.decode_exr(*member("gt.exr"))
     inp = io.decode_exr(*member("input.exr"))
-    rgb = io.decode_color(*member("rgb.png"), formats=("PNG",))
+    rgb = _colour(reader, loc)
     return FrameSetRecord(
         gt_m=gt["Z"],
         gt_sigma_m=gt.get("S", np.zeros_like(gt["Z"])),
-        gt_weight=gt["W"],
-        gt_count=gt["N"],
         input_m=inp["Z"],
         truth_m=inp.get("T"),
         rgb=rgb,
@@ -602,17 +641,23 @@ class FrameImages(NamedTuple):
 FRAME_DEPTHS = ("input", "gt", "truth")
 
 
-def read_frame_images(loc: str | Path) -> FrameImages:
+def read_frame_images(loc: str | Path, reader: ShardReader | None = None) -> FrameImages:
     """The images of the frame set at ``loc`` (what the evaluation, the figures and the
     RDE GT read); see :class:`FrameImages`.
 
+    Args:
+        reader: keeps the shard open for later reads (default: opened for this read).
+
     Raises:
+        DepthGTError: a shard or folder of another format version, a missing member.
         ValueError: a depth image without its Z channel, or images of different sizes.
     """
-    with frameset_files(loc) as d:
-        inp = io.read_exr(d / "input.exr")
-        gt = io.read_exr(d / "gt.exr")
-        rgb = io.read_rgb(d / "rgb.png")
+    if reader is None:
+        with ShardReader(max_open=1) as own:
+            return read_frame_images(loc, own)
+    inp = io.decode_exr(reader.read(f"{loc}/input.exr"), f"{loc}/input.exr")
+    gt = io.decode_exr(reader.read(f"{loc}/gt.exr"), f"{loc}/gt.exr")
+    rgb = _colour(reader, loc)
     d = Path(str(loc))
     for path, chans in ((d / "input.exr", inp), (d / "gt.exr", gt)):
         if "Z" not in chans:
@@ -668,8 +713,9 @@ def read_frameset(results: str | Path, dataset: str, scene: str, target: int) ->
 
 
 def extract_frameset(results: str | Path, dataset: str, scene: str, target: int, dest: str | Path) -> list[Path]:
-    """Write one built frame set's files (gt.exr, input.exr, rgb.png, poses.json,
-    patches.npz, frameset.json) into ``dest``; returns the written paths."""
+    """Write one built frame set's files (:data:`FRAMESET_FILES`: gt.exr, input.exr,
+    rgb.webp, poses.json, patches.npz, frameset.json) into ``dest``; returns the
+    written paths."""
     loc = find_frameset(results, dataset, scene, target)
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
