@@ -31,7 +31,7 @@ REFERENCE_SCENES = [(d, s) for d, s in SCENES if KINDS[d] != "synthetic"
                     and SOURCES[d].get("split", "auto") in ("auto", SETTINGS.evaluation.split)]
 REFERENCE_TABLES = [f"results/references/{d}/{s}/references.parquet" for d, s in REFERENCE_SCENES]
 
-# Scenes whose RDE GT (a TSDF of the stream, rule rde_scene) is built: those RDE trains and
+# Scenes with an RDE GT (a TSDF of the stream, one per scene by rde_scene): those RDE trains and
 # validates on, the real scenes Table 2's TSDF reference needs, and synthetic test scenes
 # only when evaluation.rde_synthetic_test asks (Table 1 rows; no method needs them).
 RDE_SCENES = [(d, s) for d, s in SCENES if SOURCES[d].get("split", "auto") != SETTINGS.evaluation.split
