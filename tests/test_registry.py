@@ -90,6 +90,42 @@ def test_a_loss_term_outside_the_log_columns_fails_loudly():
         _log_row(0, "val", {k: v for k, v in terms.items() if k != "smooth"}, "sdd")
 
 
+def test_a_loss_without_its_total_term_is_named():
+    """A loss whose terms leave out "total" gets through an epoch and is then named by
+    the loss log's check (it was a KeyError in the progress bar)."""
+    import torch
+
+    from depthgt.enhance.train import _log_row, train_epoch
+    from depthgt.settings import TrainSettings
+
+    def loss(outputs, batch):
+        d = (outputs[-1] - batch["gt"]).abs().mean()
+        return d, {"depth": float(d), "smooth": 0.0}
+
+    class Net(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.conv = torch.nn.Conv2d(1, 1, 3, padding=1)
+
+        def forward(self, x):
+            return [self.conv(x)]
+
+    model = Net()
+    data = [{"input": torch.rand(1, 8, 8), "gt": torch.rand(1, 8, 8)} for _ in range(4)]
+    opt = torch.optim.SGD(model.parameters(), lr=0.0)
+    terms = train_epoch(
+        model,
+        loss,
+        opt,
+        data,
+        TrainSettings(model="sdd", batch_size=2, flips=False, progress=False),
+        0,
+        torch.device("cpu"),
+    )
+    with pytest.raises(ValueError, match=r"missing: \['total'\]"):
+        _log_row(0, "train", terms, "sdd")
+
+
 def test_model_entries_are_checked():
     with pytest.raises(ValueError, match="build must be 'module:function'"):
         registry.Model("x", build="depthgt.enhance.learned.SDDUNet", loss="a:b", log_terms=())

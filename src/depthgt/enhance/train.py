@@ -222,7 +222,9 @@ def train_epoch(
         optimizer.step()
         for k, v in terms.items():
             sums[k] = sums.get(k, 0.0) + v
-        bar.set_postfix(loss=f"{terms['total']:.4f}")
+        # the loss tensor, not terms["total"]: a loss that leaves that term out is named by
+        # _log_row at the end of the epoch, not a KeyError here
+        bar.set_postfix(loss=f"{float(total.detach()):.4f}")
     n = max(len(batches), 1)
     return {**{k: v / n for k, v in sums.items()}, "batches": len(batches), "seconds": time.perf_counter() - t0}
 
