@@ -324,6 +324,15 @@ def read_rgb(path: str | Path) -> np.ndarray:
     return decode_color(_read_image_file(path), str(path))
 
 
+def _rgb_destination(path: str | Path, rgb: np.ndarray) -> Path:
+    """``path`` with its folder made, once ``rgb`` is checked to be (H, W, 3) uint8."""
+    path = Path(path)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"{path}: rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
 def write_rgb_png(path: str | Path, rgb: np.ndarray) -> None:
     """Write (H, W, 3) uint8 RGB as a PNG (lossless).
 
@@ -331,10 +340,7 @@ def write_rgb_png(path: str | Path, rgb: np.ndarray) -> None:
         ValueError: wrong shape or dtype.
         OSError: the encoder could not write ``path``.
     """
-    path = Path(path)
-    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-        raise ValueError(f"{path}: rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path = _rgb_destination(path, rgb)
     if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
         raise OSError(f"{path}: cv2.imwrite failed")
 
@@ -354,10 +360,7 @@ def write_rgb_webp(path: str | Path, rgb: np.ndarray) -> None:
         ValueError: wrong shape or dtype.
         OSError: the encoder could not write ``path``.
     """
-    path = Path(path)
-    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-        raise ValueError(f"{path}: rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path = _rgb_destination(path, rgb)
     Image.fromarray(np.ascontiguousarray(rgb), "RGB").save(
         path, "WEBP", lossless=True, quality=WEBP_EFFORT, method=WEBP_METHOD
     )
