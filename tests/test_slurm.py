@@ -80,7 +80,7 @@ def slurm(tmp_path_factory) -> dict[str, str]:
 
 def snakemake_on_slurm(workdir: Path, env: dict[str, str], target: str, *args: str) -> subprocess.CompletedProcess:
     """The cluster command of README.md and docs/cluster.md, plus what this accounting-free test cluster needs:
-    job states from squeue, no account, and short waits before and between status checks."""
+    job states from squeue, no account, and a short first status check."""
     cmd = [
         sys.executable,
         "-m",
@@ -99,8 +99,6 @@ def snakemake_on_slurm(workdir: Path, env: dict[str, str], target: str, *args: s
         "--slurm-no-account",
         "--slurm-init-seconds-before-status-checks",
         "2",
-        "--seconds-between-status-checks",  # Snakemake's 10 s between polls: most of this test's time
-        "1",
         *args,
     ]
     return subprocess.run(cmd, cwd=workdir, capture_output=True, text=True, env=env, timeout=900)
