@@ -100,7 +100,7 @@ def test_a_loss_without_its_total_term_is_named():
 
     def loss(outputs, batch):
         d = (outputs[-1] - batch["gt"]).abs().mean()
-        return d, {"depth": float(d), "smooth": 0.0}
+        return d, {"depth": float(d.detach()), "smooth": 0.0}
 
     class Net(torch.nn.Module):
         def __init__(self):
