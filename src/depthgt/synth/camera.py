@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from depthgt.synth.scene import Layout, raycast
+from depthgt.synth.scene import Layout, raycast_depth
 
 log = logging.getLogger(__name__)
 
@@ -206,7 +206,7 @@ def make_path(
             continue
         near_frac, far_frac, medians = [], [], []
         for i in frames_cast:
-            depth = raycast(layout, path.pose(i), K_small, small_hw).depth_m
+            depth = raycast_depth(layout, path.pose(i), K_small, small_hw)
             near_frac.append(float((depth < min_depth_m).mean()))
             far_frac.append(float((depth > max_depth_m).mean()))
             medians.append(float(np.median(depth)))
@@ -354,7 +354,7 @@ def make_walk_path(
             continue
         near_frac, far = [], []
         for i in frames_cast:
-            depth = raycast(layout, path.pose(i), K_small, small_hw).depth_m
+            depth = raycast_depth(layout, path.pose(i), K_small, small_hw)
             near_frac.append(float((depth < min_depth_m).mean()))
             far.append(float(np.quantile(depth, 0.9)))
         p90 = float(np.mean(far))

@@ -34,6 +34,7 @@ __all__ = [
     "THIN_WIDTH_M",
     "generate_layout",
     "raycast",
+    "raycast_depth",
     "albedo",
     "shade",
     "camera_rays",
@@ -605,22 +606,13 @@ def _attributes_sphere(p, prim):
 _ATTR_FUNCS = {"box": _attributes_box, "cylinder": _attributes_cylinder, "sphere": _attributes_sphere}
 
 
-def raycast(layout: Layout, T_world_cam: np.ndarray, K: np.ndarray, hw: tuple[int, int]) -> RayHits:
-    """Exact depth and surface attributes of every pixel.
-
-    Args:
-        layout: the room.
-        T_world_cam: (4, 4) float64 camera-to-world pose (OpenCV camera axes).
-        K: (3, 3) intrinsics at ``hw``.
-        hw: image size (H, W).
-
-    Returns:
-        :class:`RayHits` (all pixels hit something inside the closed room).
-
-    Long because its checks, the ray set-up and the hit attributes (depth, normal,
-    material, texture coordinates) share the per-pixel rays; the intersection tests
-    themselves are vectorised functions.
-    """
+def _nearest_hits(
+    layout: Layout, T_world_cam: np.ndarray, K: np.ndarray, hw: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The nearest surface along every pixel ray: ``(o, d, depth, prim_id)`` with the
+    camera centre ``o`` (3,), the rays ``d`` (3, H, W) of :func:`camera_rays`, the
+    z-depth (H, W) float32 and what was hit (H, W) int16 (0-5: the room's faces, 6 + k:
+    primitive k). Arguments as :func:`raycast`."""
     T_world_cam = np.asarray(T_world_cam, np.float64)
     if T_world_cam.shape != (4, 4):
         raise ValueError(f"T_world_cam must be (4, 4), got {T_world_cam.shape}")
@@ -655,7 +647,29 @@ def raycast(layout: Layout, T_world_cam: np.ndarray, K: np.ndarray, hw: tuple[in
         closer = t < sub
         sub[closer] = t[closer]
         prim_id[v0:v1, u0:u1][closer] = 6 + k
+    return o, d, depth, prim_id
 
+
+def raycast_depth(layout: Layout, T_world_cam: np.ndarray, K: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    """The exact z-depth (H, W) float32 of every pixel, equal to :func:`raycast`'s
+    ``depth_m`` without the surface attributes (what the camera-path checks need)."""
+    return _nearest_hits(layout, T_world_cam, K, hw)[2]
+
+
+def raycast(layout: Layout, T_world_cam: np.ndarray, K: np.ndarray, hw: tuple[int, int]) -> RayHits:
+    """Exact depth and surface attributes of every pixel.
+
+    Args:
+        layout: the room.
+        T_world_cam: (4, 4) float64 camera-to-world pose (OpenCV camera axes).
+        K: (3, 3) intrinsics at ``hw``.
+        hw: image size (H, W).
+
+    Returns:
+        :class:`RayHits` (all pixels hit something inside the closed room).
+    """
+    o, d, depth, prim_id = _nearest_hits(layout, T_world_cam, K, hw)
+    h, w = hw
     points = (o.astype(np.float32) + depth[..., None] * np.moveaxis(d, 0, -1)).astype(np.float32)
     normals = np.zeros((h, w, 3), np.float32)
     uv = np.zeros((h, w, 2), np.float32)
