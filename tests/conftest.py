@@ -10,9 +10,43 @@ import sys
 import zipfile
 from pathlib import Path
 
+import pytest
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
+
+# The tiny synthetic build that several test files read (tiny_build): two training
+# rooms, a validation and a test room, one or two frame sets each.
+TINY = {
+    "seed": 3,
+    "device": "cpu",
+    "sources": [
+        {
+            "name": "syn",
+            "kind": "synthetic",
+            "scenes": ["room_000", "room_001"],
+            "split": "train",
+            "options": {"n_frames": 14, "width": 320, "height": 240},
+        },
+        {
+            "name": "synval",
+            "kind": "synthetic",
+            "scenes": ["room_002"],
+            "split": "val",
+            "options": {"n_frames": 13, "width": 320, "height": 240},
+        },
+        {
+            "name": "syntest",
+            "kind": "synthetic",
+            "scenes": ["room_003"],
+            "split": "test",
+            "options": {"n_frames": 13, "width": 320, "height": 240},
+        },
+    ],
+    "frameset": {"neighbours": 3, "stride": 2, "target_step": 1},
+    "resize": 128,
+    "patches": {"count": 6, "size": 64, "max_missing": 0.15, "filter_on": "gt"},
+}
 
 
 def snakemake(workdir: Path, *args: str, check: bool = True, **kw) -> subprocess.CompletedProcess:
@@ -73,3 +107,13 @@ def digest_outputs(workdir: Path) -> dict[str, str]:
             continue
         out[rel] = hashlib.sha256(_normalised(p.name, p.read_bytes())).hexdigest()
     return out
+
+
+@pytest.fixture(scope="session")
+def tiny_build(tmp_path_factory) -> Path:
+    """TINY built to the ``dataset`` target once per test session, shared by the test
+    files that only read it (test_workflow, test_data, test_profiles): a test that
+    changes a build works on a copy or a build of its own."""
+    wd = make_workdir(tmp_path_factory.mktemp("tiny"), TINY)
+    snakemake(wd, "dataset")
+    return wd

@@ -17,8 +17,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from conftest import make_workdir, snakemake
-from test_workflow import TINY
+from conftest import TINY
 from torch.utils.data import DataLoader
 
 import depthgt
@@ -37,10 +36,8 @@ FRAME = TINY["resize"]  # 256 in the default config
 
 
 @pytest.fixture(scope="module")
-def built(tmp_path_factory) -> Path:
-    wd = make_workdir(tmp_path_factory.mktemp("data"), TINY)
-    snakemake(wd, "dataset")
-    return wd
+def built(tiny_build) -> Path:
+    return tiny_build  # conftest: built once per session, read-only here (_copy_results for damage)
 
 
 @pytest.fixture()

@@ -4,8 +4,11 @@ setting run exactly the jobs they need; the batch size changes the files, not th
 from __future__ import annotations
 
 import re
+import shutil
+from pathlib import Path
 
 import pandas as pd
+import pytest
 from conftest import digest_outputs, make_workdir, snakemake
 
 SMALL = {
@@ -35,9 +38,24 @@ def planned_jobs(workdir, *args) -> dict[str, int]:
     return {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\w+)\s+(\d+)$", table, re.M) if m.group(1) != "total"}
 
 
-def test_staged_targets_run_each_job_once(tmp_path):
-    wd = make_workdir(tmp_path / "staged", SMALL)
+@pytest.fixture(scope="module")
+def small_framesets(tmp_path_factory) -> Path:
+    """SMALL built to the ``framesets`` target once for this file; tests that change it
+    work on a copy (:func:`copy_build`)."""
+    wd = make_workdir(tmp_path_factory.mktemp("small"), SMALL)
     snakemake(wd, "framesets")
+    return wd
+
+
+def copy_build(built: Path, dest: Path) -> Path:
+    """A copy of a working directory with Snakemake's records (.snakemake/metadata) and
+    the files' times, so that the copy is as up to date as the original."""
+    shutil.copytree(built, dest, symlinks=True)
+    return dest
+
+
+def test_staged_targets_run_each_job_once(small_framesets, tmp_path):
+    wd = copy_build(small_framesets, tmp_path / "staged")
     # the dataset needs no index, frame set or summary job again (the frame cache is gone)
     assert planned_jobs(wd, "dataset") == {"dataset": 1}
     snakemake(wd, "dataset")
@@ -48,9 +66,8 @@ def test_staged_targets_run_each_job_once(tmp_path):
     assert jobs.get("rde_scene") == 1
 
 
-def test_an_added_scene_runs_only_that_scene(tmp_path):
-    wd = make_workdir(tmp_path / "added", SMALL)
-    snakemake(wd, "framesets")
+def test_an_added_scene_runs_only_that_scene(small_framesets, tmp_path):
+    wd = copy_build(small_framesets, tmp_path / "added")
     bigger = dict(SMALL, sources=[dict(SMALL["sources"][0], scenes=["room_000", "room_001"])])
     (wd / "config/config.yaml").unlink()
     make_workdir_config(wd, bigger)
@@ -59,19 +76,17 @@ def test_an_added_scene_runs_only_that_scene(tmp_path):
     assert planned_jobs(wd, "framesets") == {"scene_index": 1, "frameset_batch": 1, "scene_summary": 1, "framesets": 1}
 
 
-def test_a_registration_setting_reruns_frame_sets_not_the_index(tmp_path):
-    wd = make_workdir(tmp_path / "setting", SMALL)
-    snakemake(wd, "framesets")
+def test_a_registration_setting_reruns_frame_sets_not_the_index(small_framesets, tmp_path):
+    wd = copy_build(small_framesets, tmp_path / "setting")
     make_workdir_config(wd, dict(SMALL, registration={"method": "given", "preset": "fast"}))
     jobs = planned_jobs(wd, "framesets")
     assert jobs.get("frameset_batch") == 1 and "scene_index" not in jobs, jobs
 
 
-def test_batch_size_changes_the_files_not_the_frame_sets(tmp_path):
+def test_batch_size_changes_the_files_not_the_frame_sets(small_framesets, tmp_path):
     one = make_workdir(tmp_path / "one", dict(SMALL, frameset=dict(SMALL["frameset"], batch_size=1)))
-    many = make_workdir(tmp_path / "many", SMALL)
-    for wd in (one, many):
-        snakemake(wd, "framesets")
+    snakemake(one, "framesets")
+    many = small_framesets  # the default batch size
     shards_one = sorted(p.name for p in (one / "results/framesets/syn/room_000").glob("*.zip"))
     shards_many = sorted(p.name for p in (many / "results/framesets/syn/room_000").glob("*.zip"))
     assert shards_one == ["000006-000006.zip", "000007-000007.zip"] and shards_many == ["000006-000007.zip"]

@@ -1,63 +1,26 @@
-"""Runs the Snakemake workflow on a tiny synthetic config and checks the output layout,
-resumption after kill -9, determinism, single-scene regeneration and bad config."""
+"""Runs the Snakemake workflow on a tiny synthetic config (conftest.TINY, built once per
+session) and checks the output layout, single-scene regeneration and bad config.
+Resumption after kill -9 and the determinism of a second build: test_profiles.py."""
 
 from __future__ import annotations
 
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import REPO, digest_outputs, make_workdir, snakemake
+from conftest import TINY, make_workdir, snakemake
 
 from depthgt.gt import store
 from depthgt.io import read_exr
 
 FRAMESET_FILES = ("gt.exr", "input.exr", "rgb.webp", "poses.json", "patches.npz", "frameset.json")
 
-TINY = {
-    "seed": 3,
-    "device": "cpu",
-    "sources": [
-        {
-            "name": "syn",
-            "kind": "synthetic",
-            "scenes": ["room_000", "room_001"],
-            "split": "train",
-            "options": {"n_frames": 14, "width": 320, "height": 240},
-        },
-        {
-            "name": "synval",
-            "kind": "synthetic",
-            "scenes": ["room_002"],
-            "split": "val",
-            "options": {"n_frames": 13, "width": 320, "height": 240},
-        },
-        {
-            "name": "syntest",
-            "kind": "synthetic",
-            "scenes": ["room_003"],
-            "split": "test",
-            "options": {"n_frames": 13, "width": 320, "height": 240},
-        },
-    ],
-    "frameset": {"neighbours": 3, "stride": 2, "target_step": 1},
-    "resize": 128,
-    "patches": {"count": 6, "size": 64, "max_missing": 0.15, "filter_on": "gt"},
-}
-
 
 @pytest.fixture(scope="module")
-def built(tmp_path_factory) -> Path:
-    wd = make_workdir(tmp_path_factory.mktemp("wf"), TINY)
-    snakemake(wd, "dataset")
-    return wd
+def built(tiny_build) -> Path:
+    return tiny_build
 
 
 def test_layout(built):
@@ -135,32 +98,11 @@ def test_gt_beats_input_on_tiny_scenes(built):
     assert mean["gt", "mae_missing_counted_m"] < mean["input", "mae_missing_counted_m"]
 
 
-def test_rerun_is_noop_and_deterministic(built, tmp_path):
+def test_rerun_is_noop(built):
+    """A finished build has nothing left to do. (A second build in another folder, killed
+    and resumed, gives the same files: test_profiles.py.)"""
     proc = snakemake(built, "dataset", "-n")
     assert "Nothing to be done" in proc.stdout + proc.stderr
-    wd2 = make_workdir(tmp_path / "again", TINY)
-    snakemake(wd2, "dataset")
-    assert digest_outputs(wd2) == digest_outputs(built)
-
-
-def test_kill9_resume_gives_identical_outputs(built, tmp_path):
-    """Killed while a scene's summary job runs (its frame sets are built; the job waits at
-    its start, depthgt.testhook, until the kill), then the same command again."""
-    wd = make_workdir(tmp_path / "killed", TINY)
-    hold = tmp_path / "hold"
-    cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "-d", str(wd), "--cores", "2", "dataset"]
-    env = dict(os.environ, DEPTHGT_TEST_HOLD_DIR=str(hold), DEPTHGT_TEST_HOLD_AT="job:logs/scenes/*/summary.log")
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True, env=env)
-    deadline = time.time() + 300
-    while time.time() < deadline and proc.poll() is None and not list(hold.glob("*.held")):
-        time.sleep(0.05)
-    os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait()
-    assert list(hold.glob("*.held")), "no summary job was running when the build was killed"
-    assert list((wd / "results").rglob("*.zip"))
-    assert not (wd / "results/dataset/summary.json").exists(), "the build finished before it could be killed"
-    snakemake(wd, "dataset")  # no --unlock: the killed run's lock is stale (README: resuming)
-    assert digest_outputs(wd) == digest_outputs(built)
 
 
 def test_single_scene_regeneration(built):
