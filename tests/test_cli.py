@@ -3,31 +3,16 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from conftest import REPO, make_workdir
+from conftest import REPO, TINY, make_workdir
 
 from depthgt.cli import scene_outputs
 
-TINY = {
-    "seed": 1,
-    "device": "cpu",
-    "sources": [
-        {
-            "name": "syn",
-            "kind": "synthetic",
-            "scenes": ["room_000", "room_001"],
-            "split": "train",
-            "options": {"n_frames": 9, "width": 160, "height": 120},
-        }
-    ],
-    "frameset": {"neighbours": 1, "stride": 2, "target_step": 2},
-    "resize": 64,
-    "patches": {"count": 2, "size": 32, "max_missing": 0.5, "filter_on": "gt"},
-}
 SUBCOMMANDS = ("build", "rebuild", "show", "extract", "report", "bench", "evaluate")
 
 
@@ -47,10 +32,8 @@ def depthgt(*args: str, check: bool = True, cwd: Path | None = None) -> subproce
 
 
 @pytest.fixture(scope="module")
-def built(tmp_path_factory) -> Path:
-    wd = make_workdir(tmp_path_factory.mktemp("cli"), TINY)
-    depthgt("build", "-d", str(wd), "--cores", "2", "framesets")
-    return wd
+def built(tiny_build) -> Path:
+    return tiny_build  # conftest: built once per session; read-only here (rebuild works on a copy)
 
 
 def test_console_script_is_declared():
@@ -80,7 +63,7 @@ def test_build_names_a_bad_config_key(tmp_path):
 
 def test_show_prints_statistics_and_writes_a_panel(built, tmp_path):
     out = tmp_path / "panel.png"
-    proc = depthgt("show", "-d", str(built), "syn", "room_000", "2", "--out", str(out))
+    proc = depthgt("show", "-d", str(built), "syn", "room_000", "6", "--out", str(out))
     stats = dict(line.split(None, 1) for line in proc.stdout.splitlines() if line and not line.startswith("panel"))
     # the statistics of frameset.json, under its names
     assert float(stats["gt_missing"]) < float(stats["input_missing"]) + 0.05
@@ -99,19 +82,21 @@ def test_show_names_a_frame_set_that_was_not_built(built):
 
 
 def test_extract_writes_the_frame_set_files(built, tmp_path):
-    proc = depthgt("extract", "-d", str(built), "syn", "room_001", "2", str(tmp_path / "fs"))
+    proc = depthgt("extract", "-d", str(built), "syn", "room_001", "6", str(tmp_path / "fs"))
     names = sorted(Path(p).name for p in proc.stdout.split())
     assert names == sorted(["gt.exr", "input.exr", "rgb.webp", "poses.json", "patches.npz", "frameset.json"])
     from depthgt.io import read_exr
 
-    assert read_exr(tmp_path / "fs" / "gt.exr")["Z"].shape == (64, 64)
+    assert read_exr(tmp_path / "fs" / "gt.exr")["Z"].shape == (TINY["resize"],) * 2
 
 
-def test_rebuild_runs_only_that_scene(built):
-    summary = built / "results/scenes/syn/room_001/framesets.parquet"
-    other = built / "results/scenes/syn/room_000/framesets.parquet"
+def test_rebuild_runs_only_that_scene(built, tmp_path):
+    wd = tmp_path / "copy"
+    shutil.copytree(built, wd, symlinks=True)  # with Snakemake's records and the files' times
+    summary = wd / "results/scenes/syn/room_001/framesets.parquet"
+    other = wd / "results/scenes/syn/room_000/framesets.parquet"
     before, before_other = summary.stat().st_mtime_ns, other.stat().st_mtime_ns
-    depthgt("rebuild", "-d", str(built), "--cores", "2", "syn", "room_001")
+    depthgt("rebuild", "-d", str(wd), "--cores", "2", "syn", "room_001")
     assert summary.stat().st_mtime_ns > before
     assert other.stat().st_mtime_ns == before_other
 

@@ -4,17 +4,20 @@ Resumption after kill -9 and the determinism of a second build: test_profiles.py
 
 from __future__ import annotations
 
+import copy
 import json
+import re
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import TINY, make_workdir, snakemake
+from conftest import REPO, TINY, make_workdir, snakemake
 
 from depthgt.gt import store
 from depthgt.io import read_exr
 
+_NO_CUDA = "config key device: cuda was asked for but no CUDA device is available"
 FRAMESET_FILES = ("gt.exr", "input.exr", "rgb.webp", "poses.json", "patches.npz", "frameset.json")
 
 
@@ -121,40 +124,53 @@ def test_bad_config_names_key(tmp_path):
     assert "patches.filter_on" in text and "bogus" in text
 
 
-@pytest.mark.parametrize(
-    "name, extra, key",
-    [
-        ("size", {"resize": 32}, "patches.size"),  # a patch larger than the working resolution
-        (
-            "reg",
-            {"registration": {"method": "given", "n_blockz": 1}},
-            "registration.n_blockz",
-        ),  # checked whatever the method
-        ("render_key", {"render": {"bogus": 1}}, "render.bogus"),
-        ("render_m", {"render": {"m": 0}}, "render.m"),
-        ("train", {"enhance": {"train": {"epoch": 3}}}, "enhance.train"),
-        (
-            "options",
-            {
-                "sources": [
-                    {
-                        "name": "syn",
-                        "kind": "synthetic",
-                        "scenes": ["room_000"],
-                        "split": "train",
-                        "options": {"n_frames": 12, "n_frame": 3},
-                    }
-                ]
-            },
-            "sources[syn].options.n_frame",
-        ),
-        ("cuda", {"device": "cuda"}, "config key device: cuda was asked for but no CUDA device is available"),
-        ("count", {"patches": {"count": 1_000_000_000, "size": 64}}, "patches.count"),
-    ],
-)
+CONFIG_CASES = [
+    ("size", {"resize": 32}, "patches.size"),  # a patch larger than the working resolution
+    ("reg", {"registration": {"method": "given", "n_blockz": 1}}, "registration.n_blockz"),  # whatever the method
+    ("render_key", {"render": {"bogus": 1}}, "render.bogus"),
+    ("render_m", {"render": {"m": 0}}, "render.m"),
+    ("train", {"enhance": {"train": {"epoch": 3}}}, "enhance.train"),
+    (
+        "options",
+        {
+            "sources": [
+                {
+                    "name": "syn",
+                    "kind": "synthetic",
+                    "scenes": ["room_000"],
+                    "split": "train",
+                    "options": {"n_frames": 12, "n_frame": 3},
+                }
+            ]
+        },
+        "sources[syn].options.n_frame",
+    ),
+    ("count", {"patches": {"count": 1_000_000_000, "size": 64}}, "patches.count"),
+]
+
+
+@pytest.mark.parametrize("name, extra, key", CONFIG_CASES)
+def test_settings_name_the_key(name, extra, key):
+    """Issue 10's config cases fail naming the key, in the checks the workflow makes when
+    it starts (workflow/rules/common.smk: the depthgt checks, the JSON schema, then every
+    stage's settings). That the workflow makes them before any job:
+    test_settings_are_checked_before_any_job."""
+    from snakemake.utils import validate
+
+    from depthgt.errors import ConfigError
+    from depthgt.settings import check_config, check_workflow, settings_from_config
+
+    config, schema = copy.deepcopy({**TINY, **extra}), str(REPO / "workflow/schemas/config.schema.yaml")
+    with pytest.raises(ConfigError, match=re.escape(key)):
+        check_config(config, schema)
+        validate(config, schema, set_default=True)
+        check_workflow(settings_from_config(config))
+
+
+@pytest.mark.parametrize("name, extra, key", [CONFIG_CASES[0], ("cuda", {"device": "cuda"}, _NO_CUDA)])
 def test_settings_are_checked_before_any_job(tmp_path, name, extra, key):
-    """Issue 10's config cases stop the run before any job, naming the key (checks
-    the JSON schema cannot express, made by depthgt.settings at workflow start)."""
+    """The workflow stops before any job, naming the key: a check across sections
+    (patches.size against resize) and device: cuda without a GPU."""
     from depthgt.device import cuda_device_count
 
     wd = make_workdir(tmp_path / name, {**TINY, **extra})
