@@ -13,6 +13,7 @@ import torch
 from depthgt.errors import ConfigError, FrameError, SourceError
 from depthgt.geometry import backproject, project, relative_poses
 from depthgt.sources.base import Scene, check_frame, list_scenes, open_scene
+from depthgt.sources.synthetic import SyntheticScene
 from depthgt.synth.calibration import compare_statistics, hole_fractions, plane_residuals, sensor_statistics
 from depthgt.synth.camera import look_at
 from depthgt.synth.noise import KinectNoise, kinect_noise
@@ -304,3 +305,41 @@ def test_noise_calibrated_on_7scenes(synthetic_stats):
     assert (used.metric == "noise_std").sum() >= 4
     bad = used[(used.ratio > 1.5) | (used.ratio < 1 / 1.5)]
     assert bad.empty, bad.to_string()
+
+
+def test_raycast_equals_one_primitive_at_a_time():
+    """The batched intersection (_nearest_of) gives the bits of testing each primitive in
+    turn on its screen rectangle and keeping strictly nearer hits (the loop it replaced),
+    at the camera-path checks' 80-pixel width and at a frame's size; raycast_depth is
+    raycast's depth."""
+    from depthgt.synth import scene as sc
+
+    for name in ("room_003", "varied_001"):
+        src = SyntheticScene(name, n_frames=13, width=160, height=120)
+        for i, hw in ((0, (60, 80)), (6, (120, 160)), (12, (60, 80))):
+            T = src.pose(i)
+            K = src.intrinsics * np.array([[hw[1] / 160], [hw[0] / 120], [1]])
+            o, d, depth, prim_id = sc._nearest_hits(src.layout, T, K, hw)
+            ref = np.full(hw, np.inf, np.float32)
+            ref_id = np.zeros(hw, np.int16)
+            for axis in range(3):
+                inv = 1.0 / sc._safe(d[axis])
+                pos = d[axis] > 0
+                t_face = np.where(pos, np.float32(src.layout.size[axis] - o[axis]) * inv, np.float32(-o[axis]) * inv)
+                closer = t_face < ref
+                ref[closer], ref_id[closer] = t_face[closer], (2 * axis + pos[closer]).astype(np.int16)
+            boxes = sc._screen_boxes(src.layout.corners, np.linalg.inv(T), K, hw)
+            for k, prim in enumerate(src.layout.primitives):
+                v0, v1, u0, u1 = boxes[k]
+                if v0 < v1 and u0 < u1:
+                    t = sc._T_FUNCS[prim.kind](o, d[:, v0:v1, u0:u1], prim)
+                    sub = ref[v0:v1, u0:u1]
+                    closer = t < sub
+                    sub[closer] = t[closer]
+                    ref_id[v0:v1, u0:u1][closer] = 6 + k
+            np.testing.assert_array_equal(depth, ref)
+            np.testing.assert_array_equal(prim_id, ref_id)
+            assert (prim_id >= 6).any()
+            np.testing.assert_array_equal(
+                sc.raycast_depth(src.layout, T, K, hw), sc.raycast(src.layout, T, K, hw).depth_m
+            )

@@ -638,16 +638,105 @@ def _nearest_hits(
         prim_id[closer] = (2 * axis + pos[closer]).astype(np.int16)  # 0: x=0, 1: x=Lx, 2: y=0, ...
 
     boxes = _screen_boxes(layout.corners, T_cam_world, K, hw) if layout.primitives else np.zeros((0, 4), np.int64)
-    for k, prim in enumerate(layout.primitives):
-        v0, v1, u0, u1 = boxes[k]
-        if v0 >= v1 or u0 >= u1:
-            continue
-        t = _T_FUNCS[prim.kind](o, d[:, v0:v1, u0:u1], prim)
-        sub = depth[v0:v1, u0:u1]
-        closer = t < sub
-        sub[closer] = t[closer]
-        prim_id[v0:v1, u0:u1][closer] = 6 + k
+    seen = [k for k in range(len(layout.primitives)) if boxes[k, 0] < boxes[k, 1] and boxes[k, 2] < boxes[k, 3]]
+    area = (boxes[:, 1] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 2])
+    # primitives in order, in chunks of at most _MAX_PAIRS (pixel, primitive) pairs
+    chunk: list[int] = []
+    pairs = 0
+    for k in seen:
+        chunk.append(k)
+        pairs += int(area[k])
+        if pairs >= _MAX_PAIRS or k == seen[-1]:
+            _nearest_of(layout, o, d, boxes, chunk, depth, prim_id)
+            chunk, pairs = [], 0
     return o, d, depth, prim_id
+
+
+# (pixel, primitive) pairs intersected at once: bounds the memory of a large image
+_MAX_PAIRS = 1 << 21
+
+
+def _window_pixels(boxes: np.ndarray, ks: list[int], width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Flat pixel indices of the screen rectangles of primitives ``ks`` (row-major in
+    each) and the position in ``ks`` each belongs to."""
+    v0, v1, u0, u1 = (boxes[ks, i] for i in range(4))
+    wid = u1 - u0
+    area = (v1 - v0) * wid
+    owner = np.repeat(np.arange(len(ks)), area)
+    r = np.arange(int(area.sum())) - np.repeat(np.cumsum(area) - area, area)
+    return (v0[owner] + r // wid[owner]) * width + u0[owner] + r % wid[owner], owner
+
+
+def _box_pairs(o: np.ndarray, d_flat: np.ndarray, prims: list[Primitive], pix: np.ndarray, owner: np.ndarray):
+    """Ray parameters of the boxes ``prims`` at pixels ``pix`` (``owner``: which box),
+    the arithmetic of :func:`_t_box` element by element (the same float32/float64
+    operations in the same order, so the same bits), over all boxes at once: numpy
+    has no batched ray-box test, and one call per box costs more in Python than in
+    arithmetic on small images (the camera-path checks cast 80-pixel-wide views)."""
+    # cos and sin one by one, as _t_box: numpy's vector loops may round them differently
+    c = np.array([np.float32(np.cos(prim.yaw)) for prim in prims], np.float32)
+    s = np.array([np.float32(np.sin(prim.yaw)) for prim in prims], np.float32)
+    q = o - np.stack([prim.center for prim in prims])  # (B, 3) float64, as o - prim.center
+    half = np.stack([prim.half for prim in prims])
+    # float32 x float64 promotes to float64, as the scalars of _t_box do
+    o_l = (c * q[:, 0] + s * q[:, 1], -s * q[:, 0] + c * q[:, 1], q[:, 2])
+    lo = [(-half[:, k] - o_l[k]).astype(np.float32) for k in range(3)]
+    hi = [(half[:, k] - o_l[k]).astype(np.float32) for k in range(3)]
+    cp, sp = c[owner], s[owner]
+    dx, dy = d_flat[0, pix], d_flat[1, pix]
+    d_l = (cp * dx + sp * dy, -sp * dx + cp * dy, d_flat[2, pix])
+    t_in, t_out = None, None
+    for k in range(3):
+        inv = 1.0 / _safe(d_l[k])
+        ta, tb = lo[k][owner] * inv, hi[k][owner] * inv
+        near, far = np.minimum(ta, tb), np.maximum(ta, tb)
+        t_in = near if t_in is None else np.maximum(t_in, near)
+        t_out = far if t_out is None else np.minimum(t_out, far)
+    return np.where((t_out >= t_in) & (t_in > _NEAR_M), t_in, np.inf)
+
+
+def _nearest_of(
+    layout: Layout,
+    o: np.ndarray,
+    d: np.ndarray,
+    boxes: np.ndarray,
+    ks: list[int],
+    depth: np.ndarray,
+    prim_id: np.ndarray,
+) -> None:
+    """Update ``depth`` and ``prim_id`` in place with primitives ``ks`` (ascending) as if
+    each were tested in turn and kept where strictly nearer: per pixel the nearest hit,
+    the lowest primitive index among equal ones, and what is already there on a tie."""
+    h, w = depth.shape
+    d_flat = d.reshape(3, -1)
+    pix_all, k_all, t_all = [], [], []
+    box_ks = [k for k in ks if layout.primitives[k].kind == "box"]
+    if box_ks:
+        pix, owner = _window_pixels(boxes, box_ks, w)
+        pix_all.append(pix)
+        k_all.append(np.asarray(box_ks)[owner])
+        t_all.append(_box_pairs(o, d_flat, [layout.primitives[k] for k in box_ks], pix, owner))
+    for k in ks:
+        prim = layout.primitives[k]
+        if prim.kind == "box":
+            continue
+        v0, v1, u0, u1 = boxes[k]
+        pix = (np.arange(v0, v1)[:, None] * w + np.arange(u0, u1)).ravel()
+        pix_all.append(pix)
+        k_all.append(np.full(len(pix), k))
+        t_all.append(_T_FUNCS[prim.kind](o, d[:, v0:v1, u0:u1], prim).ravel())
+    pix, kk, t = np.concatenate(pix_all), np.concatenate(k_all), np.concatenate(t_all)
+    flat_depth, flat_id = depth.reshape(-1), prim_id.reshape(-1)
+    nearer = t < flat_depth[pix]
+    pix, kk, t = pix[nearer], kk[nearer], t[nearer]
+    t_min = np.full(h * w, np.inf, np.float32)
+    np.minimum.at(t_min, pix, t)
+    first = t == t_min[pix]
+    k_min = np.full(h * w, len(layout.primitives), np.int64)
+    np.minimum.at(k_min, pix[first], kk[first])
+    hit = k_min < len(layout.primitives)
+    flat_depth[hit] = t_min[hit]
+    flat_id[hit] = (6 + k_min[hit]).astype(np.int16)
 
 
 def raycast_depth(layout: Layout, T_world_cam: np.ndarray, K: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
