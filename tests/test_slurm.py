@@ -78,9 +78,10 @@ def slurm(tmp_path_factory) -> dict[str, str]:
         subprocess.run(["bash", str(SCRIPT), "stop"], env=env, capture_output=True, text=True, timeout=300)
 
 
-def snakemake_on_slurm(workdir: Path, env: dict[str, str], target: str, *args: str) -> subprocess.CompletedProcess:
-    """The cluster command of README.md and docs/cluster.md, plus what this accounting-free test cluster needs:
-    job states from squeue, no account, and a short first status check."""
+def snakemake_on_slurm(workdir: Path, env: dict[str, str], target: str, *args: str) -> subprocess.Popen:
+    """Start the cluster command of README.md and docs/cluster.md, plus what this
+    accounting-free test cluster needs: job states from squeue, no account, and a short
+    first status check. Its output goes to workdir/snakemake.out and .err (:func:`finished`)."""
     cmd = [
         sys.executable,
         "-m",
@@ -101,7 +102,35 @@ def snakemake_on_slurm(workdir: Path, env: dict[str, str], target: str, *args: s
         "2",
         *args,
     ]
-    return subprocess.run(cmd, cwd=workdir, capture_output=True, text=True, env=env, timeout=900)
+    with open(workdir / "snakemake.out", "w") as out, open(workdir / "snakemake.err", "w") as err:
+        return subprocess.Popen(cmd, cwd=workdir, stdout=out, stderr=err, text=True, env=env)
+
+
+def finished(proc: subprocess.Popen, workdir: Path) -> subprocess.CompletedProcess:
+    """Wait for a run of :func:`snakemake_on_slurm` and collect its output."""
+    try:
+        proc.wait(timeout=900)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+    out, err = ((workdir / f"snakemake.{s}").read_text() for s in ("out", "err"))
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+@pytest.fixture(scope="module")
+def runs(slurm, tmp_path_factory) -> dict[str, tuple[Path, subprocess.CompletedProcess]]:
+    """The two runs of this file, started together: most of a run's time is the executor
+    waiting between job-state checks, so they overlap. ``cpu``: TINY to ``dataset``;
+    ``cuda``: its test scene to ``framesets`` with ``device: cuda``."""
+    cpu = make_workdir(tmp_path_factory.mktemp("slurm-cpu"), TINY)
+    cuda = make_workdir(
+        tmp_path_factory.mktemp("slurm-cuda"), dict(TINY, sources=TINY["sources"][1:], device="cuda")
+    )  # one scene, one frame set
+    started = {
+        "cpu": (cpu, snakemake_on_slurm(cpu, slurm, "dataset")),
+        "cuda": (cuda, snakemake_on_slurm(cuda, slurm, "framesets")),
+    }
+    return {name: (wd, finished(proc, wd)) for name, (wd, proc) in started.items()}
 
 
 def submitted_jobs(log: str) -> list[dict]:
@@ -143,9 +172,8 @@ def slurm_job(slurm_id: str, env: dict[str, str]) -> dict[str, str]:
     return dict(re.findall(r"(\w+)=(\S*)", out))
 
 
-def test_tiny_workflow_runs_through_slurm(slurm, tmp_path):
-    wd = make_workdir(tmp_path / "wd", TINY)
-    proc = snakemake_on_slurm(wd, slurm, "dataset")
+def test_tiny_workflow_runs_through_slurm(slurm, runs):
+    wd, proc = runs["cpu"]
     assert proc.returncode == 0, f"{proc.stdout[-2000:]}\n{proc.stderr[-8000:]}"
 
     for split in ("train", "test"):
@@ -170,12 +198,10 @@ def test_tiny_workflow_runs_through_slurm(slurm, tmp_path):
         assert "gpu" not in slurm_job(job["slurm_id"], slurm).get("TresPerJob", ""), job
 
 
-def test_cuda_config_requests_a_gpu_per_torch_job(slurm, tmp_path):
+def test_cuda_config_requests_a_gpu_per_torch_job(slurm, runs):
     """With `device: cuda` the jobs that run torch ask SLURM for one GPU each, the others
     for none. (This machine's GPU may be a placeholder: only the requests are checked.)"""
-    cfg = dict(TINY, sources=TINY["sources"][1:], device="cuda")  # one scene, one frame set
-    wd = make_workdir(tmp_path / "cuda", cfg)
-    proc = snakemake_on_slurm(wd, slurm, "framesets")
+    _, proc = runs["cuda"]
     jobs = [j for j in submitted_jobs(proc.stderr) if j["slurm_id"]]
     assert any(j["resources"].get("gpu") == "1" for j in jobs), (jobs, proc.stderr[-4000:])
     for job in jobs:
