@@ -49,6 +49,45 @@ TINY = {
 }
 
 
+# The tiny enhancement build (tiny_report): a training, a validation and a test room at
+# 160x120, the filter methods only (no training).
+TINY_ENHANCE = {
+    "seed": 1,
+    "device": "cpu",
+    "sources": [
+        {
+            "name": "syn",
+            "kind": "synthetic",
+            "scenes": ["room_000"],
+            "split": "train",
+            "options": {"n_frames": 10, "width": 160, "height": 120},
+        },
+        {
+            "name": "synval",
+            "kind": "synthetic",
+            "scenes": ["room_002"],
+            "split": "val",
+            "options": {"n_frames": 8, "width": 160, "height": 120},
+        },
+        {
+            "name": "syntest",
+            "kind": "synthetic",
+            "scenes": ["room_003"],
+            "split": "test",
+            "options": {"n_frames": 8, "width": 160, "height": 120},
+        },
+    ],
+    "frameset": {"neighbours": 1, "stride": 2, "target_step": 2},
+    "resize": 64,
+    "patches": {"count": 4, "size": 32, "max_missing": 0.2, "filter_on": "gt"},
+    "enhance": {
+        "train": {"epochs": 1, "batch_size": 4, "lr": 0.001, "max_batches_per_epoch": 2},
+        "rde": {"voxel_m": 0.04, "frame_step": 1, "backend": "torch", "max_missing": 0.5},
+    },
+    "evaluation": {"methods": ["input", "rgf"], "figure_frames_per_scene": 1},
+}
+
+
 def snakemake(workdir: Path, *args: str, check: bool = True, **kw) -> subprocess.CompletedProcess:
     cmd = [
         sys.executable,
@@ -116,4 +155,13 @@ def tiny_build(tmp_path_factory) -> Path:
     changes a build works on a copy or a build of its own."""
     wd = make_workdir(tmp_path_factory.mktemp("tiny"), TINY)
     snakemake(wd, "dataset")
+    return wd
+
+
+@pytest.fixture(scope="session")
+def tiny_report(tmp_path_factory) -> Path:
+    """TINY_ENHANCE built to the ``report`` target once per test session, shared by
+    test_workflow_enhance (which reads it) and test_train_resume (which copies it)."""
+    wd = make_workdir(tmp_path_factory.mktemp("tiny-report"), TINY_ENHANCE)
+    snakemake(wd, "report")
     return wd

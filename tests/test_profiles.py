@@ -17,31 +17,6 @@ from pathlib import Path
 import pytest
 from conftest import REPO, TINY, digest_outputs, make_workdir
 
-# two scenes, three frame sets: the smallest build with a train and a test split
-SMALL = {
-    "seed": 5,
-    "device": "cpu",
-    "sources": [
-        {
-            "name": "syn",
-            "kind": "synthetic",
-            "scenes": ["room_000"],
-            "split": "train",
-            "options": {"n_frames": 14, "width": 320, "height": 240},
-        },
-        {
-            "name": "syntest",
-            "kind": "synthetic",
-            "scenes": ["room_003"],
-            "split": "test",
-            "options": {"n_frames": 13, "width": 320, "height": 240},
-        },
-    ],
-    "frameset": {"neighbours": 3, "stride": 2, "target_step": 1},
-    "resize": 128,
-    "patches": {"count": 6, "size": 64, "max_missing": 0.15, "filter_on": "gt"},
-}
-
 
 def plain_command(workdir: Path, *args: str) -> list[str]:
     """The command a user types, without --cores, --rerun-incomplete or --unlock: all of
@@ -57,7 +32,7 @@ def run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess:
 def test_default_profile_is_found_beside_the_snakefile(tmp_path):
     """Started from another folder with -s/-d and no --cores: the profile beside the
     Snakefile supplies the cores; without it Snakemake refuses to run."""
-    wd = make_workdir(tmp_path / "wd", SMALL)
+    wd = make_workdir(tmp_path / "wd", TINY)
     target = "results/report/config.yaml"
     without = run(plain_command(wd, "--workflow-profile", "none", target), cwd=tmp_path)
     assert without.returncode != 0

@@ -20,35 +20,14 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from conftest import REPO, make_workdir
+from conftest import REPO, TINY, make_workdir
 
 pytestmark = pytest.mark.slow
 
 SCRIPT = REPO / "cluster" / "slurm-local.sh"
 
-TINY = {
-    "seed": 3,
-    "device": "cpu",
-    "sources": [
-        {
-            "name": "syn",
-            "kind": "synthetic",
-            "scenes": ["room_000"],
-            "split": "train",
-            "options": {"n_frames": 14, "width": 320, "height": 240},
-        },
-        {
-            "name": "syntest",
-            "kind": "synthetic",
-            "scenes": ["room_003"],
-            "split": "test",
-            "options": {"n_frames": 13, "width": 320, "height": 240},
-        },
-    ],
-    "frameset": {"neighbours": 3, "stride": 2, "target_step": 1},
-    "resize": 128,
-    "patches": {"count": 6, "size": 64, "max_missing": 0.15, "filter_on": "gt"},
-}
+# conftest.TINY's first training room and its test room: two scenes, three frame sets
+TINY = {**TINY, "sources": [dict(TINY["sources"][0], scenes=["room_000"]), TINY["sources"][2]]}
 
 
 def free_port() -> int:

@@ -4,6 +4,7 @@ the resume state lives in results/models/{model}/resume/, which is not an output
 
 from __future__ import annotations
 
+import copy
 import os
 import shutil
 import signal
@@ -15,36 +16,13 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import torch
-from conftest import REPO, make_workdir, snakemake
+import yaml
+from conftest import REPO, TINY_ENHANCE, snakemake
 
-CONFIG = {
-    "seed": 2,
-    "device": "cpu",
-    "sources": [
-        {
-            "name": "syn",
-            "kind": "synthetic",
-            "scenes": ["room_000"],
-            "split": "train",
-            "options": {"n_frames": 10, "width": 160, "height": 120},
-        },
-        {
-            "name": "synval",
-            "kind": "synthetic",
-            "scenes": ["room_002"],
-            "split": "val",
-            "options": {"n_frames": 8, "width": 160, "height": 120},
-        },
-    ],
-    "frameset": {"neighbours": 1, "stride": 2, "target_step": 2},
-    "resize": 64,
-    "patches": {"count": 4, "size": 32, "max_missing": 0.2, "filter_on": "gt"},
-    "enhance": {
-        "train": {"batch_size": 4, "lr": 0.001, "max_batches_per_epoch": 2},
-        "models": {"ddrnet": {"model": "ddrnet", "epochs": 4, "model_params": {"channels": 4}}},
-    },
-    "evaluation": {"methods": ["input", "ddrnet"]},
-}
+# conftest.TINY_ENHANCE (its build is copied) with DDRNet trained for four epochs of two steps
+CONFIG = copy.deepcopy(TINY_ENHANCE)
+CONFIG["enhance"]["models"] = {"ddrnet": {"model": "ddrnet", "epochs": 4, "model_params": {"channels": 4}}}
+CONFIG["evaluation"]["methods"] = ["input", "ddrnet"]
 TARGET = "results/models/ddrnet/best.pt"
 MODEL_DIR = Path("results/models/ddrnet")
 
@@ -54,8 +32,10 @@ def _weights(path: Path) -> dict:
 
 
 @pytest.mark.slow
-def test_killed_training_continues_at_the_next_epoch(tmp_path):
-    reference = make_workdir(tmp_path / "reference", CONFIG)
+def test_killed_training_continues_at_the_next_epoch(tiny_report, tmp_path):
+    reference = tmp_path / "reference"  # the session's tiny build (its dataset), training DDRNet
+    shutil.copytree(tiny_report, reference, symlinks=True)
+    (reference / "config/config.yaml").write_text(yaml.safe_dump(CONFIG))
     snakemake(reference, TARGET)
     assert not (reference / MODEL_DIR / "resume").exists()  # removed once the training ended
 

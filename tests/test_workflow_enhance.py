@@ -18,47 +18,12 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from conftest import make_workdir, snakemake
+from conftest import TINY_ENHANCE, make_workdir, snakemake
 
 from depthgt.gt import store
 
 FIXTURE = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
-
-TINY = {
-    "seed": 1,
-    "device": "cpu",
-    "sources": [
-        {
-            "name": "syn",
-            "kind": "synthetic",
-            "scenes": ["room_000"],
-            "split": "train",
-            "options": {"n_frames": 10, "width": 160, "height": 120},
-        },
-        {
-            "name": "synval",
-            "kind": "synthetic",
-            "scenes": ["room_002"],
-            "split": "val",
-            "options": {"n_frames": 8, "width": 160, "height": 120},
-        },
-        {
-            "name": "syntest",
-            "kind": "synthetic",
-            "scenes": ["room_003"],
-            "split": "test",
-            "options": {"n_frames": 8, "width": 160, "height": 120},
-        },
-    ],
-    "frameset": {"neighbours": 1, "stride": 2, "target_step": 2},
-    "resize": 64,
-    "patches": {"count": 4, "size": 32, "max_missing": 0.2, "filter_on": "gt"},
-    "enhance": {
-        "train": {"epochs": 1, "batch_size": 4, "lr": 0.001, "max_batches_per_epoch": 2},
-        "rde": {"voxel_m": 0.04, "frame_step": 1, "backend": "torch", "max_missing": 0.5},
-    },
-    "evaluation": {"methods": ["input", "rgf"], "figure_frames_per_scene": 1},
-}
+TINY = TINY_ENHANCE
 
 
 def _table(wd: Path, name: str) -> pd.DataFrame:
@@ -66,10 +31,8 @@ def _table(wd: Path, name: str) -> pd.DataFrame:
 
 
 @pytest.fixture(scope="module")
-def synthetic_only(tmp_path_factory) -> Path:
-    wd = make_workdir(tmp_path_factory.mktemp("enh"), TINY)
-    snakemake(wd, "report")
-    return wd
+def synthetic_only(tiny_report) -> Path:
+    return tiny_report  # conftest: built once per session (test_train_resume starts from a copy)
 
 
 def test_tables_without_real_source(synthetic_only):
