@@ -653,7 +653,7 @@ def _nearest_hits(
 
 
 # (pixel, primitive) pairs intersected at once: bounds the memory of a large image
-_MAX_PAIRS = 1 << 21
+_MAX_PAIRS = 1 << 19
 
 
 def _window_pixels(boxes: np.ndarray, ks: list[int], width: int) -> tuple[np.ndarray, np.ndarray]:
