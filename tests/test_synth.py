@@ -307,6 +307,26 @@ def test_noise_calibrated_on_7scenes(synthetic_stats):
     assert bad.empty, bad.to_string()
 
 
+def _t_box_loop(o, d, prim):
+    """One box at a time on its screen rectangle: the slab test as depthgt did it before
+    the batch (src/depthgt/synth/scene.py _box_pairs), kept as that test's oracle."""
+    from depthgt.synth.scene import _NEAR_M, _safe
+
+    c, s = np.float32(np.cos(prim.yaw)), np.float32(np.sin(prim.yaw))
+    q = o - prim.center
+    o_l = (c * q[0] + s * q[1], -s * q[0] + c * q[1], q[2])
+    d_l = (c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2])
+    t_in, t_out = None, None
+    for k in range(3):
+        inv = 1.0 / _safe(d_l[k])
+        ta = (np.float32(-prim.half[k] - o_l[k])) * inv
+        tb = (np.float32(prim.half[k] - o_l[k])) * inv
+        near, far = np.minimum(ta, tb), np.maximum(ta, tb)
+        t_in = near if t_in is None else np.maximum(t_in, near)
+        t_out = far if t_out is None else np.minimum(t_out, far)
+    return np.where((t_out >= t_in) & (t_in > _NEAR_M), t_in, np.inf)
+
+
 def test_raycast_equals_one_primitive_at_a_time():
     """The batched intersection (_nearest_of) gives the bits of testing each primitive in
     turn on its screen rectangle and keeping strictly nearer hits (the loop it replaced),
@@ -332,7 +352,7 @@ def test_raycast_equals_one_primitive_at_a_time():
             for k, prim in enumerate(src.layout.primitives):
                 v0, v1, u0, u1 = boxes[k]
                 if v0 < v1 and u0 < u1:
-                    t = sc._T_FUNCS[prim.kind](o, d[:, v0:v1, u0:u1], prim)
+                    t = {**sc._T_FUNCS, "box": _t_box_loop}[prim.kind](o, d[:, v0:v1, u0:u1], prim)
                     sub = ref[v0:v1, u0:u1]
                     closer = t < sub
                     sub[closer] = t[closer]

@@ -512,29 +512,6 @@ def _safe(d):
     return np.where(np.abs(d) < 1e-9, np.float32(1e-9), d)
 
 
-def _slabs(o_l, d_l, lo, hi):
-    """Entry and exit ray parameters of the axis-aligned box [lo, hi] for rays
-    o_l + t * d_l given per axis (o_l: 3 floats, d_l: 3 planes)."""
-    t_in, t_out = None, None
-    for k in range(3):
-        inv = 1.0 / _safe(d_l[k])
-        ta = (np.float32(lo[k] - o_l[k])) * inv
-        tb = (np.float32(hi[k] - o_l[k])) * inv
-        near, far = np.minimum(ta, tb), np.maximum(ta, tb)
-        t_in = near if t_in is None else np.maximum(t_in, near)
-        t_out = far if t_out is None else np.minimum(t_out, far)
-    return t_in, t_out
-
-
-def _t_box(o, d, prim):
-    c, s = np.float32(np.cos(prim.yaw)), np.float32(np.sin(prim.yaw))
-    q = o - prim.center
-    o_l = (c * q[0] + s * q[1], -s * q[0] + c * q[1], q[2])
-    d_l = (c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2])
-    t_in, t_out = _slabs(o_l, d_l, -prim.half, prim.half)
-    return np.where((t_out >= t_in) & (t_in > _NEAR_M), t_in, np.inf)
-
-
 def _t_cylinder(o, d, prim):
     ox, oy = np.float32(o[0] - prim.center[0]), np.float32(o[1] - prim.center[1])
     r = np.float32(prim.half[0])
@@ -566,7 +543,8 @@ def _t_sphere(o, d, prim):
     return np.where((disc >= 0) & (t > _NEAR_M), t, np.inf)
 
 
-_T_FUNCS = {"box": _t_box, "cylinder": _t_cylinder, "sphere": _t_sphere}
+# boxes, most primitives of a room, are intersected in one batch (_box_pairs)
+_T_FUNCS = {"cylinder": _t_cylinder, "sphere": _t_sphere}
 
 
 def _attributes_box(p, prim):
@@ -668,17 +646,18 @@ def _window_pixels(boxes: np.ndarray, ks: list[int], width: int) -> tuple[np.nda
 
 
 def _box_pairs(o: np.ndarray, d_flat: np.ndarray, prims: list[Primitive], pix: np.ndarray, owner: np.ndarray):
-    """Ray parameters of the boxes ``prims`` at pixels ``pix`` (``owner``: which box),
-    the arithmetic of :func:`_t_box` element by element (the same float32/float64
-    operations in the same order, so the same bits), over all boxes at once: numpy
-    has no batched ray-box test, and one call per box costs more in Python than in
-    arithmetic on small images (the camera-path checks cast 80-pixel-wide views)."""
-    # cos and sin one by one, as _t_box: numpy's vector loops may round them differently
+    """Ray parameters of the boxes ``prims`` at pixels ``pix`` (``owner``: which box):
+    the slab test in each box's frame (yaw about z), over all boxes at once. Hand-written
+    because numpy has no batched ray-box test, and one call per box cost more in Python
+    than in arithmetic on small images (the camera-path checks cast 80-pixel-wide views).
+    Bit for bit the per-box loop it replaced (tests/test_synth.py keeps that loop as the
+    oracle): the same float32/float64 operations in the same order."""
+    # cos and sin one by one, as the loop did: numpy's vector loops may round them differently
     c = np.array([np.float32(np.cos(prim.yaw)) for prim in prims], np.float32)
     s = np.array([np.float32(np.sin(prim.yaw)) for prim in prims], np.float32)
     q = o - np.stack([prim.center for prim in prims])  # (B, 3) float64, as o - prim.center
     half = np.stack([prim.half for prim in prims])
-    # float32 x float64 promotes to float64, as the scalars of _t_box do
+    # float32 x float64 promotes to float64, as the loop's numpy scalars did
     o_l = (c * q[:, 0] + s * q[:, 1], -s * q[:, 0] + c * q[:, 1], q[:, 2])
     lo = [(-half[:, k] - o_l[k]).astype(np.float32) for k in range(3)]
     hi = [(half[:, k] - o_l[k]).astype(np.float32) for k in range(3)]
