@@ -165,3 +165,30 @@ def tiny_report(tmp_path_factory) -> Path:
     wd = make_workdir(tmp_path_factory.mktemp("tiny-report"), TINY_ENHANCE)
     snakemake(wd, "report")
     return wd
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _started_early(request, tmp_path_factory):
+    """A selected test module that defines ``start_early(tmp_path_factory)`` has it called
+    at the session's start and the object it returns ``stop()``-ed at the end. test_slurm
+    uses it: its runs spend most of their time waiting for the executor's job-state checks,
+    so they are started before every other test and overlap with them."""
+    modules = {getattr(item, "module", None) for item in request.session.items}  # doctests have none
+    modules = {m for m in modules if hasattr(m, "start_early")}
+    started = [m.start_early(tmp_path_factory) for m in sorted(modules, key=lambda m: m.__name__)]
+    yield
+    for s in started:
+        s.stop()
+
+
+@pytest.fixture(autouse=True)
+def _torch_threads(request):
+    """Torch's intra-op threads for each test: the module's ``TORCH_THREADS`` (default 2,
+    the machine's cores). A module-level ``torch.set_num_threads`` would hold for the whole
+    session from the last module collected; the modules whose in-process trainings ran
+    several-fold slower with two threads beside other work (test_slurm's runs, a build) ask
+    for one."""
+    if "torch" in sys.modules:
+        module = getattr(request.node, "module", None)  # a doctest has none
+        sys.modules["torch"].set_num_threads(getattr(module, "TORCH_THREADS", 2))
+    yield

@@ -15,7 +15,7 @@ from depthgt.enhance.losses import (
     normal_l1,
 )
 
-torch.set_num_threads(1)  # shared test machine: one thread is faster here
+TORCH_THREADS = 1  # conftest._torch_threads: shared test machine: one thread is faster here
 
 
 def _expected_params(cfg: LapDENConfig) -> int:

@@ -20,7 +20,7 @@ from depthgt.eval.metrics import (
     to_long,
 )
 
-torch.set_num_threads(1)
+TORCH_THREADS = 1  # conftest._torch_threads
 
 PRED = np.array([[1.0, 2.0], [0.0, 4.0]], dtype=np.float32)
 REF = np.array([[1.0, 3.0], [2.0, 0.0]], dtype=np.float32)

@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
-import torch
 
 from depthgt import io
 from depthgt.cli import main
@@ -15,7 +14,7 @@ from depthgt.errors import DepthGTError
 from depthgt.eval import predictions, tables
 from depthgt.eval.evaluate import evaluate_frames
 
-torch.set_num_threads(1)
+TORCH_THREADS = 1  # conftest._torch_threads
 
 
 def _frame(rng, n=32):

@@ -24,7 +24,9 @@ from depthgt.gt.render import (
 )
 from depthgt.settings import RenderSettings
 
-torch.set_num_threads(1)  # on an oversubscribed 2-core machine, 2 intra-op threads ran these tests ~3x slower
+TORCH_THREADS = (
+    1  # conftest._torch_threads: on an oversubscribed 2-core machine, 2 intra-op threads ran these tests ~3x slower
+)
 
 
 def _K(b: int, f: float, cx: float, cy: float, dtype=torch.float64) -> torch.Tensor:

@@ -16,6 +16,7 @@ import re
 import socket
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pandas as pd
@@ -36,25 +37,88 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+class EarlyStart:
+    """The single-node cluster and this file's two runs, started in a thread when the test
+    session starts (conftest ``_started_early``): most of a run's time is the executor
+    waiting between job-state checks, so they overlap with the other test files and with
+    each other. ``cpu``: TINY to ``dataset``; ``cuda``: its test scene to ``framesets``
+    with ``device: cuda``."""
+
+    def __init__(self, tmp_path_factory):
+        state = tmp_path_factory.mktemp("slurm-state")
+        self.env = dict(
+            os.environ,
+            DEPTHGT_SLURM_STATE=str(state),
+            DEPTHGT_SLURMCTLD_PORT=str(free_port()),
+            DEPTHGT_SLURMD_PORT=str(free_port()),
+            DEPTHGT_SLURM_GPUS="2",
+        )
+        self.workdirs = {
+            "cpu": make_workdir(tmp_path_factory.mktemp("slurm-cpu"), TINY),
+            "cuda": make_workdir(  # one scene, one frame set
+                tmp_path_factory.mktemp("slurm-cuda"), dict(TINY, sources=TINY["sources"][1:], device="cuda")
+            ),
+        }
+        self.start: subprocess.CompletedProcess | None = None
+        self.procs: dict[str, subprocess.Popen] = {}
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        self.start = subprocess.run(
+            ["bash", str(SCRIPT), "start"], env=self.env, capture_output=True, text=True, timeout=900
+        )
+        if self.start.returncode == 0:
+            env = dict(
+                self.env, SLURM_CONF=str(Path(self.env["DEPTHGT_SLURM_STATE"]) / "slurm.conf"), OMP_NUM_THREADS="1"
+            )
+            self.procs = {
+                "cpu": snakemake_on_slurm(self.workdirs["cpu"], env, "dataset"),
+                "cuda": snakemake_on_slurm(self.workdirs["cuda"], env, "framesets"),
+            }
+
+    def cluster(self) -> dict[str, str]:
+        """The running cluster's environment (SLURM_CONF set); skips where the script
+        cannot set one up."""
+        self._thread.join(timeout=900)
+        if self.start is None:
+            pytest.fail("cluster/slurm-local.sh start did not end within 900 s")
+        if self.start.returncode == 3:  # the script's code for "SLURM cannot be installed or set up here"
+            pytest.skip(f"no SLURM cluster on this machine: {self.start.stderr.strip()}")
+        assert self.start.returncode == 0, (
+            f"cluster/slurm-local.sh start failed ({self.start.returncode}):\n{self.start.stderr}"
+        )
+        return dict(self.env, SLURM_CONF=str(Path(self.env["DEPTHGT_SLURM_STATE"]) / "slurm.conf"), OMP_NUM_THREADS="1")
+
+    def stop(self) -> None:
+        self._thread.join(timeout=900)
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        subprocess.run(["bash", str(SCRIPT), "stop"], env=self.env, capture_output=True, text=True, timeout=300)
+
+
+_early: EarlyStart | None = None
+
+
+def start_early(tmp_path_factory) -> EarlyStart:
+    """Called by conftest ``_started_early`` when this file's tests are selected."""
+    global _early
+    _early = EarlyStart(tmp_path_factory)
+    return _early
+
+
 @pytest.fixture(scope="module")
-def slurm(tmp_path_factory) -> dict[str, str]:
-    """Environment of a running single-node cluster (SLURM_CONF set); stopped after."""
-    state = tmp_path_factory.mktemp("slurm-state")
-    env = dict(
-        os.environ,
-        DEPTHGT_SLURM_STATE=str(state),
-        DEPTHGT_SLURMCTLD_PORT=str(free_port()),
-        DEPTHGT_SLURMD_PORT=str(free_port()),
-        DEPTHGT_SLURM_GPUS="2",
-    )
-    start = subprocess.run(["bash", str(SCRIPT), "start"], env=env, capture_output=True, text=True, timeout=900)
-    if start.returncode == 3:  # the script's code for "SLURM cannot be installed or set up here"
-        pytest.skip(f"no SLURM cluster on this machine: {start.stderr.strip()}")
-    try:
-        assert start.returncode == 0, f"cluster/slurm-local.sh start failed ({start.returncode}):\n{start.stderr}"
-        yield dict(env, SLURM_CONF=str(state / "slurm.conf"), OMP_NUM_THREADS="1")
-    finally:
-        subprocess.run(["bash", str(SCRIPT), "stop"], env=env, capture_output=True, text=True, timeout=300)
+def early() -> EarlyStart:
+    assert _early is not None, "conftest._started_early starts the cluster and the runs"
+    return _early
+
+
+@pytest.fixture(scope="module")
+def slurm(early) -> dict[str, str]:
+    """Environment of the running single-node cluster (stopped when the session ends)."""
+    return early.cluster()
 
 
 def snakemake_on_slurm(workdir: Path, env: dict[str, str], target: str, *args: str) -> subprocess.Popen:
@@ -97,19 +161,9 @@ def finished(proc: subprocess.Popen, workdir: Path) -> subprocess.CompletedProce
 
 
 @pytest.fixture(scope="module")
-def runs(slurm, tmp_path_factory) -> dict[str, tuple[Path, subprocess.CompletedProcess]]:
-    """The two runs of this file, started together: most of a run's time is the executor
-    waiting between job-state checks, so they overlap. ``cpu``: TINY to ``dataset``;
-    ``cuda``: its test scene to ``framesets`` with ``device: cuda``."""
-    cpu = make_workdir(tmp_path_factory.mktemp("slurm-cpu"), TINY)
-    cuda = make_workdir(
-        tmp_path_factory.mktemp("slurm-cuda"), dict(TINY, sources=TINY["sources"][1:], device="cuda")
-    )  # one scene, one frame set
-    started = {
-        "cpu": (cpu, snakemake_on_slurm(cpu, slurm, "dataset")),
-        "cuda": (cuda, snakemake_on_slurm(cuda, slurm, "framesets")),
-    }
-    return {name: (wd, finished(proc, wd)) for name, (wd, proc) in started.items()}
+def runs(early, slurm) -> dict[str, tuple[Path, subprocess.CompletedProcess]]:
+    """The two runs of :class:`EarlyStart`, waited for."""
+    return {name: (early.workdirs[name], finished(proc, early.workdirs[name])) for name, proc in early.procs.items()}
 
 
 def submitted_jobs(log: str) -> list[dict]:

@@ -12,12 +12,14 @@
 from __future__ import annotations
 
 import copy
+import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import pandas as pd
 import pytest
+import yaml
 from conftest import TINY_ENHANCE, make_workdir, snakemake
 
 from depthgt.gt import store
@@ -143,14 +145,23 @@ def test_depthgt_report_command(synthetic_only, tmp_path):
 
 
 @pytest.mark.skipif(not FIXTURE.is_dir(), reason="../shared/data/7scenes-kitchen is absent")
-def test_table2_from_7scenes_fixture(tmp_path):
+def test_table2_from_7scenes_fixture(tiny_report, tmp_path):
+    """The session's enhancement build (a copy) with the kitchen's first 20 frames added
+    as a test source and JF and LapDEN (trained for two steps) as methods: the kitchen's
+    frame sets, references and predictions, the model and the tables are what runs."""
+    kitchen = tmp_path / "first-20" / FIXTURE.name
+    kitchen.mkdir(parents=True)
+    for f in FIXTURE.iterdir():
+        if not f.name.startswith("frame-") or int(f.name[6:12]) < 20:
+            (kitchen / f.name).symlink_to(f)
+    wd = tmp_path / "build"
+    shutil.copytree(tiny_report, wd, symlinks=True)
     cfg = copy.deepcopy(TINY)
     cfg["sources"].append(
-        {"name": "kitchen", "kind": "sevenscenes", "root": str(FIXTURE), "scenes": "all", "split": "test"}
+        {"name": "kitchen", "kind": "sevenscenes", "root": str(kitchen), "scenes": "all", "split": "test"}
     )
-    cfg["frameset"]["target_step"] = 6
-    cfg["evaluation"]["methods"] = ["input", "rgf", "jf", "lapden"]  # one model trained (2 steps) to stay fast
-    wd = make_workdir(tmp_path / "kitchen", cfg)
+    cfg["evaluation"]["methods"] = ["input", "rgf", "jf", "lapden"]
+    (wd / "config/config.yaml").write_text(yaml.safe_dump(cfg))
     snakemake(wd, "tables")
     t2 = _table(wd, "table2")
     # one block per reference: depthgt's GT, the neighbours-only render, the TSDF GT
