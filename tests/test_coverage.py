@@ -145,7 +145,11 @@ def test_coverage_fills_the_occluded_pixels_and_keeps_the_core(window, tmp_path)
 
 def test_views_beyond_the_angle_limit_are_not_added(window, tmp_path):
     wide, _, _ = _build(tmp_path, "wide", _settings("coverage", coverage_max_angle_deg=20.0))
-    narrow, _, _ = _build(tmp_path, "narrow", _settings("coverage", coverage_max_angle_deg=4.0, coverage_min_fill_px=5))
+    # (no hole margin: within 4 deg a view sees only a sliver of the shadow, next to its own)
+    narrow_settings = _settings(
+        "coverage", coverage_max_angle_deg=4.0, coverage_min_fill_px=5, coverage_mixed_margin_px=0
+    )
+    narrow, _, _ = _build(tmp_path, "narrow", narrow_settings)
     # the limit binds: without it, the best views are turned further than 4 deg
     assert max(v["angle_deg"] for v in wide["coverage"]["added"]) > 4.0
     assert narrow["coverage"]["beyond_limits"] > 0
@@ -153,6 +157,45 @@ def test_views_beyond_the_angle_limit_are_not_added(window, tmp_path):
     assert all(abs(v["offset"]) <= 4.0 / YAW_DEG for v in narrow["coverage"]["added"])
     wide_far = {v["offset"] for v in wide["coverage"]["added"] if v["angle_deg"] > 4.0}
     assert wide_far and not wide_far & {v["offset"] for v in narrow["coverage"]["added"]}
+
+
+class FlyingPixelScene(OccluderScene):
+    """The occluder scene with a sensor's mixed samples: the wall's samples beside the
+    shadow (4-neighbours) lie halfway between the plate and the wall (flying pixels)."""
+
+    def read(self, i: int) -> Frame:
+        f = super().read(i)
+        hole = f.depth_m == 0
+        beside = np.zeros_like(hole)
+        beside[:, 1:] |= hole[:, :-1]
+        beside[:, :-1] |= hole[:, 1:]
+        beside[1:] |= hole[:-1]
+        beside[:-1] |= hole[1:]
+        depth = np.where(beside & (f.depth_m > 0), np.float32((PLATE_Z + WALL_Z) / 2), f.depth_m)
+        return Frame(f.rgb, depth, f.T_world_cam, f.clean_depth_m)
+
+
+def test_added_views_fill_nothing_beside_their_own_holes(tmp_path):
+    """The mixed samples beside an added view's shadow would fill the target's empty
+    pixels with a depth between plate and wall (nothing in the core outvotes them there); with
+    ``coverage_mixed_margin_px`` 1 they fill nothing and what is filled is the wall."""
+    truth = FlyingPixelScene().read(TARGET).clean_depth_m
+
+    def gt(name: str, settings) -> tuple[dict, np.ndarray]:
+        out = FrameSetOutputs.in_dir(tmp_path / name)
+        members = [TARGET + o for o in settings.frameset.offsets]
+        doc = process_frameset(FlyingPixelScene(), "synthetic", TARGET, members, "train", out, settings)
+        return doc, io.read_exr(out.gt)["Z"]
+
+    window = gt("window", _settings("window"))[1] > 0
+    errors = {}
+    for margin in (0, 1):
+        doc, z = gt(f"m{margin}", _settings("coverage", coverage_max_angle_deg=20.0, coverage_mixed_margin_px=margin))
+        filled = (z > 0) & ~window
+        assert doc["coverage"]["filled_px"] == int(filled.sum()) > 0
+        errors[margin] = np.abs(z[filled] - truth[filled])
+    assert (errors[0] > 0.4).sum() >= 30  # the flying pixels' depth where the wall is
+    assert errors[1].size >= 30 and errors[1].max() < 0.01
 
 
 def test_split_guard_holds_for_added_views(tmp_path):
@@ -251,6 +294,9 @@ def test_coverage_settings_name_their_key():
         ("coverage_max_baseline_m", 0.0),
         ("coverage_max_angle_deg", 200.0),
         ("coverage_min_fill_px", 0),
+        ("coverage_mixed_margin_px", -1),
+        ("coverage_mixed_margin_px", 1.5),
+        ("coverage_mixed_jump_rel", -0.1),
     ):
         with pytest.raises(ConfigError, match=f"frameset.{key}"):
             settings_from_config({"frameset": {key: value}})
@@ -283,6 +329,7 @@ def test_batch_job_adds_views_of_the_targets_split_reading_each_frame_once(tmp_p
             "coverage_span": 6,
             "coverage_views": 2,
             "coverage_min_fill_px": 1,
+            "coverage_mixed_margin_px": 0,  # at 32x32 the rooms' every sample is beside a jump
             "coverage_max_angle_deg": 90.0,
             "coverage_max_baseline_m": 5.0,
         },

@@ -201,6 +201,8 @@ def test_settings_doc_is_json_ready():
         "coverage_max_baseline_m": 0.3,
         "coverage_max_angle_deg": 20.0,
         "coverage_min_fill_px": 50,
+        "coverage_mixed_margin_px": 1,
+        "coverage_mixed_jump_rel": 0.03,
     }
     assert doc["registration"]["refine_settings"]["scales"] == [4, 2, 1]
 

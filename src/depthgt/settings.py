@@ -135,6 +135,13 @@ class FrameSetSettings:
         coverage_max_angle_deg: nor one whose viewing direction is turned further.
         coverage_min_fill_px: a view is added only when it would fill at least this
             many of the still-empty pixels.
+        coverage_mixed_margin_px, coverage_mixed_jump_rel: an added view's samples
+            within ``coverage_mixed_margin_px`` pixels of a hole of its own depth or of a
+            jump (the window's depth range above ``coverage_mixed_jump_rel`` times the
+            depth) fill nothing: a sensor mixes fore- and background there, and nothing
+            outvotes them where the core sees nothing
+            (:func:`depthgt.gt.coverage.mixed_samples`; 1 px and 0.03 chosen on tuning
+            data; margin 0: every sample fills, jump 0: holes only).
     """
 
     neighbours: int = 3
@@ -147,6 +154,8 @@ class FrameSetSettings:
     coverage_max_baseline_m: float = 0.3
     coverage_max_angle_deg: float = 20.0
     coverage_min_fill_px: int = 50
+    coverage_mixed_margin_px: int = 1
+    coverage_mixed_jump_rel: float = 0.03
 
     def __post_init__(self):
         _require(
@@ -190,6 +199,16 @@ class FrameSetSettings:
             self.coverage_min_fill_px >= 1,
             "frameset.coverage_min_fill_px",
             f"must be >= 1, got {self.coverage_min_fill_px}",
+        )
+        _require(
+            isinstance(self.coverage_mixed_margin_px, int) and 0 <= self.coverage_mixed_margin_px <= 16,
+            "frameset.coverage_mixed_margin_px",
+            f"must be an integer in 0..16, got {self.coverage_mixed_margin_px!r}",
+        )
+        _require(
+            0 <= self.coverage_mixed_jump_rel <= 1,
+            "frameset.coverage_mixed_jump_rel",
+            f"must be in [0, 1], got {self.coverage_mixed_jump_rel}",
         )
 
     @property
