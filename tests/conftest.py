@@ -15,33 +15,27 @@ import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 
+
+def synthetic_source(name: str, scenes: list[str], split: str, n_frames: int, width: int, height: int) -> dict:
+    """A ``sources`` entry of the synthetic kind."""
+    return {
+        "name": name,
+        "kind": "synthetic",
+        "scenes": scenes,
+        "split": split,
+        "options": {"n_frames": n_frames, "width": width, "height": height},
+    }
+
+
 # The tiny synthetic build that several test files read (tiny_build): two training
 # rooms, a validation and a test room, one or two frame sets each.
 TINY = {
     "seed": 3,
     "device": "cpu",
     "sources": [
-        {
-            "name": "syn",
-            "kind": "synthetic",
-            "scenes": ["room_000", "room_001"],
-            "split": "train",
-            "options": {"n_frames": 14, "width": 320, "height": 240},
-        },
-        {
-            "name": "synval",
-            "kind": "synthetic",
-            "scenes": ["room_002"],
-            "split": "val",
-            "options": {"n_frames": 13, "width": 320, "height": 240},
-        },
-        {
-            "name": "syntest",
-            "kind": "synthetic",
-            "scenes": ["room_003"],
-            "split": "test",
-            "options": {"n_frames": 13, "width": 320, "height": 240},
-        },
+        synthetic_source("syn", ["room_000", "room_001"], "train", 14, 320, 240),
+        synthetic_source("synval", ["room_002"], "val", 13, 320, 240),
+        synthetic_source("syntest", ["room_003"], "test", 13, 320, 240),
     ],
     "frameset": {"neighbours": 3, "stride": 2, "target_step": 1},
     "resize": 128,
@@ -55,27 +49,9 @@ TINY_ENHANCE = {
     "seed": 1,
     "device": "cpu",
     "sources": [
-        {
-            "name": "syn",
-            "kind": "synthetic",
-            "scenes": ["room_000"],
-            "split": "train",
-            "options": {"n_frames": 10, "width": 160, "height": 120},
-        },
-        {
-            "name": "synval",
-            "kind": "synthetic",
-            "scenes": ["room_002"],
-            "split": "val",
-            "options": {"n_frames": 8, "width": 160, "height": 120},
-        },
-        {
-            "name": "syntest",
-            "kind": "synthetic",
-            "scenes": ["room_003"],
-            "split": "test",
-            "options": {"n_frames": 8, "width": 160, "height": 120},
-        },
+        synthetic_source("syn", ["room_000"], "train", 10, 160, 120),
+        synthetic_source("synval", ["room_002"], "val", 8, 160, 120),
+        synthetic_source("syntest", ["room_003"], "test", 8, 160, 120),
     ],
     "frameset": {"neighbours": 1, "stride": 2, "target_step": 2},
     "resize": 64,

@@ -9,20 +9,12 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from conftest import digest_outputs, make_workdir, snakemake
+from conftest import digest_outputs, make_workdir, snakemake, synthetic_source
 
 SMALL = {
     "seed": 2,
     "device": "cpu",
-    "sources": [
-        {
-            "name": "syn",
-            "kind": "synthetic",
-            "scenes": ["room_000"],
-            "split": "train",
-            "options": {"n_frames": 14, "width": 160, "height": 120},
-        }
-    ],
+    "sources": [synthetic_source("syn", ["room_000"], "train", 14, 160, 120)],
     "frameset": {"neighbours": 3, "stride": 2, "target_step": 1},
     "resize": 64,
     "patches": {"count": 2, "size": 32, "max_missing": 0.5, "filter_on": "gt"},

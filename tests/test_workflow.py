@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import REPO, TINY, make_workdir, snakemake
+from conftest import REPO, TINY, make_workdir, snakemake, synthetic_source
 
 from depthgt.gt import store
 from depthgt.io import read_exr
@@ -201,15 +201,7 @@ def test_overfit_registration_in_workflow(tmp_path):
     cfg = {
         "seed": 0,
         "device": "cpu",
-        "sources": [
-            {
-                "name": "syn",
-                "kind": "synthetic",
-                "scenes": ["room_000"],
-                "split": "train",
-                "options": {"n_frames": 13, "width": 320, "height": 240},
-            }
-        ],
+        "sources": [synthetic_source("syn", ["room_000"], "train", 13, 320, 240)],
         "registration": {"method": "overfit", "preset": "fast", "pretrain": {"framesets": 1}},
         "resize": 128,
         "patches": {"count": 2, "size": 64},
