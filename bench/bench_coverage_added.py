@@ -7,6 +7,9 @@ The frame sets of bench_gt_protocol.py's sets (targets 8, 20, 32 of 40-frame seq
 without GT and the added views fill, against the truth (the nearest-resized clean target
 depth): how many, their mean, median and share of errors beyond 5 cm (in front of or
 behind the truth), and by the number of samples fused in the pixel and by whether the target's own input has depth there.
+The pooled MAE of each variant carries a 95 % percentile bootstrap interval over frame sets,
+and its difference to the first variant a paired one (the same resampled frame sets;
+2000 resamples, seed 0, ``depthgt.eval.bootstrap.resample_counts``).
 
 Usage::
 
@@ -28,6 +31,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_gt_protocol as protocol  # noqa: E402  (the sets and the frame-set cache)
 
+from depthgt.eval.bootstrap import BOOTSTRAP_LEVEL, BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED, resample_counts  # noqa: E402
 from depthgt.gt.build import Alignment, fuse, poses_from_source  # noqa: E402
 from depthgt.gt.cache import ResizedScene  # noqa: E402
 from depthgt.gt.coverage import add_coverage_views  # noqa: E402
@@ -97,6 +101,21 @@ def main() -> None:
                 f"| {m[0]} | {m[1]} | {e.size} | {1000 * ae.mean():.1f} | {1000 * np.median(ae):.1f} | {100 * (ae > 0.05).mean():.1f} % "
                 f"| {100 * (e < -0.05).mean():.1f} % | {100 * (e > 0.05).mean():.1f} % |"
             )
+        # pooled MAE per resample of frame sets: (draws @ per-set sums) / (draws @ per-set pixels)
+        keys = list(variants)
+        sums = np.array([[np.abs(e).sum() for e in errors[m]] for m in keys])  # (variants, frame sets)
+        pixels = np.array([[e.size for e in errors[m]] for m in keys], dtype=np.float64)
+        draws = resample_counts(sums.shape[1], BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mae = 1000 * (draws @ sums.T) / (draws @ pixels.T)  # (resamples, variants), mm
+        q = [(1 - BOOTSTRAP_LEVEL) / 2 * 100, (1 + BOOTSTRAP_LEVEL) / 2 * 100]
+        for j, m in enumerate(keys):
+            lo, hi = np.nanpercentile(mae[:, j], q)
+            line = f"margin, jump {m}: pooled MAE 95 % interval over frame sets [{lo:.1f}, {hi:.1f}] mm"
+            if j:
+                dlo, dhi = np.nanpercentile(mae[:, j] - mae[:, 0], q)
+                line += f"; minus {keys[0]}: [{dlo:.1f}, {dhi:.1f}] mm (paired)"
+            print(line)
         for m in variants:
             if not errors[m]:
                 continue
