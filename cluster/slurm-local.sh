@@ -25,7 +25,8 @@
 #
 # Configuration choices: proctrack/linuxproc and task/none (no cgroups, no systemd),
 # accounting_storage/none (no slurmdbd: `sacct` cannot answer, so the executor plugin
-# polls with `squeue`; MinJobAge keeps finished jobs visible to squeue for 10 minutes),
+# polls with `squeue`; MinJobAge keeps finished jobs visible to squeue and scontrol for an
+# hour: the tests read their records long after the runs that start with the session),
 # jobcomp/filetxt (one line per finished job in $STATE/jobcomp.txt), select/cons_tres
 # with CR_CPU_Memory (cores and memory are consumable: a job's --mem is enforced at
 # scheduling). Daemons run as the calling user; installing needs root (apt-get).
@@ -158,7 +159,7 @@ SelectType=select/cons_tres
 SelectTypeParameters=CR_CPU_Memory
 MpiDefault=none
 ReturnToService=2
-MinJobAge=600
+MinJobAge=3600
 MailProg=/bin/true
 PlugStackConfig=$STATE/plugstack.conf
 $gres_types

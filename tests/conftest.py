@@ -7,7 +7,9 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -124,37 +126,127 @@ def digest_outputs(workdir: Path) -> dict[str, str]:
     return out
 
 
+def _tiny_build(folder: Path) -> Path:
+    wd = make_workdir(folder, TINY)
+    snakemake(wd, "dataset")
+    return wd
+
+
+def _tiny_report(folder: Path) -> Path:
+    wd = make_workdir(folder, TINY_ENHANCE)
+    snakemake(wd, "report")
+    return wd
+
+
+# session fixtures whose builds start early (EarlyRuns) when a selected test uses them
+EARLY_FIXTURES = {"tiny_build": _tiny_build, "tiny_report": _tiny_report}
+
+
+def _early_or_now(name: str, tmp_path_factory) -> Path:
+    if _EARLY is not None and name in _EARLY.names():
+        return _EARLY.result(name)
+    return EARLY_FIXTURES[name](tmp_path_factory.mktemp(name))
+
+
 @pytest.fixture(scope="session")
 def tiny_build(tmp_path_factory) -> Path:
     """TINY built to the ``dataset`` target once per test session, shared by the test
     files that only read it (test_workflow, test_data, test_profiles): a test that
-    changes a build works on a copy or a build of its own."""
-    wd = make_workdir(tmp_path_factory.mktemp("tiny"), TINY)
-    snakemake(wd, "dataset")
-    return wd
+    changes a build works on a copy or a build of its own. Started early (EarlyRuns)."""
+    return _early_or_now("tiny_build", tmp_path_factory)
 
 
 @pytest.fixture(scope="session")
 def tiny_report(tmp_path_factory) -> Path:
     """TINY_ENHANCE built to the ``report`` target once per test session, shared by
-    test_workflow_enhance (which reads it) and test_train_resume (which copies it)."""
-    wd = make_workdir(tmp_path_factory.mktemp("tiny-report"), TINY_ENHANCE)
-    snakemake(wd, "report")
-    return wd
+    test_workflow_enhance (which reads it) and test_train_resume (which copies it).
+    Started early (EarlyRuns)."""
+    return _early_or_now("tiny_report", tmp_path_factory)
+
+
+class EarlyRuns:
+    """The workflow runs of selected tests (a module's ``EARLY_RUNS``: test name -> a
+    function of an empty folder that builds there and returns what the test reads), run one
+    after another in one background thread from the session's start. A workflow run is
+    mostly one job process at a time, so on 2 cores it overlaps with the other tests rather
+    than waiting for its turn; the test then asserts on the result (:func:`early_run`)."""
+
+    def __init__(self, tmp_path_factory, runs: list[tuple[str, Callable[[Path], object]]]):
+        self._runs = [(name, fn, tmp_path_factory.mktemp(name[:40])) for name, fn in runs]
+        self._done: dict[str, tuple[bool, object]] = {}
+        self._cond = threading.Condition()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        for name, fn, folder in self._runs:
+            try:
+                out = (True, fn(folder))
+            except BaseException as e:  # handed to the test, which raises it
+                out = (False, e)
+            with self._cond:
+                self._done[name] = out
+                self._cond.notify_all()
+
+    def names(self) -> set[str]:
+        return {name for name, _, _ in self._runs}
+
+    def result(self, name: str, timeout: float = 1800):
+        with self._cond:
+            if not self._cond.wait_for(lambda: name in self._done, timeout=timeout):
+                pytest.fail(f"the early run of {name} did not end within {timeout} s")
+            ok, value = self._done[name]
+        if not ok:
+            raise value
+        return value
+
+    def stop(self) -> None:
+        self._thread.join(timeout=1800)
+
+
+_EARLY: EarlyRuns | None = None
 
 
 @pytest.fixture(scope="session", autouse=True)
 def _started_early(request, tmp_path_factory):
-    """A selected test module that defines ``start_early(tmp_path_factory)`` has it called
-    at the session's start and the object it returns ``stop()``-ed at the end. test_slurm
-    uses it: its runs spend most of their time waiting for the executor's job-state checks,
-    so they are started before every other test and overlap with them."""
-    modules = {getattr(item, "module", None) for item in request.session.items}  # doctests have none
-    modules = {m for m in modules if hasattr(m, "start_early")}
-    started = [m.start_early(tmp_path_factory) for m in sorted(modules, key=lambda m: m.__name__)]
+    """At the session's start: a selected test module that defines
+    ``start_early(tmp_path_factory)`` has it called (and the object it returns ``stop()``-ed
+    at the end): test_slurm's runs spend most of their time waiting for the executor's
+    job-state checks, so they start before every other test and overlap with them. And the
+    ``EARLY_RUNS`` of the selected tests and the builds of the ``EARLY_FIXTURES`` they use
+    start in :class:`EarlyRuns`, in the order the tests need them."""
+    global _EARLY
+    items = request.session.items
+    modules = {getattr(item, "module", None) for item in items}  # doctests have none
+    modules = sorted((m for m in modules if hasattr(m, "start_early")), key=lambda m: m.__name__)
+    started = [m.start_early(tmp_path_factory) for m in modules]
+    runs, seen = [], set()  # in the order the tests need them
+    for item in items:
+        wanted = [(f, EARLY_FIXTURES[f]) for f in EARLY_FIXTURES if f in getattr(item, "fixturenames", ())]
+        fn = getattr(getattr(item, "module", None), "EARLY_RUNS", {}).get(getattr(item, "originalname", None))
+        if fn is not None:
+            wanted.append((item.originalname, fn))
+        for name, fn in wanted:
+            if name not in seen:
+                seen.add(name)
+                runs.append((name, fn))
+    if runs:
+        _EARLY = EarlyRuns(tmp_path_factory, runs)
+        started.append(_EARLY)
     yield
     for s in started:
         s.stop()
+    _EARLY = None
+
+
+@pytest.fixture
+def early_run(request, tmp_path):
+    """What the test's entry in its module's ``EARLY_RUNS`` returned (:class:`EarlyRuns`),
+    waited for; run here in ``tmp_path`` when it was not started early."""
+    name = request.node.originalname
+    if _EARLY is not None and name in _EARLY.names():
+        return _EARLY.result(name)
+    return request.module.EARLY_RUNS[name](tmp_path)
 
 
 @pytest.fixture(autouse=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -39,8 +40,8 @@ def test_scenes_without_framesets_reasons():
     }
 
 
-def test_empty_sens_is_named_in_summary(tmp_path):
-    """A .sens whose header announces 0 frames, beside a scene that builds."""
+def _empty_sens_build(tmp_path: Path) -> tuple[Path, Path]:
+    """A .sens whose header announces 0 frames beside a synthetic scene, built to ``dataset``."""
     data = tmp_path / "data"
     data.mkdir()
     K = np.array([[60.0, 0, 40], [0, 60, 30], [0, 0, 1]])
@@ -72,6 +73,15 @@ def test_empty_sens_is_named_in_summary(tmp_path):
     }
     wd = make_workdir(tmp_path / "wd", config)
     snakemake(wd, "dataset")
+    return wd, data
+
+
+EARLY_RUNS = {"test_empty_sens_is_named_in_summary": _empty_sens_build}  # conftest.EarlyRuns
+
+
+def test_empty_sens_is_named_in_summary(early_run):
+    """A .sens whose header announces 0 frames, beside a scene that builds."""
+    wd, data = early_run
     md = (wd / "results/dataset/summary.md").read_text()
     assert f"| scan | scene0000_00 | 0 | empty_scene: the source yields no frame (root {data}) |" in md, md
     summary = json.loads((wd / "results/dataset/summary.json").read_text())

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -99,11 +100,8 @@ def _export_scannet(root, n_frames=12):
     return scene
 
 
-def test_a_bad_frame_found_by_the_batches_is_recorded(tmp_path):
-    """A truncated JPEG (frame 5) and a non-finite pose (frame 8, registration given)
-    are found by the batches that read them: batches of 4 targets overlap, so frame 5 is
-    read by two of them and listed once; each frame set holding one is skipped with the
-    frame's reason and file, in frames.parquet and in the dataset summary."""
+def _bad_frames_build(tmp_path: Path) -> Path:
+    """A ScanNet export with a truncated JPEG (frame 5) and a non-finite pose (frame 8), built to ``dataset``."""
     scene = _export_scannet(tmp_path / "data")
     jpg = scene / "color" / "5.jpg"
     jpg.write_bytes(jpg.read_bytes()[:-200])
@@ -116,7 +114,18 @@ def test_a_bad_frame_found_by_the_batches_is_recorded(tmp_path):
     )
     wd = make_workdir(tmp_path / "wd", config)
     snakemake(wd, "dataset")
+    return wd
 
+
+EARLY_RUNS = {"test_a_bad_frame_found_by_the_batches_is_recorded": _bad_frames_build}  # conftest.EarlyRuns
+
+
+def test_a_bad_frame_found_by_the_batches_is_recorded(early_run):
+    """A truncated JPEG (frame 5) and a non-finite pose (frame 8, registration given)
+    are found by the batches that read them: batches of 4 targets overlap, so frame 5 is
+    read by two of them and listed once; each frame set holding one is skipped with the
+    frame's reason and file, in frames.parquet and in the dataset summary."""
+    wd = early_run
     sdir = wd / "results/scenes/scan/scene0000_00"
     index = pd.read_parquet(sdir / "index.parquet")
     assert set(index.loc[index["is_target"], "frameset_status"]) == {"planned"}  # the index did not know

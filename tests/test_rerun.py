@@ -75,9 +75,15 @@ def test_a_registration_setting_reruns_frame_sets_not_the_index(small_framesets,
     assert jobs.get("frameset_batch") == 1 and "scene_index" not in jobs, jobs
 
 
-def test_batch_size_changes_the_files_not_the_frame_sets(small_framesets, tmp_path):
+def _one_per_batch_build(tmp_path: Path) -> Path:
+    """SMALL with ``batch_size: 1``, built to ``framesets``."""
     one = make_workdir(tmp_path / "one", dict(SMALL, frameset=dict(SMALL["frameset"], batch_size=1)))
     snakemake(one, "framesets")
+    return one
+
+
+def test_batch_size_changes_the_files_not_the_frame_sets(small_framesets, early_run):
+    one = early_run
     many = small_framesets  # the default batch size
     shards_one = sorted(p.name for p in (one / "results/framesets/syn/room_000").glob("*.zip"))
     shards_many = sorted(p.name for p in (many / "results/framesets/syn/room_000").glob("*.zip"))
@@ -99,9 +105,8 @@ def make_workdir_config(wd, config):
     (wd / "config" / "config.yaml").write_text(yaml.safe_dump(config))
 
 
-def test_targets_a_truncated_sens_lacks_are_recorded(tmp_path):
-    """The plan takes the frame count from the .sens header; frames cut off by a
-    truncated file become recorded skips, never silently missing frame sets."""
+def _truncated_sens_build(tmp_path: Path) -> Path:
+    """A .sens of 12 frames cut inside frame 8's record, built to ``dataset``."""
     import numpy as np
     from sens_writer import write_sens
 
@@ -135,9 +140,22 @@ def test_targets_a_truncated_sens_lacks_are_recorded(tmp_path):
     }
     wd = make_workdir(tmp_path / "wd", config)
     snakemake(wd, "dataset")
+    return wd
+
+
+def test_targets_a_truncated_sens_lacks_are_recorded(early_run):
+    """The plan takes the frame count from the .sens header; frames cut off by a
+    truncated file become recorded skips, never silently missing frame sets."""
+    wd = early_run
     fs = pd.read_parquet(wd / "results/dataset/framesets.parquet").set_index("target")
     assert list(fs.index) == list(range(1, 11))  # planned from the header: 12 frames
     assert (fs.loc[1:6, "status"] == "ok").all()
     assert (fs.loc[7:10, "status"] == "skipped").all() and fs.loc[7:10, "reason"].str.startswith("not_in_scene").all()
     summary = (wd / "results/dataset/summary.md").read_text()
     assert "not_in_scene" in summary and "truncated .sens" in summary
+
+
+EARLY_RUNS = {  # conftest.EarlyRuns
+    "test_batch_size_changes_the_files_not_the_frame_sets": _one_per_batch_build,
+    "test_targets_a_truncated_sens_lacks_are_recorded": _truncated_sens_build,
+}

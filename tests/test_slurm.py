@@ -198,7 +198,7 @@ def completion_records(state_env: dict[str, str]) -> dict[str, dict[str, str]]:
 
 
 def slurm_job(slurm_id: str, env: dict[str, str]) -> dict[str, str]:
-    """slurmctld's record of a job (kept MinJobAge = 10 min after it ends)."""
+    """slurmctld's record of a job (kept MinJobAge = 1 h after it ends: the runs start with the session)."""
     out = subprocess.run(
         ["scontrol", "show", "job", "-o", slurm_id], env=env, capture_output=True, text=True, check=True
     ).stdout

@@ -195,9 +195,7 @@ def test_unknown_scene_is_clear(tmp_path):
     assert "kitchen" in (proc.stdout + proc.stderr) + "".join(p.read_text() for p in (wd / "logs").rglob("*.log"))
 
 
-def test_overfit_registration_in_workflow(tmp_path):
-    """registration.method overfit: pretraining rule, then every frame set registered
-    without the source's poses; estimated poses close to the reference ones."""
+def _overfit_build(tmp_path: Path) -> Path:
     cfg = {
         "seed": 0,
         "device": "cpu",
@@ -208,6 +206,16 @@ def test_overfit_registration_in_workflow(tmp_path):
     }
     wd = make_workdir(tmp_path / "reg", cfg)
     snakemake(wd, "dataset")
+    return wd
+
+
+EARLY_RUNS = {"test_overfit_registration_in_workflow": _overfit_build}  # conftest.EarlyRuns
+
+
+def test_overfit_registration_in_workflow(early_run):
+    """registration.method overfit: pretraining rule, then every frame set registered
+    without the source's poses; estimated poses close to the reference ones."""
+    wd = early_run
     assert (wd / "results/models/registration/encoder.pt").exists()
     poses = store.read_json(f"{store.find_frameset(wd / 'results', 'syn', 'room_000', 6)}/poses.json")
     assert poses["registration"]["method"] == "overfit" and poses["registration"]["status"] == "ok"
