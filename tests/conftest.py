@@ -66,7 +66,9 @@ TINY_ENHANCE = {
 }
 
 
-def snakemake(workdir: Path, *args: str, check: bool = True, **kw) -> subprocess.CompletedProcess:
+def snakemake(
+    workdir: Path, *args: str, check: bool = True, env: dict[str, str] | None = None, **kw
+) -> subprocess.CompletedProcess:
     cmd = [
         sys.executable,
         "-m",
@@ -80,7 +82,7 @@ def snakemake(workdir: Path, *args: str, check: bool = True, **kw) -> subprocess
         "--rerun-incomplete",
         *args,
     ]
-    env = dict(os.environ, OMP_NUM_THREADS="1")
+    env = dict(os.environ if env is None else env, OMP_NUM_THREADS="1")
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, **kw)
     if check and proc.returncode != 0:
         raise AssertionError(f"snakemake failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-6000:]}")
@@ -126,16 +128,25 @@ def digest_outputs(workdir: Path) -> dict[str, str]:
     return out
 
 
-def _tiny_build(folder: Path) -> Path:
-    wd = make_workdir(folder, TINY)
-    snakemake(wd, "dataset")
-    return wd
+def in_background(workdir: Path, *args: str) -> Callable[[], Path]:
+    """The part of an early run (:class:`EarlyRuns`) that runs in the background: the
+    workflow on ``workdir`` with ``args`` in a subprocess, in the environment of now (a
+    test may change ``os.environ`` for a moment while it runs); returns ``workdir``."""
+    env = dict(os.environ)
+
+    def run() -> Path:
+        snakemake(workdir, *args, env=env)
+        return workdir
+
+    return run
 
 
-def _tiny_report(folder: Path) -> Path:
-    wd = make_workdir(folder, TINY_ENHANCE)
-    snakemake(wd, "report")
-    return wd
+def _tiny_build(folder: Path) -> Callable[[], Path]:
+    return in_background(make_workdir(folder, TINY), "dataset")
+
+
+def _tiny_report(folder: Path) -> Callable[[], Path]:
+    return in_background(make_workdir(folder, TINY_ENHANCE), "report")
 
 
 # session fixtures whose builds start early (EarlyRuns) when a selected test uses them
@@ -145,7 +156,7 @@ EARLY_FIXTURES = {"tiny_build": _tiny_build, "tiny_report": _tiny_report}
 def _early_or_now(name: str, tmp_path_factory) -> Path:
     if _EARLY is not None and name in _EARLY.names():
         return _EARLY.result(name)
-    return EARLY_FIXTURES[name](tmp_path_factory.mktemp(name))
+    return EARLY_FIXTURES[name](tmp_path_factory.mktemp(name))()
 
 
 @pytest.fixture(scope="session")
@@ -166,22 +177,26 @@ def tiny_report(tmp_path_factory) -> Path:
 
 class EarlyRuns:
     """The workflow runs of selected tests (a module's ``EARLY_RUNS``: test name -> a
-    function of an empty folder that builds there and returns what the test reads), run one
-    after another in one background thread from the session's start. A workflow run is
-    mostly one job process at a time, so on 2 cores it overlaps with the other tests rather
-    than waiting for its turn; the test then asserts on the result (:func:`early_run`)."""
+    function of an empty folder), started at the session's start. Each function prepares
+    its inputs there at once, in the main thread, and returns the rest: a function of no
+    arguments that only runs subprocesses (:func:`in_background`) and returns what the test
+    reads. Those run one after another in one background thread. A workflow run is mostly
+    one job process at a time, so on 2 cores it overlaps with the other tests rather than
+    waiting for its turn; the test then asserts on the result (:func:`early_run`). Nothing
+    in-process runs in the background: tests monkeypatch the library (a frame reader
+    counting its calls saw the frames an early run generated)."""
 
-    def __init__(self, tmp_path_factory, runs: list[tuple[str, Callable[[Path], object]]]):
-        self._runs = [(name, fn, tmp_path_factory.mktemp(name[:40])) for name, fn in runs]
+    def __init__(self, tmp_path_factory, runs: list[tuple[str, Callable[[Path], Callable[[], object]]]]):
+        self._runs = [(name, fn(tmp_path_factory.mktemp(name[:40]))) for name, fn in runs]
         self._done: dict[str, tuple[bool, object]] = {}
         self._cond = threading.Condition()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
-        for name, fn, folder in self._runs:
+        for name, job in self._runs:
             try:
-                out = (True, fn(folder))
+                out = (True, job())
             except BaseException as e:  # handed to the test, which raises it
                 out = (False, e)
             with self._cond:
@@ -189,7 +204,7 @@ class EarlyRuns:
                 self._cond.notify_all()
 
     def names(self) -> set[str]:
-        return {name for name, _, _ in self._runs}
+        return {name for name, _ in self._runs}
 
     def result(self, name: str, timeout: float = 1800):
         with self._cond:
@@ -246,7 +261,7 @@ def early_run(request, tmp_path):
     name = request.node.originalname
     if _EARLY is not None and name in _EARLY.names():
         return _EARLY.result(name)
-    return request.module.EARLY_RUNS[name](tmp_path)
+    return request.module.EARLY_RUNS[name](tmp_path)()
 
 
 @pytest.fixture(autouse=True)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from conftest import make_workdir, snakemake
+from conftest import in_background, make_workdir
 from sens_writer import write_sens
 
 from depthgt.gt.assemble import FRAMESET_COLUMNS, scenes_without_framesets
@@ -40,8 +40,8 @@ def test_scenes_without_framesets_reasons():
     }
 
 
-def _empty_sens_build(tmp_path: Path) -> tuple[Path, Path]:
-    """A .sens whose header announces 0 frames beside a synthetic scene, built to ``dataset``."""
+def _empty_sens_build(tmp_path: Path):
+    """A .sens whose header announces 0 frames beside a synthetic scene, built to ``dataset`` (conftest.EarlyRuns)."""
     data = tmp_path / "data"
     data.mkdir()
     K = np.array([[60.0, 0, 40], [0, 60, 30], [0, 0, 1]])
@@ -71,9 +71,7 @@ def _empty_sens_build(tmp_path: Path) -> tuple[Path, Path]:
         "frameset": {"neighbours": 1, "stride": 1, "target_step": 1, "batch_size": 4},
         "patches": {"count": 1, "size": 16, "max_missing": 1.0},
     }
-    wd = make_workdir(tmp_path / "wd", config)
-    snakemake(wd, "dataset")
-    return wd, data
+    return in_background(make_workdir(tmp_path / "wd", config), "dataset")
 
 
 EARLY_RUNS = {"test_empty_sens_is_named_in_summary": _empty_sens_build}  # conftest.EarlyRuns
@@ -81,7 +79,8 @@ EARLY_RUNS = {"test_empty_sens_is_named_in_summary": _empty_sens_build}  # conft
 
 def test_empty_sens_is_named_in_summary(early_run):
     """A .sens whose header announces 0 frames, beside a scene that builds."""
-    wd, data = early_run
+    wd = early_run
+    data = wd.parent / "data"
     md = (wd / "results/dataset/summary.md").read_text()
     assert f"| scan | scene0000_00 | 0 | empty_scene: the source yields no frame (root {data}) |" in md, md
     summary = json.loads((wd / "results/dataset/summary.json").read_text())

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from conftest import make_workdir, snakemake
+from conftest import in_background, make_workdir
 
 from depthgt.errors import FrameError
 from depthgt.gt import store
@@ -100,8 +100,8 @@ def _export_scannet(root, n_frames=12):
     return scene
 
 
-def _bad_frames_build(tmp_path: Path) -> Path:
-    """A ScanNet export with a truncated JPEG (frame 5) and a non-finite pose (frame 8), built to ``dataset``."""
+def _bad_frames_build(tmp_path: Path):
+    """A ScanNet export with a truncated JPEG (frame 5) and a non-finite pose (frame 8), built to ``dataset`` (conftest.EarlyRuns)."""
     scene = _export_scannet(tmp_path / "data")
     jpg = scene / "color" / "5.jpg"
     jpg.write_bytes(jpg.read_bytes()[:-200])
@@ -112,9 +112,7 @@ def _bad_frames_build(tmp_path: Path) -> Path:
             {"name": "scan", "kind": "scannet", "root": str(scene.parent), "scenes": ["scene0000_00"], "split": "train"}
         ],
     )
-    wd = make_workdir(tmp_path / "wd", config)
-    snakemake(wd, "dataset")
-    return wd
+    return in_background(make_workdir(tmp_path / "wd", config), "dataset")
 
 
 EARLY_RUNS = {"test_a_bad_frame_found_by_the_batches_is_recorded": _bad_frames_build}  # conftest.EarlyRuns

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from conftest import digest_outputs, make_workdir, snakemake, synthetic_source
+from conftest import digest_outputs, in_background, make_workdir, snakemake, synthetic_source
 
 SMALL = {
     "seed": 2,
@@ -75,11 +75,11 @@ def test_a_registration_setting_reruns_frame_sets_not_the_index(small_framesets,
     assert jobs.get("frameset_batch") == 1 and "scene_index" not in jobs, jobs
 
 
-def _one_per_batch_build(tmp_path: Path) -> Path:
-    """SMALL with ``batch_size: 1``, built to ``framesets``."""
-    one = make_workdir(tmp_path / "one", dict(SMALL, frameset=dict(SMALL["frameset"], batch_size=1)))
-    snakemake(one, "framesets")
-    return one
+def _one_per_batch_build(tmp_path: Path):
+    """SMALL with ``batch_size: 1``, built to ``framesets`` (conftest.EarlyRuns)."""
+    return in_background(
+        make_workdir(tmp_path / "one", dict(SMALL, frameset=dict(SMALL["frameset"], batch_size=1))), "framesets"
+    )
 
 
 def test_batch_size_changes_the_files_not_the_frame_sets(small_framesets, early_run):
@@ -105,8 +105,8 @@ def make_workdir_config(wd, config):
     (wd / "config" / "config.yaml").write_text(yaml.safe_dump(config))
 
 
-def _truncated_sens_build(tmp_path: Path) -> Path:
-    """A .sens of 12 frames cut inside frame 8's record, built to ``dataset``."""
+def _truncated_sens_build(tmp_path: Path):
+    """A .sens of 12 frames cut inside frame 8's record, built to ``dataset`` (conftest.EarlyRuns)."""
     import numpy as np
     from sens_writer import write_sens
 
@@ -138,9 +138,7 @@ def _truncated_sens_build(tmp_path: Path) -> Path:
         "frameset": {"neighbours": 1, "stride": 1, "target_step": 1, "batch_size": 4},
         "patches": {"count": 1, "size": 16, "max_missing": 1.0},
     }
-    wd = make_workdir(tmp_path / "wd", config)
-    snakemake(wd, "dataset")
-    return wd
+    return in_background(make_workdir(tmp_path / "wd", config), "dataset")
 
 
 def test_targets_a_truncated_sens_lacks_are_recorded(early_run):

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import REPO, TINY, make_workdir, snakemake, synthetic_source
+from conftest import REPO, TINY, in_background, make_workdir, snakemake, synthetic_source
 
 from depthgt.gt import store
 from depthgt.io import read_exr
@@ -195,7 +195,7 @@ def test_unknown_scene_is_clear(tmp_path):
     assert "kitchen" in (proc.stdout + proc.stderr) + "".join(p.read_text() for p in (wd / "logs").rglob("*.log"))
 
 
-def _overfit_build(tmp_path: Path) -> Path:
+def _overfit_build(tmp_path: Path):
     cfg = {
         "seed": 0,
         "device": "cpu",
@@ -204,9 +204,7 @@ def _overfit_build(tmp_path: Path) -> Path:
         "resize": 128,
         "patches": {"count": 2, "size": 64},
     }
-    wd = make_workdir(tmp_path / "reg", cfg)
-    snakemake(wd, "dataset")
-    return wd
+    return in_background(make_workdir(tmp_path / "reg", cfg), "dataset")  # conftest.EarlyRuns
 
 
 EARLY_RUNS = {"test_overfit_registration_in_workflow": _overfit_build}  # conftest.EarlyRuns
