@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -66,10 +67,8 @@ TINY_ENHANCE = {
 }
 
 
-def snakemake(
-    workdir: Path, *args: str, check: bool = True, env: dict[str, str] | None = None, **kw
-) -> subprocess.CompletedProcess:
-    cmd = [
+def _snakemake_command(workdir: Path, *args: str) -> list[str]:
+    return [
         sys.executable,
         "-m",
         "snakemake",
@@ -82,10 +81,17 @@ def snakemake(
         "--rerun-incomplete",
         *args,
     ]
-    env = dict(os.environ if env is None else env, OMP_NUM_THREADS="1")
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, **kw)
+
+
+def _failed(proc) -> AssertionError:
+    return AssertionError(f"snakemake failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-6000:]}")
+
+
+def snakemake(workdir: Path, *args: str, check: bool = True, **kw) -> subprocess.CompletedProcess:
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    proc = subprocess.run(_snakemake_command(workdir, *args), capture_output=True, text=True, env=env, **kw)
     if check and proc.returncode != 0:
-        raise AssertionError(f"snakemake failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-6000:]}")
+        raise _failed(proc)
     return proc
 
 
@@ -128,14 +134,36 @@ def digest_outputs(workdir: Path) -> dict[str, str]:
     return out
 
 
+# the early runs' live workflow processes, killed when the session ends before they do
+_LIVE: set[subprocess.Popen] = set()
+_STOP = threading.Event()
+
+
 def in_background(workdir: Path, *args: str) -> Callable[[], Path]:
     """The part of an early run (:class:`EarlyRuns`) that runs in the background: the
     workflow on ``workdir`` with ``args`` in a subprocess, in the environment of now (a
-    test may change ``os.environ`` for a moment while it runs); returns ``workdir``."""
-    env = dict(os.environ)
+    test may change ``os.environ`` for a moment while it runs); returns ``workdir``. A
+    session that ends first (``-x``, Ctrl-C) kills it rather than waiting for it."""
+    env = dict(os.environ, OMP_NUM_THREADS="1")
 
     def run() -> Path:
-        snakemake(workdir, *args, env=env)
+        if _STOP.is_set():
+            raise RuntimeError(f"the test session ended before the early run in {workdir} started")
+        proc = subprocess.Popen(
+            _snakemake_command(workdir, *args),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+            start_new_session=True,  # its own process group: the jobs die with it
+        )
+        _LIVE.add(proc)
+        try:
+            out, err = proc.communicate()
+        finally:
+            _LIVE.discard(proc)
+        if proc.returncode != 0:
+            raise _failed(subprocess.CompletedProcess(proc.args, proc.returncode, out, err))
         return workdir
 
     return run
@@ -187,11 +215,25 @@ class EarlyRuns:
     counting its calls saw the frames an early run generated)."""
 
     def __init__(self, tmp_path_factory, runs: list[tuple[str, Callable[[Path], Callable[[], object]]]]):
-        self._runs = [(name, fn(tmp_path_factory.mktemp(name[:40]))) for name, fn in runs]
+        self._runs = [(name, self._prepared(fn, tmp_path_factory.mktemp(name[:40]))) for name, fn in runs]
         self._done: dict[str, tuple[bool, object]] = {}
         self._cond = threading.Condition()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
+
+    @staticmethod
+    def _prepared(fn: Callable[[Path], Callable[[], object]], folder: Path) -> Callable[[], object]:
+        """``fn(folder)``, or a job that raises its error: a failed preparation fails its
+        own test (:meth:`result`), not the session."""
+        try:
+            return fn(folder)
+        except Exception as e:
+            err = e
+
+            def failed():
+                raise err
+
+            return failed
 
     def _run(self) -> None:
         for name, job in self._runs:
@@ -216,7 +258,15 @@ class EarlyRuns:
         return value
 
     def stop(self) -> None:
-        self._thread.join(timeout=1800)
+        """Kills the runs still going (a session ended early: their tests will not read
+        them) and waits for the thread."""
+        _STOP.set()
+        for proc in list(_LIVE):
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        self._thread.join(timeout=60)
 
 
 _EARLY: EarlyRuns | None = None
@@ -231,6 +281,7 @@ def _started_early(request, tmp_path_factory):
     ``EARLY_RUNS`` of the selected tests and the builds of the ``EARLY_FIXTURES`` they use
     start in :class:`EarlyRuns`, in the order the tests need them."""
     global _EARLY
+    _STOP.clear()
     items = request.session.items
     modules = {getattr(item, "module", None) for item in items}  # doctests have none
     modules = sorted((m for m in modules if hasattr(m, "start_early")), key=lambda m: m.__name__)
