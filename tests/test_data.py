@@ -131,7 +131,7 @@ def test_workers_open_their_own_shards(results, context):
     loader = DataLoader(ds, batch_size=5, num_workers=2, multiprocessing_context=context)
     got = torch.cat([b["gt"] for b in loader])
     assert torch.equal(got, torch.stack([ds[i]["gt"] for i in range(len(ds))]))
-    assert torch.equal(got[0], first["gt"]) and set(first) == {"input", "gt", "rgb", "K"}
+    assert torch.equal(got[0], first["gt"]) and set(first) == {"input", "gt", "rgb", "K", "sigma"}
 
 
 def test_shard_reader_reopens_in_a_new_process_and_pickles_without_handles(results, monkeypatch):
@@ -190,7 +190,7 @@ def test_the_trainer_reads_its_patches_through_gtdataset(results, tmp_path, monk
     ref = GTDataset(results, "train")
     for i in (0, len(ds) - 1):
         a, b = ds[i], ref[i]
-        assert set(a) == {"input", "gt", "rgb", "K"} and all(torch.equal(a[k], b[k]) for k in a)
+        assert set(a) == {"input", "gt", "rgb", "K", "sigma"} and all(torch.equal(a[k], b[k]) for k in a)
     calls = Counter()
     original = GTDataset.__getitem__
 

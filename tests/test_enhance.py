@@ -9,6 +9,7 @@ from depthgt.depth_ops import masked_avg_pool, structure_loss
 from depthgt.enhance.lapden import PRESETS, LapDEN, LapDENConfig, count_parameters, lapden_from_preset, push_pull_fill
 from depthgt.enhance.losses import (
     LossConfig,
+    confidence_weight,
     depth_l1,
     gradient_l1,
     lapden_loss,
@@ -167,6 +168,46 @@ def test_lapden_loss_multiscale_zero_at_gt_and_masks_holes():
     assert total2.item() == pytest.approx(0.1, rel=1e-4)
 
 
+def test_confidence_weight_lowers_the_pull_of_uncertain_gt():
+    pred = torch.tensor([[[[1.0, 2.0], [3.0, 4.0]]]])
+    gt = torch.tensor([[[[1.0, 0.0], [2.0, 5.0]]]])
+    sigma = torch.tensor([[[[0.001, 0.0], [0.001, 0.001]]]])
+    w = confidence_weight(sigma, 0.001)
+    assert torch.allclose(w, torch.tensor([[[[0.5, 1.0], [0.5, 0.5]]]]))
+    # equal weights: the plain mean over valid GT (the hole's weight does not count)
+    assert depth_l1(pred, gt, gt > 0, w).item() == pytest.approx(2.0 / 3.0)
+    # a very uncertain pixel (error 1 at (1, 0)) pulls ~nothing: mean of 0 and 1 over weights 1, ~0, 1
+    sigma[0, 0, 1, 0] = 10.0
+    w = confidence_weight(sigma, 0.001)
+    assert depth_l1(pred, gt, gt > 0, w).item() == pytest.approx(1.0 / 2.0, rel=1e-6)
+
+    # in the loss: GT off by 0.1 m on the uncertain half only -> the weighted depth term ~0
+    plane, K = _tilted_plane(0.5, n=16)
+    gt = plane.clone()
+    gt[..., :8] += 0.1
+    sig = torch.full_like(gt, 0.0005)
+    sig[..., :8] = 0.5
+    outs = [plane]
+    _, plain = lapden_loss(outs, {"gt": gt, "K": K}, LossConfig(scale_weights=(1.0,)))
+    _, weighted = lapden_loss(
+        outs, {"gt": gt, "K": K, "sigma": sig}, LossConfig(scale_weights=(1.0,), sigma_ref_m=0.002)
+    )
+    assert plain["depth"] == pytest.approx(0.05, rel=1e-3)
+    assert weighted["depth"] < 1e-4
+    # the coarser levels take the mean weight of their pixels
+    _, multi = lapden_loss(
+        [masked_avg_pool(plane, plane > 0, 4)[0], masked_avg_pool(plane, plane > 0, 2)[0], plane],
+        {"gt": gt, "K": K, "sigma": sig},
+        LossConfig(sigma_ref_m=0.002),
+    )
+    assert multi["depth"] < 3e-4
+    with pytest.raises(ValueError, match="sigma_ref_m is set but the batch has no 'sigma'"):
+        lapden_loss(outs, {"gt": gt, "K": K}, LossConfig(scale_weights=(1.0,), sigma_ref_m=0.002))
+    for bad in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError, match="sigma_ref_m"):
+            LossConfig(sigma_ref_m=bad)
+
+
 def test_lapden_loss_gradients_flow():
     torch.manual_seed(0)
     model = LapDEN(LapDENConfig(channels=8, level_convs=(2, 2, 2), encoder_convs=(0, 0)))
@@ -203,21 +244,27 @@ from depthgt.io import write_rgb_webp  # noqa: E402
 from depthgt.settings import TrainSettings  # noqa: E402
 
 
-def _write_frameset(folder, seed, n_patches=4, size=16):
+def _write_frameset(folder, seed, n_patches=4, size=16, sigma=False):
     """A frame set folder (store format): a noisy slanted plane (gt.exr, input.exr,
-    rgb.webp), ``n_patches`` crop boxes in patches.npz, and frameset.json."""
+    rgb.webp), ``n_patches`` crop boxes in patches.npz, and frameset.json; with
+    ``sigma`` gt.exr has a confidence channel S (1 mm, 0.2 m on the left third)."""
     rng = np.random.default_rng(seed)
     folder.mkdir(parents=True)
     yy, xx = np.mgrid[0:48, 0:48]
-    gt = store.stored_gt({"Z": (1.5 + rng.random() + 0.01 * xx + 0.005 * yy).astype(np.float32)})["Z"]
+    channels = {"Z": (1.5 + rng.random() + 0.01 * xx + 0.005 * yy).astype(np.float32)}
+    if sigma:
+        channels["S"] = np.where(xx < 16, 0.2, 0.001).astype(np.float32)
+    channels = store.stored_gt(channels)
+    gt = channels["Z"]
     inp = (gt + rng.normal(0, 0.02, gt.shape)).astype(np.float32)
     inp[rng.random(gt.shape) < 0.05] = 0.0
     rgb = np.zeros((*gt.shape, 3), np.uint8)
     boxes = np.array([[4 * i, 2 * i, size, size] for i in range(n_patches)])
-    store.write_gt_exr(folder / "gt.exr", {"Z": gt})
+    store.write_gt_exr(folder / "gt.exr", channels)
     store.write_input_exr(folder / "input.exr", inp)
     write_rgb_webp(folder / store.RGB_MEMBER, rgb)
-    save_npz(folder / "patches.npz", patch_record(crop_pairs(inp, gt, rgb, boxes, max_missing=1.0)))
+    pairs = crop_pairs(inp, gt, rgb, boxes, max_missing=1.0, gt_sigma_m=channels.get("S"))
+    save_npz(folder / "patches.npz", patch_record(pairs))
     K = [[100.0, 0.0, 127.5], [0.0, 100.0, 127.5], [0.0, 0.0, 1.0]]
     (folder / "frameset.json").write_text(json.dumps({"K": K}))
     return folder
@@ -323,6 +370,31 @@ def test_train_resumes_from_its_resume_folder_when_the_outputs_are_gone(manifest
     # resume state of other settings is not an error here: training starts anew
     other = train(*manifests, out, TrainSettings(**{**_settings(1).__dict__, "lr": 5e-4}))
     assert other["epochs_run"] == 1
+
+
+def test_training_with_the_gt_confidence_as_loss_weight(tmp_path):
+    paths = [_write_frameset(tmp_path / "fs" / f"{i:06d}", i, sigma=i > 0) for i in range(3)]
+    table = pd.DataFrame([{"frameset": str(p), "patch": j} for p in paths for j in range(4)])
+    ds = patch_dataset(table)
+    item = ds[7]  # box (y0, x0) = (12, 6) of the second frame set: columns 6..21, uncertain below 16
+    assert "sigma" not in ds[0] and item["sigma"].shape == (1, 16, 16)
+    assert item["sigma"][0, 0, 0].item() == pytest.approx(0.2, rel=0.05)  # sigma is stored on a log grid
+    assert item["sigma"][0, 0, 15].item() == pytest.approx(0.001, rel=0.05)
+    # a batch mixing a GT with and without confidence has none; one of confident GTs has it
+    assert "sigma" not in collate([ds[0], ds[4]]) and collate([ds[4], ds[8]])["sigma"].shape == (2, 1, 16, 16)
+
+    table.iloc[4:8].to_parquet(tmp_path / "train.parquet")
+    table.iloc[8:].to_parquet(tmp_path / "val.parquet")
+    s = _settings(1)
+    weighted = TrainSettings(**{**s.__dict__, "loss_params": {"sigma_ref_m": 0.005}})
+    a = train(tmp_path / "train.parquet", tmp_path / "val.parquet", TrainOutputs.in_dir(tmp_path / "w"), weighted)
+    b = train(tmp_path / "train.parquet", tmp_path / "val.parquet", TrainOutputs.in_dir(tmp_path / "p"), s)
+    la, lb = pd.read_csv(a["log"]), pd.read_csv(b["log"])
+    assert la["depth"].notna().all() and not np.allclose(la["depth"], lb["depth"])
+    # training on frame sets without a confidence image with the weight set: the loss says why
+    table.iloc[:4].to_parquet(tmp_path / "plain.parquet")
+    with pytest.raises(ValueError, match="no 'sigma'"):
+        train(tmp_path / "plain.parquet", tmp_path / "val.parquet", TrainOutputs.in_dir(tmp_path / "x"), weighted)
 
 
 def test_train_settings_are_checked():

@@ -64,9 +64,10 @@ def _check_choice(what: str, value: str, allowed: Sequence[str]) -> None:
 
 
 def training_fields(sample: dict[str, Any]) -> dict[str, torch.Tensor]:
-    """The tensors the enhancement trainer uses: ``input``, ``gt``, ``rgb``, ``K`` (a
-    ``transform``; module level so that it pickles for spawned workers)."""
-    return {k: sample[k] for k in ("input", "gt", "rgb", "K")}
+    """The tensors the enhancement trainer uses: ``input``, ``gt``, ``rgb``, ``K`` and,
+    where the GT has one, ``sigma`` (a loss may weight by it) (a ``transform``; module
+    level so that it pickles for spawned workers)."""
+    return {k: sample[k] for k in ("input", "gt", "rgb", "K", "sigma") if k in sample}
 
 
 class GTDataset(Dataset):

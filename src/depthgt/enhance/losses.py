@@ -8,6 +8,12 @@ L = L_D(y_hat, y) + lambda_s * L_S(y_hat, y), summed over the pyramid levels:
   ``(max_{q in W(p)} |grad y_hat_q| - max_{q in W(p)} |grad y_q|)^2``, W a 5x5
   window; the paper's change: the GT y replaces the raw input x; lambda_s = 5.
 
+Optionally (``sigma_ref_m``, beyond the paper) the depth term is weighted per pixel by
+the GT's confidence: ``w = sigma_ref^2 / (sigma_ref^2 + sigma^2)`` with ``sigma`` the
+GT's expected std (gt.exr's ``S``, the batch's ``sigma``), so that GT pixels the
+renderer is unsure of (few samples, surfaces split by the agreement check) pull less;
+a weighted mean, so the term's scale does not change.
+
 Supervision only where the GT is valid (> 0): depth terms on valid GT pixels,
 gradient terms on pixels whose forward neighbours are valid too, normal terms on
 pixels whose 3x3 neighbourhood (the Sobel support of kornia's normals) is valid.
@@ -23,6 +29,7 @@ depth, ``gt`` (B,1,H,W) GT depth (0 = none), ``K`` (B,3,3) intrinsics of the
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -35,6 +42,7 @@ from depthgt.geometry import scale_intrinsics
 __all__ = [
     "LossConfig",
     "depth_l1",
+    "confidence_weight",
     "gradient_l1",
     "normal_l1",
     "lapden_loss",
@@ -51,6 +59,10 @@ class LossConfig:
         lambda_s: weight of L_S (the paper: 5, the original LapDEN: 10).
         window: side of the max window of L_S (pixels, odd).
         scale_weights: weight of each pyramid level, coarse to fine.
+        sigma_ref_m: None (the paper): every valid GT pixel counts alike in the depth
+            term; metres: each is weighted by ``sigma_ref_m^2 / (sigma_ref_m^2 +
+            sigma^2)`` (the batch must carry ``sigma``); coarser levels take the mean
+            weight of their valid fine pixels.
     """
 
     w_depth: float = 1.0
@@ -59,11 +71,29 @@ class LossConfig:
     lambda_s: float = 5.0
     window: int = 5
     scale_weights: tuple[float, ...] = (1.0, 1.0, 1.0)
+    sigma_ref_m: float | None = None
+
+    def __post_init__(self):
+        if self.sigma_ref_m is not None and not (math.isfinite(self.sigma_ref_m) and self.sigma_ref_m > 0):
+            raise ValueError(f"loss_params.sigma_ref_m must be null or a finite number > 0, got {self.sigma_ref_m}")
 
 
-def depth_l1(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """Mean |pred - gt| (metres) over valid GT pixels. pred, gt, valid: (B, 1, H, W)."""
-    return masked_mean((pred - gt).abs(), valid)
+def depth_l1(
+    pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor, weight: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Mean |pred - gt| (metres) over valid GT pixels, weighted by ``weight`` (B, 1, H,
+    W) when given. pred, gt, valid: (B, 1, H, W)."""
+    if weight is None:
+        return masked_mean((pred - gt).abs(), valid)
+    w = weight * valid.to(weight.dtype)
+    return ((pred - gt).abs() * w).sum() / w.sum().clamp_min(1e-12)
+
+
+def confidence_weight(sigma: torch.Tensor, sigma_ref_m: float) -> torch.Tensor:
+    """``sigma_ref^2 / (sigma_ref^2 + sigma^2)``: 1 for a certain GT pixel, 1/2 at
+    ``sigma == sigma_ref_m``. sigma: (B, 1, H, W) metres."""
+    s2 = sigma_ref_m * sigma_ref_m
+    return s2 / (s2 + sigma * sigma)
 
 
 def gradient_l1(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -91,14 +121,15 @@ def normal_l1(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor, K: torc
     return masked_mean((n_pred - n_gt).abs().sum(dim=1, keepdim=True), v3 > 0.5)
 
 
-def _level_targets(gt: torch.Tensor, K: torch.Tensor, shape_hw: tuple[int, int]):
+def _level_targets(gt: torch.Tensor, K: torch.Tensor, shape_hw: tuple[int, int], weight: torch.Tensor | None = None):
     H, W = gt.shape[-2:]
     factor = H // shape_hw[0]
     if factor * shape_hw[0] != H or factor * shape_hw[1] != W:
         raise ValueError(f"output size {shape_hw} is not an integer fraction of the GT size {(H, W)}")
     gt_l, valid_l = masked_avg_pool(gt, gt > 0, factor)
     K_l = scale_intrinsics(K, (H, W), shape_hw) if factor > 1 else K
-    return gt_l, valid_l, K_l
+    w_l = None if weight is None else masked_avg_pool(weight, gt > 0, factor)[0]
+    return gt_l, valid_l, K_l, w_l
 
 
 def lapden_loss(outputs: list[torch.Tensor], batch: dict, config: LossConfig = LossConfig()):
@@ -106,7 +137,8 @@ def lapden_loss(outputs: list[torch.Tensor], batch: dict, config: LossConfig = L
 
     Args:
         outputs: list of (B, 1, h_l, w_l) predictions, coarse to fine; finest at GT size.
-        batch: dict with ``gt`` (B, 1, H, W) and ``K`` (B, 3, 3).
+        batch: dict with ``gt`` (B, 1, H, W) and ``K`` (B, 3, 3) (and ``sigma`` (B, 1,
+            H, W) with ``config.sigma_ref_m``).
 
     Returns:
         (total loss tensor, dict of float terms summed over levels: depth, grad,
@@ -119,11 +151,19 @@ def lapden_loss(outputs: list[torch.Tensor], batch: dict, config: LossConfig = L
     weights = config.scale_weights[-len(outputs) :]
     if len(weights) != len(outputs):
         raise ValueError(f"{len(outputs)} outputs but only {len(config.scale_weights)} scale_weights")
+    weight = None
+    if config.sigma_ref_m is not None:
+        if "sigma" not in batch:
+            raise ValueError(
+                "loss_params.sigma_ref_m is set but the batch has no 'sigma' (the GT's expected std): "
+                "train on a depthgt GT (gt.exr channel S), not on one without a confidence image"
+            )
+        weight = confidence_weight(batch["sigma"].to(gt.dtype), config.sigma_ref_m)
     total = gt.new_zeros(())
     terms = {"depth": 0.0, "grad": 0.0, "normal": 0.0, "structure": 0.0}
     for w_l, pred in zip(weights, outputs):
-        gt_l, valid_l, K_l = _level_targets(gt, K, tuple(pred.shape[-2:]))
-        t_d = depth_l1(pred, gt_l, valid_l)
+        gt_l, valid_l, K_l, cw_l = _level_targets(gt, K, tuple(pred.shape[-2:]), weight)
+        t_d = depth_l1(pred, gt_l, valid_l, cw_l)
         t_g = gradient_l1(pred, gt_l, valid_l)
         t_n = normal_l1(pred, gt_l, valid_l, K_l)
         t_s = structure_loss(pred, gt_l, valid_l, config.window)

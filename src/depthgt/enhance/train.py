@@ -122,7 +122,8 @@ def patch_dataset(manifest: str | Path | pd.DataFrame) -> GTDataset:
     """The patch pairs listed in a manifest, as the trainer reads them: items are dicts of
     tensors ``input`` (1, h, w) raw depth m, ``gt`` (1, h, w) GT depth m, ``rgb`` (3, h, w)
     float in [0, 1], ``K`` (3, 3) intrinsics of the crop (the frame set's ``K`` shifted
-    by the crop box). Read through :class:`depthgt.data.GTDataset` (the one reader of
+    by the crop box) and, where the GT has one, ``sigma`` (1, h, w) its expected std in
+    metres. Read through :class:`depthgt.data.GTDataset` (the one reader of
     patches), every frame set's arrays kept in memory after the first read (~11 bytes
     per pixel: ~360 MB for 2000 pairs of 128x128).
 
@@ -135,8 +136,11 @@ def patch_dataset(manifest: str | Path | pd.DataFrame) -> GTDataset:
 
 
 def collate(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
-    """Stack a list of dataset items into a batch dict."""
-    return {k: torch.stack([it[k] for it in items]) for k in items[0]}
+    """Stack a list of dataset items into a batch dict: the keys every item has (a GT
+    without a ``sigma`` image mixed with one that has it gives batches without
+    ``sigma``; a loss that needs it says so)."""
+    keys = [k for k in items[0] if all(k in it for it in items[1:])]
+    return {k: torch.stack([it[k] for it in items]) for k in keys}
 
 
 def flip_batch(batch: dict[str, torch.Tensor], flip_h: torch.Tensor, flip_v: torch.Tensor) -> dict[str, torch.Tensor]:
