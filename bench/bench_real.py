@@ -45,6 +45,7 @@ Usage::
     python3 bench/bench_real.py --data tum --modes given --tum-option camera=ros_default
     python3 bench/bench_real.py --data tum --set min_frame_agreement=0.9 --modes given
     python3 bench/bench_real.py --modes given refine --selection window coverage --fs coverage_views=4
+    python3 bench/bench_real.py --modes fast --selection window coverage   # overfit: the views chained through the core
 """
 
 from __future__ import annotations
@@ -118,9 +119,9 @@ def run(
     scene = open_source_scene(source, spec["scene"])
     fs = FrameSetSettings(**{**(fs_over or {}), "selection": selection})
     # the coverage candidates are read through a frame cache, as a batch job reads them
-    resized = ResizedScene(scene, SIZE, keep=2 * fs.coverage_span + 2, need_pose=True)
-    splits = np.full(len(scene), "train", dtype=object)
     reg = registration_settings({**MODES[mode], **reg_over})
+    resized = ResizedScene(scene, SIZE, keep=2 * fs.coverage_span + 2, need_pose=reg.uses_source_poses)
+    splits = np.full(len(scene), "train", dtype=object)
     targets = list(range(fs.reach, len(scene) - fs.reach, step))[:limit]
     bands = _band_masks(SIZE)
     rows = []
@@ -150,7 +151,16 @@ def run(
             c0 = time.process_time()
             members = [t + o for o in fs.offsets]
             cov = add_coverage_views(
-                resized, t, coverage_candidates(splits, t, members, fs), data_fs, al, gt, fs, reg, render
+                resized,
+                t,
+                coverage_candidates(splits, t, members, fs),
+                data_fs,
+                al,
+                gt,
+                fs,
+                reg,
+                render,
+                core_offsets=fs.offsets,
             )
             extra = dict(
                 cov_cpu_s=time.process_time() - c0,

@@ -300,8 +300,6 @@ def test_coverage_settings_name_their_key():
     ):
         with pytest.raises(ConfigError, match=f"frameset.{key}"):
             settings_from_config({"frameset": {key: value}})
-    with pytest.raises(ConfigError, match="frameset.selection.*overfit"):
-        settings_from_config({"frameset": {"selection": "coverage"}, "registration": {"method": "overfit"}})
 
 
 def test_batch_job_adds_views_of_the_targets_split_reading_each_frame_once(tmp_path, monkeypatch):
@@ -361,3 +359,82 @@ def test_batch_job_adds_views_of_the_targets_split_reading_each_frame_once(tmp_p
             assert all(abs(a - r["target"]) <= 6 and a not in r["members"] for a in added)
     assert added_any
     assert {f["position"] for f in store.read_batch_frames(shard)} == set(reads)
+
+
+def _true_overfit(data, offsets, settings, **kwargs):
+    """The overfit registration's place in these tests: the scene's exact poses of the
+    core (the chain beyond the core is what is tested, with the real refinement)."""
+    T = torch.linalg.inv(data.T_world_cam[:1]) @ data.T_world_cam[1:]
+    n = len(offsets) - 1
+    return RegistrationResult(T.cpu(), list(offsets), ["ok"] * n, [""] * n, "ok", "", n_correspondences=[0] * n)
+
+
+def _overfit_settings(**frameset):
+    return settings_from_config(
+        {
+            "resize": 64,
+            "patches": {"size": 32},
+            "frameset": {"selection": "coverage", "coverage_span": 30, "coverage_views": 2, **frameset},
+            "registration": {"method": "overfit"},
+        }
+    )
+
+
+def test_overfit_chains_the_added_views_through_the_core(window, tmp_path, monkeypatch):
+    """Without the source's poses (``overfit``) the candidates' poses come from a chain
+    through the core's members: the chained poses match the scene's, the added views
+    fill the shadow as with ``given`` poses, and the core's pixels stay the window's."""
+    from depthgt import registration
+
+    monkeypatch.setitem(registration.METHODS, "overfit", _true_overfit)
+    _, gt_w, _ = window
+    doc, gt, poses = _build(tmp_path, "ofc", _overfit_settings(coverage_max_angle_deg=20.0))
+    cov = doc["coverage"]
+    chain = cov["chain"]
+    assert chain["step"] == 2 and chain["stopped"] == {}
+    # each side walks outwards from the outermost core member at the core's stride
+    left = [link for link in chain["links"] if link["offset"] < 0]
+    assert [(x["from"], x["offset"]) for x in left[:2]] == [(-6, -8), (-8, -10)]
+    assert all(x["status"] == "ok" for x in chain["links"]) and {x["offset"] for x in chain["links"]} >= {-20, 14}
+    added = [v for v in cov["added"] if v["status"] == "ok"]
+    assert added and all(v["offset"] < -6 and v["offset"] % 2 == 0 for v in added)
+    scene = OccluderScene()
+    for o, T in poses["coverage_T_j_to_t"].items():  # within a third of a pixel at the wall (1 px = 33 mm)
+        truth = np.linalg.inv(scene.pose(TARGET)) @ scene.pose(TARGET + int(o))
+        assert np.abs(np.asarray(T)[:3, 3] - truth[:3, 3]).max() < 0.01, o
+        assert np.abs(np.asarray(T)[:3, :3] - truth[:3, :3]).max() < 2e-3, o
+    frame = scene.read(TARGET)
+    strip = (frame.depth_m == 0) & (frame.clean_depth_m > 0) & (gt_w["Z"] == 0)
+    filled = strip & (gt["Z"] > 0)
+    assert filled.sum() >= 0.9 * strip.sum()
+    assert np.abs(gt["Z"][filled] - frame.clean_depth_m[filled]).max() < 0.01
+    core = gt_w["Z"] > 0
+    for ch in ("Z", "S"):
+        assert np.array_equal(gt[ch][core], gt_w[ch][core]), ch
+
+
+def test_overfit_chain_stops_at_a_failing_link(tmp_path, monkeypatch):
+    """A link that fails its checks ends the chain on its side: nothing beyond it is
+    chosen or fused, and the record says where and why."""
+    from depthgt import registration
+    from depthgt.gt import coverage
+
+    monkeypatch.setitem(registration.METHODS, "overfit", _true_overfit)
+    real = coverage.refine_source_poses
+
+    def refine(rgb, depth_m, K, offsets, T_start, settings):
+        res = real(rgb, depth_m, K, offsets, T_start, settings)
+        if len(offsets) == 2 and torch.allclose(depth_m[1], broken):  # the link into frame -12
+            res.neighbour_status, res.neighbour_reasons = ["failed"], ["residual 9.0 noise sigmas > 3"]
+        return res
+
+    broken = torch.nn.functional.interpolate(  # frame TARGET-12 at the working size, as the chain gets it
+        torch.from_numpy(OccluderScene().read(TARGET - 12).depth_m)[None, None], size=HW, mode="nearest"
+    )[0]
+    monkeypatch.setattr(coverage, "refine_source_poses", refine)
+    doc, _, poses = _build(tmp_path, "stop", _overfit_settings(coverage_max_angle_deg=20.0))
+    chain = doc["coverage"]["chain"]
+    assert chain["stopped"] == {"-": "link -10 -> -12: residual 9.0 noise sigmas > 3"}
+    assert min(x["offset"] for x in chain["links"]) == -12
+    assert all(v["offset"] > -12 for v in doc["coverage"]["added"])
+    assert all(int(o) > -12 for o in poses["coverage_T_j_to_t"])

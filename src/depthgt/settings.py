@@ -131,7 +131,8 @@ class FrameSetSettings:
         coverage_span: frames on each side of the target a coverage view may come from.
         coverage_views: most views added per frame set.
         coverage_max_baseline_m: a candidate farther than this from the target camera
-            (by the source's poses) is not added.
+            (by the source's poses; with ``overfit``, by the poses of the chain through
+            the core, :func:`depthgt.gt.coverage.chain_poses`) is not added.
         coverage_max_angle_deg: nor one whose viewing direction is turned further.
         coverage_min_fill_px: a view is added only when it would fill at least this
             many of the still-empty pixels.
@@ -1431,17 +1432,6 @@ def settings_from_config(config: Mapping[str, Any], sections: tuple[str, ...] | 
             "patches.size",
             f"{settings.patches.size} does not fit in the {settings.resize}x{settings.resize} working resolution "
             "(resize)",
-        )
-    if (
-        (sections is None or {"frameset", "registration"} <= set(sections))
-        and settings.frameset.selection == "coverage"
-        and not settings.registration.uses_source_poses
-    ):
-        _fail(
-            "frameset.selection",
-            "coverage chooses and starts its added views with the source's poses; "
-            f"registration.method {settings.registration.method!r} uses none (use given or refine, or "
-            "selection: window)",
         )
     return settings
 

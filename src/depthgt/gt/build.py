@@ -464,6 +464,7 @@ def cover(
         settings.frameset,
         settings.registration,
         settings.render,
+        core_offsets=fid.offsets,
     )
 
 

@@ -13,10 +13,14 @@ that window as the core, rendered exactly as with ``window``, and adds up to
 2. each candidate's valid depth is projected into the target with those poses; views
    are chosen greedily by how many of the core's still-empty pixels they would fill
    (:func:`choose_views`);
+   With ``overfit`` (no source poses) the candidates' poses come from a chain through
+   the core (:func:`chain_poses`): from the outermost registered core member on each
+   side outwards at the core's stride, each frame refined against the previous one;
+   the chain stops where a link fails the neighbour checks;
 3. the chosen views go through the registration of the frame set's method (``given``:
    the source's poses; ``refine``: refined on the target and the added views, with the
-   neighbour checks; one that fails is left out with its reason, never fused
-   unaligned);
+   neighbour checks; ``overfit``: the same refinement started from the chain's poses;
+   one that fails is left out with its reason, never fused unaligned);
 4. the core's fused members and the registered views are rendered together by the
    same renderer (its agreement check, front-surface guard and sigma); the result is
    taken only where the core has no GT, so every pixel the core decides is the core's,
@@ -38,11 +42,20 @@ from depthgt.errors import FrameError
 from depthgt.gt.build import Alignment, FrameSetData, fuse, load_frameset, photometric_for
 from depthgt.gt.render import GTRender
 from depthgt.metric_vocabulary import depth_errors
+from depthgt.registration.local import refine_source_poses
 from depthgt.settings import FrameSetSettings, RegistrationSettings, RenderSettings
 from depthgt.sources.base import Scene, check_frame
 from depthgt.status import Status
 
-__all__ = ["view_limits", "fill_maps", "mixed_samples", "choose_views", "CoverageResult", "add_coverage_views"]
+__all__ = [
+    "view_limits",
+    "fill_maps",
+    "mixed_samples",
+    "choose_views",
+    "chain_poses",
+    "CoverageResult",
+    "add_coverage_views",
+]
 
 
 def view_limits(T_c_to_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -165,6 +178,102 @@ def choose_views(fill: torch.Tensor, n_views: int, min_fill_px: int) -> list[tup
     return chosen
 
 
+def chain_poses(
+    frames: dict[int, tuple[torch.Tensor, torch.Tensor]],
+    K: torch.Tensor,
+    known: dict[int, torch.Tensor],
+    wanted: list[int],
+    step: int,
+    reg: RegistrationSettings,
+) -> tuple[dict[int, torch.Tensor], dict[str, Any]]:
+    """Poses of frames beyond the core without the source's poses: a chain through the
+    core's registered members (``overfit`` with ``selection: coverage``).
+
+    On each side the chain starts at the registered member farthest from the target
+    and walks outwards at ``step`` frames (the core's stride); each frame is refined
+    against the previous link (:func:`~depthgt.registration.local.refine_source_poses`
+    on the pair, started at the previous link's motion: constant velocity) and goes
+    through the neighbour checks; its pose in the target is the composition. A frame
+    that is not in ``frames`` (unusable) is stepped over; a link that fails its checks
+    ends the chain on that side (the frames beyond are not reached: never chosen,
+    never fused unaligned).
+
+    Args:
+        frames: offset -> (rgb (3, H, W), depth_m (1, H, W)) of every frame at hand:
+            the core's members and the candidates.
+        K: (3, 3) intrinsics at (H, W).
+        known: offset -> (4, 4) float64 pose in the target of the core's registered
+            members (the target, offset 0, included).
+        wanted: the candidates' offsets; the chain walks as far as the farthest of them.
+        step: frames between links.
+        reg: the frame set's registration settings (refinement and checks).
+
+    Returns:
+        offset -> (4, 4) pose in the target of each chained frame on the ``step`` grid
+        of its side, and the record: the links made (offset, from, status, reason) and
+        where each side stopped and why.
+    """
+    out: dict[int, torch.Tensor] = {}
+    links: list[dict[str, Any]] = []
+    stopped: dict[str, str] = {}
+    for sign in (-1, 1):
+        side = sorted((o for o in known if o * sign >= 0), key=abs)
+        far = max((abs(o) for o in wanted if o * sign > 0), default=0)
+        last = side[-1]
+        if far <= abs(last):
+            continue
+        # the motion per link from the two outermost known members (constant velocity)
+        inner = side[-2] if len(side) > 1 else None
+        if inner is not None:
+            per = abs(last - inner) / step
+            motion = torch.linalg.inv(known[inner]) @ known[last]
+            velocity = _matrix_root(motion, per)
+        else:
+            velocity = torch.eye(4, dtype=torch.float64, device=K.device)
+        T_last, gap = known[last], 1
+        for o in range(last + sign * step, sign * (far + 1), sign * step):
+            if o not in frames:
+                gap += 1
+                continue
+            init = torch.linalg.matrix_power(velocity, gap)
+            (rgb_a, d_a), (rgb_b, d_b) = frames[last], frames[o]
+            res = refine_source_poses(
+                torch.stack([rgb_a, rgb_b]), torch.stack([d_a, d_b]), K, [0, o - last], init[None], reg
+            )
+            status, reason = res.neighbour_status[0], res.neighbour_reasons[0]
+            links.append({"offset": o, "from": last, "status": status, "reason": reason})
+            if status != Status.OK:
+                stopped["-" if sign < 0 else "+"] = f"link {last:+d} -> {o:+d}: {reason}"
+                break
+            T_rel = res.T_j_to_t[0].to(T_last.device, torch.float64)
+            T_last = T_last @ T_rel
+            out[o] = T_last
+            velocity = _matrix_root(T_rel, gap) if gap > 1 else T_rel
+            last, gap = o, 1
+    return out, {"step": step, "links": links, "stopped": stopped}
+
+
+def _matrix_root(T: torch.Tensor, n: float) -> torch.Tensor:
+    """The rigid motion done ``n`` times giving ``T`` (4, 4): the same axis, 1/n of the
+    angle and of the translation (a screw motion's fraction; for the small motions
+    between frames the difference from the exact screw root is far below what the
+    refinement corrects)."""
+    if n == 1:
+        return T
+    R, t = T[:3, :3], T[:3, 3]
+    angle = torch.arccos(((R.diagonal().sum() - 1) / 2).clamp(-1.0, 1.0))
+    out = torch.eye(4, dtype=T.dtype, device=T.device)
+    if float(angle) > 1e-9:
+        axis = torch.stack([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (2 * torch.sin(angle))
+        a = angle / n
+        k = torch.zeros(3, 3, dtype=T.dtype, device=T.device)
+        k[0, 1], k[0, 2], k[1, 2] = -axis[2], axis[1], -axis[0]
+        k = k - k.T
+        out[:3, :3] = torch.eye(3, dtype=T.dtype, device=T.device) + torch.sin(a) * k + (1 - torch.cos(a)) * (k @ k)
+    out[:3, 3] = t / n
+    return out
+
+
 @dataclass
 class CoverageResult:
     """What :func:`add_coverage_views` made.
@@ -192,7 +301,7 @@ class CoverageResult:
     full: GTRender | None = None
 
 
-def _usable(scene: Scene, positions: list[int]) -> tuple[list[int], dict[int, str]]:
+def _usable(scene: Scene, positions: list[int], need_pose: bool) -> tuple[list[int], dict[int, str]]:
     good, bad = [], {}
     for p in positions:
         check = getattr(scene, "check", None)  # a ResizedScene remembers each frame's outcome
@@ -204,7 +313,7 @@ def _usable(scene: Scene, positions: list[int]) -> tuple[list[int], dict[int, st
                 bad[p] = c.problem
             continue
         try:
-            check_frame(scene.read(p), scene.image_size, f"{scene.name} frame {scene.frame_id(p)}", need_pose=True)
+            check_frame(scene.read(p), scene.image_size, f"{scene.name} frame {scene.frame_id(p)}", need_pose=need_pose)
             good.append(p)
         except FrameError as err:
             bad[p] = f"{err.reason} ({err})"
@@ -212,15 +321,20 @@ def _usable(scene: Scene, positions: list[int]) -> tuple[list[int], dict[int, st
 
 
 def _register(
-    data: FrameSetData, offsets: list[int], reg: RegistrationSettings
+    data: FrameSetData, offsets: list[int], reg: RegistrationSettings, T_start: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, list[str], list[str]]:
-    """Poses of the added views (target first in ``data``, with the source's poses) by
-    the frame set's method (:data:`depthgt.registration.METHODS`, one that starts from
-    the source's poses)."""
-    if not reg.uses_source_poses:
-        raise ValueError(f"coverage views need the source's poses (given or refine), not {reg.method!r}")
-    register = registration.METHODS[reg.method]  # looked up at call time so tests can replace it
-    res = register(data, offsets, photometric_for(reg, data.colour_matches_depth))
+    """Poses of the added views (target first in ``data``): by the frame set's method
+    (:data:`depthgt.registration.METHODS`) from the source's poses (``given``,
+    ``refine``), or (``overfit``) refined on the target and the views from ``T_start``
+    (F-1, 4, 4), the chain's poses."""
+    settings = photometric_for(reg, data.colour_matches_depth)
+    if reg.uses_source_poses:
+        register = registration.METHODS[reg.method]  # looked up at call time so tests can replace it
+        res = register(data, offsets, settings)
+    else:
+        if T_start is None:
+            raise ValueError(f"coverage views of registration.method {reg.method!r} need their chain's poses")
+        res = refine_source_poses(data.rgb, data.depth_m, data.K, offsets, T_start, settings)
     T = torch.as_tensor(res.T_j_to_t, dtype=torch.float64, device=data.depth_m.device)
     return T, list(res.neighbour_status), list(res.neighbour_reasons)
 
@@ -235,6 +349,7 @@ def add_coverage_views(
     fs: FrameSetSettings,
     reg: RegistrationSettings,
     render: RenderSettings,
+    core_offsets: list[int] | None = None,
 ) -> CoverageResult:
     """Fill the pixels the core left without GT from added views (module docstring).
 
@@ -243,6 +358,8 @@ def add_coverage_views(
         target: the target's position; ``candidates``: positions the planning allows
             (:func:`depthgt.gt.planning.coverage_candidates`).
         data, alignment, core: the core frame set, its registration and its render.
+        core_offsets: the core members' offsets (``data``'s order); needed by a method
+            without the source's poses (the chain starts at the core's members).
         fs: the limits and counts (``coverage_*``); reg, render: the frame set's
             registration and renderer settings.
 
@@ -265,16 +382,39 @@ def add_coverage_views(
             core.depth, core.weight_sum, core.count, core.sigma, core.agreement, core.disagreement, core.left_out
         )
 
-    usable, bad = _usable(scene, candidates)
+    need_pose = reg.uses_source_poses
+    usable, bad = _usable(scene, candidates, need_pose)
     record["unusable"] = {str(p - target): why for p, why in bad.items()}
     if not usable or fs.coverage_views == 0 or not bool(empty.any()):
         record["beyond_limits"] = 0
         return CoverageResult(keep(), record)
-    cand = load_frameset(scene, [target, *usable], (h, w), need_poses=True, device=data.depth_m.device)
-    T_c_to_t = torch.linalg.inv(cand.T_world_cam[:1]) @ cand.T_world_cam[1:]
+    dev = data.depth_m.device
+    cand = load_frameset(scene, [target, *usable], (h, w), need_poses=need_pose, device=dev)
+    if need_pose:
+        T_c_to_t = torch.linalg.inv(cand.T_world_cam[:1]) @ cand.T_world_cam[1:]
+    else:
+        if core_offsets is None or len(core_offsets) != data.depth_m.shape[0]:
+            raise ValueError(f"coverage with registration.method {reg.method!r} needs the core's offsets")
+        known = {0: torch.eye(4, dtype=torch.float64, device=dev)}
+        known.update({core_offsets[i]: alignment.T_j_to_t[i - 1].to(dev, torch.float64) for i in alignment.fused if i})
+        frames = {o: (data.rgb[i], data.depth_m[i]) for i, o in enumerate(core_offsets) if o in known}
+        frames.update({p - target: (cand.rgb[k + 1], cand.depth_m[k + 1]) for k, p in enumerate(usable)})
+        chained, record["chain"] = chain_poses(
+            frames,
+            data.K,
+            known,
+            [p - target for p in usable],
+            fs.stride,
+            photometric_for(reg, data.colour_matches_depth),
+        )
+        nan = torch.full((4, 4), math.nan, dtype=torch.float64, device=dev)
+        T_c_to_t = torch.stack([chained.get(p - target, nan) for p in usable])
+    reached = torch.isfinite(T_c_to_t).flatten(1).all(dim=1)
     baseline, angle = view_limits(T_c_to_t)
-    within = (baseline <= fs.coverage_max_baseline_m) & (angle <= fs.coverage_max_angle_deg)
-    record["beyond_limits"] = int((~within).sum())
+    within = reached & (baseline <= fs.coverage_max_baseline_m) & (angle <= fs.coverage_max_angle_deg)
+    record["beyond_limits"] = int((reached & ~within).sum())
+    if not need_pose:
+        record["not_chained"] = int((~reached).sum())
     idx = torch.nonzero(within).flatten()
     # what a candidate fills with: its samples away from its own holes and depth jumps
     mixed = mixed_samples(cand.depth_m[1:], fs.coverage_mixed_margin_px, fs.coverage_mixed_jump_rel)
@@ -290,13 +430,13 @@ def add_coverage_views(
         cand.rgb[sel],
         cand.depth_m[sel],
         cand.K,
-        cand.T_world_cam[sel],
+        cand.T_world_cam[sel] if cand.T_world_cam is not None else None,
         cand.truth_m[sel] if cand.truth_m is not None else None,
         [cand.frame_ids[i] for i in sel],
         cand.src_hw,
         cand.colour_matches_depth,
     )
-    T_added, status, reasons = _register(added, offsets, reg)
+    T_added, status, reasons = _register(added, offsets, reg, T_c_to_t[chosen])
     views = [
         {
             "offset": o,
