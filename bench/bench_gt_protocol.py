@@ -336,8 +336,6 @@ def run_set(
     fuse_all: bool = False,
     coverage: FrameSetSettings | None = None,
 ) -> list[dict]:
-    if coverage is not None and registration:
-        raise SystemExit("--selection coverage starts its added views from the source's poses: not with --registration")
     pool, pool_by = Pool(), {}
     added_views, filled_px, t_cov = [], [], []
     t_render, conf_err, conf_sigma = [], [], []
@@ -361,7 +359,7 @@ def run_set(
                     ),
                     SIZE,
                     keep=2 * coverage.coverage_span + 2,
-                    need_pose=True,
+                    need_pose=not registration,  # overfit: the added views' poses come from the chain
                 )
             for t in TARGETS:
                 key = _key(group, k, t)
@@ -390,16 +388,22 @@ def run_set(
                 if frames is not None:
                     c0 = time.process_time()
                     cands = coverage_candidates(np.full(N_FRAMES, "train", dtype=object), t, item["members"], coverage)
+                    reg = (
+                        registration_settings(registration_section(registration, list(reg_set)))
+                        if registration
+                        else registration_settings({"method": "given"})
+                    )
                     cov = add_coverage_views(
                         frames,
                         t,
                         cands,
                         data,
-                        Alignment(T, list(range(len(item["members"])))),
+                        Alignment(T, list(range(len(item["members"]))) if members == slice(None) else list(members)),
                         out,
                         coverage,
-                        registration_settings({"method": "given"}),
+                        reg,
                         settings,
+                        core_offsets=[m - t for m in item["members"]],
                     )
                     t_cov.append(time.process_time() - c0)
                     added_views.append(sum(v["status"] == "ok" for v in cov.record["added"]))

@@ -21,6 +21,8 @@ Real recordings have no clean depth; what they can measure (per pose mode):
   accuracy, ``lto_added_px`` such pixels per frame set) and
   ``cov_cpu_s`` the CPU seconds of the coverage step (candidates read through a frame
   cache as a batch job does, selection, the added views' registration, the render);
+* ``added_rot_deg`` / ``added_trans_cm`` (coverage): the fused added views' poses against
+  the reference poses, median and 90th percentile over the views;
 * ``reg_rot_deg`` / ``reg_trans_cm``: the mode's poses against the reference poses (the
   recording's own: motion capture for TUM, KinectFusion for 7-Scenes), median and 90th
   percentile over the neighbours;
@@ -170,6 +172,15 @@ def run(
                 lto_added_mae_mm=1000 * float(cov.statistics.get("leave_target_out_added", {}).get("mae_m", np.nan)),
                 lto_added_px=int(cov.statistics.get("leave_target_out_added", {}).get("n_both_px", 0)),
             )
+            # the added views' poses against the recording's own (as reg_rot/reg_trans for the core)
+            fused_added = sorted(int(o) for o in cov.T_j_to_t)
+            if fused_added:
+                T_t = np.asarray(resized.read(t).T_world_cam, dtype=np.float64)
+                ref_added = np.stack(
+                    [np.linalg.inv(T_t) @ np.asarray(resized.read(t + o).T_world_cam, np.float64) for o in fused_added]
+                )
+                e = pose_errors(np.stack([np.asarray(cov.T_j_to_t[o], np.float64) for o in fused_added]), ref_added)
+                extra.update(added_rot=e.rot_err_deg.tolist(), added_trans=np.asarray(e.trans_err_cm).tolist())
             gt = cov.render
         gt_np = gt.depth[0, 0].numpy()
         depth_in = data_fs.depth_m[0, 0].numpy()
@@ -263,6 +274,15 @@ def summarise(df: pd.DataFrame) -> pd.DataFrame:
                 r[col] = g[col].mean()
         if "lto_added_px" in g and g.lto_added_px.sum() > 0:  # pooled over pixels: a few per frame set
             r["lto_added_mae_mm"] = float((g.lto_added_mae_mm.fillna(0) * g.lto_added_px).sum() / g.lto_added_px.sum())
+        if "added_rot" in g:
+            a_rot = np.concatenate([np.asarray(x, float) for x in g.added_rot if isinstance(x, list)] or [[np.nan]])
+            a_trans = np.concatenate([np.asarray(x, float) for x in g.added_trans if isinstance(x, list)] or [[np.nan]])
+            r.update(
+                added_rot_deg_med=np.nanmedian(a_rot),
+                added_rot_deg_p90=np.nanpercentile(a_rot, 90),
+                added_trans_cm_med=np.nanmedian(a_trans),
+                added_trans_cm_p90=np.nanpercentile(a_trans, 90),
+            )
         for _, _, name in BANDS:
             if f"disagree_{name}" in g:
                 r[f"disagree_{name}"] = g[f"disagree_{name}"].mean()

@@ -302,10 +302,16 @@ def test_coverage_settings_name_their_key():
             settings_from_config({"frameset": {key: value}})
 
 
-def test_batch_job_adds_views_of_the_targets_split_reading_each_frame_once(tmp_path, monkeypatch):
+@pytest.mark.parametrize("method", ["given", "overfit"])
+def test_batch_job_adds_views_of_the_targets_split_reading_each_frame_once(tmp_path, monkeypatch, method):
     """The batch job: candidates from the index's split tags (``split: auto`` blocks), the
     wider span's frames read once per batch (the frame cache keeps them), added views
-    recorded in each frame set's frameset.json and their frames in batch.json."""
+    recorded in each frame set's frameset.json and their frames in batch.json; with
+    ``overfit`` (the core's poses from the scene here) the views come from the chain."""
+    if method == "overfit":
+        from depthgt import registration
+
+        monkeypatch.setitem(registration.METHODS, "overfit", _true_overfit)
     source = {
         "name": "syn",
         "kind": "synthetic",
@@ -332,6 +338,7 @@ def test_batch_job_adds_views_of_the_targets_split_reading_each_frame_once(tmp_p
             "coverage_max_baseline_m": 5.0,
         },
         "patches": {"count": 1, "size": 16, "max_missing": 1.0},
+        "registration": {"method": method},
     }
     run_scene_index(source, "room_000", config, str(tmp_path / "index.parquet"), str(tmp_path / "index.json"))
     table = pd.read_parquet(tmp_path / "index.parquet")
@@ -344,8 +351,9 @@ def test_batch_job_adds_views_of_the_targets_split_reading_each_frame_once(tmp_p
         return real_read(self, i)
 
     monkeypatch.setattr(synthetic.SyntheticScene, "read", counting_read)
-    shard = tmp_path / "000001-000022.zip"
-    records = run_frameset_batch(source, "room_000", 1, 22, config, str(tmp_path / "index.parquet"), str(shard))
+    last = 22 if method == "given" else 12  # the chain refines ~10 pairs per frame set: fewer targets
+    shard = tmp_path / f"000001-{last:06d}.zip"
+    records = run_frameset_batch(source, "room_000", 1, last, config, str(tmp_path / "index.parquet"), str(shard))
     built = [r for r in records if r["status"] == "ok"]
     assert built and any(r["reason"].startswith("split_guard") for r in records)
     assert sorted(reads) == sorted(set(reads))  # each frame read once, candidates included
@@ -357,6 +365,9 @@ def test_batch_job_adds_views_of_the_targets_split_reading_each_frame_once(tmp_p
             added_any |= bool(added)
             assert all(tags[a] == tags[r["target"]] for a in added), (r["target"], added)
             assert all(abs(a - r["target"]) <= 6 and a not in r["members"] for a in added)
+            if method == "overfit":  # every added view was reached by a link that held
+                chained = {x["offset"] for x in doc["coverage"]["chain"]["links"] if x["status"] == "ok"}
+                assert {v["offset"] for v in doc["coverage"]["added"]} <= chained
     assert added_any
     assert {f["position"] for f in store.read_batch_frames(shard)} == set(reads)
 
