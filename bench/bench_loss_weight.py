@@ -20,6 +20,11 @@ validation RMSE with the holes counted (Table 3's "RMSE, filling") with a paired
 below zero and does not raise the MAE where the input is valid ("MAE, denoising") with an
 interval above zero; of several such, the lowest RMSE. Otherwise the paper's loss stays.
 
+``--against DIR`` pairs this run's unweighted model with another run's (``DIR``, an
+``--out`` of this script on another build of the same training rooms and splits, e.g.
+one with ``frameset.selection: coverage``: the GT's completeness as the lever) on the
+same val frames: the paired table then gives every run of this build minus that one.
+
 Writes ``--out``/runs.csv (Table 3's columns per run), ``--out``/paired.csv and prints
 both. Checkpoints are kept under ``--out`` and reused (a finished run resumes at its end).
 """
@@ -70,7 +75,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("-d", "--workdir", required=True, help="a build with results/dataset (train, val, framesets)")
     ap.add_argument("--configfile", default=str(REPO / "config/config.yaml"), help="the build's config")
-    ap.add_argument("--sigma-ref", type=float, nargs="+", required=True, help="metres; one weighted run each")
+    ap.add_argument("--sigma-ref", type=float, nargs="*", default=[], help="metres; one weighted run each")
     ap.add_argument("--seed", type=int, default=None, help="training seed (default: the config's)")
     ap.add_argument("--epochs", type=int, default=None, help="override the config's epochs (tiny runs)")
     ap.add_argument("--max-batches", type=int, default=None, help="cap on training steps per epoch (tiny runs)")
@@ -78,6 +83,9 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", default="/tmp/depthgt_bench_loss_weight")
+    ap.add_argument(
+        "--against", default=None, help="another run's --out: pair this build's unweighted model with its own"
+    )
     a = ap.parse_args(argv)
     print(f"command: python3 bench/bench_loss_weight.py {' '.join(sys.argv[1:] if argv is None else argv)}", flush=True)
     if any(not (s > 0) for s in a.sigma_ref):
@@ -140,9 +148,14 @@ def main(argv=None) -> int:
         )
     runs = pd.concat(rows, ignore_index=True)
     ref = frame_values["paper"]
+    if a.against:
+        other = per_frame(pd.read_parquet(Path(a.against).resolve() / "paper" / "frames.parquet"))
+        if set(other.index) != set(ref.index):
+            raise SystemExit(f"--against {a.against}: its val frames are not this build's ({len(other)} vs {len(ref)})")
+        ref = other
     paired = []
     for name, v in frame_values.items():
-        if name == "paper":
+        if name == "paper" and not a.against:
             continue
         diff = (v - ref).reindex(ref.index)
         row = {"variant": name, "frames": int(diff.notna().all(axis=1).sum())}
@@ -156,7 +169,8 @@ def main(argv=None) -> int:
     paired.to_csv(out / "paired.csv", index=False)
     print(f"\nVALIDATION ({len(frames)} val frame sets, full frames vs the clean truth, Table 3's masks):")
     print(tables.markdown_view(runs).to_markdown(index=False))
-    print("\nweighted minus paper, per frame (95 % bootstrap over the val frames; negative = lower error):")
+    base = f"--against {a.against}'s paper-loss model" if a.against else "paper"
+    print(f"\neach minus {base}, per frame (95 % bootstrap over the val frames; negative = lower error):")
     print(paired.to_markdown(index=False))
     return 0
 
