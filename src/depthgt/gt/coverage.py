@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
+from kornia.geometry.liegroup import Se3
 
 from depthgt import geometry, registration
 from depthgt.errors import FrameError
@@ -254,24 +255,12 @@ def chain_poses(
 
 
 def _matrix_root(T: torch.Tensor, n: float) -> torch.Tensor:
-    """The rigid motion done ``n`` times giving ``T`` (4, 4): the same axis, 1/n of the
-    angle and of the translation (a screw motion's fraction; for the small motions
-    between frames the difference from the exact screw root is far below what the
-    refinement corrects)."""
+    """The rigid motion done ``n`` times giving ``T`` (4, 4): the screw motion's
+    fraction ``exp(log(T) / n)`` on SE(3) (kornia's Lie group)."""
     if n == 1:
         return T
-    R, t = T[:3, :3], T[:3, 3]
-    angle = torch.arccos(((R.diagonal().sum() - 1) / 2).clamp(-1.0, 1.0))
-    out = torch.eye(4, dtype=T.dtype, device=T.device)
-    if float(angle) > 1e-9:
-        axis = torch.stack([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (2 * torch.sin(angle))
-        a = angle / n
-        k = torch.zeros(3, 3, dtype=T.dtype, device=T.device)
-        k[0, 1], k[0, 2], k[1, 2] = -axis[2], axis[1], -axis[0]
-        k = k - k.T
-        out[:3, :3] = torch.eye(3, dtype=T.dtype, device=T.device) + torch.sin(a) * k + (1 - torch.cos(a)) * (k @ k)
-    out[:3, 3] = t / n
-    return out
+    with torch.no_grad():
+        return Se3.exp(Se3.from_matrix(T[None]).log() / n).matrix()[0].to(T.dtype)
 
 
 @dataclass
