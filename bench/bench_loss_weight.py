@@ -88,6 +88,8 @@ def main(argv=None) -> int:
     )
     a = ap.parse_args(argv)
     print(f"command: python3 bench/bench_loss_weight.py {' '.join(sys.argv[1:] if argv is None else argv)}", flush=True)
+    if not a.sigma_ref and not a.against:
+        ap.error("nothing to compare: give --sigma-ref values, --against another run's --out, or both")
     if any(not (s > 0) for s in a.sigma_ref):
         ap.error(f"--sigma-ref values must be > 0 metres, got {a.sigma_ref}")
     torch.set_num_threads(a.threads)
