@@ -16,7 +16,9 @@ Real recordings have no clean depth; what they can measure (per pose mode):
   the workflow draws them, seed 0), of 6;
 * with ``--selection coverage`` (``frameset.selection``, :mod:`depthgt.gt.coverage`):
   ``added`` views per frame set, ``lto_all_mae_mm`` the leave-target-out MAE of the core
-  and the added views fused together (``lto_mae_mm`` stays the core's), ``lto_added_mae_mm``
+  and the added views fused together (``lto_mae_mm`` stays the core's; the core's own
+  where no view was fused), ``lto_all_minus_core_mm`` their difference per frame set with
+  its 95 % bootstrap interval over the frame sets (``_lo``, ``_hi``), ``lto_added_mae_mm``
   that check where the core's neighbours alone have no depth (the added views' own
   accuracy, ``lto_added_px`` such pixels per frame set) and
   ``cov_cpu_s`` the CPU seconds of the coverage step (candidates read through a frame
@@ -65,6 +67,7 @@ import torch
 import torch.nn.functional as F
 
 from depthgt.errors import FrameError
+from depthgt.eval.bootstrap import bootstrap_means
 from depthgt.eval.metrics import pose_errors
 from depthgt.gt.build import align, fuse, load_frameset, poses_from_source, quality_statistics
 from depthgt.gt.cache import ResizedScene
@@ -198,6 +201,7 @@ def run(
         inp = data_fs.depth_m[0, 0]
         ref = poses_from_source(data_fs)
         err = pose_errors(al.T_j_to_t.numpy(), ref.numpy())
+        extra.update(_all_views(extra, 1000 * float(lto.get("mae_m", np.nan))))
         row = dict(
             data=data,
             mode=mode,
@@ -224,6 +228,15 @@ def run(
             row["kept_px"] = float(dis[2].sum()) / n if n else np.nan
         rows.append(row)
     return rows
+
+
+def _all_views(extra: dict, core_mm: float) -> dict:
+    """A frame set where coverage fused no view: its all-views check is the core's (its
+    GT is the core's), not a missing value; dropping it would compare the all-views
+    mean over fewer frame sets with the core's over all of them."""
+    if "lto_all_mae_mm" in extra and not np.isfinite(extra["lto_all_mae_mm"]):
+        return {"lto_all_mae_mm": core_mm}
+    return {}
 
 
 def _edge_split(left_out, target: torch.Tensor) -> dict:
@@ -272,6 +285,9 @@ def summarise(df: pd.DataFrame) -> pd.DataFrame:
         for col in ("added", "added_failed", "lto_all_mae_mm", "lto_added_px", "cov_cpu_s"):
             if col in g:
                 r[col] = g[col].mean()
+        if "lto_all_mae_mm" in g:  # all views minus the core, paired per frame set, 95 % bootstrap
+            m = bootstrap_means((g.lto_all_mae_mm - g.lto_mae_mm).to_numpy(dtype=float))
+            r.update(lto_all_minus_core_mm=m.mean[0], lto_all_minus_core_lo=m.low[0], lto_all_minus_core_hi=m.high[0])
         if "lto_added_px" in g and g.lto_added_px.sum() > 0:  # pooled over pixels: a few per frame set
             r["lto_added_mae_mm"] = float((g.lto_added_mae_mm.fillna(0) * g.lto_added_px).sum() / g.lto_added_px.sum())
         if "added_rot" in g:
