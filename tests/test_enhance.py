@@ -222,15 +222,18 @@ def test_lapden_loss_gradients_flow():
 # --------------------------------------------------------------------------- training
 
 import json  # noqa: E402
+from dataclasses import replace  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+import depthgt.enhance.train as train_module  # noqa: E402
 from depthgt.atomic import save_npz  # noqa: E402
 from depthgt.enhance.train import (  # noqa: E402
     TrainOutputs,
     collate,
     flip_batch,
+    learning_rate,
     load_model,
     patch_dataset,
     predict,
@@ -345,6 +348,51 @@ def test_train_resume_equals_uninterrupted(manifests, tmp_path):
     out = predict(model, depth)
     assert out.shape == depth.shape and (out >= 0).all()
     assert predict_depth(model, depth[0, 0].numpy()).shape == (30, 34)
+
+
+def test_learning_rate_schedules():
+    const = TrainSettings(epochs=4, lr=2e-3)
+    assert learning_rate(const, 0, 10) == learning_rate(const, 39, 10) == 2e-3
+    cos = TrainSettings(epochs=4, lr=2e-3, lr_schedule="cosine")
+    rates = [learning_rate(cos, step, 10) for step in range(40)]
+    assert rates[0] == 2e-3 and math.isclose(rates[20], 1e-3)  # halfway: half the rate
+    assert all(a > b for a, b in zip(rates, rates[1:])) and 0 < rates[-1] < 2e-3 * 0.01
+
+
+def test_cosine_run_resumed_equals_uninterrupted_and_takes_the_rates(manifests, tmp_path, monkeypatch):
+    """A killed cosine run resumes with the rates of its steps (they depend on the step
+    alone) and ends with the uninterrupted run's weights; its epochs are part of its
+    identity, so the same folder with other epochs starts anew."""
+
+    def cos(epochs):
+        return replace(_settings(epochs), lr_schedule="cosine")
+
+    full = train(*manifests, TrainOutputs.in_dir(tmp_path / "full"), cos(3))
+    ckpt = torch.load(full["last"], weights_only=False)
+    steps = int(pd.read_csv(full["log"]).query("split == 'train'")["batches"].iloc[0])
+    # the optimiser's rate is the one of the last step taken
+    assert math.isclose(ckpt["optimizer_state"]["param_groups"][0]["lr"], learning_rate(cos(3), 3 * steps - 1, steps))
+    out = TrainOutputs.in_dir(tmp_path / "part", resume=True)
+    real_epoch = train_module.train_epoch
+
+    def killed_in_the_third(model, loss_fn, optimizer, dataset, settings, epoch, device):
+        if epoch == 2:
+            raise KeyboardInterrupt
+        return real_epoch(model, loss_fn, optimizer, dataset, settings, epoch, device)
+
+    monkeypatch.setattr(train_module, "train_epoch", killed_in_the_third)
+    with pytest.raises(KeyboardInterrupt):
+        train(*manifests, out, cos(3))
+    monkeypatch.setattr(train_module, "train_epoch", real_epoch)
+    resumed = train(*manifests, out, cos(3))
+    assert resumed["epochs_run"] == 1
+    b = torch.load(resumed["last"], weights_only=False)["model_state"]
+    assert all(torch.equal(ckpt["model_state"][k], b[k]) for k in b)
+    # differs from a constant-rate run of the same seed
+    const = train(*manifests, TrainOutputs.in_dir(tmp_path / "const"), _settings(3))
+    c = torch.load(const["last"], weights_only=False)["model_state"]
+    assert not all(torch.equal(c[k], b[k]) for k in b)
+    assert train(*manifests, out, cos(4))["epochs_run"] == 4  # another schedule: starts anew
 
 
 def test_train_resumes_from_its_resume_folder_when_the_outputs_are_gone(manifests, tmp_path):

@@ -179,6 +179,19 @@ def test_registration_presets_and_types():
 def test_train_settings_identity_ignores_epochs():
     a, b = TrainSettings(epochs=3), TrainSettings(epochs=5)
     assert a.identity() == b.identity() and TrainSettings(lr=1e-4).identity() != a.identity()
+    # a constant-rate identity has no schedule key: checkpoints from before it existed resume
+    assert "lr_schedule" not in a.identity() and "epochs" not in a.identity()
+    # with the cosine schedule the rate of every step depends on the epochs: a longer run is another run
+    c3, c5 = TrainSettings(epochs=3, lr_schedule="cosine"), TrainSettings(epochs=5, lr_schedule="cosine")
+    assert c3.identity() != c5.identity() and c3.identity() != a.identity()
+    assert c3.identity() == TrainSettings(epochs=3, lr_schedule="cosine", progress=False).identity()
+
+
+def test_train_settings_lr_schedule_is_checked():
+    with pytest.raises(ConfigError, match="lr_schedule.*constant, cosine.*'step'"):
+        TrainSettings(lr_schedule="step")
+    s = settings_from_config({"enhance": {"train": {"lr_schedule": "cosine"}, "models": {"sdd": {"epochs": 12}}}})
+    assert s.train("sdd").lr_schedule == "cosine" and s.train("sdd").epochs == 12
 
 
 def test_schema_and_settings_agree_on_the_default_config():

@@ -99,6 +99,7 @@ MAX_CANDIDATES = 1 << 16
 MAX_FRAMESET_BATCH = 1024
 # patch pairs per training step (enhance.train.batch_size)
 MAX_TRAIN_BATCH = 4096
+LR_SCHEDULES = ("constant", "cosine")  # enhance.train.lr_schedule (TrainSettings)
 
 
 def _fail(key: str, message: str) -> None:
@@ -974,6 +975,10 @@ class TrainSettings:
         loss_params: keyword arguments of the model's loss (``lapden``: LossConfig fields).
         epochs: number of epochs; batch_size: patches per step; lr: Adam learning rate
             (defaults 6, 8, 1e-3: the config's ``enhance.train``, docs/configuration.md).
+        lr_schedule: ``constant`` (``lr`` at every step) or ``cosine`` (``lr`` at the first
+            step, decaying along half a cosine to 0 after the last step of ``epochs``:
+            :func:`depthgt.enhance.train.learning_rate`). With ``cosine`` the epochs are part
+            of the run's identity (a run cannot be extended by more epochs).
         weight_decay: Adam weight decay.
         seed: seeds the initial weights, the shuffling and the flips.
         flips: random horizontal and vertical flips (intrinsics flipped too).
@@ -988,6 +993,7 @@ class TrainSettings:
     epochs: int = 6
     batch_size: int = 8
     lr: float = 1e-3
+    lr_schedule: str = "constant"
     weight_decay: float = 0.0
     seed: int = 0
     flips: bool = True
@@ -1006,6 +1012,11 @@ class TrainSettings:
             f"must be <= {MAX_TRAIN_BATCH}, got {self.batch_size}",
         )
         _require(self.lr > 0, "train.lr", f"must be > 0, got {self.lr}")
+        _require(
+            self.lr_schedule in LR_SCHEDULES,
+            "train.lr_schedule",
+            f"must be one of {', '.join(LR_SCHEDULES)}, got {self.lr_schedule!r}",
+        )
         _require(self.device in DEVICES, "train.device", f"must be auto, cpu or cuda, got {self.device!r}")
         _require(
             self.max_batches_per_epoch is None or self.max_batches_per_epoch >= 1,
@@ -1021,8 +1032,12 @@ class TrainSettings:
     def identity(self) -> dict:
         """The settings that define the result (a resumed run must match them)."""
         d = asdict(self)
-        for key in ("epochs", "progress", "device"):
+        for key in ("progress", "device"):
             d.pop(key)
+        if self.lr_schedule == "constant":
+            # a constant-rate run is the same run whatever its length (it can be extended);
+            # the key is left out so that checkpoints from before the schedule existed resume
+            del d["epochs"], d["lr_schedule"]
         return json.loads(json.dumps(d))
 
 

@@ -32,6 +32,7 @@ import csv
 import importlib
 import json
 import logging
+import math
 import shutil
 import time
 from collections.abc import Callable
@@ -58,6 +59,7 @@ __all__ = [
     "TrainOutputs",
     "build_model",
     "build_loss",
+    "learning_rate",
     "patch_dataset",
     "collate",
     "flip_batch",
@@ -163,6 +165,22 @@ def flip_batch(batch: dict[str, torch.Tensor], flip_h: torch.Tensor, flip_v: tor
     return out
 
 
+def learning_rate(settings: TrainSettings, step: int, steps_per_epoch: int) -> float:
+    """The learning rate of training step ``step`` (0-based, counted over all epochs).
+
+    ``constant``: ``settings.lr``. ``cosine``: ``lr * (1 + cos(pi * step / total)) / 2``
+    with ``total = epochs * steps_per_epoch``, i.e. ``lr`` at the first step and close to 0
+    at the last (SGDR's annealing without restarts, Loshchilov & Hutter 2017). Computed
+    from the step alone, so a resumed run takes the same rates as an uninterrupted one.
+    Written out rather than ``torch.optim.lr_scheduler.CosineAnnealingLR``: that keeps its
+    position as state of its own, which the resume would have to save and restore too.
+    """
+    if settings.lr_schedule == "constant":
+        return settings.lr
+    total = settings.epochs * steps_per_epoch
+    return settings.lr * 0.5 * (1.0 + math.cos(math.pi * min(step, total) / total))
+
+
 def _epoch_generator(seed: int, epoch: int) -> torch.Generator:
     return torch.Generator().manual_seed(int(seed) * 100_003 + int(epoch))
 
@@ -212,7 +230,10 @@ def train_epoch(
     sums: dict[str, float] = {}
     t0 = time.perf_counter()
     bar = tqdm(batches, desc=f"epoch {epoch}", disable=not settings.progress, leave=False)
-    for idx in bar:
+    for i, idx in enumerate(bar):
+        lr = learning_rate(settings, epoch * len(batches) + i, len(batches))
+        for group in optimizer.param_groups:
+            group["lr"] = lr
         batch = collate([dataset[i] for i in idx])
         if settings.flips:
             flips = torch.rand(len(idx), 2, generator=g) < 0.5
@@ -356,7 +377,8 @@ def train(
     if last_path.is_file():
         ckpt = torch.load(last_path, map_location=device, weights_only=False)
         if ckpt["identity"] != settings.identity():
-            diff = sorted(k for k in settings.identity() if ckpt["identity"].get(k) != settings.identity()[k])
+            now = settings.identity()
+            diff = sorted(k for k in now.keys() | ckpt["identity"].keys() if ckpt["identity"].get(k) != now.get(k))
             if out.resume is None:
                 raise ConfigError(
                     f"{last_path}: checkpoint was trained with other settings ({diff}); "
