@@ -102,6 +102,26 @@ def test_paper_preset_plans(tmp_path):
     assert int(stats["frameset_batch"]) >= 96  # 48 rooms x 2 batches of 32, 12 test rooms x 1 (108 planned)
 
 
+def test_training_threads_follow_the_cores(tmp_path):
+    """train_model asks for a quarter of --cores, one thread at least and two at most:
+    on 2 cores two trainings run side by side on one thread each (dry runs of the
+    default config's trainings)."""
+    import re
+    import shutil
+
+    from conftest import snakemake
+
+    shutil.copytree(REPO / "config", tmp_path / "config")
+
+    def threads(cores: str) -> list[int]:
+        proc = snakemake(tmp_path, "-n", "train", "--cores", cores)
+        text = proc.stdout + proc.stderr
+        jobs = [j for j in text.split("\n\n") if "rule train_model:" in j]
+        return [int(m.group(1)) if (m := re.search(r"threads: (\d+)", j)) else 1 for j in jobs]
+
+    assert threads("2") == [1] * 4 and threads("8") == [2] * 4
+
+
 def test_missing_sections_take_defaults():
     s = settings_from_config({})
     assert s.patches.count == 6 and s.render.m == 64 and s.registration.refine_settings.iters == (10, 8, 6)

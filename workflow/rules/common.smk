@@ -1,5 +1,6 @@
 # Config validation, wildcard constraints and input functions. Nothing heavy is
 # imported here: the DAG is built without torch, kornia or OpenEXR.
+from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 from depthgt import runlock  # standard library only
@@ -115,6 +116,21 @@ REFERENCES_CONFIG = stage_config(config, "references")
 # only where --resources names them. A job that runs torch on the config's `device` asks
 # for one GPU when that is cuda (auto and cpu ask for none).
 GPUS = 1 if config["device"] == "cuda" else 0
+
+
+def train_threads(wildcards):
+    """Threads of one training (rule train_model): a quarter of --cores, one at least, two
+    at most. The four trainings (LapDEN, RDE, DDRNet, SDD) are small networks on 128x128
+    patches: two side by side on one thread each took ~28 % less time per step in total
+    than one at a time on two threads on 2 cores (bench/README "Threads per training on 2
+    cores"), and with 8 cores or more each gets the two threads it always had. Without a
+    core count (a cluster run without --cores): two."""
+    try:
+        cores = workflow.cores
+    except WorkflowError:
+        return 2
+    return max(1, min(2, cores // 4))
+
 # Frame sets: peak RSS (benchmarks/*.tsv, max_rss) and CPU time on one core, measured at
 # 256x256: given poses 0.6 GB / 5 s (7-Scenes), overfit fast 0.7 GB / 9 s, overfit paper
 # 5.9 GB / 830 s (issue 9); declared with headroom. A job that handles several frame sets

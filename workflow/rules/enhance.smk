@@ -78,7 +78,7 @@ rule train_model:
         "logs/train/{model}.log",
     benchmark:
         "benchmarks/train/{model}.tsv"
-    threads: 2
+    threads: train_threads
     resources:
         gpu=GPUS,
     script:
