@@ -33,14 +33,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
-
-import torch
 
 # the training, scoring and pairing are bench_train_variants' (this script's folder is on sys.path)
-from bench_train_variants import run_variants
-
-REPO = Path(__file__).resolve().parents[1]
+from bench_train_variants import add_run_arguments, run_from_args
 
 
 def variant_name(sigma_ref: float | None) -> str:
@@ -49,18 +44,9 @@ def variant_name(sigma_ref: float | None) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("-d", "--workdir", required=True, help="a build with results/dataset (train, val, framesets)")
-    ap.add_argument("--configfile", default=str(REPO / "config/config.yaml"), help="the build's config")
     ap.add_argument("--sigma-ref", type=float, nargs="*", default=[], help="metres; one weighted run each")
-    ap.add_argument("--seed", type=int, default=None, help="training seed (default: the config's)")
-    ap.add_argument("--epochs", type=int, default=None, help="override the config's epochs (tiny runs)")
-    ap.add_argument("--max-batches", type=int, default=None, help="cap on training steps per epoch (tiny runs)")
-    ap.add_argument("--max-frames", type=int, default=None, help="val frames per dataset (tiny runs; default all)")
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--out", default="/tmp/depthgt_bench_loss_weight")
-    ap.add_argument(
-        "--against", default=None, help="another run's --out: pair this build's unweighted model with its own"
+    add_run_arguments(
+        ap, "/tmp/depthgt_bench_loss_weight", "another run's --out: pair this build's unweighted model with its own"
     )
     a = ap.parse_args(argv)
     print(f"command: python3 bench/bench_loss_weight.py {' '.join(sys.argv[1:] if argv is None else argv)}", flush=True)
@@ -68,24 +54,10 @@ def main(argv=None) -> int:
         ap.error("nothing to compare: give --sigma-ref values, --against another run's --out, or both")
     if any(not (s > 0) for s in a.sigma_ref):
         ap.error(f"--sigma-ref values must be > 0 metres, got {a.sigma_ref}")
-    torch.set_num_threads(a.threads)
     # the paper's loss: the config's loss_params without a weight, whatever the config says
     variants = [(variant_name(None), {"loss_params.sigma_ref_m": None})]
     variants += [(variant_name(s), {"loss_params.sigma_ref_m": s}) for s in a.sigma_ref]
-    return run_variants(
-        variants,
-        model="lapden",
-        workdir=a.workdir,
-        configfile=a.configfile,
-        out=Path(a.out),
-        seed=a.seed,
-        epochs=a.epochs,
-        max_batches=a.max_batches,
-        max_frames=a.max_frames,
-        device=a.device,
-        against=a.against,
-        reference="paper",
-    )
+    return run_from_args(a, variants, "lapden", reference="paper")
 
 
 if __name__ == "__main__":

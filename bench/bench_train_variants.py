@@ -217,42 +217,53 @@ def run_variants(
     return 0
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_run_arguments(ap: argparse.ArgumentParser, out: str | None, against: str) -> None:
+    """The arguments every variant bench takes (this one and bench_loss_weight.py)."""
     ap.add_argument("-d", "--workdir", required=True, help="a build with results/dataset (train, val, framesets)")
     ap.add_argument("--configfile", default=str(REPO / "config/config.yaml"), help="the build's config")
-    ap.add_argument("--model", default="lapden", choices=sorted(SCORE), help="the model trained")
-    ap.add_argument("--variant", type=parse_variant, nargs="*", default=[], help="NAME:KEY=VALUE,... (repeatable)")
-    ap.add_argument("--score", choices=list(PAIRED), default=None, help="the score the relative column reports")
     ap.add_argument("--seed", type=int, default=None, help="training seed (default: the config's)")
     ap.add_argument("--epochs", type=int, default=None, help="override the config's epochs for every run")
     ap.add_argument("--max-batches", type=int, default=None, help="cap on training steps per epoch (tiny runs)")
     ap.add_argument("--max-frames", type=int, default=None, help="val frames per dataset (tiny runs; default all)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--out", default=None, help="default /tmp/depthgt_bench_train_variants/MODEL")
-    ap.add_argument("--against", default=None, help="another run's --out: pair this build's default model with its")
-    a = ap.parse_args(argv)
-    print(
-        f"command: python3 bench/bench_train_variants.py {' '.join(sys.argv[1:] if argv is None else argv)}", flush=True
-    )
-    if not a.variant and not a.against:
-        ap.error("nothing to compare: give --variant values, --against another run's --out, or both")
+    ap.add_argument("--out", default=out, help="where the runs are kept")
+    ap.add_argument("--against", default=None, help=against)
+
+
+def run_from_args(a: argparse.Namespace, variants: list[tuple[str, dict]], model: str, **kw) -> int:
+    """:func:`run_variants` with the arguments of :func:`add_run_arguments`."""
     torch.set_num_threads(a.threads)
     return run_variants(
-        [("default", {}), *a.variant],
-        model=a.model,
+        variants,
+        model=model,
         workdir=a.workdir,
         configfile=a.configfile,
-        out=Path(a.out or f"/tmp/depthgt_bench_train_variants/{a.model}"),
+        out=Path(a.out),
         seed=a.seed,
         epochs=a.epochs,
         max_batches=a.max_batches,
         max_frames=a.max_frames,
         device=a.device,
         against=a.against,
-        score=a.score,
+        **kw,
     )
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", default="lapden", choices=sorted(SCORE), help="the model trained")
+    ap.add_argument("--variant", type=parse_variant, nargs="*", default=[], help="NAME:KEY=VALUE,... (repeatable)")
+    ap.add_argument("--score", choices=list(PAIRED), default=None, help="the score the relative column reports")
+    add_run_arguments(ap, None, "another run's --out: pair this build's default model with its own")
+    a = ap.parse_args(argv)
+    print(
+        f"command: python3 bench/bench_train_variants.py {' '.join(sys.argv[1:] if argv is None else argv)}", flush=True
+    )
+    if not a.variant and not a.against:
+        ap.error("nothing to compare: give --variant values, --against another run's --out, or both")
+    a.out = a.out or f"/tmp/depthgt_bench_train_variants/{a.model}"
+    return run_from_args(a, [("default", {}), *a.variant], a.model, score=a.score)
 
 
 if __name__ == "__main__":
