@@ -104,8 +104,8 @@ def test_paper_preset_plans(tmp_path):
 
 def test_training_threads_follow_the_cores(tmp_path):
     """train_model asks for a quarter of --cores, one thread at least and two at most:
-    on 2 cores two trainings run side by side on one thread each (dry runs of the
-    default config's trainings)."""
+    on 2 cores two trainings run side by side on one thread each; the SLURM profile sets
+    two (dry runs of the default config's trainings)."""
     import re
     import shutil
 
@@ -113,13 +113,15 @@ def test_training_threads_follow_the_cores(tmp_path):
 
     shutil.copytree(REPO / "config", tmp_path / "config")
 
-    def threads(cores: str) -> list[int]:
-        proc = snakemake(tmp_path, "-n", "train", "--cores", cores)
+    def threads(cores: str, *args: str) -> list[int]:
+        proc = snakemake(tmp_path, "-n", "train", "--cores", cores, *args)
         text = proc.stdout + proc.stderr
         jobs = [j for j in text.split("\n\n") if "rule train_model:" in j]
         return [int(m.group(1)) if (m := re.search(r"threads: (\d+)", j)) else 1 for j in jobs]
 
     assert threads("2") == [1] * 4 and threads("8") == [2] * 4
+    # on a cluster each training is a job of its own: the SLURM profile gives it two threads
+    assert threads("2", "--profile", str(REPO / "profiles/slurm")) == [2] * 4
 
 
 def test_missing_sections_take_defaults():
