@@ -253,7 +253,9 @@ def run_from_args(a: argparse.Namespace, variants: list[tuple[str, dict]], model
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", default="lapden", choices=sorted(SCORE), help="the model trained")
-    ap.add_argument("--variant", type=parse_variant, nargs="*", default=[], help="NAME:KEY=VALUE,... (several after one --variant)")
+    ap.add_argument(
+        "--variant", type=parse_variant, nargs="*", default=[], help="NAME:KEY=VALUE,... (several after one --variant)"
+    )
     ap.add_argument("--score", choices=list(PAIRED), default=None, help="the score the relative column reports")
     add_run_arguments(ap, None, "another run's --out: pair this build's default model with its own")
     a = ap.parse_args(argv)
