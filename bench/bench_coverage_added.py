@@ -1,5 +1,6 @@
 """The error of the pixels ``frameset.selection: coverage`` adds, against the synthetic
-truth, for several ``coverage_mixed_margin_px`` and ``coverage_mixed_jump_rel`` (issue 30).
+truth, for several ``coverage_mixed_margin_px`` and ``coverage_mixed_jump_rel``, or for
+any ``coverage_*`` settings given as ``--variant`` (issue 30).
 
 The frame sets of bench_gt_protocol.py's sets (targets 8, 20, 32 of 40-frame sequences,
 256x256, source poses, the 40 frames as candidates): the core is rendered as with
@@ -15,6 +16,12 @@ Usage::
 
     python3 bench/bench_coverage_added.py --sets tuning --margins 0 1 2 --jumps 0 0.03      # choose on this
     python3 bench/bench_coverage_added.py --sets evaluation --margins 0 1                   # report this
+    python3 bench/bench_coverage_added.py --sets tuning --variant default views2:coverage_views=2 \
+        wide:coverage_max_baseline_m=0.5,coverage_max_angle_deg=30   # any FrameSetSettings coverage_* fields
+
+With ``--variant NAME[:KEY=VALUE,...]`` (the first is the one the others are paired with;
+``NAME`` alone is the defaults) the margins and jumps are not swept. The share of the
+core's empty truth pixels each variant fills is printed beside its error.
 
 Frame sets are cached as bench_gt_protocol.py caches them (``--cache``).
 """
@@ -22,6 +29,7 @@ Frame sets are cached as bench_gt_protocol.py caches them (``--cache``).
 from __future__ import annotations
 
 import argparse
+import ast
 import sys
 from pathlib import Path
 
@@ -48,15 +56,25 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=None, help="the first N scenes of each group")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/depthgt_protocol"))
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument(
+        "--variant",
+        nargs="+",
+        default=None,
+        help="NAME[:KEY=VALUE,...] FrameSetSettings coverage_* overrides (values as Python literals); replaces --margins/--jumps",
+    )
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     render, reg = RenderSettings(), registration_settings({"method": "given"})
-    variants = {
-        (m, j): FrameSetSettings(selection="coverage", coverage_mixed_margin_px=m, coverage_mixed_jump_rel=j)
-        for m in a.margins
-        for j in (a.jumps if m > 0 else a.jumps[:1])  # margin 0: no sample is mixed, whatever the jump
-    }
-    span = FrameSetSettings().coverage_span
+    if a.variant:
+        variants = {name: FrameSetSettings(selection="coverage", **kw) for name, kw in map(parse_variant, a.variant)}
+    else:
+        variants = {
+            (m, j): FrameSetSettings(selection="coverage", coverage_mixed_margin_px=m, coverage_mixed_jump_rel=j)
+            for m in a.margins
+            for j in (a.jumps if m > 0 else a.jumps[:1])  # margin 0: no sample is mixed, whatever the jump
+        }
+    vlabel = "variant" if a.variant else "margin, jump"
+    span = max(fs.coverage_span for fs in variants.values())
     for set_name in a.sets:
         errors: dict[tuple, list[np.ndarray]] = {v: [] for v in variants}
         counts: dict[tuple, list[np.ndarray]] = {v: [] for v in variants}
@@ -89,17 +107,19 @@ def main() -> None:
                         measured[m].append(data.depth_m[0, 0].numpy()[added] > 0)
                 print(f"{set_name} {name} s{group['seed']} {group['sensor']}: done", file=sys.stderr, flush=True)
         print(f"\n{set_name}: {empty_total} truth pixels the core leaves without GT")
-        print("| margin px | jump | pixels added | MAE mm | median mm | > 5 cm | in front > 5 cm | behind > 5 cm |")
-        print("|---:|---:|---:|---:|---:|---:|---:|---:|")
+        head = "| variant |" if a.variant else "| margin px | jump |"
+        print(head + " pixels added | share of empty | MAE mm | median mm | > 5 cm | in front > 5 cm | behind > 5 cm |")
+        print("|---" * (head.count("|") - 1) + "|---:|---:|---:|---:|---:|---:|---:|")
         for m in variants:
             e = np.concatenate(errors[m]) if errors[m] else np.zeros(0)
+            cells = f"| {m} |" if a.variant else f"| {m[0]} | {m[1]} |"
             if e.size == 0:
-                print(f"| {m[0]} | {m[1]} | 0 | | | | | |")
+                print(cells + " 0 | | | | | | |")
                 continue
             ae = np.abs(e)
             print(
-                f"| {m[0]} | {m[1]} | {e.size} | {1000 * ae.mean():.1f} | {1000 * np.median(ae):.1f} | {100 * (ae > 0.05).mean():.1f} % "
-                f"| {100 * (e < -0.05).mean():.1f} % | {100 * (e > 0.05).mean():.1f} % |"
+                f"{cells} {e.size} | {100 * e.size / max(empty_total, 1):.1f} % | {1000 * ae.mean():.1f} | {1000 * np.median(ae):.1f} "
+                f"| {100 * (ae > 0.05).mean():.1f} % | {100 * (e < -0.05).mean():.1f} % | {100 * (e > 0.05).mean():.1f} % |"
             )
         # pooled MAE per resample of frame sets: (draws @ per-set sums) / (draws @ per-set pixels)
         keys = list(variants)
@@ -111,7 +131,7 @@ def main() -> None:
         q = [(1 - BOOTSTRAP_LEVEL) / 2 * 100, (1 + BOOTSTRAP_LEVEL) / 2 * 100]
         for j, m in enumerate(keys):
             lo, hi = np.nanpercentile(mae[:, j], q)
-            line = f"margin, jump {m}: pooled MAE 95 % interval over frame sets [{lo:.1f}, {hi:.1f}] mm"
+            line = f"{vlabel} {m}: pooled MAE 95 % interval over frame sets [{lo:.1f}, {hi:.1f}] mm"
             if j:
                 dlo, dhi = np.nanpercentile(mae[:, j] - mae[:, 0], q)
                 line += f"; minus {keys[0]}: [{dlo:.1f}, {dhi:.1f}] mm (paired)"
@@ -126,13 +146,26 @@ def main() -> None:
                 if sel.any():
                     label = f"{lo}" if lo == hi else (f"{lo}-{hi}" if hi else f">={lo}")
                     parts.append(f"{label} samples: {int(sel.sum())} px, MAE {1000 * ae[sel].mean():.1f} mm")
-            print(f"margin, jump {m}, by samples fused: " + "; ".join(parts))
+            print(f"{vlabel} {m}, by samples fused: " + "; ".join(parts))
             own = np.concatenate(measured[m])
             for label, sel in (("with", own), ("without", ~own)):
                 if sel.any():
                     print(
-                        f"margin, jump {m}, where the target's input is {label} depth: {int(sel.sum())} px, MAE {1000 * ae[sel].mean():.1f} mm"
+                        f"{vlabel} {m}, where the target's input is {label} depth: {int(sel.sum())} px, MAE {1000 * ae[sel].mean():.1f} mm"
                     )
+
+
+def parse_variant(text: str) -> tuple[str, dict]:
+    """``NAME[:KEY=VALUE,...]`` -> (NAME, {KEY: literal}); KEYs must be FrameSetSettings fields."""
+    name, _, rest = text.partition(":")
+    known = set(FrameSetSettings.__dataclass_fields__)
+    kw = {}
+    for item in filter(None, rest.split(",")):
+        key, eq, value = item.partition("=")
+        if not eq or key not in known:
+            raise SystemExit(f"--variant {text!r}: {item!r} is not KEY=VALUE of a FrameSetSettings field")
+        kw[key] = ast.literal_eval(value)
+    return name, kw
 
 
 if __name__ == "__main__":
