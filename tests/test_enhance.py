@@ -232,6 +232,7 @@ from depthgt.atomic import save_npz  # noqa: E402
 from depthgt.enhance.train import (  # noqa: E402
     TrainOutputs,
     collate,
+    cut_input_holes,
     flip_batch,
     learning_rate,
     load_model,
@@ -393,6 +394,62 @@ def test_cosine_run_resumed_equals_uninterrupted_and_takes_the_rates(manifests, 
     c = torch.load(const["last"], weights_only=False)["model_state"]
     assert not all(torch.equal(c[k], b[k]) for k in b)
     assert train(*manifests, out, cos(4))["epochs_run"] == 4  # another schedule: starts anew
+
+
+def test_input_holes_are_discs_cut_into_the_input_alone():
+    g = torch.Generator().manual_seed(7)
+    batch = {"input": torch.ones(4, 1, 64, 64), "gt": torch.ones(4, 1, 64, 64), "K": torch.eye(3).expand(4, 3, 3)}
+    out = cut_input_holes(batch, 3, 5, 9, g)
+    assert torch.equal(out["gt"], batch["gt"]) and torch.equal(out["K"], batch["K"])
+    assert torch.equal(batch["input"], torch.ones(4, 1, 64, 64))  # the caller's batch is not changed
+    holes = out["input"] == 0
+    assert torch.equal(out["input"][~holes], torch.ones(int((~holes).sum())))
+    # the same draws as cut_input_holes makes: every hole pixel lies in one of the sample's discs,
+    # every disc of radius 5..9 px is cut in full (within the image)
+    u = torch.rand(4, 3, 3, generator=torch.Generator().manual_seed(7))
+    yy, xx = torch.meshgrid(torch.arange(64.0), torch.arange(64.0), indexing="ij")
+    for b in range(4):
+        discs = torch.zeros(64, 64, dtype=torch.bool)
+        for cy, cx, r in zip(u[b, :, 0] * 64, u[b, :, 1] * 64, 5 + u[b, :, 2] * 4):
+            assert 5 <= r <= 9
+            discs |= (yy - cy) ** 2 + (xx - cx) ** 2 <= r**2
+        assert torch.equal(holes[b, 0], discs) and discs.sum() >= math.floor(math.pi * 4**2)
+    # the generator decides: the same seed cuts the same holes, another seed others
+    again = cut_input_holes(batch, 3, 5, 9, torch.Generator().manual_seed(7))
+    other = cut_input_holes(batch, 3, 5, 9, torch.Generator().manual_seed(8))
+    assert torch.equal(again["input"], out["input"]) and not torch.equal(other["input"], out["input"])
+
+
+def test_run_with_input_holes_resumes_to_the_uninterrupted_weights(manifests, tmp_path, monkeypatch):
+    """Holes drawn from the epoch's generator: a killed run resumes with the same holes
+    and ends with the uninterrupted run's weights; it is another run than one without
+    holes (identity), whose result it does not equal."""
+
+    def holes(epochs):
+        return replace(_settings(epochs), input_holes=2, input_hole_min_px=2, input_hole_max_px=5)
+
+    full = train(*manifests, TrainOutputs.in_dir(tmp_path / "full"), holes(3))
+    out = TrainOutputs.in_dir(tmp_path / "part", resume=True)
+    real_epoch = train_module.train_epoch
+
+    def killed_in_the_third(model, loss_fn, optimizer, dataset, settings, epoch, device):
+        if epoch == 2:
+            raise KeyboardInterrupt
+        return real_epoch(model, loss_fn, optimizer, dataset, settings, epoch, device)
+
+    monkeypatch.setattr(train_module, "train_epoch", killed_in_the_third)
+    with pytest.raises(KeyboardInterrupt):
+        train(*manifests, out, holes(3))
+    monkeypatch.setattr(train_module, "train_epoch", real_epoch)
+    resumed = train(*manifests, out, holes(3))
+    assert resumed["epochs_run"] == 1
+    a = torch.load(full["last"], weights_only=False)["model_state"]
+    b = torch.load(resumed["last"], weights_only=False)["model_state"]
+    assert all(torch.equal(a[k], b[k]) for k in b)
+    plain = train(*manifests, TrainOutputs.in_dir(tmp_path / "plain"), _settings(3))
+    c = torch.load(plain["last"], weights_only=False)["model_state"]
+    assert not all(torch.equal(c[k], b[k]) for k in b)
+    assert train(*manifests, out, _settings(3))["epochs_run"] == 3  # no holes: another run, starts anew
 
 
 def test_train_resumes_from_its_resume_folder_when_the_outputs_are_gone(manifests, tmp_path):

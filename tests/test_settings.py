@@ -209,6 +209,23 @@ def test_train_settings_identity_ignores_epochs():
     assert c3.identity() == TrainSettings(epochs=3, lr_schedule="cosine", progress=False).identity()
 
 
+def test_train_settings_input_holes_are_checked_and_in_the_identity_only_when_cut():
+    plain = TrainSettings()
+    assert not {"input_holes", "input_hole_min_px", "input_hole_max_px"} & set(plain.identity())
+    assert TrainSettings(input_hole_max_px=30).identity() == plain.identity()  # radii of no holes
+    cut = TrainSettings(input_holes=4)
+    assert (
+        cut.identity()["input_holes"] == 4
+        and cut.identity() != TrainSettings(input_holes=4, input_hole_max_px=30).identity()
+    )
+    with pytest.raises(ConfigError, match="train.input_holes.*0..64.*-1"):
+        TrainSettings(input_holes=-1)
+    with pytest.raises(ConfigError, match="input_hole_min_px/input_hole_max_px.*9, 5"):
+        TrainSettings(input_holes=2, input_hole_min_px=9, input_hole_max_px=5)
+    s = settings_from_config({"enhance": {"train": {"input_holes": 3}}})
+    assert s.train("lapden").input_holes == 3 and s.train("rde").input_holes == 3
+
+
 def test_train_settings_lr_schedule_is_checked():
     with pytest.raises(ConfigError, match="lr_schedule.*constant, cosine.*'step'"):
         TrainSettings(lr_schedule="step")

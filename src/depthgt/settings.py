@@ -100,6 +100,8 @@ MAX_FRAMESET_BATCH = 1024
 # patch pairs per training step (enhance.train.batch_size)
 MAX_TRAIN_BATCH = 4096
 LR_SCHEDULES = ("constant", "cosine")  # enhance.train.lr_schedule (TrainSettings)
+MAX_INPUT_HOLES = 64  # enhance.train.input_holes: discs cut per training patch
+MAX_INPUT_HOLE_PX = 64  # enhance.train.input_hole_max_px: their largest radius, pixels
 
 
 def _fail(key: str, message: str) -> None:
@@ -984,6 +986,13 @@ class TrainSettings:
         weight_decay: Adam weight decay.
         seed: seeds the initial weights, the shuffling and the flips.
         flips: random horizontal and vertical flips (intrinsics flipped too).
+        input_holes: holes cut into each training patch's input depth (0: none, the
+            paper's training): discs of radius uniform in ``input_hole_min_px`` ..
+            ``input_hole_max_px`` pixels at uniform centres, the GT left as it is, so the
+            network is taught to fill hole interiors far from any input depth, which the
+            sensor's own holes rarely give a target for
+            (:func:`depthgt.enhance.train.cut_input_holes`). Drawn from the epoch's
+            generator after the flips: a resumed run cuts the same holes.
         max_batches_per_epoch: cap on training steps per epoch (None: all).
         device: "auto" (CUDA when available), "cpu" or "cuda".
         progress: show a tqdm bar per epoch.
@@ -999,6 +1008,9 @@ class TrainSettings:
     weight_decay: float = 0.0
     seed: int = 0
     flips: bool = True
+    input_holes: int = 0
+    input_hole_min_px: int = 4
+    input_hole_max_px: int = 16
     max_batches_per_epoch: int | None = None
     device: str = "auto"
     progress: bool = True
@@ -1021,6 +1033,19 @@ class TrainSettings:
         )
         _require(self.device in DEVICES, "train.device", f"must be auto, cpu or cuda, got {self.device!r}")
         _require(
+            isinstance(self.input_holes, int) and 0 <= self.input_holes <= MAX_INPUT_HOLES,
+            "train.input_holes",
+            f"must be an integer in 0..{MAX_INPUT_HOLES}, got {self.input_holes!r}",
+        )
+        _require(
+            isinstance(self.input_hole_min_px, int)
+            and isinstance(self.input_hole_max_px, int)
+            and 1 <= self.input_hole_min_px <= self.input_hole_max_px <= MAX_INPUT_HOLE_PX,
+            "train.input_hole_min_px/input_hole_max_px",
+            f"must be integers with 1 <= min <= max <= {MAX_INPUT_HOLE_PX}, got {self.input_hole_min_px!r}, "
+            f"{self.input_hole_max_px!r}",
+        )
+        _require(
             self.max_batches_per_epoch is None or self.max_batches_per_epoch >= 1,
             "train.max_batches_per_epoch",
             f"must be >= 1 or null, got {self.max_batches_per_epoch}",
@@ -1040,6 +1065,9 @@ class TrainSettings:
             # a constant-rate run is the same run whatever its length (it can be extended);
             # the key is left out so that checkpoints from before the schedule existed resume
             del d["epochs"], d["lr_schedule"]
+        if self.input_holes == 0:
+            # no holes cut: the radii do not matter, and checkpoints from before the option resume
+            del d["input_holes"], d["input_hole_min_px"], d["input_hole_max_px"]
         return json.loads(json.dumps(d))
 
 

@@ -165,6 +165,27 @@ def flip_batch(batch: dict[str, torch.Tensor], flip_h: torch.Tensor, flip_v: tor
     return out
 
 
+def cut_input_holes(
+    batch: dict[str, torch.Tensor], count: int, min_px: int, max_px: int, generator: torch.Generator
+) -> dict[str, torch.Tensor]:
+    """Cut ``count`` disc-shaped holes into each sample's ``input`` depth (set to 0).
+
+    Centres uniform over the image, radii uniform in ``min_px`` .. ``max_px`` pixels, all
+    drawn from ``generator`` in one call ((B, count, 3) uniforms); the GT and the other
+    images are left as they are. Written by hand: kornia's random erasing cuts rectangles
+    and draws from torch's global generator, which a resumed epoch could not replay.
+    """
+    inp = batch["input"]
+    B, _, H, W = inp.shape
+    u = torch.rand(B, count, 3, generator=generator)
+    cy, cx = (u[..., 0] * H).view(B, count, 1, 1), (u[..., 1] * W).view(B, count, 1, 1)
+    r = (min_px + u[..., 2] * (max_px - min_px)).view(B, count, 1, 1)
+    yy = torch.arange(H, dtype=u.dtype).view(1, 1, H, 1)
+    xx = torch.arange(W, dtype=u.dtype).view(1, 1, 1, W)
+    inside = ((yy - cy) ** 2 + (xx - cx) ** 2 <= r**2).any(dim=1, keepdim=True)  # (B, 1, H, W)
+    return {**batch, "input": inp.masked_fill(inside.to(inp.device), 0.0)}
+
+
 def learning_rate(settings: TrainSettings, step: int, steps_per_epoch: int) -> float:
     """The learning rate of training step ``step`` (0-based, counted over all epochs).
 
@@ -238,6 +259,10 @@ def train_epoch(
         if settings.flips:
             flips = torch.rand(len(idx), 2, generator=g) < 0.5
             batch = flip_batch(batch, flips[:, 0], flips[:, 1])
+        if settings.input_holes:
+            batch = cut_input_holes(
+                batch, settings.input_holes, settings.input_hole_min_px, settings.input_hole_max_px, g
+            )
         batch = _to(batch, device)
         optimizer.zero_grad(set_to_none=True)
         total, terms = loss_fn(model(_net_input(batch, device)), batch)
