@@ -360,6 +360,25 @@ def test_learning_rate_schedules():
     assert all(a > b for a, b in zip(rates, rates[1:])) and 0 < rates[-1] < 2e-3 * 0.01
 
 
+def _killed_in_the_third_epoch_and_resumed(manifests, out, settings, monkeypatch):
+    """Train into ``out`` with ``settings``, killed at the start of the third epoch, then
+    resume; returns the resumed run's result (after asserting it ran one epoch)."""
+    real_epoch = train_module.train_epoch
+
+    def killed_in_the_third(model, loss_fn, optimizer, dataset, settings, epoch, device):
+        if epoch == 2:
+            raise KeyboardInterrupt
+        return real_epoch(model, loss_fn, optimizer, dataset, settings, epoch, device)
+
+    monkeypatch.setattr(train_module, "train_epoch", killed_in_the_third)
+    with pytest.raises(KeyboardInterrupt):
+        train(*manifests, out, settings)
+    monkeypatch.setattr(train_module, "train_epoch", real_epoch)
+    resumed = train(*manifests, out, settings)
+    assert resumed["epochs_run"] == 1
+    return resumed
+
+
 def test_cosine_run_resumed_equals_uninterrupted_and_takes_the_rates(manifests, tmp_path, monkeypatch):
     """A killed cosine run resumes with the rates of its steps (they depend on the step
     alone) and ends with the uninterrupted run's weights; its epochs are part of its
@@ -374,19 +393,7 @@ def test_cosine_run_resumed_equals_uninterrupted_and_takes_the_rates(manifests, 
     # the optimiser's rate is the one of the last step taken
     assert math.isclose(ckpt["optimizer_state"]["param_groups"][0]["lr"], learning_rate(cos(3), 3 * steps - 1, steps))
     out = TrainOutputs.in_dir(tmp_path / "part", resume=True)
-    real_epoch = train_module.train_epoch
-
-    def killed_in_the_third(model, loss_fn, optimizer, dataset, settings, epoch, device):
-        if epoch == 2:
-            raise KeyboardInterrupt
-        return real_epoch(model, loss_fn, optimizer, dataset, settings, epoch, device)
-
-    monkeypatch.setattr(train_module, "train_epoch", killed_in_the_third)
-    with pytest.raises(KeyboardInterrupt):
-        train(*manifests, out, cos(3))
-    monkeypatch.setattr(train_module, "train_epoch", real_epoch)
-    resumed = train(*manifests, out, cos(3))
-    assert resumed["epochs_run"] == 1
+    resumed = _killed_in_the_third_epoch_and_resumed(manifests, out, cos(3), monkeypatch)
     b = torch.load(resumed["last"], weights_only=False)["model_state"]
     assert all(torch.equal(ckpt["model_state"][k], b[k]) for k in b)
     # differs from a constant-rate run of the same seed
@@ -430,19 +437,7 @@ def test_run_with_input_holes_resumes_to_the_uninterrupted_weights(manifests, tm
 
     full = train(*manifests, TrainOutputs.in_dir(tmp_path / "full"), holes(3))
     out = TrainOutputs.in_dir(tmp_path / "part", resume=True)
-    real_epoch = train_module.train_epoch
-
-    def killed_in_the_third(model, loss_fn, optimizer, dataset, settings, epoch, device):
-        if epoch == 2:
-            raise KeyboardInterrupt
-        return real_epoch(model, loss_fn, optimizer, dataset, settings, epoch, device)
-
-    monkeypatch.setattr(train_module, "train_epoch", killed_in_the_third)
-    with pytest.raises(KeyboardInterrupt):
-        train(*manifests, out, holes(3))
-    monkeypatch.setattr(train_module, "train_epoch", real_epoch)
-    resumed = train(*manifests, out, holes(3))
-    assert resumed["epochs_run"] == 1
+    resumed = _killed_in_the_third_epoch_and_resumed(manifests, out, holes(3), monkeypatch)
     a = torch.load(full["last"], weights_only=False)["model_state"]
     b = torch.load(resumed["last"], weights_only=False)["model_state"]
     assert all(torch.equal(a[k], b[k]) for k in b)
