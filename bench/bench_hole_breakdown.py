@@ -5,14 +5,16 @@ offers there.
     # a default build first (python3 -m snakemake --cores 2), then
     python3 bench/bench_hole_breakdown.py -d WORKDIR                  # LapDEN against RDE, SDD, input
     python3 bench/bench_hole_breakdown.py -d WORKDIR --methods lapden rde --against rde
+    python3 bench/bench_hole_breakdown.py -d WORKDIR --reference tsdf   # real test frames (Table 2's references)
 
 On every test frame set of the build (``results/dataset/framesets.parquet``, split
 ``test``), each truth-valid pixel goes to one class: ``input valid`` (the denoising
 mask), or a hole of the raw input, by its distance to the nearest input pixel with depth
 (``cv2.distanceTransform``, L2): ``hole <= 3 px``, ``hole 4-10 px``, ``hole > 10 px``. Per
 class and method (the saved predictions, ``results/eval/predictions/METHOD``, scored against
-the clean truth as Table 3 scores them: a pixel without a prediction counts as its truth
-depth): pixels, pooled RMSE and MAE (mm), and the share off by more than 0.1 m; and per
+the clean truth as Table 3 scores them, or with ``--reference`` against the frame set's
+GT or a real frame's neighbours-only or TSDF reference as Table 2 scores them: a pixel
+without a prediction counts as its reference depth): pixels, pooled RMSE and MAE (mm), and the share off by more than 0.1 m; and per
 frame the mean squared and absolute errors of the class, the first method minus
 ``--against`` (and every other method) paired over the frames that have pixels of the class
 (95 % percentile bootstrap over frames, 2000 resamples, seed 0,
@@ -37,6 +39,7 @@ import pandas as pd
 
 from depthgt.eval.bootstrap import bootstrap_means
 from depthgt.gt import store
+from depthgt.gt.references import read_reference_table
 
 CLASSES = ("input valid", "hole <= 3 px", "hole 4-10 px", "hole > 10 px")
 
@@ -56,9 +59,11 @@ def classes(truth: np.ndarray, input_m: np.ndarray) -> dict[str, np.ndarray]:
     }
 
 
-def test_rows(workdir: Path, methods: list[str]) -> pd.DataFrame:
+def test_rows(workdir: Path, methods: list[str], reference: str = "truth") -> pd.DataFrame:
     """One row per test frame, class and method: pixels, sum of squared and absolute
-    errors (m), pixels off by > 0.1 m, and the frame's GT coverage of the class."""
+    errors (m), pixels off by > 0.1 m, and the frame's GT coverage of the class; scored
+    against ``reference`` (``truth``, ``gt``, or a real frame's ``neighbours`` / ``tsdf``)."""
+    refs = read_reference_table(glob.glob(str(workdir / "results/references/*/*/references.parquet")))
     fs = pd.read_parquet(workdir / "results/dataset/framesets.parquet")
     fs = fs[(fs["split"] == "test") & (fs["status"] == "ok") & (fs["frameset"] != "")]
     if fs.empty:
@@ -66,7 +71,12 @@ def test_rows(workdir: Path, methods: list[str]) -> pd.DataFrame:
     rows = []
     for rec in fs.itertuples():
         frame = store.read_frame_images(str(workdir / rec.frameset))
-        truth, gt = frame.depth("truth"), frame.depth("gt")
+        gt = frame.depth("gt")
+        if reference in ("truth", "gt"):
+            truth = frame.depth(reference)
+        else:
+            where = refs.get((str(rec.dataset), str(rec.scene), int(rec.target)), {}).get(reference)
+            truth = np.load(workdir / where[0])[where[1]] if where else None
         if truth is None:
             continue
         cls = classes(truth, frame.input_m)
@@ -145,17 +155,25 @@ def main() -> None:
     ap.add_argument("-d", "--workdir", type=Path, required=True, help="a default build (results/dataset, results/eval)")
     ap.add_argument("--methods", nargs="+", default=["lapden", "rde", "sdd", "input"], help="the first is compared")
     ap.add_argument("--against", default=None, help="method the first is paired with (default: every other)")
+    ap.add_argument(
+        "--reference", default="truth", choices=["truth", "gt", "neighbours", "tsdf"], help="scored against"
+    )
     ap.add_argument("--out", type=Path, default=Path("/tmp/bench_hole_breakdown"))
     a = ap.parse_args()
     a.out.mkdir(parents=True, exist_ok=True)
     os.chdir(a.workdir)
-    df = test_rows(Path("."), a.methods)
+    df = test_rows(Path("."), a.methods, a.reference)
+    if df.empty:
+        raise SystemExit(f"{a.workdir}: no test frame has the reference {a.reference!r}")
     df.to_csv(a.out / "classes.csv", index=False)
     first = a.methods[0]
     others = [a.against] if a.against else a.methods[1:]
-    print(f"command: python3 bench/bench_hole_breakdown.py -d {a.workdir} --methods {' '.join(a.methods)}")
+    print(
+        f"command: python3 bench/bench_hole_breakdown.py -d {a.workdir} --methods {' '.join(a.methods)} "
+        f"--reference {a.reference}"
+    )
     frames = df[df.method == first].groupby("cls")
-    print("\nTEST frames: classes of the truth-valid pixels, and the frame sets' own (window) GT there")
+    print(f"\nTEST frames: classes of the {a.reference}-valid pixels, and the frame sets' own (window) GT there")
     gt = frames.agg(frames=("frame", "nunique"), pixels=("n", "sum"), gt_px=("gt_px", "sum"), gt_ae=("gt_ae", "sum"))
     gt["GT covers"] = (100 * gt.gt_px / gt.pixels).map("{:.1f} %".format)
     gt["GT MAE mm"] = (1000 * gt.gt_ae / gt.gt_px.clip(lower=1)).round(1)
@@ -166,7 +184,7 @@ def main() -> None:
     pooled["RMSE mm"] = (1000 * np.sqrt(pooled.se / pooled.n)).round(1)
     pooled["MAE mm"] = (1000 * pooled.ae / pooled.n).round(1)
     pooled["> 0.1 m"] = (100 * pooled.big / pooled.n).map("{:.1f} %".format)
-    print("\nPooled over the pixels of each class (a missing prediction counts as its truth depth):")
+    print(f"\nPooled over the pixels of each class (a missing prediction counts as its {a.reference} depth):")
     print(pooled[["n", "RMSE mm", "MAE mm", "> 0.1 m"]].reindex(CLASSES, level=0).to_markdown())
     print(f"\nPer frame, {first} minus each, paired over the frames with pixels of the class (95 % bootstrap):")
     lines = []
