@@ -68,7 +68,7 @@ def test_rows(workdir: Path, methods: list[str], reference: str = "truth") -> pd
     fs = fs[(fs["split"] == "test") & (fs["status"] == "ok") & (fs["frameset"] != "")]
     if fs.empty:
         raise SystemExit(f"{workdir}: no test frame sets in results/dataset/framesets.parquet")
-    rows = []
+    rows, skipped = [], []
     for rec in fs.itertuples():
         frame = store.read_frame_images(str(workdir / rec.frameset))
         gt = frame.depth("gt")
@@ -78,7 +78,10 @@ def test_rows(workdir: Path, methods: list[str], reference: str = "truth") -> pd
             where = refs.get((str(rec.dataset), str(rec.scene), int(rec.target)), {}).get(reference)
             truth = np.load(workdir / where[0])[where[1]] if where else None
         if truth is None:
+            skipped.append(f"{rec.scene}/{int(rec.target)}")
             continue
+        if truth.shape != frame.input_m.shape:
+            raise SystemExit(f"{rec.frameset}: reference {reference} {truth.shape}, input {frame.input_m.shape}")
         cls = classes(truth, frame.input_m)
         preds = {}
         for m in methods:
@@ -93,6 +96,8 @@ def test_rows(workdir: Path, methods: list[str], reference: str = "truth") -> pd
             if not f.is_file():
                 raise SystemExit(f"{f}: no saved prediction of {m} (run the build's evaluation first)")
             p = np.load(f)
+            if p.shape != truth.shape:
+                raise SystemExit(f"{f}: prediction {p.shape}, the frame's {reference} {truth.shape}")
             preds[m] = np.where(p > 0, p - truth, truth)  # a missing prediction counts as its truth depth
         for c, sel in cls.items():
             n = int(sel.sum())
@@ -112,6 +117,8 @@ def test_rows(workdir: Path, methods: list[str], reference: str = "truth") -> pd
                         big=int((np.abs(e) > 0.1).sum()),
                     )
                 )
+    if skipped:
+        print(f"{len(skipped)} test frames without the reference {reference!r}, not scored: {', '.join(skipped[:10])}")
     return pd.DataFrame(rows)
 
 
