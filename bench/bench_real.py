@@ -23,6 +23,11 @@ Real recordings have no clean depth; what they can measure (per pose mode):
   accuracy, ``lto_added_px`` such pixels per frame set) and
   ``cov_cpu_s`` the CPU seconds of the coverage step (candidates read through a frame
   cache as a batch job does, selection, the added views' registration, the render);
+* ``--ceiling``: in place of the above, the most completeness any choice of views could
+  give (:func:`ceiling`): the share of the target's 256x256 pixels that its own valid
+  depth or a valid sample of some other frame (reference poses, nearest pixel, in front)
+  reaches, with the frames of the core window, of +-``coverage_span`` and of the whole
+  recording; ``_d1``: also counting pixels within 1 px of such a sample (a generous bound);
 * ``added_rot_deg`` / ``added_trans_cm`` (coverage): the fused added views' poses against
   the reference poses, median and 90th percentile over the views;
 * ``reg_rot_deg`` / ``reg_trans_cm``: the mode's poses against the reference poses (the
@@ -71,7 +76,7 @@ from depthgt.eval.bootstrap import bootstrap_means
 from depthgt.eval.metrics import pose_errors
 from depthgt.gt.build import align, fuse, load_frameset, poses_from_source, quality_statistics
 from depthgt.gt.cache import ResizedScene
-from depthgt.gt.coverage import add_coverage_views
+from depthgt.gt.coverage import add_coverage_views, fill_maps
 from depthgt.gt.patches import make_patches
 from depthgt.gt.planning import coverage_candidates, stable_seed
 from depthgt.jobs.common import open_source_scene
@@ -230,6 +235,45 @@ def run(
     return rows
 
 
+def ceiling(
+    scene, data: str, step: int, limit: int | None, fs: FrameSetSettings, size: tuple[int, int] = SIZE
+) -> list[dict]:
+    """Per target of ``scene``: the completeness bound of the core window, of
+    +-``coverage_span`` and of every frame of the recording (see the module docstring,
+    ``--ceiling``), at ``size``. Frames the source cannot read or place are left out, named."""
+    resized = ResizedScene(scene, size, keep=len(scene) + 1, need_pose=True)
+    usable = []
+    for j in range(len(scene)):
+        try:
+            resized.read(j)
+            usable.append(j)
+        except FrameError as err:
+            print(f"{data} frame {j}: left out of the bound: {err}")
+    rows = []
+    for t in list(range(fs.reach, len(scene) - fs.reach, step))[:limit]:
+        if t not in usable:
+            continue
+        others = [j for j in usable if j != t]
+        d = load_frameset(resized, [t, *others], size, True, torch.device("cpu"))
+        empty = d.depth_m[0, 0] <= 0
+        # one (H*W,) hit map per other frame: loops over frames, not pixels
+        hits = fill_maps(d.depth_m[1:], d.K.float(), poses_from_source(d).float(), empty)
+        hits = hits.reshape(len(others), 1, *size).float()
+        row = dict(data=data, target=t, input_completeness=float((~empty).float().mean()))
+        sets = {
+            "core": [k for k, j in enumerate(others) if j - t in fs.offsets],
+            "span": [k for k, j in enumerate(others) if abs(j - t) <= fs.coverage_span],
+            "all": list(range(len(others))),
+        }
+        for name, ks in sets.items():
+            hit = hits[ks].amax(dim=0, keepdim=True) if ks else torch.zeros(1, 1, *size)
+            near = F.max_pool2d(hit, 3, stride=1, padding=1)[0, 0] > 0
+            row[f"ceiling_{name}"] = float(((~empty) | (hit[0, 0] > 0)).float().mean())
+            row[f"ceiling_{name}_d1"] = float(((~empty) | near).float().mean())
+        rows.append(row)
+    return rows
+
+
 def _all_views(extra: dict, core_mm: float) -> dict:
     """A frame set where coverage fused no view: its all-views check is the core's (its
     GT is the core's), not a missing value; dropping it would compare the all-views
@@ -335,6 +379,11 @@ def main(argv=None) -> None:
         help="frameset.selection: each one runs on the same registrations",
     )
     ap.add_argument("--fs", nargs="*", default=[], help="FrameSetSettings overrides key=value (coverage_span, ...)")
+    ap.add_argument(
+        "--ceiling",
+        action="store_true",
+        help="only the completeness bound of the core, +-coverage_span and every frame (reference poses)",
+    )
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument(
         "--cache",
@@ -355,6 +404,11 @@ def main(argv=None) -> None:
             continue
         options = _literal(a.tum_option) if data == "tum" else {}
         step = a.tum_step if data == "tum" else a.sevenscenes_step
+        if a.ceiling:
+            source = {"name": data, "kind": DATA[data]["kind"], "root": DATA[data]["root"], "options": options}
+            scene = open_source_scene(source, DATA[data]["scene"])
+            rows += ceiling(scene, data, step, a.limit, FrameSetSettings(**_literal(a.fs)))
+            continue
         for mode in a.modes:
             for selection in a.selection:
                 rows += run(
@@ -362,6 +416,11 @@ def main(argv=None) -> None:
                 )
     df = pd.DataFrame(rows)
     df.to_pickle(a.out.with_suffix(".pkl"))
+    if a.ceiling:
+        s = df.groupby("data").agg(framesets=("target", "size"), **{c: (c, "mean") for c in df.columns[2:]})
+        s.to_csv(a.out)
+        print(s.reset_index().to_markdown(index=False, floatfmt=".4f"))
+        return
     s = summarise(df)
     s.to_csv(a.out, index=False)
     pd.set_option("display.width", 250)
