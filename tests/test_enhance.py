@@ -208,6 +208,33 @@ def test_confidence_weight_lowers_the_pull_of_uncertain_gt():
             LossConfig(sigma_ref_m=bad)
 
 
+def test_hole_weight_pulls_harder_where_the_input_has_no_depth():
+    # 16x16 plane; the prediction is off by 0.1 m on the 4 columns where the input has no depth
+    # and by 0.02 m on the 12 where it has: plain mean (4*0.1 + 12*0.02) / 16 = 0.04 m
+    plane, K = _tilted_plane(0.5, n=16)
+    inp = plane.clone()
+    inp[..., :4] = 0.0
+    pred = plane + 0.02
+    pred[..., :4] = plane[..., :4] + 0.1
+    batch = {"gt": plane, "K": K, "input": inp}
+    _, plain = lapden_loss([pred], batch, LossConfig(scale_weights=(1.0,)))
+    _, weighted = lapden_loss([pred], batch, LossConfig(scale_weights=(1.0,), hole_weight=4.0))
+    assert plain["depth"] == pytest.approx(0.04, rel=1e-4)
+    # weights 4 on the 4 hole columns, 1 on the 12 others: (16*0.1 + 12*0.02) / 28
+    assert weighted["depth"] == pytest.approx((16 * 0.1 + 12 * 0.02) / 28, rel=1e-4)
+    # with the confidence weight: the product (sigma_ref = sigma -> 1/2 everywhere: the same mean)
+    sig = torch.full_like(plane, 0.002)
+    _, both = lapden_loss(
+        [pred], {**batch, "sigma": sig}, LossConfig(scale_weights=(1.0,), hole_weight=4.0, sigma_ref_m=0.002)
+    )
+    assert both["depth"] == pytest.approx(weighted["depth"], rel=1e-4)
+    with pytest.raises(ValueError, match="hole_weight is set but the batch has no 'input'"):
+        lapden_loss([pred], {"gt": plane, "K": K}, LossConfig(scale_weights=(1.0,), hole_weight=4.0))
+    for bad in (0.0, -1.0, math.nan, True, "4"):
+        with pytest.raises(ValueError, match="hole_weight"):
+            LossConfig(hole_weight=bad)
+
+
 def test_lapden_loss_gradients_flow():
     torch.manual_seed(0)
     model = LapDEN(LapDENConfig(channels=8, level_convs=(2, 2, 2), encoder_convs=(0, 0)))
@@ -231,6 +258,8 @@ import depthgt.enhance.train as train_module  # noqa: E402
 from depthgt.atomic import save_npz  # noqa: E402
 from depthgt.enhance.train import (  # noqa: E402
     TrainOutputs,
+    build_loss,
+    build_model,
     collate,
     cut_input_holes,
     flip_batch,
@@ -495,6 +524,26 @@ def test_training_with_the_gt_confidence_as_loss_weight(tmp_path):
     table.iloc[:4].to_parquet(tmp_path / "plain.parquet")
     with pytest.raises(ValueError, match="no 'sigma'"):
         train(tmp_path / "plain.parquet", tmp_path / "val.parquet", TrainOutputs.in_dir(tmp_path / "x"), weighted)
+
+
+def test_model_and_loss_params_are_checked_before_training_naming_the_key():
+    for model, params, match in (
+        ("lapden", {"bogus": 1}, r"enhance\.models\.lapden\.model_params .*bogus"),
+        ("lapden", {"preset": "huge"}, r"enhance\.models\.lapden\.model_params .*unknown LapDEN preset"),
+        ("ddrnet", {"bogus": 1}, r"enhance\.models\.ddrnet\.model_params .*bogus"),
+    ):
+        with pytest.raises(ConfigError, match=match):
+            build_model(model, params)
+    for model, params, match in (
+        ("lapden", {"bogus": 1}, r"enhance\.models\.lapden\.loss_params .*unknown LapDEN loss parameters \['bogus'\]"),
+        ("lapden", {"hole_weight": 0}, r"enhance\.models\.lapden\.loss_params .*hole_weight must be"),
+        ("sdd", {"w_bogus": 1.0}, r"enhance\.models\.sdd\.loss_params .*w_bogus"),
+    ):
+        with pytest.raises(ConfigError, match=match):
+            build_loss(model, params)
+    # good parameters pass and reach the loss
+    loss = build_loss("lapden", {"hole_weight": 2.0, "scale_weights": [1.0]})
+    assert loss.keywords == {"hole_weight": 2.0, "scale_weights": [1.0]}
 
 
 def test_train_settings_are_checked():

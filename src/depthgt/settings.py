@@ -297,7 +297,7 @@ class PatchSettings:
         _require(
             1 <= self.count <= MAX_PATCH_COUNT, "patches.count", f"must be in [1, {MAX_PATCH_COUNT}], got {self.count}"
         )
-        _require(self.size >= 1, "patches.size", f"must be >= 1, got {self.size}")
+        _require(self.size >= 8, "patches.size", f"must be >= 8 (the schema's bound), got {self.size}")
         _require(0.0 < self.max_missing <= 1.0, "patches.max_missing", f"must be in (0, 1], got {self.max_missing}")
         _require(
             self.max_gt_sigma_m is None or self.max_gt_sigma_m > 0,

@@ -14,6 +14,10 @@ GT's expected std (gt.exr's ``S``, the batch's ``sigma``), so that GT pixels the
 renderer is unsure of (few samples, surfaces split by the agreement check) pull less;
 a weighted mean, so the term's scale does not change.
 
+Optionally (``hole_weight``, beyond the paper) the depth term weights the GT pixels where
+the raw input has no depth (the filling task) ``hole_weight`` times as much as those
+where it has (the batch's ``input``), times the confidence weight when both are set.
+
 Supervision only where the GT is valid (> 0): depth terms on valid GT pixels,
 gradient terms on pixels whose forward neighbours are valid too, normal terms on
 pixels whose 3x3 neighbourhood (the Sobel support of kornia's normals) is valid.
@@ -30,7 +34,7 @@ depth, ``gt`` (B,1,H,W) GT depth (0 = none), ``K`` (B,3,3) intrinsics of the
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 import torch.nn.functional as F
@@ -63,6 +67,8 @@ class LossConfig:
             term; metres: each is weighted by ``sigma_ref_m^2 / (sigma_ref_m^2 +
             sigma^2)`` (the batch must carry ``sigma``); coarser levels take the mean
             weight of their valid fine pixels.
+        hole_weight: weight of the depth term on GT pixels where the input has no depth,
+            relative to 1 where it has (1: the paper, every pixel alike).
     """
 
     w_depth: float = 1.0
@@ -72,10 +78,15 @@ class LossConfig:
     window: int = 5
     scale_weights: tuple[float, ...] = (1.0, 1.0, 1.0)
     sigma_ref_m: float | None = None
+    hole_weight: float = 1.0
 
     def __post_init__(self):
         if self.sigma_ref_m is not None and not (math.isfinite(self.sigma_ref_m) and self.sigma_ref_m > 0):
             raise ValueError(f"loss_params.sigma_ref_m must be null or a finite number > 0, got {self.sigma_ref_m}")
+        if isinstance(self.hole_weight, bool) or not (
+            isinstance(self.hole_weight, (int, float)) and math.isfinite(self.hole_weight) and self.hole_weight > 0
+        ):
+            raise ValueError(f"loss_params.hole_weight must be a finite number > 0, got {self.hole_weight!r}")
 
 
 def depth_l1(
@@ -138,7 +149,8 @@ def lapden_loss(outputs: list[torch.Tensor], batch: dict, config: LossConfig = L
     Args:
         outputs: list of (B, 1, h_l, w_l) predictions, coarse to fine; finest at GT size.
         batch: dict with ``gt`` (B, 1, H, W) and ``K`` (B, 3, 3) (and ``sigma`` (B, 1,
-            H, W) with ``config.sigma_ref_m``).
+            H, W) with ``config.sigma_ref_m``, ``input`` (B, 1, H, W) with
+            ``config.hole_weight``).
 
     Returns:
         (total loss tensor, dict of float terms summed over levels: depth, grad,
@@ -159,6 +171,12 @@ def lapden_loss(outputs: list[torch.Tensor], batch: dict, config: LossConfig = L
                 "train on a depthgt GT (gt.exr channel S), not on one without a confidence image"
             )
         weight = confidence_weight(batch["sigma"].to(gt.dtype), config.sigma_ref_m)
+    if config.hole_weight != 1.0:
+        if "input" not in batch:
+            raise ValueError("loss_params.hole_weight is set but the batch has no 'input' (the raw depth)")
+        holes = (batch["input"] <= 0).to(gt.dtype)
+        hw = 1.0 + (float(config.hole_weight) - 1.0) * holes
+        weight = hw if weight is None else weight * hw
     total = gt.new_zeros(())
     terms = {"depth": 0.0, "grad": 0.0, "normal": 0.0, "structure": 0.0}
     for w_l, pred in zip(weights, outputs):
@@ -175,9 +193,20 @@ def lapden_loss(outputs: list[torch.Tensor], batch: dict, config: LossConfig = L
     return total, terms
 
 
+def _loss_config(**params) -> LossConfig:
+    if "scale_weights" in params:
+        params = {**params, "scale_weights": tuple(params["scale_weights"])}
+    unknown = sorted(set(params) - {f.name for f in fields(LossConfig)})
+    if unknown:
+        raise TypeError(f"unknown LapDEN loss parameters {unknown}; known: {[f.name for f in fields(LossConfig)]}")
+    return LossConfig(**params)
+
+
 def lapden_loss_from_params(outputs: list[torch.Tensor], batch: dict, **params):
     """:func:`lapden_loss` with the config's ``loss_params`` (:class:`LossConfig` fields)
     as keywords: the registry's loss of ``lapden`` (:data:`depthgt.registry.MODELS`)."""
-    if "scale_weights" in params:
-        params = {**params, "scale_weights": tuple(params["scale_weights"])}
-    return lapden_loss(outputs, batch, LossConfig(**params))
+    return lapden_loss(outputs, batch, _loss_config(**params))
+
+
+#: the training checks ``loss_params`` with this before the first batch
+lapden_loss_from_params.check_params = _loss_config

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import csv
 import importlib
+import inspect
 import json
 import logging
 import math
@@ -90,13 +91,37 @@ def _model(name: str) -> registry.Model:
 
 
 def build_model(name: str, params: dict | None = None) -> nn.Module:
-    """Model ``name`` of :data:`depthgt.registry.MODELS` built with keyword ``params``."""
-    return _function(_model(name).build)(**(params or {}))
+    """Model ``name`` of :data:`depthgt.registry.MODELS` built with keyword ``params``.
+
+    Raises:
+        ConfigError: a parameter the builder does not take or rejects (named with the
+            config key: the settings layer is torch-free and cannot check these).
+    """
+    try:
+        return _function(_model(name).build)(**(params or {}))
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"enhance.models.{name}.model_params {dict(params or {})}: {err}") from None
 
 
 def build_loss(name: str, params: dict | None = None) -> Callable:
-    """Loss of model ``name``: ``loss(outputs, batch) -> (total, terms)``."""
-    return partial(_function(_model(name).loss), **(params or {}))
+    """Loss of model ``name``: ``loss(outputs, batch) -> (total, terms)``.
+
+    ``params`` are checked now, not at the first batch: against the loss's keyword
+    parameters, and by its ``check_params`` when it has one (a loss taking ``**params``).
+
+    Raises:
+        ConfigError: a parameter the loss does not take or rejects.
+    """
+    fn = _function(_model(name).loss)
+    params = dict(params or {})
+    try:
+        inspect.signature(fn).bind(None, None, **params)
+        check = getattr(fn, "check_params", None)
+        if check is not None:
+            check(**params)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"enhance.models.{name}.loss_params {params}: {err}") from None
+    return partial(fn, **params)
 
 
 class TrainOutputs(NamedTuple):
