@@ -309,6 +309,54 @@ def test_export_command(built, tmp_path):
     assert cli_main(["verify", str(dest)]) == 0
 
 
+def test_export_refuses_what_it_cannot_own_and_names_it(results, tmp_path, capsys):
+    foreign = tmp_path / "foreign"
+    (foreign / "patches").mkdir(parents=True)
+    (foreign / "patches" / "mine.png").write_bytes(b"x")
+    with pytest.raises(DepthGTError, match=r"foreign holds files but no export.json \(patches\)"):
+        export_dataset(results, foreign, "png16", splits=["val"], progress=False)
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "export.json").write_text("{half")
+    with pytest.raises(DepthGTError, match=r"export.json: not readable as an export's settings \(JSONDecodeError"):
+        export_dataset(results, broken, "png16", splits=["val"], progress=False)
+    with pytest.raises(DepthGTError, match="workers must be an integer >= 0, got -1"):
+        export_dataset(results, tmp_path / "w", "png16", splits=["val"], workers=-1, progress=False)
+    assert not (tmp_path / "w").exists()  # checked before anything is written
+    with pytest.raises(DepthGTError, match=r"holds no built dataset .*nothing/results/dataset is missing"):
+        export_dataset(tmp_path / "nothing" / "results", tmp_path / "n", "png16", progress=False)
+    once = export_dataset(results, tmp_path / "once", "png16", splits=["val"], progress=False)
+    twice = export_dataset(results, tmp_path / "twice", "png16", splits=["val", "val"], progress=False)
+    assert twice.equals(once) and verify(tmp_path / "twice").ok
+    # a destination that is a file: the command names it, no traceback
+    (tmp_path / "afile").write_text("")
+    assert cli_main(["export", str(tmp_path / "afile" / "x"), "-d", str(results.parent)]) == 2
+    assert "afile" in capsys.readouterr().err
+
+
+def test_verify_reports_a_damaged_export_instead_of_crashing(results, tmp_path):
+    dest = tmp_path / "e"
+    export_dataset(results, dest, "png16", splits=["val"], progress=False)
+    assert verify(dest).ok
+    stray = dest / "patches" / "stray.png"
+    stray.write_bytes(b"x")
+    report = verify(dest)
+    assert len(report.problems) == 1 and "1 files not in SHA256SUMS" in report.problems[0]
+    assert "stray.png" in report.problems[0]
+    stray.unlink()
+    (dest / "index.parquet").write_bytes(b"garbage")
+    (problem,) = verify(dest).problems
+    assert "index.parquet: not a readable parquet table" in problem
+    (dest / "export.json").write_text("[1, 2]")  # also breaks its checksum
+    assert any("export.json: not a JSON object (a list)" in p for p in verify(dest).problems)
+    wd = _copy_results(results.parent, tmp_path / "wd")
+    (wd / "results/dataset/card.json").write_text(
+        json.dumps({"format_version": store.FORMAT_VERSION, "files": {"a": {}}})
+    )
+    (problem,) = verify(wd).problems
+    assert "card.json: not a dataset card (KeyError" in problem
+
+
 # --------------------------------------------------------------------------- card and verify
 
 

@@ -124,4 +124,47 @@ def test_the_command_and_bad_prediction_folders(build, tmp_path, capsys):
     with pytest.raises(DepthGTError, match="'rgf' is a method of the build"):
         predictions.evaluate_folder(pred, tmp_path / "o2", predictions.frames_from_results(build), "rgf", [ev])
     with pytest.raises(DepthGTError, match="not a finished export"):
-        next(predictions.frames_from_export(tmp_path))
+        predictions.frames_from_export(tmp_path)
+
+
+def test_every_missing_prediction_is_named_before_scoring_and_bad_depths(build, tmp_path, caplog):
+    pred = tmp_path / "p"
+    rng = np.random.default_rng(2)
+    truths = [_frame(rng)[0] for _ in range(6)]
+    for i in (0, 2, 5):
+        io.write_exr(pred / "syn" / "room" / f"{i:06d}.exr", {"Y": truths[i]})
+    read = []
+    frames = predictions.frames_from_results(build)
+    frames_read = predictions.TestFrames(frames.ids, lambda i: read.append(i) or frames._read(i))
+    with pytest.raises(DepthGTError, match=r"3 of the 6 test frames have no single prediction") as err:
+        predictions.score_predictions(pred, frames_read, "p")
+    assert all(f"{i:06d}.exr" in str(err.value) for i in (1, 3, 4)) and not read  # named at once, nothing read
+    for i in (1, 3, 4):
+        io.write_exr(pred / "syn" / "room" / f"{i:06d}.exr", {"Y": truths[i]})
+    # NaN and +inf count as missing, and say so; a negative depth is an error naming the file
+    bad = truths[4].copy()
+    bad[:4] = np.nan
+    bad[4:6] = np.inf
+    io.write_exr(pred / "syn" / "room" / "000004.exr", {"Y": bad})
+    with caplog.at_level("WARNING", logger="depthgt.eval.predictions"):
+        ev = predictions.score_predictions(pred, predictions.frames_from_results(build), "p")
+    assert "1 predictions hold NaN or inf pixels" in caplog.text and "000004.exr (192 px)" in caplog.text
+    comp = ev[(ev["metric"] == "completeness") & (ev["reference"] == "truth")].set_index("target")["value"]
+    assert comp.loc[4] == pytest.approx(1 - 6 / 32) and comp.loc[3] == 1.0
+    bad[:4] = -1.0
+    io.write_exr(pred / "syn" / "room" / "000004.exr", {"Y": bad})
+    with pytest.raises(DepthGTError, match=r"000004.exr: 128 pixels of negative depth"):
+        predictions.score_predictions(pred, predictions.frames_from_results(build), "p")
+
+
+def test_corrupt_export_metadata_is_named(tmp_path):
+    (tmp_path / "index.parquet").write_bytes(b"not parquet")
+    (tmp_path / "export.json").write_text("{broken")
+    with pytest.raises(DepthGTError, match=r"export.json: not readable \(JSONDecodeError"):
+        predictions.frames_from_export(tmp_path)
+    (tmp_path / "export.json").write_text("[1, 2]")
+    with pytest.raises(DepthGTError, match=r"export.json: an export of None"):
+        predictions.frames_from_export(tmp_path)
+    (tmp_path / "export.json").write_text('{"kind": "frames", "splits": ["test"]}')
+    with pytest.raises(DepthGTError, match=r"index.parquet: not a readable parquet table"):
+        predictions.frames_from_export(tmp_path)

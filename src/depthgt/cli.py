@@ -195,7 +195,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             )
         compare = [pd.read_parquet(p) for p in evals]
     out = Path(args.out) if args.out else Path(args.directory) / f"evaluate-{name}"
-    written = predictions.evaluate_folder(pred_dir, out, frames, method=name, compare=compare)
+    written = predictions.evaluate_folder(pred_dir, out, frames, method=name, compare=compare, progress=True)
     for key, path in written.items():
         print(f"{key}: {path}")
     return 0
@@ -387,6 +387,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             os.environ.setdefault("DEPTHGT_REPO", str(repo_root()))
         return int(args.func(args) or 0)
     except DepthGTError as exc:
+        print(f"depthgt: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a destination that is a file, unwritable, on a full disk: its path is in the message
         print(f"depthgt: error: {exc}", file=sys.stderr)
         return 2
 

@@ -126,13 +126,27 @@ def _check_settings(dest: Path, settings: dict[str, Any]) -> None:
     """export.json of this export; an unfinished export of other settings is not mixed in."""
     path = dest / "export.json"
     if path.is_file():
-        before = json.loads(path.read_text())
+        try:
+            before = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+            raise DepthGTError(
+                f"{path}: not readable as an export's settings ({type(err).__name__}: {err}); "
+                "export into an empty folder or remove it"
+            ) from None
         if before != settings:
             diff = sorted(k for k in set(before) | set(settings) if before.get(k) != settings.get(k))
             raise DepthGTError(
                 f"{path}: {dest} holds an export with other settings ({diff}); export into an empty folder or remove it"
             )
     else:
+        # files without export.json are no unfinished export of ours (it is written first):
+        # resuming would keep foreign files at the samples' paths and checksum them
+        present = sorted(p.name for p in dest.iterdir()) if dest.is_dir() else []
+        if present:
+            raise DepthGTError(
+                f"export: {dest} holds files but no export.json ({', '.join(present[:5])}"
+                f"{', ...' if len(present) > 5 else ''}): export into an empty or new folder"
+            )
         write_atomic(path, io.write_json, settings)
 
 
@@ -173,6 +187,14 @@ def export_dataset(
     bad = [s for s in splits if s not in SPLITS]
     if bad or not splits:
         raise DepthGTError(f"export: splits must be among {', '.join(SPLITS)}, got {list(splits)}")
+    splits = list(dict.fromkeys(splits))  # a split named twice is exported once
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+        raise DepthGTError(f"export: workers must be an integer >= 0, got {workers!r}")
+    if not (results / "dataset").is_dir():
+        raise DepthGTError(
+            f"export: {results.parent} holds no built dataset ({results / 'dataset'} is missing): "
+            "pass the build's working directory (-d), or build it first (`depthgt build dataset`)"
+        )
     cards = [results / "dataset" / name for name in CARD_FILES]
     for card in cards:
         if not card.is_file():

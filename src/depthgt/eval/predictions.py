@@ -5,7 +5,8 @@ test split of a ``depthgt export --kind frames``: the export's
 ``frames/test/{dataset}/{scene}/input/{target:06d}.png`` is predicted as
 ``PRED_DIR/{dataset}/{scene}/{target:06d}.png`` (16-bit PNG, millimetres, 0 = missing)
 or ``.exr`` (float32 metres in the single channel ``Y`` as the export writes it, or
-``Z``; 0 = missing), at the frame's working resolution.
+``Z``; 0, NaN or +inf = missing, a negative depth is an error), at the frame's working
+resolution.
 
 The references are the frames of the test split, read either from a build's results
 (:func:`frames_from_results`: the frame sets through :mod:`depthgt.gt.store`, exactly
@@ -22,7 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -39,6 +40,7 @@ from depthgt.status import Status
 
 __all__ = [
     "TestFrame",
+    "TestFrames",
     "frames_from_results",
     "frames_from_export",
     "prediction_path",
@@ -70,43 +72,81 @@ class TestFrame(NamedTuple):
     references: dict[str, np.ndarray]
 
 
-def frames_from_results(directory: str | Path, split: str = "test") -> Iterator[TestFrame]:
+class TestFrames:
+    """The test frames of a build or an export: their ids, known before any image is
+    read (so that every missing prediction is named at once), and, iterated, the frames
+    with their images, read one at a time."""
+
+    def __init__(self, ids: list[tuple[str, str, int]], read: Callable[[int], TestFrame]):
+        self.ids, self._read = ids, read
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def __iter__(self) -> Iterator[TestFrame]:
+        return (self._read(i) for i in range(len(self.ids)))
+
+
+def frames_from_results(directory: str | Path, split: str = "test") -> TestFrames:
     """The ``split`` frames of a build in the working directory ``directory`` (its
     ``results/dataset/framesets.parquet``; locations relative to ``directory``)."""
     directory = Path(directory)
     table_path = directory / "results" / "dataset" / "framesets.parquet"
     if not table_path.is_file():
         raise DepthGTError(f"{table_path}: no built dataset (run `depthgt build dataset` in {directory})")
-    table = pd.read_parquet(table_path)
+    table = _read_table(table_path)
     table = table[(table["split"] == split) & (table["status"] == Status.OK) & (table["frameset"] != "")]
     if table.empty:
         raise DepthGTError(f"{table_path}: no runnable frame set in the split {split!r}")
-    for rec in table.itertuples():
+    recs = list(table.itertuples())
+
+    def read(i: int) -> TestFrame:
+        rec = recs[i]
         loc = rec.frameset if Path(str(rec.frameset)).is_absolute() else str(directory / str(rec.frameset))
         frame = store.read_frame_images(loc)
         refs = {r: frame.depth(r) for r in ("gt", "truth") if frame.depth(r) is not None}
-        yield TestFrame(str(rec.dataset), str(rec.scene), int(rec.target), frame.input_m, refs)
+        return TestFrame(str(rec.dataset), str(rec.scene), int(rec.target), frame.input_m, refs)
+
+    return TestFrames([(str(r.dataset), str(r.scene), int(r.target)) for r in recs], read)
 
 
-def frames_from_export(export_dir: str | Path, split: str = "test") -> Iterator[TestFrame]:
+def frames_from_export(export_dir: str | Path, split: str = "test") -> TestFrames:
     """The ``split`` frames of a ``depthgt export --kind frames`` in ``export_dir``."""
     export_dir = Path(export_dir)
     meta_path, index_path = export_dir / "export.json", export_dir / "index.parquet"
     if not meta_path.is_file() or not index_path.is_file():
         raise DepthGTError(f"{export_dir}: not a finished export (no export.json or index.parquet)")
-    meta = json.loads(meta_path.read_text())
-    if meta.get("kind") != "frames" or split not in meta.get("splits", []):
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise DepthGTError(f"{meta_path}: not readable ({type(err).__name__}: {err})") from None
+    if not isinstance(meta, dict) or meta.get("kind") != "frames" or split not in (meta.get("splits") or []):
+        kind, splits = (meta.get("kind"), meta.get("splits")) if isinstance(meta, dict) else (None, None)
         raise DepthGTError(
-            f"{meta_path}: an export of {meta.get('kind')} of the splits {meta.get('splits')}; "
+            f"{meta_path}: an export of {kind} of the splits {splits}; "
             f"scoring needs `depthgt export --kind frames --split {split}`"
         )
-    index = pd.read_parquet(index_path)
-    index = index[index["split"] == split]
-    for rec in index.itertuples():
+    index = _read_table(index_path)
+    missing = sorted({"split", "dataset", "scene", "target", "input", "gt", "truth"} - set(index.columns))
+    if missing:
+        raise DepthGTError(f"{index_path}: not an export's index (no columns {missing})")
+    recs = list(index[index["split"] == split].itertuples())
+
+    def read(i: int) -> TestFrame:
+        rec = recs[i]
         refs = {m: read_depth(export_dir / getattr(rec, m), m) for m in ("gt", "truth") if getattr(rec, m)}
-        yield TestFrame(
+        return TestFrame(
             str(rec.dataset), str(rec.scene), int(rec.target), read_depth(export_dir / rec.input, "input"), refs
         )
+
+    return TestFrames([(str(r.dataset), str(r.scene), int(r.target)) for r in recs], read)
+
+
+def _read_table(path: Path) -> pd.DataFrame:
+    try:
+        return pd.read_parquet(path)
+    except Exception as err:  # pyarrow raises its own types for a corrupt or foreign file
+        raise DepthGTError(f"{path}: not a readable parquet table ({type(err).__name__}: {err})") from None
 
 
 def prediction_path(pred_dir: str | Path, dataset: str, scene: str, target: int) -> Path:
@@ -144,25 +184,67 @@ def read_prediction(path: str | Path, shape_hw: tuple[int, int]) -> np.ndarray:
         depth = io.read_depth_png(path, PNG_UNITS_PER_M, expected_hw=tuple(shape_hw), what="the test frame's size")
     if depth.shape != tuple(shape_hw):
         raise DepthGTError(f"{path}: prediction of shape {depth.shape}, the test frame is {tuple(shape_hw)}")
-    return np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0)
+    negative = int((depth < 0).sum())  # -inf included
+    if negative:
+        raise DepthGTError(
+            f"{path}: {negative} pixels of negative depth (min {float(depth.min()):.4g}); "
+            "a prediction holds depth in metres (EXR) or millimetres (PNG), 0 or NaN where it has none"
+        )
+    return depth
 
 
-def score_predictions(pred_dir: str | Path, frames: Iterator[TestFrame], method: str) -> pd.DataFrame:
+def score_predictions(
+    pred_dir: str | Path, frames: Iterable[TestFrame], method: str, progress: bool = False
+) -> pd.DataFrame:
     """Every frame's prediction of ``pred_dir`` scored as ``method`` (long table,
-    :data:`EVAL_COLUMNS`); a missing or unreadable prediction raises, naming it."""
-    rows = []
-    for f in frames:
-        pred = read_prediction(prediction_path(pred_dir, f.dataset, f.scene, f.target), f.input_m.shape)
+    :data:`EVAL_COLUMNS`); an unreadable prediction raises, naming it, and with
+    :class:`TestFrames` every missing one is named before any is scored. NaN and +inf
+    pixels count as missing (as 0 does); how many, and in which files, is logged.
+
+    Raises:
+        DepthGTError: predictions missing (all listed), unreadable or of negative depth.
+    """
+    from tqdm import tqdm
+
+    if isinstance(frames, TestFrames):
+        absent = []
+        for d, sc, t in frames.ids:
+            try:
+                prediction_path(pred_dir, d, sc, t)
+            except DepthGTError as err:
+                absent.append(str(err))
+        if absent:
+            raise DepthGTError(
+                f"{pred_dir}: {len(absent)} of the {len(frames)} test frames have no single prediction:\n  "
+                + "\n  ".join(absent[:10])
+                + (f"\n  ... and {len(absent) - 10} more" if len(absent) > 10 else "")
+            )
+    rows, non_finite = [], []
+    total = len(frames) if isinstance(frames, TestFrames) else None
+    for f in tqdm(frames, total=total, desc=f"scoring {method}", unit="frame", disable=not progress):
+        path = prediction_path(pred_dir, f.dataset, f.scene, f.target)
+        pred = read_prediction(path, f.input_m.shape)
+        bad = ~np.isfinite(pred)
+        if bad.any():
+            non_finite.append((path, int(bad.sum())))
+            pred = np.where(bad, np.float32(0.0), pred)
         rows += score_rows(f.dataset, f.scene, f.target, method, pred, f.input_m, f.references)
+    if non_finite:
+        log.warning(
+            "%d predictions hold NaN or inf pixels, scored as missing (the completeness column counts them): %s",
+            len(non_finite),
+            ", ".join(f"{p} ({n} px)" for p, n in non_finite[:5]) + (" ..." if len(non_finite) > 5 else ""),
+        )
     return pd.DataFrame(rows, columns=EVAL_COLUMNS)
 
 
 def evaluate_folder(
     pred_dir: str | Path,
     out_dir: str | Path,
-    frames: Iterator[TestFrame],
+    frames: Iterable[TestFrame],
     method: str = "user",
     compare: Sequence[pd.DataFrame] = (),
+    progress: bool = False,
 ) -> dict[str, Path]:
     """Score ``pred_dir`` on ``frames`` and write the tables into ``out_dir``.
 
@@ -180,7 +262,8 @@ def evaluate_folder(
     out_dir = Path(out_dir)
     if method in {m for c in compare for m in c["method"].unique()}:
         raise DepthGTError(f"the predictions' name {method!r} is a method of the build: pick another (--name)")
-    ev = score_predictions(pred_dir, frames, method)
+    out_dir.mkdir(parents=True, exist_ok=True)  # before the scoring: a bad destination fails at once
+    ev = score_predictions(pred_dir, frames, method, progress=progress)
     if ev.empty:
         raise DepthGTError(f"{pred_dir}: no test frame to score")
     keys = ["dataset", "scene", "target", "reference"]
@@ -189,7 +272,6 @@ def evaluate_folder(
     ev_all = pd.concat([ev, *both], ignore_index=True)
     with_truth = set(ev.loc[ev["reference"] == "truth", "dataset"])
     kinds = {d: ("synthetic" if d in with_truth else "real") for d in ev["dataset"].unique()}
-    out_dir.mkdir(parents=True, exist_ok=True)
     written = {"eval": out_dir / "eval.parquet"}
     ev_all.to_parquet(written["eval"], index=False)
     built = {

@@ -329,16 +329,21 @@ def verify(folder: str | Path) -> Verification:
     for results in (folder / "results", folder):
         card_path = results / "dataset" / "card.json"
         if card_path.is_file():
-            card = json.loads(card_path.read_text())
             report = Verification(results, "results")
-            version = card.get("format_version", 1)
-            if version != store.FORMAT_VERSION:
-                report.problems.append(
-                    f"{card_path}: shards in format version {version}, this depthgt reads version "
-                    f"{store.FORMAT_VERSION}: rebuild every scene (`depthgt rebuild DATASET SCENE`) and the dataset (`depthgt build dataset`)"
-                )
-            for rel, entry in card["files"].items():
-                _check_file(results / rel, entry["sha256"], entry.get("bytes"), f"card {card_path}", report)
+            card = _read_json(card_path, report)
+            if card is None:
+                return report
+            try:
+                version = card.get("format_version", 1)
+                if version != store.FORMAT_VERSION:
+                    report.problems.append(
+                        f"{card_path}: shards in format version {version}, this depthgt reads version "
+                        f"{store.FORMAT_VERSION}: rebuild every scene (`depthgt rebuild DATASET SCENE`) and the dataset (`depthgt build dataset`)"
+                    )
+                for rel, entry in card["files"].items():
+                    _check_file(results / rel, entry["sha256"], entry.get("bytes"), f"card {card_path}", report)
+            except (KeyError, TypeError, AttributeError) as err:  # a card edited or written by something else
+                report.problems.append(f"{card_path}: not a dataset card ({type(err).__name__}: {err})")
             return report
     if (folder / "card.json").is_file() and (folder / "export.json").is_file():
         return _verify_export(folder, folder / CHECKSUMS)
@@ -363,12 +368,49 @@ def _verify_export(folder: Path, sums: Path) -> Verification:
     if not index.is_file():
         report.problems.append(f"{index}: missing (the export did not finish: run it again to resume)")
         return report
-    card = json.loads((folder / "card.json").read_text())
-    settings = json.loads((folder / "export.json").read_text())
-    rows = pd.read_parquet(index)
-    count = "framesets" if settings["kind"] == "frames" else "pairs"
-    for split in settings["splits"]:
-        got, want = int((rows["split"] == split).sum()), card["splits"][split][count]
-        if got != want:
-            report.problems.append(f"{index}: {got} {settings['kind']} of split {split}, the card records {want}")
+    listed = {line.partition("  ")[2] for line in sums.read_text().splitlines()}
+    unlisted = sorted(
+        str(p.relative_to(folder))
+        for p in folder.rglob("*")
+        if p.is_file()
+        and p.name not in (CHECKSUMS, "index.parquet", "index.csv")
+        and str(p.relative_to(folder)) not in listed
+    )
+    if unlisted:
+        report.problems.append(
+            f"{folder}: {len(unlisted)} files not in {sums.name} (not written by this export): "
+            + ", ".join(unlisted[:5])
+            + (" ..." if len(unlisted) > 5 else "")
+        )
+    card, settings = _read_json(folder / "card.json", report), _read_json(folder / "export.json", report)
+    if card is None or settings is None:
+        return report
+    try:
+        rows = pd.read_parquet(index)
+    except Exception as err:  # pyarrow raises its own types for a corrupt file
+        report.problems.append(f"{index}: not a readable parquet table ({type(err).__name__}: {err})")
+        return report
+    try:
+        count = "framesets" if settings["kind"] == "frames" else "pairs"
+        for split in settings["splits"]:
+            got, want = int((rows["split"] == split).sum()), card["splits"][split][count]
+            if got != want:
+                report.problems.append(f"{index}: {got} {settings['kind']} of split {split}, the card records {want}")
+    except (KeyError, TypeError, AttributeError) as err:
+        report.problems.append(
+            f"{folder}: card.json, export.json or index.parquet not as an export writes them ({type(err).__name__}: {err})"
+        )
     return report
+
+
+def _read_json(path: Path, report: Verification) -> dict | None:
+    """``path``'s JSON object, or None with the problem recorded."""
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        report.problems.append(f"{path}: not readable JSON ({type(err).__name__}: {err})")
+        return None
+    if not isinstance(doc, dict):
+        report.problems.append(f"{path}: not a JSON object (a {type(doc).__name__})")
+        return None
+    return doc
