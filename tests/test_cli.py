@@ -88,6 +88,20 @@ def test_extract_writes_the_frame_set_files(built, tmp_path):
     from depthgt.io import read_exr
 
     assert read_exr(tmp_path / "fs" / "gt.exr")["Z"].shape == (TINY["resize"],) * 2
+    # a folder holding such files is not overwritten without --force; bad folders are named
+    (tmp_path / "fs" / "gt.exr").write_bytes(b"mine")
+    proc = depthgt("extract", "-d", str(built), "syn", "room_001", "6", str(tmp_path / "fs"), check=False)
+    assert proc.returncode == 2 and "already holds gt.exr" in proc.stderr and "--force" in proc.stderr
+    assert (tmp_path / "fs" / "gt.exr").read_bytes() == b"mine"
+    depthgt("extract", "-d", str(built), "syn", "room_001", "6", str(tmp_path / "fs"), "--force")
+    assert read_exr(tmp_path / "fs" / "gt.exr")["Z"].shape == (TINY["resize"],) * 2
+    (tmp_path / "afile").write_text("")
+    proc = depthgt("extract", "-d", str(built), "syn", "room_001", "6", str(tmp_path / "afile" / "x"), check=False)
+    assert proc.returncode == 2 and "afile" in proc.stderr and "Traceback" not in proc.stderr
+    proc = depthgt("extract", "-d", str(tmp_path / "nowhere"), "syn", "room_001", "6", str(tmp_path / "y"), check=False)
+    assert proc.returncode == 2 and "holds no build" in proc.stderr
+    proc = depthgt("show", "-d", str(built), "syn", "room_000", "6", "--out", str(tmp_path / "p.jpgx"), check=False)
+    assert proc.returncode == 2 and "--out" in proc.stderr and "Traceback" not in proc.stderr
 
 
 def test_rebuild_runs_only_that_scene(built, tmp_path):
@@ -122,6 +136,8 @@ def test_report_of_an_unfinished_build_says_what_to_run(built, tmp_path):
     # the report of a finished build is tested in test_workflow_enhance (it needs training)
     proc = depthgt("report", "-d", str(built), "--out", str(tmp_path / "r.html"), check=False)
     assert proc.returncode == 2 and "depthgt build" in proc.stderr
+    proc = depthgt("report", "-d", str(tmp_path / "typo"), "--out", str(tmp_path / "r.html"), check=False)
+    assert proc.returncode == 2 and "holds no build" in proc.stderr and not (tmp_path / "typo").exists()
 
 
 def test_bench_runs_a_benchmark():

@@ -141,6 +141,9 @@ def test_every_missing_prediction_is_named_before_scoring_and_bad_depths(build, 
     assert all(f"{i:06d}.exr" in str(err.value) for i in (1, 3, 4)) and not read  # named at once, nothing read
     for i in (1, 3, 4):
         io.write_exr(pred / "syn" / "room" / f"{i:06d}.exr", {"Y": truths[i]})
+    (pred / "syn" / "rooom").mkdir()
+    (pred / "syn" / "rooom" / "000001.png").write_bytes(b"")
+    (pred / "notes.txt").write_text("")
     # NaN and +inf count as missing, and say so; a negative depth is an error naming the file
     bad = truths[4].copy()
     bad[:4] = np.nan
@@ -149,6 +152,7 @@ def test_every_missing_prediction_is_named_before_scoring_and_bad_depths(build, 
     with caplog.at_level("WARNING", logger="depthgt.eval.predictions"):
         ev = predictions.score_predictions(pred, predictions.frames_from_results(build), "p")
     assert "1 predictions hold NaN or inf pixels" in caplog.text and "000004.exr (192 px)" in caplog.text
+    assert "2 files of" in caplog.text and "notes.txt, syn/rooom/000001.png" in caplog.text
     comp = ev[(ev["metric"] == "completeness") & (ev["reference"] == "truth")].set_index("target")["value"]
     assert comp.loc[4] == pytest.approx(1 - 6 / 32) and comp.loc[3] == 1.0
     bad[:4] = -1.0

@@ -34,6 +34,10 @@ from depthgt.gt import store
 __all__ = ["main", "repo_root", "snakemake_command", "scene_outputs"]
 
 
+#: the panel formats of ``depthgt show --out`` (matplotlib's, without a backend choice)
+PANEL_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
+
+
 def repo_root() -> Path:
     """The checkout holding the Snakefile and bench/ (the package is installed from it
     in editable mode: src/depthgt/cli.py -> the repository root)."""
@@ -124,9 +128,16 @@ def _cmd_rebuild(args: argparse.Namespace) -> int:
     return 0
 
 
-def _read(args: argparse.Namespace) -> store.FrameSetRecord:
+def _results(args: argparse.Namespace) -> Path:
+    """The build's results folder; a working directory without one is named as such."""
     results = Path(args.directory) / "results"
-    return store.read_frameset(results, args.dataset, args.scene, args.target)
+    if not (results / "framesets").is_dir():
+        raise DepthGTError(f"{Path(args.directory)} holds no build ({results / 'framesets'} is missing): check -d")
+    return results
+
+
+def _read(args: argparse.Namespace) -> store.FrameSetRecord:
+    return store.read_frameset(_results(args), args.dataset, args.scene, args.target)
 
 
 def frameset_statistics(rec: store.FrameSetRecord) -> dict[str, Any]:
@@ -152,13 +163,19 @@ def _cmd_show(args: argparse.Namespace) -> int:
     for key, value in stats.items():
         print(f"{key:{width}s} {value:.4f}" if isinstance(value, float) else f"{key:{width}s} {value}")
     out = Path(args.out or f"{args.dataset}_{args.scene}_{args.target:06d}.png")
+    if out.suffix.lower() not in PANEL_SUFFIXES:
+        raise DepthGTError(f"--out {out}: the panel is written as {', '.join(PANEL_SUFFIXES)}")
     frameset_panel(rec, out, title=f"{args.dataset}/{args.scene}/{args.target:06d}")
     print(f"panel: {out}")
     return 0
 
 
 def _cmd_extract(args: argparse.Namespace) -> int:
-    for p in store.extract_frameset(Path(args.directory) / "results", args.dataset, args.scene, args.target, args.dest):
+    results = _results(args)
+    present = [n for n in store.FRAMESET_FILES if (Path(args.dest) / n).exists()]
+    if present and not args.force:
+        raise DepthGTError(f"{args.dest} already holds {', '.join(present)}: pick another folder or pass --force")
+    for p in store.extract_frameset(results, args.dataset, args.scene, args.target, args.dest):
         print(p)
     return 0
 
@@ -217,6 +234,10 @@ def _cmd_verify(args: argparse.Namespace) -> int:
 def _cmd_report(args: argparse.Namespace) -> int:
     # Snakemake's report needs every file marked for it: say what to run instead of
     # Snakemake's "marked for report but does not exist"
+    if not (Path(args.directory) / "results").is_dir():  # before Snakemake creates .snakemake/ there
+        raise DepthGTError(
+            f"{Path(args.directory).resolve()} holds no build (no results/): check -d, or run `depthgt build`"
+        )
     plan = subprocess.run(snakemake_command(args, "-n", "--quiet", "all"), capture_output=True, text=True)
     if plan.returncode != 0 or "Nothing to be done" not in plan.stdout + plan.stderr:
         raise DepthGTError(
@@ -293,9 +314,11 @@ def _parser() -> argparse.ArgumentParser:
         "extract",
         parents=[common, fs],
         help="one frame set's files into a folder",
-        description="Write one built frame set's files (EXR, PNG, JSON, NPZ) into DEST.",
+        description="Write one built frame set's files (gt.exr, input.exr, rgb.webp, poses.json, "
+        "patches.npz, frameset.json) into DEST.",
     )
     e.add_argument("dest")
+    e.add_argument("--force", action="store_true", help="overwrite those files where DEST holds them")
     e.set_defaults(func=_cmd_extract)
 
     x = sub.add_parser(

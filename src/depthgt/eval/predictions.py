@@ -213,6 +213,19 @@ def score_predictions(
                 prediction_path(pred_dir, d, sc, t)
             except DepthGTError as err:
                 absent.append(str(err))
+        expected = {Path(d) / sc / f"{int(t):06d}{x}" for d, sc, t in frames.ids for x in PREDICTION_SUFFIXES}
+        unused = sorted(
+            str(q.relative_to(pred_dir))
+            for q in Path(pred_dir).rglob("*")
+            if q.is_file() and q.relative_to(pred_dir) not in expected
+        )
+        if unused:  # a typo in a scene's name would otherwise go unnoticed beside the error below
+            log.warning(
+                "%d files of %s are no test frame's prediction and are not scored: %s",
+                len(unused),
+                pred_dir,
+                ", ".join(unused[:5]) + (" ..." if len(unused) > 5 else ""),
+            )
         if absent:
             raise DepthGTError(
                 f"{pred_dir}: {len(absent)} of the {len(frames)} test frames have no single prediction:\n  "
