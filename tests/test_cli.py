@@ -61,6 +61,15 @@ def test_build_names_a_bad_config_key(tmp_path):
     assert "resize" in proc.stdout + proc.stderr
 
 
+def test_build_names_a_source_whose_scenes_all_finds_nothing(tmp_path):
+    (tmp_path / "empty").mkdir()
+    source = {"name": "mine", "kind": "sevenscenes", "root": str(tmp_path / "empty"), "scenes": "all", "split": "train"}
+    wd = make_workdir(tmp_path / "wd", dict(TINY, sources=[*TINY["sources"], source]))
+    proc = depthgt("build", "-d", str(wd), "--cores", "1", "-n", check=False)
+    assert proc.returncode != 0
+    assert "sources[mine]: scenes: all finds no sevenscenes scene under" in proc.stdout + proc.stderr
+
+
 def test_show_prints_statistics_and_writes_a_panel(built, tmp_path):
     out = tmp_path / "panel.png"
     proc = depthgt("show", "-d", str(built), "syn", "room_000", "6", "--out", str(out))

@@ -40,6 +40,40 @@ def test_scenes_without_framesets_reasons():
     }
 
 
+def test_a_dataset_with_no_patch_kept_writes_empty_manifests_and_says_why(tmp_path):
+    from depthgt.gt.assemble import FRAME_COLUMNS, PATCH_COLUMNS, DatasetOutputs, assemble
+
+    tables = {}
+    for name, cols in (
+        ("fs", FRAMESET_COLUMNS),
+        ("patches", PATCH_COLUMNS),
+        ("quality", []),
+        ("frames", FRAME_COLUMNS),
+    ):
+        tables[name] = tmp_path / f"{name}.parquet"
+        pd.DataFrame(columns=cols).to_parquet(tables[name])
+    index = tmp_path / "index.json"
+    index.write_text(
+        json.dumps(
+            {
+                "dataset": "k",
+                "scene": "seq",
+                "n_frames": 5,
+                "problems": ["scene_too_short: 5 frames, a frame set needs 13"],
+                "source": {"root": "/data"},
+            }
+        )
+    )
+    out = DatasetOutputs.in_dir(tmp_path / "out")
+    summary = assemble([tables["fs"]], [tables["patches"]], [tables["quality"]], [tables["frames"]], [index], out)
+    for split in ("train", "val", "test"):
+        assert pd.read_parquet(getattr(out, split)).empty
+    assert summary["scenes_without_framesets"] == [
+        {"dataset": "k", "scene": "seq", "n_frames": 5, "reason": "scene_too_short: 5 frames, a frame set needs 13"}
+    ]
+    assert "scene_too_short" in out.summary_md.read_text()
+
+
 def _empty_sens_build(tmp_path: Path):
     """A .sens whose header announces 0 frames beside a synthetic scene, built to ``dataset`` (conftest.EarlyRuns)."""
     data = tmp_path / "data"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -196,6 +197,32 @@ def test_registration_presets_and_types():
         and s.render.radius_px == 2.0
         and isinstance(s.enhance.rde.trunc_voxels, float)
     )
+
+
+def test_nested_sections_and_lists_of_the_wrong_type_are_named():
+    for refine, key, what in (
+        ("abc", "registration.refine_settings", "must be a mapping, got str 'abc'"),
+        ([1], "registration.refine_settings", "must be a mapping, got list [1]"),
+        ({"iters": "abc"}, "registration.refine_settings.iters", "must be a list, got str 'abc'"),
+        (
+            {"max_dist_m": ["x", 0.1, 0.1]},
+            r"registration.refine_settings.max_dist_m\[0\]",
+            "must be float, got str 'x'",
+        ),
+    ):
+        with pytest.raises(ConfigError, match=f"{key}: " + re.escape(what)):
+            settings_from_config({"registration": {"method": "refine", "refine_settings": refine}})
+    ok = settings_from_config({"registration": {"method": "refine", "refine_settings": {"max_dist_m": [1, 0.5, 0.2]}}})
+    assert ok.registration.refine_settings.max_dist_m == (1, 0.5, 0.2)
+
+
+def test_shared_training_settings_are_checked_where_every_model_overrides_them():
+    models = {m: {"epochs": 3} for m in ("lapden", "ddrnet", "sdd")}
+    for value, what in (("ten", "must be int, got str 'ten'"), (2.5, "must be int, got float 2.5")):
+        with pytest.raises(ConfigError, match=f"enhance.train.epochs: {what}"):
+            settings_from_config({"enhance": {"train": {"epochs": value}, "models": models}})
+    with pytest.raises(ConfigError, match="epochs: must be >= 1, got -3"):
+        settings_from_config({"enhance": {"train": {"epochs": -3}, "models": models}})
 
 
 def test_train_settings_identity_ignores_epochs():

@@ -1135,6 +1135,9 @@ def _enhance_settings(section: Mapping[str, Any] | None, seed: int, device: str)
     trainable = registry.learned()
     own_keys = sorted({m.settings_key for m in trainable.values()})
     check_keys(per_model, own_keys, "enhance.models")
+    # the shared section on its own: a bad value there is named there, even where every
+    # model's entry overrides it
+    build(TrainSettings, {"seed": seed, "device": device, "progress": False, **shared}, "enhance.train")
     models = {}
     for name, spec in trainable.items():
         entry = dict(per_model.get(spec.settings_key) or {})
@@ -1569,13 +1572,28 @@ def _coerce(hint, value, where: str):
         if dataclasses.is_dataclass(opt) and isinstance(value, Mapping):
             return build(opt, value, where)
         if typing.get_origin(opt) is tuple and isinstance(value, (list, tuple)):
-            return tuple(value)
+            return _tuple_of(opt, value, where)
     scalars = [o for o in options if o in (int, float, bool, str)]
+    structured = [o for o in options if dataclasses.is_dataclass(o) or typing.get_origin(o) is tuple]
+    if structured and not scalars and not any(isinstance(value, o) for o in options if isinstance(o, type)):
+        kinds = " or ".join("a mapping" if dataclasses.is_dataclass(o) else "a list" for o in structured)
+        _fail(where, f"must be {kinds}, got {type(value).__name__} {value!r}")
     if scalars and not any(_is(value, o) for o in scalars):
         _fail(where, f"must be {' or '.join(o.__name__ for o in scalars)}, got {type(value).__name__} {value!r}")
     if float in scalars and not isinstance(value, float) and _is(value, float) and int not in scalars:
         return float(value)
     return value
+
+
+def _tuple_of(hint, value, where: str) -> tuple:
+    """``value`` as a tuple, its items checked where the hint gives them one scalar type
+    (``tuple[int, ...]``); nested settings and other item types are left to their checks."""
+    args = [a for a in typing.get_args(hint) if a is not Ellipsis]
+    if len(set(args)) == 1 and args[0] in (int, float, bool, str):
+        for i, item in enumerate(value):
+            if not _is(item, args[0]):
+                _fail(f"{where}[{i}]", f"must be {args[0].__name__}, got {type(item).__name__} {item!r}")
+    return tuple(value)
 
 
 def _is(value, kind) -> bool:

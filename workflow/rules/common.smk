@@ -23,7 +23,13 @@ def _scenes_of(src):
     if src["scenes"] == "all":
         from depthgt.sources.base import list_scenes
 
-        return list_scenes(src["kind"], src.get("root"), **src.get("options", {}))
+        found = list_scenes(src["kind"], src.get("root"), **src.get("options", {}))
+        if not found:  # an empty folder, or one of another kind: nothing would be built, silently
+            raise WorkflowError(
+                f"sources[{src['name']}]: scenes: all finds no {src['kind']} scene under {src.get('root')} "
+                "(an empty folder, or data of another kind?)"
+            )
+        return found
     return list(src["scenes"])
 
 

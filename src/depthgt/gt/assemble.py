@@ -288,7 +288,8 @@ def assemble(
     frames = _concat([Path(p) for p in scene_frames], FRAME_COLUMNS)
     metas = [json.loads(Path(p).read_text()) for p in index_jsons]
 
-    kept = patches[patches["kept"]].reset_index(drop=True)
+    # astype: a build that kept nothing has an empty object column, which would select columns
+    kept = patches[patches["kept"].astype(bool)].reset_index(drop=True)
     for split in SPLITS:
         kept[kept["split"] == split].reset_index(drop=True).to_parquet(getattr(out, split), index=False)
     fs.to_parquet(out.framesets, index=False)
