@@ -761,6 +761,17 @@ def test_tum_unsorted_and_repeated_lists_are_cleaned_and_recorded(tmp_path, capl
     assert sum("repeated entries dropped" in r.getMessage() for r in caplog.records) == 1
 
 
+def test_tum_without_poses_or_colour_list_records_the_file(tmp_path):
+    seq = tmp_path / "rgbd_dataset_freiburg1_room"
+    make_tum(seq)
+    (seq / "groundtruth.txt").unlink()
+    (seq / "rgb.txt").write_text("# colour images\n")
+    s = base.open_scene("tum", tmp_path, seq.name, require_pose=False)
+    assert not s.has_poses
+    assert any(p.startswith(f"{seq / 'groundtruth.txt'}: not found") for p in s.problems)
+    assert any(p.startswith(f"{seq / 'rgb.txt'}: no colour frames listed") for p in s.problems)
+
+
 @pytest.mark.parametrize(
     "file,value", [("depth.txt", "nan"), ("depth.txt", "inf"), ("rgb.txt", "-inf"), ("groundtruth.txt", "nan")]
 )

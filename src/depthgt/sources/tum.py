@@ -303,6 +303,16 @@ class TumScene(FileScene):
             else:
                 self._poses = poses_from_tum(values)
                 self._pose_index, self._pose_dt = associate(t_depth, t_gt)
+        # recorded in index.json: each frame's own reason ("no pose", "no colour image") would not
+        # name the file that is absent or empty
+        if not self.has_poses:
+            self.problems.append(
+                f"{gt_path}: not found; the frames have no poses (registration.method overfit needs none)"
+            )
+        if rgb_rows.shape[0] == 0:
+            self.problems.append(
+                f"{self.path / 'rgb.txt'}: no colour frames listed; every frame lacks its colour image"
+            )
         n_rgb = int((self._rgb_dt > self.max_dt).sum())
         if n_rgb:
             log.info(
