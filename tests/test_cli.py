@@ -61,6 +61,15 @@ def test_build_names_a_bad_config_key(tmp_path):
     assert "resize" in proc.stdout + proc.stderr
 
 
+def test_build_names_a_config_file_that_is_not_valid_yaml(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("seed: 0\nframeset: {neighbours: [3\n")
+    proc = depthgt("build", "-d", str(tmp_path / "wd"), "-n", "--configfile", str(bad), check=False)
+    assert proc.returncode == 2 and f"--configfile {bad}:3:1: not valid YAML" in proc.stderr
+    proc = depthgt("build", "-d", str(tmp_path / "wd"), "-n", "--configfile", str(tmp_path / "none.yaml"), check=False)
+    assert proc.returncode == 2 and "none.yaml: file not found" in proc.stderr
+
+
 def test_build_names_a_source_whose_scenes_all_finds_nothing(tmp_path):
     (tmp_path / "empty").mkdir()
     source = {"name": "mine", "kind": "sevenscenes", "root": str(tmp_path / "empty"), "scenes": "all", "split": "train"}

@@ -221,7 +221,7 @@ def test_shared_training_settings_are_checked_where_every_model_overrides_them()
     for value, what in (("ten", "must be int, got str 'ten'"), (2.5, "must be int, got float 2.5")):
         with pytest.raises(ConfigError, match=f"enhance.train.epochs: {what}"):
             settings_from_config({"enhance": {"train": {"epochs": value}, "models": models}})
-    with pytest.raises(ConfigError, match="epochs: must be >= 1, got -3"):
+    with pytest.raises(ConfigError, match="enhance.train.epochs: must be >= 1, got -3"):
         settings_from_config({"enhance": {"train": {"epochs": -3}, "models": models}})
 
 

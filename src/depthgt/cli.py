@@ -61,8 +61,28 @@ def snakemake_command(args: argparse.Namespace, *extra: str) -> list[str]:
     cmd += list(extra)
     # --configfile takes several values: it goes last, after the targets (Snakemake 9)
     if getattr(args, "configfile", None):
+        _check_yaml_files([Path(c) for c in args.configfile])
         cmd += ["--configfile", *[str(Path(c).resolve()) for c in args.configfile]]
     return cmd
+
+
+def _check_yaml_files(paths: Sequence[Path]) -> None:
+    """Each config file exists and parses, named with its line (Snakemake's own message
+    names neither the file nor the line); the settings are checked by the workflow."""
+    import yaml
+
+    for path in paths:
+        if not path.is_file():
+            raise DepthGTError(f"--configfile {path}: file not found")
+        try:
+            doc = yaml.safe_load(path.read_text())
+        except (UnicodeDecodeError, yaml.YAMLError) as err:
+            mark = getattr(err, "problem_mark", None)
+            where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)
+            problem = getattr(err, "problem", None) or str(err)
+            raise DepthGTError(f"--configfile {where}: not valid YAML ({problem})") from None
+        if doc is not None and not isinstance(doc, dict):
+            raise DepthGTError(f"--configfile {path}: must hold a mapping of config keys, got {type(doc).__name__}")
 
 
 def _run(cmd: Sequence[str], capture: bool = False) -> subprocess.CompletedProcess:

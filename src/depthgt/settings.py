@@ -1137,7 +1137,7 @@ def _enhance_settings(section: Mapping[str, Any] | None, seed: int, device: str)
     check_keys(per_model, own_keys, "enhance.models")
     # the shared section on its own: a bad value there is named there, even where every
     # model's entry overrides it
-    build(TrainSettings, {"seed": seed, "device": device, "progress": False, **shared}, "enhance.train")
+    _train_settings({"seed": seed, "device": device, "progress": False, **shared}, "enhance.train")
     models = {}
     for name, spec in trainable.items():
         entry = dict(per_model.get(spec.settings_key) or {})
@@ -1156,8 +1156,19 @@ def _enhance_settings(section: Mapping[str, Any] | None, seed: int, device: str)
             **entry,
         }
         where = f"enhance.models.{spec.settings_key}" if spec.settings_key in per_model else "enhance.train"
-        models[name] = build(TrainSettings, values, where)
+        models[name] = _train_settings(values, where)
     return EnhanceSettings(models=models, rde=build(RDESettings, section.get("rde"), "enhance.rde"))
+
+
+def _train_settings(values: Mapping[str, Any], where: str) -> TrainSettings:
+    """:class:`TrainSettings` whose own checks (which name ``train.KEY``) name ``where.KEY``."""
+    try:
+        return build(TrainSettings, values, where)
+    except ConfigError as err:
+        msg = str(err)
+        if msg.startswith("config key train."):
+            raise ConfigError(msg.replace("config key train.", f"config key {where}.", 1)) from None
+        raise
 
 
 @dataclass(frozen=True)
