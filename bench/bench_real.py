@@ -417,6 +417,9 @@ def main(argv=None) -> None:
     df = pd.DataFrame(rows)
     df.to_pickle(a.out.with_suffix(".pkl"))
     if a.ceiling:
+        if df.empty:
+            print("no usable target: nothing to bound")
+            return
         s = df.groupby("data").agg(framesets=("target", "size"), **{c: (c, "mean") for c in df.columns[2:]})
         s.to_csv(a.out)
         print(s.reset_index().to_markdown(index=False, floatfmt=".4f"))

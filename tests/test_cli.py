@@ -68,6 +68,12 @@ def test_build_names_a_config_file_that_is_not_valid_yaml(tmp_path):
     assert proc.returncode == 2 and f"--configfile {bad}:3:1: not valid YAML" in proc.stderr
     proc = depthgt("build", "-d", str(tmp_path / "wd"), "-n", "--configfile", str(tmp_path / "none.yaml"), check=False)
     assert proc.returncode == 2 and "none.yaml: file not found" in proc.stderr
+    # what Snakemake reads passes: JSON (tabs included) and YAML
+    from depthgt.cli import _check_yaml_files
+
+    (tmp_path / "tabs.json").write_text('{\n\t"seed": 1\n}')
+    (tmp_path / "ok.yaml").write_text("seed: 1\n")
+    _check_yaml_files([tmp_path / "tabs.json", tmp_path / "ok.yaml"])
 
 
 def test_build_names_a_source_whose_scenes_all_finds_nothing(tmp_path):

@@ -325,6 +325,11 @@ def test_export_refuses_what_it_cannot_own_and_names_it(results, tmp_path, capsy
     assert not (tmp_path / "w").exists()  # checked before anything is written
     with pytest.raises(DepthGTError, match=r"holds no built dataset .*nothing/results/dataset is missing"):
         export_dataset(tmp_path / "nothing" / "results", tmp_path / "n", "png16", progress=False)
+    hidden = tmp_path / "hidden"  # a new disk's or Finder's hidden files are no foreign export
+    hidden.mkdir()
+    (hidden / ".DS_Store").write_bytes(b"x")
+    export_dataset(results, hidden, "png16", splits=["val"], progress=False)
+    assert verify(hidden).ok
     once = export_dataset(results, tmp_path / "once", "png16", splits=["val"], progress=False)
     twice = export_dataset(results, tmp_path / "twice", "png16", splits=["val", "val"], progress=False)
     assert twice.equals(once) and verify(tmp_path / "twice").ok

@@ -30,13 +30,24 @@ def test_scenes_without_framesets_reasons():
             ("skipped", 20, []),
             ("empty", 0, ["scene_too_short: 0 frames"]),
             ("short", 4, ["scene_too_short: 4 frames, a frame set needs 7"]),
+            ("noposes", 20, ["/data/groundtruth.txt: not found"]),
         ]
     ]
+    fs = pd.concat(
+        [
+            fs,
+            pd.DataFrame(
+                [{"dataset": "a", "scene": "noposes", "status": "skipped", "reason": "registration_failed: x"}]
+            ),
+        ],
+        ignore_index=True,
+    )
     got = {r["scene"]: r["reason"] for r in scenes_without_framesets(fs, metas)}
     assert got == {
         "skipped": "every frame set skipped: invalid_frame (2), split_guard (1)",
         "empty": "empty_scene: the source yields no frame (root /data)",
         "short": "scene_too_short: 4 frames, a frame set needs 7",
+        "noposes": "every frame set skipped: registration_failed (1); the scene's problems: /data/groundtruth.txt: not found",
     }
 
 

@@ -223,6 +223,10 @@ def test_shared_training_settings_are_checked_where_every_model_overrides_them()
             settings_from_config({"enhance": {"train": {"epochs": value}, "models": models}})
     with pytest.raises(ConfigError, match="enhance.train.epochs: must be >= 1, got -3"):
         settings_from_config({"enhance": {"train": {"epochs": -3}, "models": models}})
+    # a check across keys whose other key comes from each model's entry is the merged entries' to make
+    split = {m: {"input_hole_max_px": 32} for m in ("lapden", "ddrnet", "sdd")}
+    s = settings_from_config({"enhance": {"train": {"input_hole_min_px": 20}, "models": split}})
+    assert s.enhance.models["lapden"].input_hole_min_px == 20 and s.enhance.models["rde"].input_hole_max_px == 32
 
 
 def test_train_settings_identity_ignores_epochs():

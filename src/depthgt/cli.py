@@ -34,8 +34,11 @@ from depthgt.gt import store
 __all__ = ["main", "repo_root", "snakemake_command", "scene_outputs"]
 
 
-#: the panel formats of ``depthgt show --out`` (matplotlib's, without a backend choice)
-PANEL_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
+def panel_formats() -> set[str]:
+    """The file suffixes matplotlib writes here (``depthgt show --out``)."""
+    from matplotlib.figure import Figure
+
+    return set(Figure().canvas.get_supported_filetypes())
 
 
 def repo_root() -> Path:
@@ -69,13 +72,19 @@ def snakemake_command(args: argparse.Namespace, *extra: str) -> list[str]:
 def _check_yaml_files(paths: Sequence[Path]) -> None:
     """Each config file exists and parses, named with its line (Snakemake's own message
     names neither the file nor the line); the settings are checked by the workflow."""
+    import json
+
     import yaml
 
     for path in paths:
         if not path.is_file():
             raise DepthGTError(f"--configfile {path}: file not found")
-        try:
-            doc = yaml.safe_load(path.read_text())
+        try:  # as Snakemake reads it: JSON first, then YAML (FullLoader), UTF-8
+            text = path.read_text(encoding="utf-8")
+            try:
+                doc = json.loads(text)
+            except json.JSONDecodeError:
+                doc = yaml.load(text, Loader=yaml.FullLoader)
         except (UnicodeDecodeError, yaml.YAMLError) as err:
             mark = getattr(err, "problem_mark", None)
             where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)
@@ -183,8 +192,9 @@ def _cmd_show(args: argparse.Namespace) -> int:
     for key, value in stats.items():
         print(f"{key:{width}s} {value:.4f}" if isinstance(value, float) else f"{key:{width}s} {value}")
     out = Path(args.out or f"{args.dataset}_{args.scene}_{args.target:06d}.png")
-    if out.suffix.lower() not in PANEL_SUFFIXES:
-        raise DepthGTError(f"--out {out}: the panel is written as {', '.join(PANEL_SUFFIXES)}")
+    formats = panel_formats()
+    if out.suffix.lower().lstrip(".") not in formats:
+        raise DepthGTError(f"--out {out}: the panel is written as one of {', '.join(sorted(formats))}")
     frameset_panel(rec, out, title=f"{args.dataset}/{args.scene}/{args.target:06d}")
     print(f"panel: {out}")
     return 0

@@ -1136,8 +1136,13 @@ def _enhance_settings(section: Mapping[str, Any] | None, seed: int, device: str)
     own_keys = sorted({m.settings_key for m in trainable.values()})
     check_keys(per_model, own_keys, "enhance.models")
     # the shared section on its own: a bad value there is named there, even where every
-    # model's entry overrides it
-    _train_settings({"seed": seed, "device": device, "progress": False, **shared}, "enhance.train")
+    # model's entry overrides it; checks across keys ("a/b") are left to the merged entries,
+    # whose other key may come from the model's own entry
+    try:
+        _train_settings({"seed": seed, "device": device, "progress": False, **shared}, "enhance.train")
+    except ConfigError as err:
+        if "/" not in str(err).removeprefix("config key ").split(":", 1)[0]:
+            raise
     models = {}
     for name, spec in trainable.items():
         entry = dict(per_model.get(spec.settings_key) or {})

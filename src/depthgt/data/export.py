@@ -141,7 +141,8 @@ def _check_settings(dest: Path, settings: dict[str, Any]) -> None:
     else:
         # files without export.json are no unfinished export of ours (it is written first):
         # resuming would keep foreign files at the samples' paths and checksum them
-        present = sorted(p.name for p in dest.iterdir()) if dest.is_dir() else []
+        # hidden files (.DS_Store, lost+found's kin, a temporary export.json of a killed run) do not count
+        present = sorted(p.name for p in dest.iterdir() if not p.name.startswith(".")) if dest.is_dir() else []
         if present:
             raise DepthGTError(
                 f"export: {dest} holds files but no export.json ({', '.join(present[:5])}"

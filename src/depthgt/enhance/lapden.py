@@ -99,6 +99,9 @@ def lapden_from_preset(name: str, **overrides) -> LapDEN:
     if name not in PRESETS:
         raise ValueError(f"unknown LapDEN preset {name!r}; known: {sorted(PRESETS)}")
     cfg = asdict(PRESETS[name])
+    unknown = sorted(set(overrides) - set(cfg))
+    if unknown:
+        raise ValueError(f"unknown LapDEN model parameters {unknown}; known: preset, {', '.join(cfg)}")
     cfg.update(overrides)
     for key in ("level_convs", "encoder_convs"):
         cfg[key] = tuple(cfg[key])

@@ -90,17 +90,26 @@ def _model(name: str) -> registry.Model:
     return registry.MODELS[name]
 
 
-def build_model(name: str, params: dict | None = None) -> nn.Module:
+def build_model(name: str, params: dict | None = None, where: str | None = None) -> nn.Module:
     """Model ``name`` of :data:`depthgt.registry.MODELS` built with keyword ``params``.
 
     Raises:
-        ConfigError: a parameter the builder does not take or rejects (named with the
-            config key: the settings layer is torch-free and cannot check these).
+        ConfigError: a parameter the builder does not take, or a value it rejects
+            (ValueError), named with ``where`` (default: the config key
+            ``enhance.models.NAME.model_params``; the settings layer is torch-free and
+            cannot check these).
     """
+    fn = _function(_model(name).build)
+    params = dict(params or {})
+    where = where or f"enhance.models.{name}.model_params"
     try:
-        return _function(_model(name).build)(**(params or {}))
-    except (TypeError, ValueError) as err:
-        raise ConfigError(f"enhance.models.{name}.model_params {dict(params or {})}: {err}") from None
+        inspect.signature(fn).bind(**params)
+    except TypeError as err:
+        raise ConfigError(f"{where} {params}: {err}") from None
+    try:
+        return fn(**params)
+    except ValueError as err:
+        raise ConfigError(f"{where} {params}: {err}") from None
 
 
 def build_loss(name: str, params: dict | None = None) -> Callable:
@@ -516,7 +525,7 @@ def load_model(checkpoint: str | Path, device: str | torch.device = "cpu") -> nn
     for key in ("model", "model_params", "model_state"):
         if key not in ckpt:
             raise ValueError(f"{path}: not a depthgt checkpoint (missing key {key!r})")
-    model = build_model(ckpt["model"], ckpt["model_params"]).to(device)
+    model = build_model(ckpt["model"], ckpt["model_params"], where=f"{path}: model_params").to(device)
     model.load_state_dict(ckpt["model_state"])
     return model.eval()
 

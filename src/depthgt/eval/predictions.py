@@ -187,7 +187,7 @@ def read_prediction(path: str | Path, shape_hw: tuple[int, int]) -> np.ndarray:
     negative = int((depth < 0).sum())  # -inf included
     if negative:
         raise DepthGTError(
-            f"{path}: {negative} pixels of negative depth (min {float(depth.min()):.4g}); "
+            f"{path}: {negative} pixels of negative depth (min {float(np.nanmin(depth)):.4g}); "
             "a prediction holds depth in metres (EXR) or millimetres (PNG), 0 or NaN where it has none"
         )
     return depth
@@ -275,8 +275,14 @@ def evaluate_folder(
     out_dir = Path(out_dir)
     if method in {m for c in compare for m in c["method"].unique()}:
         raise DepthGTError(f"the predictions' name {method!r} is a method of the build: pick another (--name)")
+    created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)  # before the scoring: a bad destination fails at once
-    ev = score_predictions(pred_dir, frames, method, progress=progress)
+    try:
+        ev = score_predictions(pred_dir, frames, method, progress=progress)
+    except BaseException:
+        if created and not any(out_dir.iterdir()):  # leave no empty folder behind
+            out_dir.rmdir()
+        raise
     if ev.empty:
         raise DepthGTError(f"{pred_dir}: no test frame to score")
     keys = ["dataset", "scene", "target", "reference"]

@@ -346,11 +346,13 @@ def scenes_without_framesets(fs: pd.DataFrame, metas: list[dict]) -> list[dict]:
         if int(m["n_frames"]) == 0:
             root = (m.get("source") or {}).get("root")
             reason = "empty_scene: the source yields no frame" + (f" (root {root})" if root else "")
-        elif m["problems"]:
-            reason = "; ".join(m["problems"])
-        elif len(rows):
+        elif len(rows):  # the frame sets' own reasons first; the scene's problems beside them
             counts = rows["reason"].astype(str).str.split(":").str[0].value_counts()
             reason = "every frame set skipped: " + ", ".join(f"{k} ({v})" for k, v in counts.items())
+            if m["problems"]:
+                reason += "; the scene's problems: " + "; ".join(m["problems"])
+        elif m["problems"]:
+            reason = "; ".join(m["problems"])
         else:
             reason = "no frame set planned"
         out.append({"dataset": m["dataset"], "scene": m["scene"], "n_frames": int(m["n_frames"]), "reason": reason})

@@ -374,6 +374,7 @@ def _verify_export(folder: Path, sums: Path) -> Verification:
         for p in folder.rglob("*")
         if p.is_file()
         and p.name not in (CHECKSUMS, "index.parquet", "index.csv")
+        and not p.name.startswith(".")  # hidden: .DS_Store, a killed re-run's temporary file
         and str(p.relative_to(folder)) not in listed
     )
     if unlisted:
