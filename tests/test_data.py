@@ -354,6 +354,9 @@ def test_verify_reports_a_damaged_export_instead_of_crashing(results, tmp_path):
     assert "index.parquet: not a readable parquet table" in problem
     (dest / "export.json").write_text("[1, 2]")  # also breaks its checksum
     assert any("export.json: not a JSON object (a list)" in p for p in verify(dest).problems)
+    (dest / "SHA256SUMS").write_bytes(b"\xff\xfe not text")
+    (problem,) = verify(dest).problems
+    assert "SHA256SUMS: not a text checksum list" in problem
     wd = _copy_results(results.parent, tmp_path / "wd")
     (wd / "results/dataset/card.json").write_text(
         json.dumps({"format_version": store.FORMAT_VERSION, "files": {"a": {}}})

@@ -358,17 +358,23 @@ def _verify_export(folder: Path, sums: Path) -> Verification:
     if not sums.is_file():
         report.problems.append(f"{sums}: missing (the export did not finish: run it again to resume)")
         return report
-    for n, line in enumerate(sums.read_text().splitlines(), 1):
+    listed = set()
+    try:
+        lines = sums.read_text(encoding="utf-8").splitlines()
+    except UnicodeDecodeError as err:
+        report.problems.append(f"{sums}: not a text checksum list ({err})")
+        return report
+    for n, line in enumerate(lines, 1):
         digest, sep, rel = line.partition("  ")
         if not sep or len(digest) != 64:
             report.problems.append(f"{sums}:{n}: not a sha256sum line")
             continue
+        listed.add(rel)
         _check_file(folder / rel, digest, None, f"checksum list {sums}", report)
     index = folder / "index.parquet"
     if not index.is_file():
         report.problems.append(f"{index}: missing (the export did not finish: run it again to resume)")
         return report
-    listed = {line.partition("  ")[2] for line in sums.read_text().splitlines()}
     unlisted = sorted(
         str(p.relative_to(folder))
         for p in folder.rglob("*")
