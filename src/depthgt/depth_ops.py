@@ -118,8 +118,10 @@ def forward_gradients(depth_m: torch.Tensor, valid: torch.Tensor):
     gx = F.pad(depth_m[..., :, 1:] - depth_m[..., :, :-1], (0, 1, 0, 0))
     gy = F.pad(depth_m[..., 1:, :] - depth_m[..., :-1, :], (0, 0, 0, 1))
     v = valid.bool()
-    vx = F.pad(v[..., :, 1:] & v[..., :, :-1], (0, 1, 0, 0))
-    vy = F.pad(v[..., 1:, :] & v[..., :-1, :], (0, 0, 0, 1))
+    # the last column / row appended by cat, not F.pad: torch.compile's CPU code for a
+    # padded bool image summed in the same kernel does not compile (torch 2.13)
+    vx = torch.cat([v[..., :, 1:] & v[..., :, :-1], torch.zeros_like(v[..., :, :1])], dim=-1)
+    vy = torch.cat([v[..., 1:, :] & v[..., :-1, :], torch.zeros_like(v[..., :1, :])], dim=-2)
     return gx, gy, vx, vy
 
 

@@ -123,9 +123,11 @@ def push_pull_fill(depth_m: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """Smooth hole filling by a pyramid of valid-aware 2x2 averages (push-pull).
 
     The image is averaged down (valid pixels only, :func:`depthgt.depth_ops.valid_avg_pool`
-    over 2x2 blocks, odd sizes rounded up) until the coarsest level is one pixel or has no holes; then,
+    over 2x2 blocks, odd sizes rounded up) until the coarsest level is one pixel; then,
     coarse to fine, each level's holes take the bilinearly upsampled filled coarser
-    level. Valid pixels are returned unchanged. Written by hand: OpenCV's inpainting
+    level. Valid pixels are returned unchanged. The levels below the first without holes
+    change nothing (it keeps all its pixels), so there is no data-dependent stop: the same
+    ops for every batch, no host read of the mask, one graph for torch.compile. Written by hand: OpenCV's inpainting
     is per-image numpy (no batch, no device), and this is ~log2(H) tensor ops.
 
     Args:
@@ -141,7 +143,7 @@ def push_pull_fill(depth_m: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"valid shape {tuple(valid.shape)} != depth shape {tuple(depth_m.shape)}")
     w = valid.to(depth_m.dtype)
     levels = [(depth_m * w, w)]
-    while min(levels[-1][0].shape[-2:]) > 1 and bool((levels[-1][1] <= 0).any()):
+    while min(levels[-1][0].shape[-2:]) > 1:
         d, w = levels[-1]
         d_c, ok = valid_avg_pool(d, w, 2, ceil_mode=True)
         levels.append((d_c, ok.to(d.dtype)))

@@ -177,6 +177,13 @@ def _mean_valid_depth(depth_m: torch.Tensor, valid: torch.Tensor) -> torch.Tenso
     return torch.where(mean > 0, mean, torch.ones_like(mean))
 
 
+def _float_terms(*terms: tuple[str, torch.Tensor]) -> dict[str, float]:
+    """The loss log's floats of scalar tensors, read in one go (one host read, and no
+    break in a graph torch.compile traces before the read)."""
+    values = torch.stack([t for _, t in terms]).detach().tolist()
+    return {name: v for (name, _), v in zip(terms, values)}
+
+
 def _check_input(depth_m: torch.Tensor, multiple: int, who: str) -> None:
     if depth_m.ndim != 4 or depth_m.shape[1] != 1:
         raise ValueError(f"{who} expects depth (B, 1, H, W), got {tuple(depth_m.shape)}")
@@ -199,7 +206,7 @@ def ddrnet_loss(outputs, batch: dict, w_depth: float = 1.0, w_normal: float = 1.
     t_d = depth_l1(pred, gt, valid)
     t_n = normal_l1(pred, gt, valid, batch["K"])
     total = w_depth * t_d + w_normal * t_n
-    return total, {"depth": float(t_d.detach()), "normal": float(t_n.detach()), "total": float(total.detach())}
+    return total, _float_terms(("depth", t_d), ("normal", t_n), ("total", total))
 
 
 def normal_smoothness(depth_m: torch.Tensor, K: torch.Tensor, rgb: torch.Tensor | None, alpha: float = 10.0):
@@ -237,4 +244,4 @@ def sdd_loss(outputs, batch: dict, w_depth: float = 1.0, w_smooth: float = 0.1, 
     t_d = depth_l1(pred, gt, gt > 0)
     t_s = normal_smoothness(pred, batch["K"], batch.get("rgb"), alpha)
     total = w_depth * t_d + w_smooth * t_s
-    return total, {"depth": float(t_d.detach()), "smooth": float(t_s.detach()), "total": float(total.detach())}
+    return total, _float_terms(("depth", t_d), ("smooth", t_s), ("total", total))

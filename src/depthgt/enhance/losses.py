@@ -178,7 +178,8 @@ def lapden_loss(outputs: list[torch.Tensor], batch: dict, config: LossConfig = L
         hw = 1.0 + (float(config.hole_weight) - 1.0) * holes
         weight = hw if weight is None else weight * hw
     total = gt.new_zeros(())
-    terms = {"depth": 0.0, "grad": 0.0, "normal": 0.0, "structure": 0.0}
+    names = ("depth", "grad", "normal", "structure")
+    level_terms = []
     for w_l, pred in zip(weights, outputs):
         gt_l, valid_l, K_l, cw_l = _level_targets(gt, K, tuple(pred.shape[-2:]), weight)
         t_d = depth_l1(pred, gt_l, valid_l, cw_l)
@@ -187,9 +188,12 @@ def lapden_loss(outputs: list[torch.Tensor], batch: dict, config: LossConfig = L
         t_s = structure_loss(pred, gt_l, valid_l, config.window)
         level = config.w_depth * t_d + config.w_grad * t_g + config.w_normal * t_n + config.lambda_s * t_s
         total = total + w_l * level
-        for k, t in (("depth", t_d), ("grad", t_g), ("normal", t_n), ("structure", t_s)):
-            terms[k] += w_l * float(t.detach())
-    terms["total"] = float(total.detach())
+        level_terms.append(torch.stack([t_d, t_g, t_n, t_s]))
+    # read once at the end (one host read; the loss stays one traceable graph for torch.compile),
+    # summed over the levels in Python as the float terms were
+    values = torch.stack([*level_terms, total.expand(len(names))]).detach().tolist()
+    terms = {k: sum(w_l * row[i] for w_l, row in zip(weights, values[:-1])) for i, k in enumerate(names)}
+    terms["total"] = values[-1][0]
     return total, terms
 
 
