@@ -24,8 +24,8 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-from kornia.geometry.depth import depth_to_normals
 
+from depthgt.depth_ops import depth_normals
 from depthgt.enhance.losses import depth_l1, normal_l1
 
 __all__ = ["DDRNetDenoise", "PartialConv2d", "SDDUNet", "ddrnet_loss", "sdd_loss", "normal_smoothness"]
@@ -216,7 +216,7 @@ def normal_smoothness(depth_m: torch.Tensor, K: torch.Tensor, rgb: torch.Tensor 
     Args:
         depth_m: (B, 1, H, W); K: (B, 3, 3); rgb: (B, 3, H, W) in [0, 1] or None.
     """
-    n = depth_to_normals(depth_m, K.to(depth_m.dtype))
+    n = depth_normals(depth_m, K.to(depth_m.dtype))
     terms = []
     for dim in (-1, -2):
         a, b = n.narrow(dim, 1, n.shape[dim] - 1), n.narrow(dim, 0, n.shape[dim] - 1)

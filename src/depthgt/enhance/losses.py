@@ -3,7 +3,8 @@
 L = L_D(y_hat, y) + lambda_s * L_S(y_hat, y), summed over the pyramid levels:
 
 * L_D: L1 on depth + L1 on the depth gradient + L1 on the surface normal (normals
-  from depth and intrinsics with kornia's ``depth_to_normals``);
+  from depth and intrinsics, :func:`depthgt.depth_ops.depth_normals`: kornia's
+  ``depth_to_normals`` without its slow convolution on CPU);
 * L_S (paper eq. 6, :func:`depthgt.depth_ops.structure_loss`): mean over pixels p of
   ``(max_{q in W(p)} |grad y_hat_q| - max_{q in W(p)} |grad y_q|)^2``, W a 5x5
   window; the paper's change: the GT y replaces the raw input x; lambda_s = 5.
@@ -20,7 +21,7 @@ where it has (the batch's ``input``), times the confidence weight when both are 
 
 Supervision only where the GT is valid (> 0): depth terms on valid GT pixels,
 gradient terms on pixels whose forward neighbours are valid too, normal terms on
-pixels whose 3x3 neighbourhood (the Sobel support of kornia's normals) is valid.
+pixels whose 3x3 neighbourhood (the Sobel support of the normals) is valid.
 Coarser levels are supervised with the GT average-pooled over its valid pixels and
 the intrinsics rescaled to that level.
 
@@ -38,9 +39,15 @@ from dataclasses import dataclass, fields
 
 import torch
 import torch.nn.functional as F
-from kornia.geometry.depth import depth_to_normals
 
-from depthgt.depth_ops import check_depth, forward_gradients, masked_avg_pool, masked_mean, structure_loss
+from depthgt.depth_ops import (
+    check_depth,
+    depth_normals,
+    forward_gradients,
+    masked_avg_pool,
+    masked_mean,
+    structure_loss,
+)
 from depthgt.geometry import scale_intrinsics
 
 __all__ = [
@@ -116,7 +123,7 @@ def gradient_l1(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor) -> to
 
 
 def normal_l1(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    """Mean over valid pixels of ||n_pred - n_gt||_1 (unit normals, kornia).
+    """Mean over valid pixels of ||n_pred - n_gt||_1 (unit normals, :func:`depth_normals`).
 
     Args:
         pred, gt: (B, 1, H, W) metres; valid: (B, 1, H, W) bool; K: (B, 3, 3) at (H, W).
@@ -124,8 +131,8 @@ def normal_l1(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor, K: torc
     if K.ndim != 3 or K.shape[-2:] != (3, 3) or K.shape[0] != pred.shape[0]:
         raise ValueError(f"K must be (B, 3, 3) with B={pred.shape[0]}, got {tuple(K.shape)}")
     K = K.to(pred.dtype)
-    n_pred = depth_to_normals(pred, K)
-    n_gt = depth_to_normals(gt, K)
+    n_pred = depth_normals(pred, K)
+    n_gt = depth_normals(gt, K)
     # the Sobel support of the normal is 3x3: all of it must be valid GT
     v = valid.to(pred.dtype)
     v3 = 1.0 - F.max_pool2d(1.0 - v, 3, stride=1, padding=1)

@@ -517,7 +517,10 @@ def train(
 
 
 def load_model(checkpoint: str | Path, device: str | torch.device = "cpu") -> nn.Module:
-    """Rebuild the model stored in a checkpoint written by :func:`train` (eval mode)."""
+    """Rebuild the model stored in a checkpoint written by :func:`train` (eval mode), in
+    the memory layout of its device (:func:`memory_layout`: channels-last on CPU, the
+    layout it was trained in and :func:`predict` feeds it; with the weights in the
+    default layout the CPU convolutions take the slower plain path)."""
     path = Path(checkpoint)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: checkpoint not found")
@@ -527,7 +530,7 @@ def load_model(checkpoint: str | Path, device: str | torch.device = "cpu") -> nn
             raise ValueError(f"{path}: not a depthgt checkpoint (missing key {key!r})")
     model = build_model(ckpt["model"], ckpt["model_params"], where=f"{path}: model_params").to(device)
     model.load_state_dict(ckpt["model_state"])
-    return model.eval()
+    return model.to(memory_format=memory_layout(torch.device(device))).eval()
 
 
 @torch.no_grad()
