@@ -1,22 +1,23 @@
 """Seconds per training step of each learned model of a build, on that build's own data,
 and, side by side, against another checkout.
 
-Trains each model for ``--epochs`` epochs capped at ``--steps`` steps each (``train()`` with
-``max_batches_per_epoch: --steps``; validation on the first ``--val-pairs`` pairs of the
-validation split, none with 0) from the build's training manifest, with the settings its
+Runs each model's training job (:func:`depthgt.jobs.enhance.run_train`, what the workflow's
+``train_model`` rule runs, with its process settings) for ``--epochs`` epochs capped at
+``--steps`` steps each (the config's ``max_batches_per_epoch``), validating on the first
+``--val-pairs`` pairs of the validation split (none with 0), with the settings the build's
 config gives the model (``results/report/config.yaml``, else the checkout's
 config/config.yaml), in a fresh process per model, and prints per model the CPU and wall
 seconds per training step of the last epoch (the first reads the patches and warms up),
 per validation batch, and the whole process's CPU seconds (start-up, reading, any
-compilation included). ``--predict-frames N`` also scores the trained model on the first N
-test frames with the evaluation's code (:func:`depthgt.eval.evaluate.evaluate_frames`:
+compilation included). ``--predict-frames N`` then scores the trained model on the first
+N test frames with the evaluation's code (:func:`depthgt.eval.evaluate.evaluate_frames`:
 reading, prediction, metrics) and prints its CPU seconds per frame. A build's training
 cost is (training pairs / batch size) x epochs x seconds per step (bench/README.md, "What
 the default build costs").
 
 CPU seconds are this process's own (``time.process_time``, one torch thread by default as
-the build's trainings run): on a shared machine they move far less than wall seconds, which
-count the time other processes hold the cores.
+the 2-core build's trainings run): on a shared machine they move far less than wall
+seconds, which count the time other processes hold the cores.
 
 ``--against CHECKOUT`` runs every model with ``CHECKOUT/src`` as well, in turn (this, other,
 this, other, ... ``--repeats`` times per model), on the same data and settings, and prints
@@ -39,14 +40,12 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import replace
 from pathlib import Path
 
 if __name__ == "__main__" and "--src" in sys.argv:  # run another checkout's library (see --against)
     sys.path.insert(0, sys.argv[sys.argv.index("--src") + 1])
 
 import pandas as pd
-import torch
 import yaml
 
 from depthgt import registry
@@ -73,24 +72,26 @@ def _cpu() -> float:
 
 
 def run_one(a: argparse.Namespace) -> dict:
-    """One model trained in this process with the library on ``sys.path``; its timings."""
+    """One model's training job in this process, with the library on ``sys.path``; its timings."""
     import depthgt.enhance.train as tr
+    from depthgt.jobs.enhance import run_train
 
-    torch.set_num_threads(a.threads)
     model = a.models[0]
     config = _config(a.workdir, Path(tr.__file__).resolve().parents[2])
-    st = stage_settings(config, "train", model=registry.METHODS[model].settings_key).train(model)
-    epochs = st.epochs
-    st = replace(st, epochs=a.epochs, max_batches_per_epoch=a.steps, progress=False)
+    key = registry.METHODS[model].settings_key
+    st = stage_settings(config, "train", model=key).train(model)
+    capped = {"epochs": a.epochs, "max_batches_per_epoch": a.steps, "progress": False}
+    enhance = config.setdefault("enhance", {})
+    enhance["train"] = {**enhance.get("train", {}), **capped}
+    enhance["models"][key] = {**enhance["models"][key], **capped}
     train_m, val_m = _manifests(a.workdir, model)
-    val = pd.read_parquet(val_m).head(a.val_pairs) if a.val_pairs > 0 else None
     timed: dict[str, list[tuple[float, float, int]]] = {"train": [], "val": []}
 
-    def timing(fn, key):  # CPU and wall seconds of each call of the trainer's step functions
+    def timing(fn, what):  # CPU and wall seconds of each call of the trainer's step functions
         def wrapped(*args, **kwargs):
             c0, w0 = time.process_time(), time.perf_counter()
             out = fn(*args, **kwargs)
-            timed[key].append((time.process_time() - c0, time.perf_counter() - w0, int(out["batches"])))
+            timed[what].append((time.process_time() - c0, time.perf_counter() - w0, int(out["batches"])))
             return out
 
         return wrapped
@@ -100,11 +101,17 @@ def run_one(a: argparse.Namespace) -> dict:
     cwd = Path.cwd()
     row = {"model": model, "src": str(Path(tr.__file__).resolve().parents[2])}
     with tempfile.TemporaryDirectory() as tmp:
+        val = None
+        if a.val_pairs > 0:
+            val = str(Path(tmp) / "val.parquet")
+            pd.read_parquet(val_m).head(a.val_pairs).to_parquet(val, index=False)
+        outputs = {k: str(Path(tmp) / f) for k, f in (("best", "best.pt"), ("last", "last.pt"), ("log", "log.csv"))}
+        outputs["meta"] = str(Path(tmp) / "train.json")
         try:
             os.chdir(a.workdir)  # the manifests' locations are relative to the working directory
-            tr.train(train_m, val, tr.TrainOutputs.in_dir(Path(tmp)), st)
+            run_train(model, config, str(train_m), val, outputs, threads=a.threads)
             if a.predict_frames:
-                row.update(_predict(a, model, Path(tmp) / "best.pt"))
+                row.update(_predict(a, model, Path(outputs["best"])))
         finally:
             os.chdir(cwd)
     cpu, wall, n = timed["train"][-1]
@@ -113,7 +120,7 @@ def run_one(a: argparse.Namespace) -> dict:
         step_wall=wall / n,
         first_epoch_cpu=timed["train"][0][0],
         batch_size=st.batch_size,
-        epochs=epochs,
+        epochs=st.epochs,
         train_pairs=len(pd.read_parquet(train_m)),
         process_cpu=_cpu(),
     )

@@ -44,8 +44,10 @@ def run_train(
     """
     import torch  # heavy: imported by the job, not by the workflow
 
+    from depthgt.device import keep_freed_memory
     from depthgt.enhance.train import TrainOutputs, train
 
+    keep_freed_memory()  # a process of its own: no page faults for each step's activations
     torch.set_num_threads(max(1, int(threads)))
     st = stage_settings(config, "train", model=registry.METHODS[model].settings_key).train(model)
     out = TrainOutputs(**{k: Path(outputs[k]) for k in TrainOutputs._fields if outputs.get(k) is not None})

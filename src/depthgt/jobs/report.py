@@ -14,7 +14,7 @@ from typing import Any
 
 import pandas as pd
 
-from depthgt.device import resolve_device
+from depthgt.device import keep_freed_memory, resolve_device
 from depthgt.eval import figures
 from depthgt.settings import stage_settings
 from depthgt.status import Status
@@ -51,6 +51,7 @@ def run_evaluate(
     from depthgt.eval.evaluate import evaluate_frames, method_spec
     from depthgt.gt.references import REFERENCES, read_reference_table
 
+    keep_freed_memory()  # a process of its own: no page faults for each frame's tensors
     torch.set_num_threads(max(1, int(threads)))
     settings = stage_settings(config, "evaluate")
     spec = method_spec(method, checkpoint, device=str(resolve_device(settings.device)) if checkpoint else None)
