@@ -132,3 +132,40 @@ def test_load_model_is_channels_last_on_cpu_and_predicts_as_before(tmp_path):
     depth, _ = _surface(B=2, H=24, W=32)
     plain = predict(model.eval(), depth)  # the weights in the default layout
     torch.testing.assert_close(predict(loaded, depth), plain, rtol=1e-5, atol=1e-6)
+
+
+def _outputs_and_grads(model, depth):
+    model.zero_grad(set_to_none=True)
+    outs = model(depth)
+    sum((o * torch.linspace(0.5, 1.5, o.numel()).view_as(o)).sum() for o in outs).backward()
+    return [o.detach() for o in outs], [p.grad.clone() for p in model.parameters()]
+
+
+def test_sdd_skipping_the_identity_mask_products_changes_no_bit(monkeypatch):
+    from depthgt.enhance.learned import PartialConv2d, SDDUNet
+
+    torch.manual_seed(0)
+    model = SDDUNet(channels=4).to(memory_format=torch.channels_last)
+    depth, _ = _surface(B=2, H=32, W=24)
+    fast = _outputs_and_grads(model, depth)
+    plain_forward = PartialConv2d.forward
+    monkeypatch.setattr(PartialConv2d, "forward", lambda self, x, mask, masked=False: plain_forward(self, x, mask))
+    plain = _outputs_and_grads(model, depth)
+    assert all(torch.equal(a, b) for a, b in zip(fast[0], plain[0]))
+    assert all(torch.equal(a, b) for a, b in zip(fast[1], plain[1]))
+
+
+def test_lapden_in_place_activations_change_no_bit(monkeypatch):
+    from depthgt.enhance.lapden import LapDEN, LapDENConfig
+
+    torch.manual_seed(0)
+    model = LapDEN(LapDENConfig(channels=4)).to(memory_format=torch.channels_last)
+    for head in model.heads:  # non-zero heads, so that every level's gradient reaches the weights
+        torch.nn.init.normal_(head.weight, std=0.1)
+    depth, _ = _surface(B=2, H=32, W=24)
+    fast = _outputs_and_grads(model, depth)
+    leaky = F.leaky_relu
+    monkeypatch.setattr(F, "leaky_relu", lambda x, slope, inplace=False: leaky(x, slope))
+    plain = _outputs_and_grads(model, depth)
+    assert all(torch.equal(a, b) for a, b in zip(fast[0], plain[0]))
+    assert all(torch.equal(a, b) for a, b in zip(fast[1], plain[1]))

@@ -162,8 +162,11 @@ class _ResBlock(nn.Module):
         self.slope = slope
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = self.conv2(F.leaky_relu(self.conv1(x), self.slope))
-        return F.leaky_relu(x + y, self.slope)
+        # in place on tensors nothing else reads (a convolution's output, a fresh sum):
+        # the same values and gradients (LeakyReLU's backward reads the sign of its output
+        # instead of its input's, the same for a positive slope), one allocation less
+        y = self.conv2(F.leaky_relu(self.conv1(x), self.slope, inplace=True))
+        return F.leaky_relu(x + y, self.slope, inplace=True)
 
 
 def _blocks(channels: int, convs: int, slope: float) -> nn.Sequential:
@@ -201,19 +204,19 @@ class LapDEN(nn.Module):
         s = self.config.negative_slope
         valid = depth_m > 0
         hole = (~valid).to(depth_m.dtype)
-        x = F.leaky_relu(self.conv_in(torch.cat([depth_m, hole], dim=1)), s)
+        x = F.leaky_relu(self.conv_in(torch.cat([depth_m, hole], dim=1)), s, inplace=True)
         skips = []  # encoder features at full and 1/2 resolution
         for enc, down in zip(self.enc, self.down):
             x = enc(x)
             skips.append(x)
-            x = F.leaky_relu(down(x), s)
+            x = F.leaky_relu(down(x), s, inplace=True)
         outputs = []
         for level in range(3):
             d_l, v_l = masked_avg_pool(depth_m, valid, 4 >> level)
             if level == 0:
                 base = push_pull_fill(d_l, v_l)
             else:
-                x = F.leaky_relu(self.up[level - 1](x), s) + skips[2 - level]
+                x = F.leaky_relu(self.up[level - 1](x), s, inplace=True) + skips[2 - level]
                 up = F.interpolate(outputs[-1], scale_factor=2.0, mode="bilinear", align_corners=False)
                 base = torch.where(v_l, d_l, up)
             x = self.levels[level](x)

@@ -99,7 +99,13 @@ class PartialConv2d(nn.Module):
     """Partial convolution (Liu et al. 2018): convolve only valid inputs, renormalise
     by the valid fraction of the window, propagate the mask (valid if any input was).
 
-    ``forward(x (B, C, H, W), mask (B, 1, H, W) {0,1}) -> (y, new_mask)``.
+    ``forward(x (B, C, H, W), mask (B, 1, H, W) {0,1}, masked=False) -> (y, new_mask)``;
+    ``y`` is 0 outside ``new_mask``. ``masked=True`` says that ``x`` is 0 outside ``mask``
+    already (a partial convolution's output through an activation with f(0) = 0, or such
+    outputs concatenated under the union of their masks), so that multiplying it by the
+    mask would change nothing: the multiplication and its backward are skipped (the
+    weights' gradients are the same to the bit: the next layer's ``new_mask`` zeroes
+    what the skipped product would have).
     """
 
     def __init__(self, cin: int, cout: int, kernel_size: int, stride: int = 1):
@@ -108,12 +114,12 @@ class PartialConv2d(nn.Module):
         self.register_buffer("ones", torch.ones(1, 1, kernel_size, kernel_size), persistent=False)
         self.window = float(kernel_size * kernel_size)
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, x: torch.Tensor, mask: torch.Tensor, masked: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         with torch.no_grad():
             count = F.conv2d(mask, self.ones, stride=self.conv.stride, padding=self.conv.padding)
             new_mask = (count > 0).to(x.dtype)
             ratio = self.window / count.clamp_min(1.0) * new_mask
-        raw = F.conv2d(x * mask, self.conv.weight, None, self.conv.stride, self.conv.padding)
+        raw = F.conv2d(x if masked else x * mask, self.conv.weight, None, self.conv.stride, self.conv.padding)
         bias = self.conv.bias.view(1, -1, 1, 1)
         return (raw * ratio + bias) * new_mask, new_mask
 
@@ -155,7 +161,7 @@ class SDDUNet(nn.Module):
         x = F.elu(x)
         skips = [(x, m)]
         for down in self.downs:
-            x, m = down(x, m)
+            x, m = down(x, m, masked=True)  # elu(0) = 0: x is 0 outside m
             x = F.elu(x)
             skips.append((x, m))
         skips.pop()
@@ -164,7 +170,7 @@ class SDDUNet(nn.Module):
             x = F.interpolate(x, scale_factor=2.0, mode="nearest")
             m = F.interpolate(m, scale_factor=2.0, mode="nearest")
             # a concatenated channel group keeps its own mask: take their union
-            x, m = dec(torch.cat([x, sx], dim=1), torch.maximum(m, sm))
+            x, m = dec(torch.cat([x, sx], dim=1), torch.maximum(m, sm), masked=True)
             x = F.elu(x)
         return [self.out(x) * scale]
 
