@@ -26,6 +26,11 @@ the ratio other / this of each pair (median, min, max): the speed-up of this che
     python3 bench/bench_train_steps.py WORKDIR                          # every learned model
     python3 bench/bench_train_steps.py WORKDIR --models lapden --steps 20 --threads 2
     python3 bench/bench_train_steps.py WORKDIR --against /tmp/base --repeats 3 --predict-frames 10
+    python3 bench/bench_train_steps.py WORKDIR --models lapden --predict-frames 5 --profile   # by op class
+
+``--profile`` prints torch.profiler's account of the timed epoch, the last validation and
+the evaluated frames: the share of each op class (convolutions forward and backward,
+pooling and resampling, ...) and the top ops (the profiler slows them by ~10-20 %).
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 if __name__ == "__main__" and "--src" in sys.argv:  # run another checkout's library (see --against)
@@ -89,9 +95,11 @@ def run_one(a: argparse.Namespace) -> dict:
 
     def timing(fn, what):  # CPU and wall seconds of each call of the trainer's step functions
         def wrapped(*args, **kwargs):
-            c0, w0 = time.process_time(), time.perf_counter()
-            out = fn(*args, **kwargs)
-            timed[what].append((time.process_time() - c0, time.perf_counter() - w0, int(out["batches"])))
+            last = len(timed["train"]) == a.epochs - (what == "train")  # the timed (last) epoch
+            with _profiled(a.profile and last, f"{model}: {what} epoch {len(timed[what])}"):
+                c0, w0 = time.process_time(), time.perf_counter()
+                out = fn(*args, **kwargs)
+                timed[what].append((time.process_time() - c0, time.perf_counter() - w0, int(out["batches"])))
             return out
 
         return wrapped
@@ -139,9 +147,43 @@ def _predict(a: argparse.Namespace, model: str, checkpoint: Path) -> dict:
     if "status" in frames.columns:
         frames = frames[frames["status"] == "ok"]
     frames = frames[frames["frameset"] != ""].head(a.predict_frames)
-    c0 = time.process_time()
-    evaluate_frames(frames, {model: method_spec(model, checkpoint, device="cpu")}, split=None)
-    return {"predict_frame_cpu": (time.process_time() - c0) / max(len(frames), 1)}
+    with _profiled(a.profile, f"{model}: evaluation of {len(frames)} test frames"):
+        c0 = time.process_time()
+        evaluate_frames(frames, {model: method_spec(model, checkpoint, device="cpu")}, split=None)
+        cpu = time.process_time() - c0
+    return {"predict_frame_cpu": cpu / max(len(frames), 1)}
+
+
+#: torch.profiler's op names by class, for --profile's summary (the first pattern that matches)
+OP_CLASSES = (
+    ("convolution backward", ("convolution_backward",)),
+    ("convolution forward", ("convolution", "conv2d")),
+    ("pooling and resampling", ("pool", "upsample", "pad")),
+    ("cross product and norms", ("cross", "norm")),
+    ("copies and concatenation", ("copy_", "cat", "_to_copy", "clone", "contiguous", "stack")),
+)
+
+
+@contextmanager
+def _profiled(on: bool, title: str):
+    """torch.profiler over the block when ``on``: CPU seconds by op class and the top ops."""
+    if not on:
+        yield
+        return
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        yield
+    ops = [e for e in prof.key_averages() if e.key.startswith("aten::")]
+    total = sum(e.self_cpu_time_total for e in ops) or 1.0
+    classes: dict[str, float] = {}
+    for e in ops:
+        name = next((c for c, pats in OP_CLASSES if any(p in e.key for p in pats)), "other (pointwise, reductions)")
+        classes[name] = classes.get(name, 0.0) + e.self_cpu_time_total
+    print(f"--- profile, {title}: {total / 1e6:.2f} s of aten ops (self CPU, profiler overhead included)")
+    for name, t in sorted(classes.items(), key=lambda kv: -kv[1]):
+        print(f"  {name:32s} {100 * t / total:5.1f} %")
+    print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12), flush=True)
 
 
 def _worker(a: argparse.Namespace, model: str, src: Path) -> dict:
@@ -150,6 +192,7 @@ def _worker(a: argparse.Namespace, model: str, src: Path) -> dict:
         cmd = [sys.executable, __file__, str(a.workdir), "--models", model, "--src", str(src), "--json", str(out)]
         for key in ("threads", "steps", "epochs", "val_pairs", "predict_frames"):
             cmd += [f"--{key.replace('_', '-')}", str(getattr(a, key))]
+        cmd += ["--profile"] if a.profile else []
         env = {**os.environ, "PYTHONPATH": str(src)}
         subprocess.run(cmd, check=True, env=env, cwd=str(src.parent))
         return json.loads(out.read_text())
@@ -169,6 +212,9 @@ def main() -> None:
     ap.add_argument("--predict-frames", type=int, default=0, help="test frames scored with the trained model")
     ap.add_argument("--against", type=Path, help="another checkout, run in turn with this one")
     ap.add_argument("--repeats", type=int, default=1, help="runs per model (and checkout)")
+    ap.add_argument(
+        "--profile", action="store_true", help="torch.profiler tables of the timed epoch and the evaluation"
+    )
     ap.add_argument("--src", type=Path, help=argparse.SUPPRESS)  # internal: one model in this process
     ap.add_argument("--json", type=Path, help=argparse.SUPPRESS)
     a = ap.parse_args()

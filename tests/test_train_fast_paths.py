@@ -7,7 +7,7 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.depth import depth_to_normals
 
-from depthgt.depth_ops import depth_normals, valid_avg_pool
+from depthgt.depth_ops import depth_normals, valid_avg_pool, window_max
 from depthgt.enhance.lapden import push_pull_fill
 from depthgt.enhance.losses import LossConfig, lapden_loss, normal_l1
 
@@ -169,3 +169,23 @@ def test_lapden_in_place_activations_change_no_bit(monkeypatch):
     plain = _outputs_and_grads(model, depth)
     assert all(torch.equal(a, b) for a, b in zip(fast[0], plain[0]))
     assert all(torch.equal(a, b) for a, b in zip(fast[1], plain[1]))
+
+
+def test_window_max_is_max_pool_to_the_bit_and_keeps_its_gradient():
+    g = torch.Generator().manual_seed(0)
+    for shape in ((2, 1, 17, 12), (1, 3, 5, 9), (3, 1, 2, 2)):
+        x = torch.rand(shape, generator=g) * (torch.rand(shape, generator=g) > 0.3)
+        x[0, 0, 0, 0] = float("nan")  # propagated by both
+        for window in (1, 3, 5):
+            expected = F.max_pool2d(x, window, stride=1, padding=window // 2)
+            assert torch.equal(window_max(x, window).nan_to_num(-1.0), expected.nan_to_num(-1.0))
+    # with autograd: max_pool2d's gradient, one element per window max
+    x = torch.rand(2, 1, 9, 7, generator=g).requires_grad_()
+    w = torch.rand(2, 1, 9, 7, generator=g)
+    (window_max(x, 5) * w).sum().backward()
+    ours = x.grad.clone()
+    x.grad = None
+    (F.max_pool2d(x, 5, stride=1, padding=2) * w).sum().backward()
+    assert torch.equal(ours, x.grad)
+    with torch.no_grad():  # the fast path, the same values
+        assert torch.equal(window_max(x, 5), F.max_pool2d(x, 5, stride=1, padding=2))

@@ -23,6 +23,7 @@ __all__ = [
     "masked_mean",
     "forward_gradients",
     "depth_normals",
+    "window_max",
     "max_gradient_magnitude",
     "structure_loss",
 ]
@@ -171,6 +172,36 @@ def depth_normals(depth_m: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     return F.normalize(torch.linalg.cross(a, b, dim=-1), dim=-1).permute(0, 3, 1, 2)
 
 
+def window_max(x: torch.Tensor, window: int) -> torch.Tensor:
+    """Max over each ``window`` x ``window`` neighbourhood (stride 1, centred, the border
+    left out): ``F.max_pool2d(x, window, stride=1, padding=window // 2)``.
+
+    Without autograd (``x`` needs no gradient, or grad mode is off) as running maxima of
+    shifted views along the rows, then the columns: the same values to the bit (a max
+    is exact in any order), ~10-20x faster on CPU than max_pool2d's kernel for the
+    one-channel images here. With autograd, max_pool2d itself (its gradient goes to one
+    element of a tie; the maxima's would split it).
+
+    Args:
+        x: (B, C, H, W); window: odd int.
+    """
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"window must be a positive odd int, got {window}")
+    r = window // 2
+    if torch.is_grad_enabled() and x.requires_grad:
+        return F.max_pool2d(x, window, stride=1, padding=r)
+    H, W = x.shape[-2:]
+    padded = F.pad(x, (r, r, 0, 0), value=float("-inf"))
+    rows = padded[..., :, :W]
+    for i in range(1, window):
+        rows = torch.maximum(rows, padded[..., :, i : i + W])
+    padded = F.pad(rows, (0, 0, r, r), value=float("-inf"))
+    out = padded[..., :H, :]
+    for i in range(1, window):
+        out = torch.maximum(out, padded[..., i : i + H, :])
+    return out
+
+
 def max_gradient_magnitude(depth_m: torch.Tensor, valid: torch.Tensor, window: int = 5, eps: float = 1e-12):
     """max_{q in W(p)} |grad d_q| of eq. 6 over a ``window`` x ``window`` neighbourhood.
 
@@ -188,7 +219,7 @@ def max_gradient_magnitude(depth_m: torch.Tensor, valid: torch.Tensor, window: i
     gx, gy, vx, vy = forward_gradients(depth_m, valid)
     vg = vx & vy
     mag = torch.sqrt(gx * gx + gy * gy + eps) * vg.to(depth_m.dtype)
-    return F.max_pool2d(mag, window, stride=1, padding=window // 2)
+    return window_max(mag, window)
 
 
 def structure_loss(pred: torch.Tensor, target: torch.Tensor, valid: torch.Tensor, window: int = 5) -> torch.Tensor:

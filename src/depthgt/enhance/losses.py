@@ -38,7 +38,6 @@ import math
 from dataclasses import dataclass, fields
 
 import torch
-import torch.nn.functional as F
 
 from depthgt.depth_ops import (
     check_depth,
@@ -47,6 +46,7 @@ from depthgt.depth_ops import (
     masked_avg_pool,
     masked_mean,
     structure_loss,
+    window_max,
 )
 from depthgt.geometry import scale_intrinsics
 
@@ -135,7 +135,7 @@ def normal_l1(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor, K: torc
     n_gt = depth_normals(gt, K)
     # the Sobel support of the normal is 3x3: all of it must be valid GT
     v = valid.to(pred.dtype)
-    v3 = 1.0 - F.max_pool2d(1.0 - v, 3, stride=1, padding=1)
+    v3 = 1.0 - window_max(1.0 - v, 3)
     return masked_mean((n_pred - n_gt).abs().sum(dim=1, keepdim=True), v3 > 0.5)
 
 
