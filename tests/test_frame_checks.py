@@ -167,9 +167,9 @@ def test_pretraining_skips_a_frame_set_with_an_unusable_frame(tmp_path, monkeypa
     """A drawn frame set holding an unreadable frame is skipped with a warning and the
     first spare of the draw replaces it; pretraining gets the usable sets it asked for."""
     from depthgt import registration
-    from depthgt.gt.build import load_frameset
     from depthgt.gt.index import select_pretraining_framesets
     from depthgt.jobs.gt import run_pretrain_registration, run_scene_index
+    from depthgt.registration import load_frameset
 
     config = dict(SMALL, registration={"method": "overfit", "preset": "fast", "pretrain": {"framesets": 3}})
     index_json = tmp_path / "index.json"

@@ -13,6 +13,9 @@ level, inside functions, under ``TYPE_CHECKING``) is read from the source with `
 * registration -> gt -> data (the torch Dataset over the manifests) -> enhance -> eval
   -> jobs/cli.
 
+Within a unit no two modules import each other, directly or through others
+(:func:`module_cycle`).
+
 A unit (a top-level module, or a subpackage such as ``depthgt.gt``) may import units of
 its own layer or lower, and the graph of units has no cycle. Edges that still point
 upwards are listed in :data:`KNOWN_VIOLATIONS`; the test fails when one of them is gone
@@ -171,6 +174,50 @@ def test_known_violations_are_still_there():
 def test_no_cycle_between_packages():
     found = cycle(all_edges())
     assert found is None, "import cycle between units: " + " -> ".join(found)
+
+
+def module_cycle(edges) -> list[str] | None:
+    """A cycle in the graph of modules (imports at any depth, ``TYPE_CHECKING`` ones
+    included), or None: two modules of one package that import each other, directly or
+    through others, hold a circle open even where a function-level import lets it load."""
+    graph: dict[str, set[str]] = {}
+    for src, dst, _ in edges:
+        if src != dst:
+            graph.setdefault(src, set()).add(dst)
+    state: dict[str, int] = {}
+    path: list[str] = []
+
+    def visit(u: str) -> list[str] | None:
+        state[u] = 1
+        path.append(u)
+        for v in sorted(graph.get(u, ())):
+            if state.get(v) == 1:
+                return path[path.index(v) :] + [v]
+            if v not in state and (found := visit(v)):
+                return found
+        path.pop()
+        state[u] = 2
+        return None
+
+    for u in sorted(graph):
+        if u not in state and (found := visit(u)):
+            return found
+    return None
+
+
+def test_no_cycle_between_modules():
+    found = module_cycle(all_edges())
+    assert found is None, "import cycle between modules: " + " -> ".join(found)
+
+
+def test_the_module_cycle_check_sees_a_circle_inside_a_package(tmp_path):
+    a, b = tmp_path / "a.py", tmp_path / "b.py"
+    a.write_text("from depthgt.gt import coverage\n")
+    b.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from depthgt.gt.build import x\n")
+    edges = [("depthgt.gt.build", dst, f"a.py:{line}") for dst, line in internal_imports(a, "depthgt.gt.build")]
+    edges += [("depthgt.gt.coverage", dst, f"b.py:{line}") for dst, line in internal_imports(b, "depthgt.gt.coverage")]
+    assert cycle(edges) is None  # one unit: the package check does not see it
+    assert module_cycle(edges) == ["depthgt.gt.build", "depthgt.gt.coverage", "depthgt.gt.build"]
 
 
 def test_the_checker_sees_imports_inside_functions(tmp_path):

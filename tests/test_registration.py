@@ -582,7 +582,7 @@ def test_refine_source_poses_ends_closer_to_the_truth():
 def test_align_refine_uses_source_poses_and_photometric_rule():
     """``align`` with method refine starts from the source's poses; the photometric term
     is left out for a source whose colour is not the depth's camera at its instant."""
-    from depthgt.gt.build import FrameSetData, align, photometric_for
+    from depthgt.registration import FrameSetData, align, photometric_for
 
     offsets = [0, -2, 2]
     rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64), seed=4)
@@ -628,7 +628,7 @@ def test_every_method_is_one_entry_of_the_table(monkeypatch):
 
     from depthgt import registration
     from depthgt.errors import FrameError
-    from depthgt.gt.build import FrameSetData, align
+    from depthgt.registration import FrameSetData, align
     from depthgt.registration.result import RegistrationResult
     from depthgt.settings import REGISTRATION_METHODS
 

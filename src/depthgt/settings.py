@@ -311,7 +311,7 @@ class PatchSettings:
 
 @dataclass(frozen=True)
 class RenderSettings:
-    """Settings of :func:`depthgt.gt.render.render_gt` (config ``render``; paper eq. 5
+    """Settings of the GT renderer, :func:`depthgt.gt.render.fuse` (config ``render``; paper eq. 5
     with surface selection by geometry).
 
     The renderer reasons in inverse depth, where a disparity sensor's noise is about

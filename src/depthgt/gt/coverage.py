@@ -38,12 +38,13 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.liegroup import Se3
 
-from depthgt import geometry, registration
+from depthgt import geometry
 from depthgt.errors import FrameError
-from depthgt.gt.build import Alignment, FrameSetData, fuse, load_frameset, photometric_for
-from depthgt.gt.render import GTRender
+from depthgt.gt.render import Fusion, fuse, whole_frame_threshold
 from depthgt.metric_vocabulary import depth_errors
+from depthgt.registration import Alignment, FrameSetData, load_frameset, photometric_for
 from depthgt.registration.local import refine_source_poses
+from depthgt.registration.methods import METHODS
 from depthgt.settings import FrameSetSettings, RegistrationSettings, RenderSettings
 from depthgt.sources.base import Scene, check_frame
 from depthgt.status import Status
@@ -283,11 +284,11 @@ class CoverageResult:
             view was added.
     """
 
-    render: GTRender
+    render: Fusion
     record: dict[str, Any]
     statistics: dict[str, Any] = field(default_factory=dict)
     T_j_to_t: dict[int, list] = field(default_factory=dict)
-    full: GTRender | None = None
+    full: Fusion | None = None
 
 
 def _usable(scene: Scene, positions: list[int], need_pose: bool) -> tuple[list[int], dict[int, str]]:
@@ -318,7 +319,7 @@ def _register(
     (F-1, 4, 4), the chain's poses."""
     settings = photometric_for(reg, data.colour_matches_depth)
     if reg.uses_source_poses:
-        register = registration.METHODS[reg.method]  # looked up at call time so tests can replace it
+        register = METHODS[reg.method]  # looked up at call time so tests can replace it
         res = register(data, offsets, settings)
     else:
         if T_start is None:
@@ -334,7 +335,7 @@ def add_coverage_views(
     candidates: list[int],
     data: FrameSetData,
     alignment: Alignment,
-    core: GTRender,
+    core: Fusion,
     fs: FrameSetSettings,
     reg: RegistrationSettings,
     render: RenderSettings,
@@ -358,7 +359,7 @@ def add_coverage_views(
     (:func:`view_limits`, :func:`fill_maps`, :func:`choose_views`, ``_register``).
     """
     h, w = data.depth_m.shape[-2:]
-    empty = core.depth[0, 0] <= 0
+    empty = core.gt.depth[0, 0] <= 0
     record: dict[str, Any] = {
         "selection": "coverage",
         "candidates": len(candidates),
@@ -366,10 +367,8 @@ def add_coverage_views(
         "added": [],
     }
 
-    def keep() -> GTRender:  # nothing added: the core's render as it is
-        return GTRender(
-            core.depth, core.weight_sum, core.count, core.sigma, core.agreement, core.disagreement, core.left_out
-        )
+    def keep() -> Fusion:  # nothing added: the core's render as it is
+        return core
 
     need_pose = reg.uses_source_poses
     usable, bad = _usable(scene, candidates, need_pose)
@@ -459,35 +458,38 @@ def add_coverage_views(
     T_both = torch.cat([alignment.T_j_to_t.to(torch.float64), T_added.to(alignment.T_j_to_t.device, torch.float64)])
     members = [*alignment.fused, *(n + k for k in ok)]
     full = fuse(both, T_both, render, members=members, leave_target_out=data.truth_m is None)
-    whole = render.min_whole_frame_agreement if render.agreement_tile_px > 0 else render.min_frame_agreement
-    share = full.agreement[0].cpu().numpy() if full.agreement.numel() else np.full(len(members), np.nan)
-    filled = empty & (full.depth[0, 0] > 0)
+    share = full.gt.agreement[0].cpu().numpy() if full.gt.agreement.numel() else np.full(len(members), np.nan)
+    filled = empty & (full.gt.depth[0, 0] > 0)
+    left_whole = set(full.frames_left_out)
     for j, k in enumerate(ok):
         a = float(share[len(alignment.fused) + j])
         views[k]["render_agreement"] = round(a, 4) if math.isfinite(a) else None
-        if math.isfinite(a) and a < whole:  # the renderer left it out whole: it fills nothing
-            views[k]["status"], views[k]["reason"] = Status.FAILED, f"render_agreement {a:.3f} < {whole}"
+        if n + k in left_whole:  # the renderer left it out whole: it fills nothing
+            views[k]["status"], views[k]["reason"] = (
+                Status.FAILED,
+                f"render_agreement {a:.3f} < {whole_frame_threshold(render)}",
+            )
         planned = fill[picks[k][0]].reshape(h, w)
         views[k]["filled_px"] = int((planned & filled).sum()) if views[k]["status"] == Status.OK else 0
     record["filled_px"] = int(filled.sum())
     m = filled[None, None]
-    merged = GTRender(
-        torch.where(m, full.depth, core.depth),
-        torch.where(m, full.weight_sum, core.weight_sum),
-        torch.where(m, full.count, core.count),
-        torch.where(m, full.sigma, core.sigma),
-        core.agreement,
-        core.disagreement,
-        core.left_out,
+    c, f = core.gt, full.gt
+    merged = core._replace(
+        gt=c._replace(
+            depth=torch.where(m, f.depth, c.depth),
+            weight_sum=torch.where(m, f.weight_sum, c.weight_sum),
+            count=torch.where(m, f.count, c.count),
+            sigma=torch.where(m, f.sigma, c.sigma),
+        )
     )
     stats: dict[str, Any] = {}
-    if full.left_out is not None:
-        k = render.leave_target_out_stride  # fuse rendered these pixels only
-        lto = full.left_out.depth[0, 0].detach().cpu().numpy().astype(np.float32)
-        depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
-        stats["leave_target_out_all_views"] = depth_errors(lto[::k, ::k], depth_in[::k, ::k])
+    lto = full.left_out_depth()
+    if lto is not None:
+        depth_in = full.on_lto_grid(data.depth_m[0, 0].cpu().numpy().astype(np.float32))
+        stats["leave_target_out_all_views"] = depth_errors(lto, depth_in)
         # where the core's neighbours alone left the target empty: the added views' own check
-        core_lto = core.left_out.depth[0, 0].detach().cpu().numpy() if core.left_out is not None else np.zeros_like(lto)
-        stats["leave_target_out_added"] = depth_errors(lto[::k, ::k], depth_in[::k, ::k], mask=core_lto[::k, ::k] <= 0)
+        core_lto = core.left_out_depth()
+        core_empty = core_lto <= 0 if core_lto is not None else np.ones_like(lto, dtype=bool)
+        stats["leave_target_out_added"] = depth_errors(lto, depth_in, mask=core_empty)
     poses = {offsets[1 + k]: T_added[k].detach().cpu().numpy().tolist() for k in ok if views[k]["status"] == Status.OK}
     return CoverageResult(merged, record, stats, poses, full)

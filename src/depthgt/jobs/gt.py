@@ -342,8 +342,7 @@ def run_pretrain_registration(
     # heavy (torch): only this job needs them
     import torch
 
-    from depthgt.gt.build import load_frameset
-    from depthgt.registration import pretrain_encoder
+    from depthgt.registration import load_frameset, pretrain_encoder
 
     settings = stage_settings(config, "pretrain")
     pre = settings.registration.pretrain

@@ -2,34 +2,35 @@
 
 Every method is a :class:`~depthgt.registration.frameset.Registration`, a function
 ``(data, offsets, settings, *, seed, encoder_state) -> RegistrationResult`` in its own
-module, picked by ``registration.method`` from :data:`METHODS`: ``given``
+module, picked by ``registration.method`` from :data:`METHODS`
+(:mod:`depthgt.registration.methods`): ``given``
 (:func:`~depthgt.registration.given.register_given`, the source's poses), ``refine``
 (:func:`~depthgt.registration.local.register_refine`, the source's poses refined on the
 set) and ``overfit`` (:func:`~depthgt.registration.overfit.register_overfit`, the
-paper's registration, Sec. 3.2). Their failure checks: :mod:`depthgt.registration.checks`.
+paper's registration, Sec. 3.2). Their failure checks: :mod:`depthgt.registration.checks`;
+the frame set's members read at the working size: :func:`load_frameset`; the method
+run with the photometric rule, and which members enter the GT: :func:`align`.
 Also :func:`pretrain_encoder` (stream-only pretraining) and :func:`build_encoder`.
 Settings and presets: :class:`depthgt.settings.RegistrationSettings`,
 :func:`depthgt.settings.registration_settings`. Imported lazily by callers (torch is heavy).
 """
 
+from depthgt.registration.align import Alignment, align, photometric_for
 from depthgt.registration.encoder import build_encoder
-from depthgt.registration.frameset import FrameSetData, Registration, poses_from_source
+from depthgt.registration.frameset import FrameSetData, Registration, load_frameset, poses_from_source
 from depthgt.registration.given import register_given
 from depthgt.registration.local import refine_source_poses, register_refine
+from depthgt.registration.methods import METHODS
 from depthgt.registration.overfit import pretrain_encoder, register_frameset, register_overfit
 from depthgt.registration.refine import refine_poses
 from depthgt.registration.result import RegistrationResult
 
-#: The registration methods by their ``registration.method`` name
-#: (:data:`depthgt.settings.REGISTRATION_METHODS`, the same names, is what the config checks).
-METHODS: dict[str, Registration] = {
-    "given": register_given,
-    "refine": register_refine,
-    "overfit": register_overfit,
-}
-
 __all__ = [
     "METHODS",
+    "Alignment",
+    "align",
+    "load_frameset",
+    "photometric_for",
     "FrameSetData",
     "Registration",
     "RegistrationResult",
