@@ -7,7 +7,8 @@ Each checkout builds the same consecutive frame sets of each recording and mode 
 process of its own (``depthgt.gt.build.process_frameset`` through the batch's frame cache,
 as ``bench/bench_pipeline.py`` does, one torch thread), and keeps each target's GT depth
 and confidence as the renderer made them (float32, before the shard's fixed point) and
-its ``frameset.json``. Printed per (recording, mode): the GT pixels valid in both, those
+its ``frameset.json`` (consecutive targets sharing one per-frame cache, as a batch job
+does). Printed per (recording, mode): the GT pixels valid in both, those
 valid in one only, the share of the shared ones within the storage precision
 (``--tol-m``, default 30.5 um: half the step of ``depthgt.gt.store.GT_UNITS``), the
 largest difference, the neighbours' poses' largest difference and the frame sets'
@@ -86,11 +87,17 @@ def worker(out: Path, data: str, mode: str, n: int, selection: str, config_path:
         return original(data_, rendered, out_)
 
     build.stored_images = keeping
+    try:  # the batch job's per-frame cache, as the batch job keeps it (absent in older checkouts)
+        from depthgt.framecache import FrameCache
+
+        shared = {"cache": FrameCache(keep=2 * span + 2)}
+    except ImportError:
+        shared = {}
     for t in range(fs.reach, min(len(scene) - fs.reach, fs.reach + n)):
         target_dir = out / f"{t:06d}"
         doc = build.process_frameset(
             scene, source["name"], t, [t + o for o in fs.offsets], "train", build.FrameSetOutputs.in_dir(target_dir),
-            settings,
+            settings, **shared,
         )  # fmt: skip
         poses = json.loads((target_dir / "poses.json").read_text())
         np.savez(

@@ -128,9 +128,9 @@ def test_confidence_tracks_actual_error(framesets, rendered):
 
 def test_gt_reuses_the_refinements_normals_unchanged(framesets):
     """The refinement's full-resolution normals (kornia's, of the same depth) go on to the
-    renderer instead of being computed again when every member is fused: the GT and the
-    leave-target-out render are bit for bit those of the renderer's own normals (for a
-    subset the renderer computes its own: a smaller batch rounds differently)."""
+    renderer instead of being computed again: the GT and the leave-target-out render
+    are bit for bit those of the renderer's own normals, for every member or a subset
+    (the normals of all members are computed together either way)."""
     from depthgt.registration import align
     from depthgt.settings import registration_settings
 
@@ -151,12 +151,11 @@ def test_gt_reuses_the_refinements_normals_unchanged(framesets):
         for name in ("depth", "weight_sum", "count", "sigma"):
             assert torch.equal(getattr(reused.gt, name), getattr(own.gt, name)), name
         assert torch.equal(reused.left_out.depth, own.left_out.depth)
-        # they are what the renderer uses (all members), or ignored (a subset): zero normals
-        # (no plane correction) change the GT only where they are used
+        # they are what the renderer uses: zero normals (no plane correction) change the GT
         zero = fuse(
             data, alignment.T_j_to_t, RenderSettings(), members=members, normals=torch.zeros_like(alignment.normals)
         )
-        assert torch.equal(zero.gt.depth, own.gt.depth) == isinstance(members, list)
+        assert not torch.equal(zero.gt.depth, own.gt.depth)
     # normals that do not match the depth are not used (a depth other than the raw one)
     other = fuse(data, alignment.T_j_to_t, RenderSettings(), depth_m=data.depth_m * 1.01, normals=alignment.normals)
     alone = fuse(data, alignment.T_j_to_t, RenderSettings(), depth_m=data.depth_m * 1.01)

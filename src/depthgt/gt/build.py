@@ -14,15 +14,19 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
+import torch
 
 from depthgt import io
 from depthgt.atomic import save_npz, write_atomic
 from depthgt.device import resolve_device
+from depthgt.framecache import FrameCache
 from depthgt.gt import store
 from depthgt.gt.coverage import CoverageResult, add_coverage_views
 from depthgt.gt.patches import make_patches, patch_record
 from depthgt.gt.planning import coverage_candidates, stable_seed
 from depthgt.gt.render import Fusion, fuse
+from depthgt.gt.render.cloud import cached_geometry, frame_geometry
+from depthgt.gt.render.fusion import SetGeometry, fuse_sets
 from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
 from depthgt.registration import Alignment, FrameSetData, align, load_frameset, poses_from_source
 from depthgt.settings import STAGES, RenderSettings, Settings
@@ -34,6 +38,8 @@ __all__ = [
     "FrameSetId",
     "StoredImages",
     "process_frameset",
+    "process_framesets",
+    "render_targets",
     "render_target",
     "cover",
     "stored_images",
@@ -151,6 +157,13 @@ class _StepClock:
         self.wall_s[name], self.cpu_s[name] = round(wall - self._wall, 4), round(cpu - self._cpu, 4)
         self._wall, self._cpu = wall, cpu
 
+    def add(self, name: str, shared: _StepClock, n: int) -> None:
+        """Step ``name`` of ``shared`` (a step done for ``n`` frame sets at once), this
+        set's even share; the clock restarts now."""
+        self.wall_s[name] = round(shared.wall_s[name] / n, 4)
+        self.cpu_s[name] = round(shared.cpu_s[name] / n, 4)
+        self._wall, self._cpu = time.perf_counter(), time.process_time()
+
 
 def process_frameset(
     scene: Scene,
@@ -162,9 +175,11 @@ def process_frameset(
     settings: Settings,
     encoder_state: dict | None = None,
     candidates: list[int] | None = None,
+    cache: FrameCache | None = None,
 ) -> dict[str, Any]:
     """Build every output of one frame set and return frameset.json's content: read,
-    align, render (with the coverage views when selected), statistics, patches, write.
+    align, render (with the coverage views when selected), statistics, patches, write
+    (:func:`process_framesets` of one).
 
     Args:
         scene: the scene (:class:`~depthgt.gt.cache.ResizedScene` in the
@@ -178,18 +193,67 @@ def process_frameset(
             for coverage may come from (the batch job's
             :func:`~depthgt.gt.planning.coverage_candidates`); None: every frame within
             ``coverage_span`` (the scene in one split).
+        cache: the batch job's per-frame results (:class:`~depthgt.framecache.FrameCache`:
+            the registration's pyramid, the renderer's geometry), or None.
     """
     fid = FrameSetId(dataset, scene.name, target, list(members), split)
-    out = FrameSetOutputs(*(Path(p) for p in out))
-    clock = _StepClock()
+    return process_framesets(scene, [fid], [out], settings, encoder_state, [candidates], cache)[0]
+
+
+def process_framesets(
+    scene: Scene,
+    fids: list[FrameSetId],
+    outs: list[FrameSetOutputs],
+    settings: Settings,
+    encoder_state: dict | None = None,
+    candidates: list[list[int] | None] | None = None,
+    cache: FrameCache | None = None,
+) -> list[dict[str, Any]]:
+    """Build the frame sets ``fids`` of one scene (outputs ``outs``, coverage candidates
+    ``candidates`` per set; the rest as :func:`process_frameset`) and return their
+    frameset.json contents. Each set is read and aligned on its own; their GTs are
+    rendered together (:func:`render_targets`: in one pass on a GPU); then each set's
+    coverage views, statistics, patches and files. Every step's time is recorded per
+    set in its poses.json (a shared render's time split evenly)."""
     reg = settings.registration
     device = resolve_device(settings.device)
-    data = load_frameset(scene, fid.members, settings.size_hw, need_poses=reg.uses_source_poses, device=device)
-    clock.lap("load_resize")
-    alignment = align(data, fid.offsets, reg, stable_seed(settings.seed, dataset, scene.name, target), encoder_state)
-    clock.lap("align")
-    fusion = render_target(data, alignment, settings.render)
-    clock.lap("render")
+    candidates = candidates or [None] * len(fids)
+    clocks = [_StepClock() for _ in fids]
+    datas, alignments = [], []
+    for fid, clock in zip(fids, clocks):
+        data = load_frameset(
+            scene, fid.members, settings.size_hw, need_poses=reg.uses_source_poses, device=device, cache=cache
+        )
+        clock.lap("load_resize")
+        seed = stable_seed(settings.seed, fid.dataset, scene.name, fid.target)
+        alignments.append(align(data, fid.offsets, reg, seed, encoder_state))
+        datas.append(data)
+        clock.lap("align")
+    shared = _StepClock()
+    fusions = render_targets(datas, alignments, settings.render)
+    shared.lap("render")
+    docs = []
+    for k, (fid, out, clock) in enumerate(zip(fids, outs, clocks)):
+        clock.add("render", shared, len(fids))
+        docs.append(
+            _finish_frameset(scene, fid, FrameSetOutputs(*(Path(p) for p in out)), datas[k], alignments[k], fusions[k],
+                             settings, candidates[k], clock)
+        )  # fmt: skip
+    return docs
+
+
+def _finish_frameset(
+    scene: Scene,
+    fid: FrameSetId,
+    out: FrameSetOutputs,
+    data: FrameSetData,
+    alignment: Alignment,
+    fusion: Fusion,
+    settings: Settings,
+    candidates: list[int] | None,
+    clock: _StepClock,
+) -> dict[str, Any]:
+    """A rendered frame set's coverage views (when selected), statistics, patches and files."""
     coverage = None
     if settings.frameset.selection == "coverage":
         coverage = cover(scene, fid, data, alignment, fusion, settings, candidates=candidates)
@@ -211,6 +275,41 @@ def process_frameset(
     doc = frameset_record(fid, data, alignment, stats, settings, coverage)
     write_atomic(out.meta, io.write_json, doc)
     return doc
+
+
+def render_targets(datas: list[FrameSetData], alignments: list[Alignment], settings: RenderSettings) -> list[Fusion]:
+    """:func:`render_target` of each frame set; the sets with their target fused rendered
+    together (:func:`depthgt.gt.render.fusion.fuse_sets`: one pass on a GPU, set by set
+    on the CPU) when they come from one camera at one size."""
+    if len(datas) == 1 or datas[0].depth_m.device.type == "cpu":
+        return [render_target(d, a, settings) for d, a in zip(datas, alignments)]
+    first = datas[0]
+    same = all(
+        d.src_hw == first.src_hw and d.depth_m.shape[1:] == first.depth_m.shape[1:] and torch.equal(d.K, first.K)
+        for d in datas
+    )
+    if not same or any(a.fused[0] != 0 for a in alignments) or len({d.truth_m is None for d in datas}) > 1:
+        return [render_target(d, a, settings) for d, a in zip(datas, alignments)]
+    sets = []
+    for data, alignment in zip(datas, alignments):
+        members = (
+            alignment.fused if len(alignment.fused) < data.depth_m.shape[0] else list(range(data.depth_m.shape[0]))
+        )
+        if data.cache is not None and data.positions is not None:
+            geometry = cached_geometry(data.cache, data.positions, data.depth_m, data.K, src_hw=data.src_hw)
+        else:
+            geometry = frame_geometry(
+                data.depth_m, data.K[None].expand(data.depth_m.shape[0], 3, 3), src_hw=data.src_hw
+            )
+        eye = torch.eye(4, dtype=alignment.T_j_to_t.dtype, device=alignment.T_j_to_t.device)[None]
+        T = torch.cat([eye, alignment.T_j_to_t])[members]
+        sets.append(SetGeometry(geometry.take(members), T, tuple(members)))
+    real = [d.truth_m is None for d in datas]
+    fused = fuse_sets(
+        sets, first.K, tuple(first.depth_m.shape[-2:]), settings, src_hw=first.src_hw, leave_target_out=True
+    )
+    # the leave-target-out render is kept for real data only (as render_target does)
+    return [f if r else f._replace(left_out=None) for f, r in zip(fused, real)]
 
 
 def render_target(data: FrameSetData, alignment: Alignment, settings: RenderSettings) -> Fusion:

@@ -13,6 +13,7 @@ import torch
 
 from depthgt import geometry
 from depthgt.errors import FrameError
+from depthgt.framecache import FrameCache
 from depthgt.registration.result import RegistrationResult
 from depthgt.settings import RegistrationSettings
 from depthgt.sources.base import Scene, check_frame
@@ -34,6 +35,9 @@ class FrameSetData:
         src_hw: (H, W) of the source's depth images before resizing.
         colour_matches_depth: the source's colour is taken by the depth's camera at the
             depth's instant (``Scene.colour_matches_depth``).
+        positions: the members' positions in their scene, or None.
+        cache: the batch job's :class:`~depthgt.framecache.FrameCache` of per-frame
+            results (keyed by ``positions``), or None.
     """
 
     rgb: torch.Tensor
@@ -44,10 +48,17 @@ class FrameSetData:
     frame_ids: list[str]
     src_hw: tuple[int, int] | None = None
     colour_matches_depth: bool = True
+    positions: tuple[int, ...] | None = None
+    cache: FrameCache | None = None
 
 
 def load_frameset(
-    scene: Scene, members: list[int], size_hw: tuple[int, int], need_poses: bool, device: torch.device
+    scene: Scene,
+    members: list[int],
+    size_hw: tuple[int, int],
+    need_poses: bool,
+    device: torch.device,
+    cache: FrameCache | None = None,
 ) -> FrameSetData:
     """Read the member frames of any :class:`~depthgt.sources.base.Scene` and bring them
     to ``size_hw`` (depth nearest/valid-aware, colour area-averaged, intrinsics scaled).
@@ -55,6 +66,9 @@ def load_frameset(
     A scene whose frames already have the working size (a
     :class:`depthgt.gt.cache.ResizedScene`) is not resized again; it tells the size of
     the images it was resized from by ``source_size``.
+
+    ``cache``: the batch job's per-frame results (:class:`~depthgt.framecache.FrameCache`),
+    kept with the frame set with the members' positions.
 
     Raises:
         FrameError: a member frame is unusable (the batch job checks the members
@@ -90,6 +104,8 @@ def load_frameset(
         frame_ids=[scene.frame_id(m) for m in members],
         src_hw=tuple(getattr(scene, "source_size", scene.image_size)),
         colour_matches_depth=bool(getattr(scene, "colour_matches_depth", True)),  # test doubles may not say
+        positions=tuple(int(m) for m in members),
+        cache=cache,
     )
 
 

@@ -18,6 +18,7 @@ import time
 
 import torch
 
+from depthgt.framecache import FrameCache
 from depthgt.registration.checks import check_neighbours, set_status
 from depthgt.registration.frameset import FrameSetData, poses_from_source
 from depthgt.registration.refine import refine_poses
@@ -42,7 +43,16 @@ def register_refine(
     Raises:
         FrameError: the source has no finite poses for the members ("missing_pose").
     """
-    return refine_source_poses(data.rgb, data.depth_m, data.K, offsets, poses_from_source(data), settings)
+    return refine_source_poses(
+        data.rgb,
+        data.depth_m,
+        data.K,
+        offsets,
+        poses_from_source(data),
+        settings,
+        cache=data.cache,
+        positions=data.positions,
+    )
 
 
 def refine_source_poses(
@@ -52,6 +62,9 @@ def refine_source_poses(
     offsets: list[int],
     T_j_to_t: torch.Tensor,
     settings: RegistrationSettings = RegistrationSettings(method="refine"),
+    *,
+    cache: FrameCache | None = None,
+    positions: tuple[int, ...] | None = None,
 ) -> RegistrationResult:
     """Refine the source's poses of the neighbours of one frame set.
 
@@ -61,6 +74,8 @@ def refine_source_poses(
         offsets: frame offsets, ``offsets[0] == 0``.
         T_j_to_t: (F-1, 4, 4) the source's poses of the neighbours in the target camera.
         settings: its ``refine_settings`` and ``checks``.
+        cache, positions: the batch job's per-frame results and the frames' positions
+            (:func:`~depthgt.registration.refine.refine_poses`), or None.
 
     Returns:
         :class:`~depthgt.registration.result.RegistrationResult` (no correspondences,
@@ -77,7 +92,9 @@ def refine_source_poses(
     dev = depth_m.device
     eye = torch.eye(4, dtype=torch.float64, device=dev)[None]
     T_start = torch.cat([eye, T_j_to_t.to(dev, torch.float64)])
-    refined = refine_poses(rgb, depth_m, K.to(depth_m.dtype), T_start, settings.refine_settings, offsets)
+    refined = refine_poses(
+        rgb, depth_m, K.to(depth_m.dtype), T_start, settings.refine_settings, offsets, cache=cache, positions=positions
+    )
     T = refined.T_f_to_t
     statuses, reasons = check_neighbours(T, None, refined, settings.checks, T_start=T_start)
     status, reason = set_status(statuses, [], settings.checks)

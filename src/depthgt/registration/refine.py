@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -28,8 +29,14 @@ from kornia.geometry.depth import depth_to_normals
 from kornia.geometry.liegroup import Se3
 
 from depthgt.device import plain_cpu_convolutions
+from depthgt.framecache import FrameCache
 from depthgt.geometry import backproject, resize_depth_nearest, resize_rgb, scale_intrinsics
-from depthgt.noise_law import estimate_noise_sigma_1m
+from depthgt.noise_law import (
+    estimate_noise_sigma_1m,
+    noise_sigma_1m_of,
+    second_difference_residuals,
+    sorted_residuals,
+)
 from depthgt.settings import RefineSettings
 
 __all__ = [
@@ -145,6 +152,49 @@ class LevelSettings:
     geo_ref_depth_m: float = 0.0
 
 
+class _Maps(NamedTuple):
+    """One scale's images of J frames (:func:`_level_maps`): intrinsics K (3, 3) at (h,
+    w); gray (J, 1, h, w); valid (J, 1, h, w) float; X (J, 3, h, w) points, metres;
+    maps (J, 10, h, w): X, normals, gray, its gradients, normal validity; depth (J, 1,
+    h, w) metres."""
+
+    K: torch.Tensor
+    gray: torch.Tensor
+    valid: torch.Tensor
+    X: torch.Tensor
+    maps: torch.Tensor
+    depth: torch.Tensor
+
+    def take(self, k: int) -> _Maps:
+        return _Maps(self.K, *(t[k : k + 1] for t in self[1:]))
+
+    @staticmethod
+    def stack(parts: list[_Maps]) -> _Maps:
+        if len(parts) == 1:
+            return parts[0]
+        return _Maps(parts[0].K, *(torch.cat([p[i] for p in parts]) for i in range(1, 6)))
+
+
+def _level_maps(rgb: torch.Tensor, depth_m: torch.Tensor, K: torch.Tensor, scale: int) -> _Maps:
+    """The images of one scale (downscale factor ``scale``) of J frames (rgb (J, 3, H, W),
+    depth_m (J, 1, H, W), K (3, 3) at (H, W))."""
+    Fn, _, H, W = depth_m.shape
+    h, w = H // scale, W // scale
+    Ks = scale_intrinsics(K, (H, W), (h, w)) if scale != 1 else K
+    Kb = Ks.expand(Fn, 3, 3).contiguous()
+    d = resize_depth_nearest(depth_m, (h, w)) if scale != 1 else depth_m
+    c = resize_rgb(rgb, (h, w)) if scale != 1 else rgb
+    gray = c.mean(1, keepdim=True)
+    valid = (d > 0).to(d.dtype)
+    X = backproject(d, Kb).transpose(1, 2).reshape(Fn, 3, h, w)
+    with plain_cpu_convolutions():  # 3x3 filters: ~3x faster than oneDNN's on one thread
+        N = depth_to_normals(d, Kb, normalize_points=False)
+        g = spatial_gradient(gray, mode="sobel", order=1, normalized=True)[:, 0]  # (F, 2, h, w) per pixel
+    nvalid = _erode(valid)  # normals need all 3x3 neighbours valid
+    # channels: X(3) N(3) gray gx gy valid
+    return _Maps(Ks, gray, valid, X, torch.cat([X, N, gray, g, nvalid], 1), d)
+
+
 class Level:
     """Per-scale images of all frames of a set: sample maps and source points.
 
@@ -152,6 +202,11 @@ class Level:
         rgb: (F, 3, H, W) colour in [0, 1]; depth_m: (F, 1, H, W) metres, 0 = invalid;
         K: (3, 3) intrinsics at (H, W); scale: downscale factor; stride: source pixel
         stride.
+        maps_of: a dict shared by the levels of one frame set (the same rgb, depth_m
+            and K), in which each scale's maps, which do not depend on ``stride``, are
+            computed once (the chaining and the refinement both use scale 2).
+        cache, positions: the batch job's :class:`~depthgt.framecache.FrameCache` and
+            the frames' positions: each frame's maps are computed once per batch.
 
     Attributes:
         maps: (F, 10, h, w) points X (3, metres), normals (3), gray, gradients gx, gy and
@@ -160,38 +215,54 @@ class Level:
         K: (3, 3) intrinsics at (h, w); hw: (h, w); median_depth: metres.
     """
 
-    def __init__(self, rgb, depth_m, K, scale: int, stride: int, maps_of: dict | None = None):
-        """``maps_of``: a dict shared by the levels of one frame set (the same rgb,
-        depth_m and K), in which each scale's maps, which do not depend on ``stride``,
-        are computed once (the chaining and the refinement both use scale 2)."""
-        Fn, _, H, W = depth_m.shape
-        h, w = H // scale, W // scale
-        self.hw = (h, w)
+    def __init__(
+        self,
+        rgb,
+        depth_m,
+        K,
+        scale: int,
+        stride: int,
+        maps_of: dict | None = None,
+        cache: FrameCache | None = None,
+        positions: tuple[int, ...] | None = None,
+    ):
         if maps_of is not None and scale in maps_of:
-            self.K, gray, valid, X, self.maps, self.median_depth = maps_of[scale]
+            m = maps_of[scale]
+        elif cache is not None and positions is not None:
+            index = {p: i for i, p in enumerate(positions)}
+
+            def compute(todo: list[int]) -> list[_Maps]:
+                rows = [index[p] for p in todo]
+                maps = _level_maps(rgb[rows], depth_m[rows], K, scale)
+                return [maps.take(k) for k in range(len(rows))]
+
+            m = _Maps.stack(cache.get(f"refine.level{scale}", positions, compute))
         else:
-            self.K = scale_intrinsics(K, (H, W), (h, w)) if scale != 1 else K
-            Kb = self.K.expand(Fn, 3, 3).contiguous()
-            d = resize_depth_nearest(depth_m, (h, w)) if scale != 1 else depth_m
-            c = resize_rgb(rgb, (h, w)) if scale != 1 else rgb
-            gray = c.mean(1, keepdim=True)
-            valid = (d > 0).to(d.dtype)
-            X = backproject(d, Kb).transpose(1, 2).reshape(Fn, 3, h, w)
-            with plain_cpu_convolutions():  # 3x3 filters: ~3x faster than oneDNN's on one thread
-                N = depth_to_normals(d, Kb, normalize_points=False)
-                g = spatial_gradient(gray, mode="sobel", order=1, normalized=True)[:, 0]  # (F, 2, h, w) per pixel
-            nvalid = _erode(valid)  # normals need all 3x3 neighbours valid
-            # channels: X(3) N(3) gray gx gy valid
-            self.maps = torch.cat([X, N, gray, g, nvalid], 1)
-            self.median_depth = d[d > 0].median() if (d > 0).any() else torch.tensor(1.0)
-            if maps_of is not None:
-                maps_of[scale] = (self.K, gray, valid, X, self.maps, self.median_depth)
-        ys = torch.arange(0, h, stride, device=X.device)
-        xs = torch.arange(0, w, stride, device=X.device)
+            m = _level_maps(rgb, depth_m, K, scale)
+        if maps_of is not None:
+            maps_of[scale] = m
+        self.K, self.maps, self._depth = m.K, m.maps, m.depth
+        h, w = self.hw = tuple(m.depth.shape[-2:])
+        ys = torch.arange(0, h, stride, device=m.X.device)
+        xs = torch.arange(0, w, stride, device=m.X.device)
         idx = (ys[:, None] * w + xs[None, :]).reshape(-1)
-        self.points = X.flatten(2)[:, :, idx].contiguous()  # (F, 3, N) planar
-        self.gray = gray.flatten(2)[:, 0, idx]  # (F, N)
-        self.valid = valid.flatten(2)[:, 0, idx] > 0  # (F, N)
+        self.points = m.X.flatten(2)[:, :, idx].contiguous()  # (F, 3, N) planar
+        self.gray = m.gray.flatten(2)[:, 0, idx]  # (F, N)
+        self.valid = m.valid.flatten(2)[:, 0, idx] > 0  # (F, N)
+
+    @property
+    def median_depth(self) -> torch.Tensor:
+        """The median valid depth of the frames at this scale, metres (1 without any)."""
+        d = self._depth
+        return d[d > 0].median() if (d > 0).any() else torch.tensor(1.0)
+
+
+#: an LM trial step smaller than this (metres of translation, radians of rotation, the
+#: largest component) after a rejected one is not evaluated: the level has converged.
+#: On the shared recordings one trial in six rejected was accepted at the next damping,
+#: every such step below this one moving the poses by under 0.3 um (issue notes in
+#: docs/decisions.md, "Refinement: convergence").
+MIN_TRIAL_STEP = 1e-6
 
 
 def _cross(a, b):
@@ -240,9 +311,12 @@ def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: Le
     X = (smp[:, 0], smp[:, 1], smp[:, 2])
     n_inv = torch.rsqrt((smp[:, 3:6] * smp[:, 3:6]).sum(1).clamp(min=1e-12))
     Nrm = (smp[:, 3] * n_inv, smp[:, 4] * n_inv, smp[:, 5] * n_inv)
-    inb = (qz > 1e-3) & (u > -0.5) & (u < w - 0.5) & (v > -0.5) & (v < h - 0.5)
+    # in front of the camera and on a pixel whose 3x3 neighbourhood is valid (the sampled
+    # normal validity: a position off the image, u outside (-0.5, w - 0.5) or v likewise,
+    # samples the zero padding with a weight of at least a half, so the image bounds
+    # need no test of their own)
     src_valid = level.valid.index_select(0, b)
-    seen = src_valid & inb & (nvalid > 0.999)
+    seen = src_valid & (qz > 1e-3) & (nvalid > 0.999)
     d = (qx - X[0], qy - X[1], qz - X[2])
     r_geo = Nrm[0] * d[0] + Nrm[1] * d[1] + Nrm[2] * d[2]
     if s.geo_ref_depth_m > 0:
@@ -334,8 +408,11 @@ def _robust(r: torch.Tensor, kind: str) -> tuple[torch.Tensor, torch.Tensor]:
     """IRLS weights and costs rho(r) of scaled residuals."""
     a = r.abs()
     if kind == "huber":
-        w = torch.where(a <= 1, torch.ones_like(a), 1.0 / a.clamp(min=1e-12))
-        rho = torch.where(a <= 1, 0.5 * a * a, a - 0.5)
+        # 1 and a^2 / 2 within 1, 1 / a and a - 1/2 beyond; written without torch.where
+        # (a third of its time): m = min(a, 1) gives both exactly
+        w = 1.0 / a.clamp(min=1.0)
+        m = a.clamp(max=1.0)
+        rho = (a - 0.5 * m) * m
     else:
         w = 1.0 / (1.0 + a * a)
         rho = 0.5 * torch.log1p(a * a)
@@ -406,7 +483,9 @@ def _system(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings
     # out of the comparison of two poses (:func:`_accept`): charging it, as a mismatch,
     # would make the pose with the largest overlap -- the identity, the start -- a false
     # minimum that holds the refinement near where it began.
-    cost_pts = torch.where(valid, rho, torch.full_like(rho, _gate_cost(gate, s))) * vis
+    # (valid implies vis: rho where valid, the gate's cost where only visible, else 0;
+    # written without torch.where, a third of its time)
+    cost_pts = rho * valid + (vis & ~valid) * _gate_cost(gate, s)
     N_ = level.valid.shape[1]
     pair_cost = cost_pts.sum(1).to(torch.float64)
     inl = (valid[:, :N_] & level.valid.index_select(0, b)).sum(1)
@@ -487,6 +566,8 @@ def refine_poses(
     settings: RefineSettings = RefineSettings(),
     offsets: list[int] | None = None,
     maps_of: dict | None = None,
+    cache: FrameCache | None = None,
+    positions: tuple[int, ...] | None = None,
 ) -> RefineResult:
     """Jointly refine the poses of a frame set (frame 0 = target, kept at identity).
 
@@ -500,6 +581,9 @@ def refine_poses(
         offsets: frame offsets (for ``pairs="adjacent"``).
         maps_of: the :class:`Level` maps already computed for this frame set, by scale
             (a dict shared with the caller's own levels of the same frames), or None.
+        cache, positions: the batch job's :class:`~depthgt.framecache.FrameCache` and
+            the frames' positions in their scene: what depends on a frame alone (its
+            pyramid, its noise residuals) is computed once per batch.
 
     Returns:
         :class:`RefineResult` with float64 poses on the input device.
@@ -525,7 +609,7 @@ def refine_poses(
     for li, (scale, n_it, stride, gate) in enumerate(
         zip(settings.scales, settings.iters, settings.point_stride, settings.max_dist_m)
     ):
-        level = Level(rgb, depth_m, K, scale, stride, maps_of)
+        level = Level(rgb, depth_m, K, scale, stride, maps_of, cache, positions)
         if scale == 1:
             out.normals = level.maps[:, 3:6]  # channels X(3) N(3) ...
         ls = LevelSettings(
@@ -547,6 +631,8 @@ def refine_poses(
             improved = False
             for _try in range(5):
                 delta = torch.linalg.solve(Hr + lam * torch.diag(diag) + 1e-9 * eye6, -gr).reshape(Fn - 1, 6)
+                if _try and float(delta.abs().max()) < MIN_TRIAL_STEP:
+                    break  # damped below a micrometre (microradian): the poses have settled
                 T_new = T.clone()
                 T_new[1:] = Se3.exp(delta).matrix().to(torch.float64) @ T[1:]
                 new = _system(level, T_new, pairs, ls, gate)
@@ -577,11 +663,25 @@ def refine_poses(
     out.condition = cond
     # the statistics of the high_residual check, calibrated with constant scale and gate:
     # in metres and in units of the sensor noise the frame set shows
-    out.noise_sigma_1m = estimate_noise_sigma_1m(depth_m.detach().cpu())
+    out.noise_sigma_1m = _noise_sigma_1m(depth_m, cache, positions)
     out.residual_m, out.residual_sigmas = target_residual_stats(
         level, T, pairs[sel], replace(ls, geo_ref_depth_m=0.0), settings.max_dist_m[-1], Fn, out.noise_sigma_1m
     )
     return out
+
+
+def _noise_sigma_1m(depth_m: torch.Tensor, cache: FrameCache | None, positions: tuple[int, ...] | None) -> float:
+    """The frame set's depth noise at 1 m (:func:`depthgt.noise_law.estimate_noise_sigma_1m`
+    of ``depth_m`` (F, 1, H, W) at the pixel centres), each frame's residuals sorted once
+    per batch job when there is a ``cache``."""
+    if cache is None or positions is None:
+        return estimate_noise_sigma_1m(depth_m.detach().cpu())
+    index = {p: i for i, p in enumerate(positions)}
+
+    def compute(todo: list[int]) -> list[torch.Tensor]:
+        return sorted_residuals(second_difference_residuals(depth_m[[index[p] for p in todo]].detach()))
+
+    return noise_sigma_1m_of(cache.get("noise.residuals", positions, compute))
 
 
 NOISE_GATE_SIGMAS = 4.0  # association gate of the noise-relative residual (sigmas; the renderer's gap_sigmas)

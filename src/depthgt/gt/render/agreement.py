@@ -7,8 +7,10 @@ import math
 import torch
 import torch.nn.functional as F
 
-from depthgt.gt.render.rasteriser import _HIT_PX, RenderCandidates
+from depthgt.gt.render.rasteriser import HIT_PX, RenderCandidates
 from depthgt.settings import RenderSettings
+
+__all__ = ["frame_agreement", "agreement_slot"]
 
 #: frame agreement: samples within this of a target sample are compared with it (px);
 #: a frame is judged on at least this many comparisons
@@ -28,11 +30,11 @@ def _tile_grid(hw: tuple[int, int], tile_px: int) -> tuple[int, int]:
     return -(-hw[0] // tile_px), -(-hw[1] // tile_px)
 
 
-def _agreement_slot(
+def agreement_slot(
     pixel: torch.Tensor, fr: torch.Tensor, *, size: tuple[int, int, int], n_frames: int, tile_px: int
 ) -> torch.Tensor:
     """Index of each sample's (image, frame, tile) in the flat decisions of
-    :func:`_frame_agreement`: ((image * J + frame) * tiles + tile), from a per-pixel
+    :func:`frame_agreement`: ((image * J + frame) * tiles + tile), from a per-pixel
     table (one gather, no integer division per sample). ``pixel``, ``fr``: (C,) long;
     ``size``: (B, H, W); ``n_frames``: J."""
     b, h, w = size
@@ -50,7 +52,7 @@ def _agreement_slot(
     return table.index_select(0, pixel) + fr * n_t
 
 
-def _frame_agreement(c: RenderCandidates, st: RenderSettings, target_frame: int):
+def frame_agreement(blocks: list[RenderCandidates], st: RenderSettings, target_frame: int):
     """Which frames, or regions of frames, disagree with the target's own depth (a
     misregistered neighbour; a region that a rigid pose does not explain: lens
     distortion at the border, a moving object).
@@ -67,25 +69,30 @@ def _frame_agreement(c: RenderCandidates, st: RenderSettings, target_frame: int)
     ``min_frame_agreement``; a frame whose whole share is below
     ``min_whole_frame_agreement`` is bad everywhere (misregistered).
 
+    Args:
+        blocks: the rasteriser's candidates, in blocks of pixels (or one record).
+
     Returns:
-        (B * J * tiles,) bool bad (frame, tile) slots (:func:`_agreement_slot`), (B, J)
+        (B * J * tiles,) bool bad (frame, tile) slots (:func:`agreement_slot`), (B, J)
         float share of agreeing samples per frame (NaN: fewer than ``_MIN_COMPARED``
         comparisons, e.g. the target itself) and the (B, 3, H, W) diagnostic counts of
         :class:`GTRender`.
 
-    Long for its docstring (the rule and its thresholds); its code is 61 lines.
+    Long for its docstring (the rule and its thresholds); its code is 66 lines.
     """
-    pixel, s, fr, iz, d2 = c.pixel, c.s, c.frame, c.iz.detach(), c.d2.detach()
+    c = blocks[0]
     b, h, w = c.size
     hw, n_fr = (h, w), c.n_frames
     h_w = h * w
     n_pix = b * h_w
-    tgt = ((fr == target_frame) & (d2 <= _HIT_PX**2)).nonzero().squeeze(1)
-    iz_t = torch.full((n_pix,), float("nan"), dtype=iz.dtype, device=iz.device)
-    s_t = torch.zeros(n_pix, dtype=iz.dtype, device=iz.device)
-    pix_t = pixel.index_select(0, tgt)
-    iz_t[pix_t] = iz.index_select(0, tgt)
-    s_t[pix_t] = s.index_select(0, tgt)
+    dt, dev = c.iz_point.dtype, c.iz_point.device
+    iz_t = torch.full((n_pix,), float("nan"), dtype=dt, device=dev)
+    s_t = torch.zeros(n_pix, dtype=dt, device=dev)
+    for blk in blocks:  # the target's own samples at the pixels' positions
+        tgt = ((blk.frame == target_frame) & (blk.d2.detach() <= HIT_PX**2)).nonzero().squeeze(1)
+        pix_t = blk.pixel.index_select(0, tgt) + blk.first_pixel
+        iz_t[pix_t] = blk.iz.detach().index_select(0, tgt)
+        s_t[pix_t] = blk.s.index_select(0, tgt)
     judge = torch.isfinite(iz_t)
     if st.agreement_edge_px > 0:
         # Not judged next to a depth edge or a hole of the target: a real sensor's edges
@@ -97,11 +104,18 @@ def _frame_agreement(c: RenderCandidates, st: RenderSettings, target_frame: int)
         lo = -F.max_pool2d(-torch.nan_to_num(img, nan=-float("inf")), k, stride=1, padding=r)
         tol = st.gap_sigmas * math.sqrt(2.0) * s_t.reshape(b, 1, h, w) + st.gap_slope_rel * img * (2 * r)
         judge &= ((hi - lo) <= tol).reshape(-1)
-    near = (fr != target_frame) & (d2 <= _NEAR_PX**2) & judge.index_select(0, pixel)
-    ni = near.nonzero().squeeze(1)
-    p, f, s_n, iz_n, d2_n = (x.index_select(0, ni) for x in (pixel, fr, s, iz, d2))
-    tol = st.gap_sigmas * torch.hypot(s_n, s_t.index_select(0, p)) + st.gap_slope_rel * iz_n * torch.sqrt(d2_n)
-    agree = (iz_n - iz_t.index_select(0, p)).abs() <= tol
+    near_p, near_f, near_agree = [], [], []
+    for blk in blocks:  # the other frames' samples near a judged target sample
+        fr, d2 = blk.frame, blk.d2.detach()
+        pixel = blk.pixel + blk.first_pixel if blk.first_pixel else blk.pixel
+        near = (fr != target_frame) & (d2 <= _NEAR_PX**2) & judge.index_select(0, pixel)
+        ni = near.nonzero().squeeze(1)
+        p, f, s_n, iz_n, d2_n = (x.index_select(0, ni) for x in (pixel, fr, blk.s, blk.iz.detach(), d2))
+        tol = st.gap_sigmas * torch.hypot(s_n, s_t.index_select(0, p)) + st.gap_slope_rel * iz_n * torch.sqrt(d2_n)
+        near_p.append(p)
+        near_f.append(f)
+        near_agree.append((iz_n - iz_t.index_select(0, p)).abs() <= tol)
+    p, f, agree = torch.cat(near_p), torch.cat(near_f), torch.cat(near_agree)
     slot = torch.div(p, h_w, rounding_mode="floor") * n_fr + f
     n_cmp = torch.bincount(slot, minlength=b * n_fr).reshape(b, n_fr)
     n_ok = torch.bincount(slot[agree], minlength=b * n_fr).reshape(b, n_fr)
@@ -111,7 +125,7 @@ def _frame_agreement(c: RenderCandidates, st: RenderSettings, target_frame: int)
     bad = share < st.min_frame_agreement  # (NaN: not judged)
     if st.agreement_tile_px > 0:
         ty, tx = _tile_grid(hw, st.agreement_tile_px)
-        tslot = _agreement_slot(p, f, size=c.size, n_frames=n_fr, tile_px=st.agreement_tile_px)
+        tslot = agreement_slot(p, f, size=c.size, n_frames=n_fr, tile_px=st.agreement_tile_px)
         counts = torch.stack(
             [
                 torch.bincount(tslot, minlength=b * n_fr * ty * tx),
@@ -126,7 +140,7 @@ def _frame_agreement(c: RenderCandidates, st: RenderSettings, target_frame: int)
         judged = n_cmp_t >= _MIN_TILE_COMPARED
         bad_t = torch.where(judged, n_ok_t < st.min_frame_agreement * n_cmp_t, bad[..., None, None])
         bad = bad_t | (share < st.min_whole_frame_agreement)[..., None, None]
-    kept = ~bad.reshape(-1)[_agreement_slot(p, f, size=c.size, n_frames=n_fr, tile_px=st.agreement_tile_px)]
+    kept = ~bad.reshape(-1)[agreement_slot(p, f, size=c.size, n_frames=n_fr, tile_px=st.agreement_tile_px)]
     diag = torch.stack(
         [
             torch.bincount(p, minlength=n_pix),

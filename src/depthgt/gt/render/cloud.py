@@ -1,8 +1,16 @@
-"""The frames of a frame set as one cloud in the target camera: back-projection at the
-source pixels' positions, normals, each point's noise sigma (the renderer's first part)."""
+"""The frames of a frame set as one cloud in the target camera (the renderer's first part).
+
+What depends on a frame alone -- its points back-projected at the source pixels'
+positions, its normals, its depth-edge scores and its noise residuals -- is a
+:class:`FrameGeometry`, computed once per frame (a batch of frame sets shares each
+frame with up to six others: :func:`cached_geometry`); what depends on the frame
+set -- its noise estimate, the poses, the normals kept -- is put together per set by
+:func:`cloud_from_geometry`. :func:`cloud_in_target` is both in a row.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
@@ -11,12 +19,29 @@ from kornia.geometry.depth import depth_to_normals
 from kornia.geometry.linalg import transform_points
 
 from depthgt.device import plain_cpu_convolutions
+from depthgt.framecache import FrameCache
 from depthgt.geometry import backproject
-from depthgt.noise_law import Residuals, depth_sigma_m, noise_sigma_1m_from, second_difference_residuals
+from depthgt.noise_law import (
+    Residuals,
+    depth_sigma_m,
+    noise_sigma_1m_of,
+    second_difference_residuals,
+    sorted_residuals,
+)
 from depthgt.rasterise import resampled_positions
 from depthgt.settings import RenderSettings
 
-__all__ = ["TargetCloud", "cloud_in_target"]
+__all__ = [
+    "TargetCloud",
+    "FrameGeometry",
+    "cached_geometry",
+    "frame_geometry",
+    "cloud_from_geometry",
+    "cloud_in_target",
+]
+
+#: the normals' edge test: a second difference beyond this many sigmas of the noise
+_EDGE_SIGMAS = 6.0
 
 
 def _backproject_resampled(depth_m: torch.Tensor, K: torch.Tensor, src_hw: tuple[int, int]) -> torch.Tensor:
@@ -38,16 +63,102 @@ def _backproject_resampled(depth_m: torch.Tensor, K: torch.Tensor, src_hw: tuple
     return torch.stack([x * z, y * z, z], dim=-1).reshape(depth_m.shape[0], -1, 3)
 
 
-def _smooth_3x3(res: Residuals, max_rel: float, sigma_1m: float, noise_sigmas: float = 6.0) -> torch.Tensor:
-    """(J, 1, H, W) bool: the 3x3 neighbourhood is valid and holds no depth edge.
-
-    An edge is a second difference of inverse depth (``res``, along x or y, zero on any
-    plane however slanted) above ``max_rel`` x the inverse depth plus ``noise_sigmas``
-    times its noise, anywhere in the 3x3 window."""
-    bad = ~res.ok
+def _edge_scores(res: Residuals, max_rel: float) -> torch.Tensor:
+    """(J, H*W) float64: over each pixel's 3x3 window, the largest second difference of
+    inverse depth (``res``, along x or y: zero on any plane however slanted) beyond
+    ``max_rel`` x the inverse depth, +inf where the window holds an invalid pixel. A
+    pixel's window holds a depth edge for a noise sigma s exactly when its score
+    exceeds ``_EDGE_SIGMAS`` x s (:func:`cloud_from_geometry`)."""
+    score = torch.where(res.ok, -torch.inf, torch.inf).to(torch.float64)
     for r, both in zip(res.r, res.both):
-        bad |= both & (r.abs() > max_rel * res.iz + noise_sigmas * sigma_1m)
-    return F.max_pool2d(bad.to(torch.float32), 3, stride=1, padding=1) == 0
+        score = torch.maximum(score, torch.where(both, r.abs() - max_rel * res.iz, -torch.inf))
+    return F.max_pool2d(score, 3, stride=1, padding=1).flatten(1)  # pads with -inf: the border is no edge
+
+
+class FrameGeometry(NamedTuple):
+    """What the renderer needs of J frames, each on its own (no frame set yet).
+
+    points: (J, H*W, 3) metres in each frame's own camera, row-major, at the source
+        pixels' positions; normals: (J, H*W, 3) kornia's normals there (non-finite
+        where undefined); edge: (J, H*W) float64 edge scores (:func:`_edge_scores`);
+    depth: (J, H*W) metres, 0 = invalid; residuals: per frame, the sorted |second
+        differences| of inverse depth where defined (float64, CPU; the noise estimate
+        of any set of frames, :func:`depthgt.noise_law.noise_sigma_1m_of`).
+    """
+
+    points: torch.Tensor
+    normals: torch.Tensor
+    edge: torch.Tensor
+    depth: torch.Tensor
+    residuals: tuple[torch.Tensor, ...]
+
+    def take(self, index: Sequence[int]) -> FrameGeometry:
+        """The frames ``index`` (in that order)."""
+        i = torch.as_tensor(list(index), dtype=torch.long, device=self.points.device)
+        return FrameGeometry(
+            self.points.index_select(0, i),
+            self.normals.index_select(0, i),
+            self.edge.index_select(0, i),
+            self.depth.index_select(0, i),
+            tuple(self.residuals[k] for k in index),
+        )
+
+    @staticmethod
+    def stack(parts: Sequence[FrameGeometry]) -> FrameGeometry:
+        """The frames of ``parts`` one after the other."""
+        return FrameGeometry(
+            torch.cat([p.points for p in parts]),
+            torch.cat([p.normals for p in parts]),
+            torch.cat([p.edge for p in parts]),
+            torch.cat([p.depth for p in parts]),
+            tuple(r for p in parts for r in p.residuals),
+        )
+
+
+def frame_geometry(
+    depth_m: torch.Tensor,
+    K: torch.Tensor,
+    *,
+    src_hw: tuple[int, int] | None = None,
+    normal_max_jump_rel: float = 0.05,
+    normals: torch.Tensor | None = None,
+) -> FrameGeometry:
+    """:class:`FrameGeometry` of J depth images.
+
+    Args:
+        depth_m: (J, 1, H, W) depth in metres, 0 = invalid.
+        K: (J, 3, 3) intrinsics of each frame at (H, W).
+        src_hw: when ``depth_m`` was made by :func:`depthgt.geometry.resize_depth_nearest`
+            from images of size ``src_hw``, every pixel holds the depth of the source
+            pixel nearest to its centre, up to 0.5 source pixels away; passing
+            ``src_hw`` back-projects each depth at that source pixel's exact position
+            (in output pixel units) instead of at the output pixel centre, which puts
+            the points on the surface (it matters on slanted surfaces and at edges).
+        normal_max_jump_rel: the normals' edge test (:func:`cloud_from_geometry`).
+        normals: (J, 3, H, W) :func:`kornia.geometry.depth.depth_to_normals` of
+            ``depth_m`` and ``K`` when the caller has them (the registration's
+            refinement computes the same), else computed here.
+    """
+    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
+        raise ValueError(f"depth_m must be (J, 1, H, W), got {tuple(depth_m.shape)}")
+    j, _, h, w = depth_m.shape
+    K = K.to(depth_m.dtype)
+    points = backproject(depth_m, K) if src_hw is None else _backproject_resampled(depth_m, K, src_hw)
+    if normals is None:
+        with plain_cpu_convolutions():  # 3x3 filters: ~3x faster than oneDNN's on one thread
+            normals = depth_to_normals(depth_m, K)  # (J, 3, H, W)
+    elif normals.shape != (j, 3, h, w):
+        raise ValueError(
+            f"normals must be ({j}, 3, H, W) to match depth_m {tuple(depth_m.shape)}, got {tuple(normals.shape)}"
+        )
+    res = second_difference_residuals(depth_m, src_hw)
+    return FrameGeometry(
+        points,
+        normals.flatten(2).transpose(1, 2),
+        _edge_scores(res, normal_max_jump_rel),
+        depth_m.reshape(j, h * w),
+        tuple(sorted_residuals(res)),
+    )
 
 
 class TargetCloud(NamedTuple):
@@ -66,6 +177,40 @@ class TargetCloud(NamedTuple):
     sigma_m: torch.Tensor
 
 
+def cloud_from_geometry(
+    geom: FrameGeometry,
+    T_j_to_t: torch.Tensor,
+    *,
+    noise_sigma_1m: float | None = None,
+    noise_sigma_abs_m: float = RenderSettings.noise_sigma_abs_m,
+) -> TargetCloud:
+    """The frames of ``geom`` moved into the target camera by ``T_j_to_t`` (J, 4, 4).
+
+    Normals are set to zero (unknown) wherever the 3x3 neighbourhood holds an invalid
+    pixel or a depth edge: a second difference of inverse depth above the geometry's
+    ``normal_max_jump_rel`` times the inverse depth plus 6 sigma of the noise (planes
+    have none at any slant, so grazing surfaces keep their normals while edges lose
+    them). Each point's sigma is the z^2 law with the sensor's sigma at 1 m,
+    ``noise_sigma_1m`` or, None, estimated from these frames (:func:`noise_sigma_1m_of`).
+    """
+    j = geom.points.shape[0]
+    if T_j_to_t.shape != (j, 4, 4):
+        raise ValueError(f"T_j_to_t must be ({j}, 4, 4) to match the {j} frames, got {tuple(T_j_to_t.shape)}")
+    dtype = geom.points.dtype
+    T = T_j_to_t.to(dtype)
+    pts = transform_points(T, geom.points)  # (J, HW, 3)
+    sigma_1m = noise_sigma_1m_of(geom.residuals) if noise_sigma_1m is None else float(noise_sigma_1m)
+    flat = (geom.edge <= _EDGE_SIGMAS * sigma_1m)[..., None] & torch.isfinite(geom.normals).all(dim=-1, keepdim=True)
+    nrm = torch.where(flat, geom.normals, torch.zeros_like(geom.normals))
+    nrm = nrm @ T[:, :3, :3].transpose(1, 2)  # rotate into the target camera
+    valid = geom.depth > 0
+    sigma = depth_sigma_m(geom.depth, sigma_1m, noise_sigma_abs_m)  # each point's own sensor depth
+    frame = torch.arange(j, device=pts.device)[:, None].expand(j, geom.depth.shape[1])
+    return TargetCloud(
+        pts.reshape(1, -1, 3), nrm.reshape(1, -1, 3), valid.reshape(1, -1), frame.reshape(1, -1), sigma.reshape(1, -1)
+    )
+
+
 def cloud_in_target(
     depth_m: torch.Tensor,
     K: torch.Tensor,
@@ -75,69 +220,38 @@ def cloud_in_target(
     src_hw: tuple[int, int] | None = None,
     noise_sigma_1m: float | None = None,
     noise_sigma_abs_m: float = RenderSettings.noise_sigma_abs_m,
-    residuals: Residuals | None = None,
     normals: torch.Tensor | None = None,
 ) -> TargetCloud:
-    """Back-project J depth images and move their points and normals into the target camera.
-
-    Normals come from :func:`kornia.geometry.depth.depth_to_normals`; they are set to
-    zero (unknown) wherever the 3x3 neighbourhood holds an invalid pixel or a depth
-    edge: a second difference of inverse depth above ``normal_max_jump_rel`` times the
-    inverse depth (plus 6 sigma of the noise). Planes have none at any slant, so
-    grazing surfaces keep their normals while edges lose them.
-
-    Args:
-        depth_m: (J, 1, H, W) depth in metres, 0 = invalid.
-        K: (J, 3, 3) intrinsics of each frame at (H, W).
-        T_j_to_t: (J, 4, 4) poses mapping points of frame j into the target camera.
-        src_hw: when ``depth_m`` was made by :func:`depthgt.geometry.resize_depth_nearest`
-            from images of size ``src_hw``, every pixel holds the depth of the source
-            pixel nearest to its centre, up to 0.5 source pixels away; passing
-            ``src_hw`` back-projects each depth at that source pixel's exact position
-            (in output pixel units) instead of at the output pixel centre, which puts
-            the points on the surface (it matters on slanted surfaces and at edges).
-        noise_sigma_1m: the sensor's depth sigma at 1 m (metres); None estimates it
-            from ``depth_m`` (:func:`estimate_noise_sigma_1m`).
-        noise_sigma_abs_m: floor of every point's sigma (metres).
-        residuals: :func:`depthgt.noise_law.second_difference_residuals` of ``depth_m``
-            when the caller has them (they are computed here otherwise).
-        normals: (J, 3, H, W) :func:`kornia.geometry.depth.depth_to_normals` of
-            ``depth_m`` and ``K`` when the caller has them (the registration's
-            refinement computes the same), else computed here.
+    """Back-project J depth images (J, 1, H, W) with their intrinsics ``K`` (J, 3, 3) and
+    move their points and normals into the target camera by ``T_j_to_t`` (J, 4, 4):
+    :func:`frame_geometry` then :func:`cloud_from_geometry` (their arguments).
 
     Returns:
         :class:`TargetCloud` with J*H*W points in row-major pixel order, frame by frame.
     """
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
-        raise ValueError(f"depth_m must be (J, 1, H, W), got {tuple(depth_m.shape)}")
-    j = depth_m.shape[0]
-    if T_j_to_t.shape != (j, 4, 4):
-        raise ValueError(f"T_j_to_t must be ({j}, 4, 4) to match depth_m, got {tuple(T_j_to_t.shape)}")
-    dtype = depth_m.dtype
-    K = K.to(dtype)
-    T = T_j_to_t.to(dtype)
-    if src_hw is None:
-        pts_j = backproject(depth_m, K)
-    else:
-        pts_j = _backproject_resampled(depth_m, K, src_hw)
-    pts = transform_points(T, pts_j)  # (J, HW, 3)
-    res = second_difference_residuals(depth_m, src_hw) if residuals is None else residuals
-    sigma_1m = noise_sigma_1m_from(res) if noise_sigma_1m is None else float(noise_sigma_1m)
-    if normals is None:
-        with plain_cpu_convolutions():  # 3x3 filters: ~3x faster than oneDNN's on one thread
-            nrm = depth_to_normals(depth_m, K)  # (J, 3, H, W)
-    elif normals.shape != (j, 3, *depth_m.shape[-2:]):
-        raise ValueError(
-            f"normals must be ({j}, 3, H, W) to match depth_m {tuple(depth_m.shape)}, got {tuple(normals.shape)}"
+    geom = frame_geometry(depth_m, K, src_hw=src_hw, normal_max_jump_rel=normal_max_jump_rel, normals=normals)
+    return cloud_from_geometry(geom, T_j_to_t, noise_sigma_1m=noise_sigma_1m, noise_sigma_abs_m=noise_sigma_abs_m)
+
+
+def cached_geometry(
+    cache: FrameCache,
+    positions: Sequence[int],
+    depth_m: torch.Tensor,
+    K: torch.Tensor,
+    *,
+    src_hw: tuple[int, int] | None = None,
+    normal_max_jump_rel: float = 0.05,
+) -> FrameGeometry:
+    """:func:`frame_geometry` of the frames at ``positions`` (their depth ``depth_m`` (F,
+    1, H, W), intrinsics ``K`` (3, 3)), each frame's computed once per batch job
+    (``cache``: the job's :class:`~depthgt.framecache.FrameCache`), in that order."""
+    index = {p: i for i, p in enumerate(positions)}
+
+    def compute(todo: list[int]) -> list[FrameGeometry]:
+        rows = [index[p] for p in todo]
+        g = frame_geometry(
+            depth_m[rows], K[None].expand(len(rows), 3, 3), src_hw=src_hw, normal_max_jump_rel=normal_max_jump_rel
         )
-    else:
-        nrm = normals
-    flat = _smooth_3x3(res, normal_max_jump_rel, sigma_1m)
-    nrm = torch.where(flat & torch.isfinite(nrm).all(dim=1, keepdim=True), nrm, torch.zeros_like(nrm))
-    nrm = nrm.flatten(2).transpose(1, 2) @ T[:, :3, :3].transpose(1, 2)  # rotate into the target camera
-    valid = (depth_m > 0).reshape(j, -1)
-    sigma = depth_sigma_m(depth_m.reshape(j, -1), sigma_1m, noise_sigma_abs_m)  # each point's own sensor depth
-    frame = torch.arange(j, device=depth_m.device)[:, None].expand(j, depth_m.shape[-2] * depth_m.shape[-1])
-    return TargetCloud(
-        pts.reshape(1, -1, 3), nrm.reshape(1, -1, 3), valid.reshape(1, -1), frame.reshape(1, -1), sigma.reshape(1, -1)
-    )
+        return [g.take([k]) for k in range(len(rows))]
+
+    return FrameGeometry.stack(cache.get(f"render.geometry:{normal_max_jump_rel}", positions, compute))

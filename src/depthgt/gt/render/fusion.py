@@ -16,15 +16,29 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
-from depthgt.gt.render.cloud import cloud_in_target
-from depthgt.gt.render.compositor import GTRender, composite_gt
-from depthgt.gt.render.rasteriser import rasterise_gt
-from depthgt.noise_law import depth_sigma_m, noise_sigma_1m_from, second_difference_residuals
+from depthgt.gt.render.cloud import (
+    FrameGeometry,
+    cached_geometry,
+    cloud_from_geometry,
+    frame_geometry,
+)
+from depthgt.gt.render.compositor import BLOCK_ROWS, GTRender, composite_gt
+from depthgt.gt.render.rasteriser import rasterise_blocks
+from depthgt.noise_law import depth_sigma_m, noise_sigma_1m_of
 from depthgt.registration.frameset import FrameSetData
 from depthgt.settings import RenderSettings
 
-__all__ = ["Fusion", "fuse", "frames_left_out_whole", "whole_frame_threshold"]
+__all__ = [
+    "Fusion",
+    "SetGeometry",
+    "fuse",
+    "fuse_geometry",
+    "fuse_sets",
+    "frames_left_out_whole",
+    "whole_frame_threshold",
+]
 
 
 class Fusion(NamedTuple):
@@ -84,6 +98,7 @@ def fuse(
     members: slice | list[int] = slice(None),
     leave_target_out: bool = False,
     normals: torch.Tensor | None = None,
+    geometry: FrameGeometry | None = None,
 ) -> Fusion:
     """Render the aligned members into the target view (paper eq. 5).
 
@@ -100,69 +115,213 @@ def fuse(
             the projection and the sort with the GT render.
         normals: (F, 3, H, W) kornia's ``depth_to_normals`` of all F members' raw depth
             when the caller has them (the registration's refinement computed them); used
-            when every member is fused (a batch of other frames rounds the convolution
-            differently, which the normalisation can amplify where the gradients
-            vanish), for the raw depth (no ``depth_m``) and when they match it in shape
-            and dtype.
+            for the raw depth (no ``depth_m``) when they match it in shape and dtype.
+        geometry: the :class:`~depthgt.gt.render.cloud.FrameGeometry` of all F members'
+            raw depth when the caller has it, for the raw depth (no ``depth_m``); else
+            taken from the batch job's frame cache (``data.cache``) or computed here.
     """
-    depth = (data.depth_m if depth_m is None else depth_m)[members]
     n_all = data.depth_m.shape[0]
     chosen = list(range(n_all))[members] if isinstance(members, slice) else list(members)
-    if normals is not None and (
-        depth_m is not None
-        or chosen != list(range(n_all))
-        or normals.shape != (n_all, 3, *data.depth_m.shape[-2:])
-        or normals.dtype != depth.dtype
-        or normals.device != depth.device
-    ):
-        normals = None
+    if geometry is None and depth_m is None and data.cache is not None and data.positions is not None:
+        geometry = cached_geometry(data.cache, data.positions, data.depth_m, data.K, src_hw=data.src_hw)
+    if geometry is None or depth_m is not None:
+        depth = data.depth_m if depth_m is None else depth_m
+        if normals is not None and (
+            depth_m is not None or normals.shape != (n_all, 3, *depth.shape[-2:]) or normals.dtype != depth.dtype
+        ):
+            normals = None
+        geometry = frame_geometry(depth, data.K[None].expand(n_all, 3, 3), src_hw=data.src_hw, normals=normals)
     eye = torch.eye(4, dtype=T_j_to_t.dtype, device=T_j_to_t.device)[None]
-    T = torch.cat([eye, T_j_to_t], dim=0)[members]
-    K = data.K[None].expand(depth.shape[0], 3, 3)
-    residuals = second_difference_residuals(depth, data.src_hw)  # the noise estimates and the normals' edge test
-    cloud = cloud_in_target(
-        depth,
-        K,
-        T,
-        src_hw=data.src_hw,
-        noise_sigma_1m=settings.noise_sigma_1m,
-        noise_sigma_abs_m=settings.noise_sigma_abs_m,
-        residuals=residuals,
-        normals=normals,
-    )
-    h, w = data.depth_m.shape[-2:]
-    with_target = bool(chosen) and chosen[0] == 0  # the target's own depth is fused, as frame 0 of the cloud
-    cands = rasterise_gt(
-        cloud.points,
-        data.K[None].to(depth.dtype),
-        (h, w),
+    T = torch.cat([eye, T_j_to_t], dim=0)
+    return fuse_geometry(
+        geometry.take(chosen),
+        T[chosen],
+        data.K,
+        tuple(data.depth_m.shape[-2:]),
         settings,
+        members=tuple(chosen),
+        src_hw=data.src_hw,
+        leave_target_out=leave_target_out,
+    )
+
+
+class SetGeometry(NamedTuple):
+    """One frame set as the fusion takes it: the fused members' ``geometry`` (J frames,
+    the target first when it is fused), their poses ``T_j_to_t`` (J, 4, 4) in the target
+    camera and their positions ``members`` in the frame set (0 = the target)."""
+
+    geometry: FrameGeometry
+    T_j_to_t: torch.Tensor
+    members: tuple[int, ...]
+
+
+def fuse_geometry(
+    geometry: FrameGeometry,
+    T_j_to_t: torch.Tensor,
+    K: torch.Tensor,
+    size_hw: tuple[int, int],
+    settings: RenderSettings,
+    *,
+    members: tuple[int, ...],
+    src_hw: tuple[int, int] | None = None,
+    leave_target_out: bool = False,
+    block_rows: int | None = BLOCK_ROWS,
+) -> Fusion:
+    """:func:`fuse` on the frames' geometry: ``geometry`` (J frames, the fused members in
+    order), their poses ``T_j_to_t`` (J, 4, 4) in the target camera, the intrinsics
+    ``K`` (3, 3) at ``size_hw``; ``members`` the frames' positions in the frame set (0 =
+    the target); the CPU renders in blocks of ``block_rows`` pixel rows."""
+    one = SetGeometry(geometry, T_j_to_t, tuple(members))
+    return fuse_sets([one], K, size_hw, settings, src_hw=src_hw, leave_target_out=leave_target_out, rows=block_rows)[0]
+
+
+def fuse_sets(
+    sets: list[SetGeometry],
+    K: torch.Tensor,
+    size_hw: tuple[int, int],
+    settings: RenderSettings,
+    *,
+    src_hw: tuple[int, int] | None = None,
+    leave_target_out: bool = False,
+    together: bool | None = None,
+    rows: int | None = BLOCK_ROWS,
+) -> list[Fusion]:
+    """The :class:`Fusion` of each frame set of ``sets`` (one scene's: the intrinsics
+    ``K`` (3, 3) at ``size_hw``, source size ``src_hw``).
+
+    ``together``: render the sets as one batch, their images stacked, in one pass of the
+    rasteriser and the compositor (what keeps a GPU busy); default: on a GPU. Otherwise
+    (the CPU) set by set, each in blocks of ``rows`` pixel rows (cache-sized). Both give
+    the same renders up to the rounding of the batched products."""
+    dev = sets[0].geometry.points.device
+    if together is None:
+        together = dev.type != "cpu"
+    if not together or len(sets) == 1 or any(not s.members or s.members[0] != 0 for s in sets):
+        return [
+            _fuse_one(s, K, size_hw, settings, src_hw, leave_target_out, rows if dev.type == "cpu" else None)
+            for s in sets
+        ]
+    return _fuse_together(sets, K, size_hw, settings, src_hw, leave_target_out)
+
+
+def _left_whole(agreement: torch.Tensor, members: tuple[int, ...], st: RenderSettings) -> tuple[int, ...]:
+    """The members (positions) that the agreement (J,) of their frame set left out whole."""
+    whole = frames_left_out_whole(agreement[None], st)[0].tolist() if agreement.numel() else []
+    return tuple(members[j] for j, out in enumerate(whole) if out and j < len(members) and members[j] != 0)
+
+
+def _lto_sigma(geometry: FrameGeometry, st: RenderSettings) -> torch.Tensor | None:
+    """(1, J*H*W) the points' depth sigmas with the noise law estimated from the
+    neighbours alone (frames 1..), the target's 0; None with a fixed ``noise_sigma_1m``."""
+    if st.noise_sigma_1m is not None:
+        return None
+    sigma_1m = noise_sigma_1m_of(geometry.residuals[1:])
+    return torch.cat(
+        [torch.zeros_like(geometry.depth[:1]), depth_sigma_m(geometry.depth[1:], sigma_1m, st.noise_sigma_abs_m)]
+    ).reshape(1, -1)
+
+
+def _fuse_one(
+    one: SetGeometry,
+    K: torch.Tensor,
+    size_hw: tuple[int, int],
+    st: RenderSettings,
+    src_hw: tuple[int, int] | None,
+    leave_target_out: bool,
+    rows: int | None,
+) -> Fusion:
+    members = one.members
+    cloud = cloud_from_geometry(
+        one.geometry, one.T_j_to_t, noise_sigma_1m=st.noise_sigma_1m, noise_sigma_abs_m=st.noise_sigma_abs_m
+    )
+    with_target = bool(members) and members[0] == 0  # the target's own depth is fused, as frame 0 of the cloud
+    blocks = rasterise_blocks(
+        cloud.points,
+        K[None].to(cloud.points.dtype),
+        size_hw,
+        st,
         valid=cloud.valid,
         normals_cam=cloud.normals,
         sigma_m=cloud.sigma_m,
         frame=cloud.frame,
-        src_hw=data.src_hw,
+        src_hw=src_hw,
+        block_rows=rows,
     )
-    gt = composite_gt(cands, settings, target_frame=0 if with_target else None)
-    whole = frames_left_out_whole(gt.agreement, settings)[0].tolist() if gt.agreement.numel() else []
-    left = tuple(chosen[j] for j, out in enumerate(whole) if out and j < len(chosen) and chosen[j] != 0)
-    stride = settings.leave_target_out_stride
-    if not (with_target and leave_target_out and len(chosen) > 1):
-        return Fusion(gt, tuple(chosen), left, None, stride)
-    left_out = _leave_target_out(cands, residuals, depth, settings, cloud.sigma_m.dtype)
-    return Fusion(gt, tuple(chosen), left, left_out, stride)
+    gt = composite_gt(blocks, st, target_frame=0 if with_target else None)
+    left = _left_whole(gt.agreement[0], members, st)
+    stride = st.leave_target_out_stride
+    if not (with_target and leave_target_out and len(members) > 1):
+        return Fusion(gt, tuple(members), left, None, stride)
+    # the leave-target-out render: the same compositor over the same candidates minus the
+    # target's, with the noise law as fusing the neighbours alone estimates it
+    lo_sigma = _lto_sigma(one.geometry, st)
+    neighbours = [blk.without_frame(0, stride=stride, sigma_m=lo_sigma) for blk in blocks]
+    return Fusion(gt, tuple(members), left, composite_gt(neighbours, st, with_sigma=False), stride)
 
 
-def _leave_target_out(cands, residuals, depth: torch.Tensor, settings: RenderSettings, dtype) -> GTRender:
-    """The neighbours alone (frames 1.. of ``cands``) at every ``leave_target_out_stride``-th
-    pixel, with the noise law as fusing them alone estimates it (without the target's depth)."""
-    lo_sigma = None
-    if settings.noise_sigma_1m is None:
-        sigma_1m = noise_sigma_1m_from(residuals, frames=slice(1, None))
-        lo_sigma = torch.cat(
-            [torch.zeros_like(depth[:1]), depth_sigma_m(depth[1:], sigma_1m, settings.noise_sigma_abs_m)]
+def _fuse_together(
+    sets: list[SetGeometry],
+    K: torch.Tensor,
+    size_hw: tuple[int, int],
+    st: RenderSettings,
+    src_hw: tuple[int, int] | None,
+    leave_target_out: bool,
+) -> list[Fusion]:
+    """The sets (each with its target fused) as one batch: clouds padded to the largest
+    set's frames with invalid points, stacked, rasterised and composited at once."""
+    n_img = len(sets)
+    j_max = max(len(s.members) for s in sets)
+    hw = sets[0].geometry.depth.shape[1]
+    parts, lo = [], []
+    for one in sets:
+        c = cloud_from_geometry(
+            one.geometry, one.T_j_to_t, noise_sigma_1m=st.noise_sigma_1m, noise_sigma_abs_m=st.noise_sigma_abs_m
         )
-        lo_sigma = lo_sigma.reshape(1, -1).to(dtype)
-    # the same compositor over the same candidates minus the target's
-    neighbours = cands.without_frame(0, stride=settings.leave_target_out_stride, sigma_m=lo_sigma)
-    return composite_gt(neighbours, settings, with_sigma=False)
+        pad = (j_max - len(one.members)) * hw
+        frame = torch.arange(j_max, device=c.points.device).repeat_interleave(hw)[None]
+        parts.append(
+            (
+                F.pad(c.points, (0, 0, 0, pad)),
+                F.pad(c.normals, (0, 0, 0, pad)),
+                F.pad(c.valid, (0, pad)),
+                frame,
+                F.pad(c.sigma_m, (0, pad), value=1.0),
+            )
+        )
+        s = _lto_sigma(one.geometry, st) if leave_target_out and len(one.members) > 1 else None
+        lo.append(None if s is None else F.pad(s, (0, pad), value=1.0))
+    points, normals, valid, frame, sigma = (torch.cat([p[k] for p in parts]) for k in range(5))
+    blocks = rasterise_blocks(
+        points,
+        K[None].expand(n_img, 3, 3).to(points.dtype),
+        size_hw,
+        st,
+        valid=valid,
+        normals_cam=normals,
+        sigma_m=sigma,
+        frame=frame,
+        src_hw=src_hw,
+        block_rows=None,
+    )
+    gt = composite_gt(blocks, st, target_frame=0)
+    lto = None
+    stride = st.leave_target_out_stride
+    with_lto = [leave_target_out and len(s.members) > 1 for s in sets]
+    if any(with_lto):
+        lo_sigma = None
+        if st.noise_sigma_1m is None:
+            lo_sigma = torch.cat([s if s is not None else torch.ones_like(sigma[:1]) for s in lo])
+        lto = composite_gt([b.without_frame(0, stride=stride, sigma_m=lo_sigma) for b in blocks], st, with_sigma=False)
+    out = []
+    for k, one in enumerate(sets):
+        j = len(one.members)
+        mine = GTRender(
+            *(t[k : k + 1] for t in gt[:4]),
+            gt.agreement[k : k + 1, :j],
+            None if gt.disagreement is None else gt.disagreement[k : k + 1],
+        )
+        left_out = None
+        if with_lto[k]:
+            left_out = GTRender(*(t[k : k + 1] for t in lto[:4]), lto.agreement[k : k + 1, :0], None)
+        out.append(Fusion(mine, one.members, _left_whole(mine.agreement[0], one.members, st), left_out, stride))
+    return out

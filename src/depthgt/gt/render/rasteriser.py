@@ -1,20 +1,30 @@
-"""The GT rasteriser: every (point, pixel) pair within the radius, sorted by pixel and front first."""
+"""The GT rasteriser: every (point, pixel) pair within the radius, sorted by pixel and,
+within a pixel, front first (the candidates, :class:`RenderCandidates`).
+
+It works in blocks of pixel rows (the images of a batch stacked): the points are sorted
+front to back once and grouped by the rows they reach (a point within ``radius_px`` of
+two blocks is in both), and each block's candidates are made in that order and sorted
+by pixel on their own. A block's arrays stay in the cache between the steps and the
+compositor takes them block by block (:func:`rasterise_blocks`); on a GPU the whole
+batch is one block. :func:`rasterise_gt` concatenates the blocks.
+"""
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
 
+from depthgt.geometry import project
 from depthgt.noise_law import KINECT_SIGMA_1M, depth_sigma_m
-from depthgt.rasterise import candidates, check_points, front_to_back, resampled_positions, sort_by_pixel
+from depthgt.rasterise import _cells_inside, check_points, front_to_back, resampled_positions
 from depthgt.settings import RenderSettings
 
-__all__ = ["RenderCandidates", "rasterise_gt"]
-
+__all__ = ["HIT_PX", "RenderCandidates", "rasterise_blocks", "rasterise_gt"]
 
 #: a surface with a sample this close to a pixel's sample position covers it (px)
-_HIT_PX = 0.05
+HIT_PX = 0.05
 
 
 class RenderCandidates(NamedTuple):
@@ -41,6 +51,8 @@ class RenderCandidates(NamedTuple):
         size: (B, H, W) of the output.
         n_frames: J = the largest frame id + 1 (0 without frame ids): the width of
             :attr:`GTRender.agreement`.
+        first_pixel: the flat index of the block's first pixel (``pixel`` counts from
+            it); n_pixels: the block's pixels (None: every pixel, B*H*W).
     """
 
     pixel: torch.Tensor
@@ -55,6 +67,51 @@ class RenderCandidates(NamedTuple):
     iz_point: torch.Tensor
     size: tuple[int, int, int]
     n_frames: int
+    first_pixel: int = 0
+    n_pixels: int | None = None
+
+    @property
+    def pixels(self) -> int:
+        """The pixels of this record (a block's, or all B*H*W)."""
+        b, h, w = self.size
+        return b * h * w if self.n_pixels is None else self.n_pixels
+
+    def block(self, lo: int, hi: int, first_pixel: int, n_pixels: int) -> RenderCandidates:
+        """The candidates ``lo:hi`` (views, no copy) as the block of the ``n_pixels``
+        pixels from ``first_pixel`` on (their ``pixel`` counted from it)."""
+        names = ("point", "ox", "oy", "d2", "iz", "s")
+        picked = {k: getattr(self, k)[lo:hi] for k in names}
+        shift = first_pixel - self.first_pixel
+        pixel = self.pixel[lo:hi]
+        return self._replace(
+            **picked,
+            pixel=pixel - shift if shift else pixel,
+            frame=None if self.frame is None else self.frame[lo:hi],
+            first_pixel=first_pixel,
+            n_pixels=n_pixels,
+        )
+
+    def blocks(self, rows: int | None) -> list[RenderCandidates]:
+        """This record cut into blocks of ``rows`` pixel rows (None or a block: itself)."""
+        b, h, w = self.size
+        if rows is None or self.n_pixels is not None or rows * w >= b * h * w:
+            return [self]
+        n_all = b * h * w
+        edges = torch.arange(0, n_all + rows * w, rows * w, device=self.pixel.device).clamp_max(n_all)
+        cut = torch.searchsorted(self.pixel, edges).tolist()
+        p = edges.tolist()
+        return [self.block(cut[i], cut[i + 1], p[i], p[i + 1] - p[i]) for i in range(len(p) - 1)]
+
+    @staticmethod
+    def concat(blocks: list[RenderCandidates]) -> RenderCandidates:
+        """Blocks of consecutive pixels as one record of every pixel (pixels counted from 0)."""
+        first = blocks[0]
+        if len(blocks) == 1 and first.first_pixel == 0 and first.n_pixels is None:
+            return first
+        cat = {k: torch.cat([getattr(c, k) for c in blocks]) for k in ("point", "ox", "oy", "d2", "iz", "s")}
+        frame = None if first.frame is None else torch.cat([c.frame for c in blocks])
+        pixel = torch.cat([c.pixel + c.first_pixel for c in blocks])
+        return first._replace(**cat, pixel=pixel, frame=frame, first_pixel=0, n_pixels=None)
 
     def select(self, index: torch.Tensor) -> RenderCandidates:
         """The candidates at ``index`` (C',) long (ascending keeps the sort)."""
@@ -84,7 +141,8 @@ class RenderCandidates(NamedTuple):
             if stride > 1:
                 on_grid = torch.zeros(b, h, w, dtype=torch.bool, device=self.pixel.device)
                 on_grid[:, ::stride, ::stride] = True
-                keep &= on_grid.reshape(-1).index_select(0, self.pixel)
+                on_grid = on_grid.reshape(-1)[self.first_pixel : self.first_pixel + self.pixels]
+                keep &= on_grid.index_select(0, self.pixel)
             out = self.select(keep.nonzero().squeeze(1))
             if sigma_m is not None:
                 s_point = _inverse_depth_std(sigma_m.detach().reshape(-1).to(self.iz_point.dtype), self.iz_point)
@@ -119,6 +177,218 @@ def _inverse_depth_planes(points_cam, normals_cam, K, st: RenderSettings) -> tor
     return (grad * ok[..., None]).reshape(-1, 2)
 
 
+class _Projected(NamedTuple):
+    """The points as the rasteriser's blocks use them (:func:`_project`).
+
+    uv: (B*N, 2) projections, px (differentiable); iz: (B*N,) inverse depth
+    (differentiable); s: (B*N,) std in inverse depth (detached); frame: (B*N,) long or
+    None; grad: (B*N, 2) or None (:func:`_inverse_depth_planes`); entries: the visible
+    points' indices, block by block, front to back within a block; edges: the blocks'
+    offsets into ``entries``; grid: the sample positions (columns (W,), rows (H,)) and
+    their largest shift from the pixel centres; rows: pixel rows per block.
+    """
+
+    uv: torch.Tensor
+    iz: torch.Tensor
+    s: torch.Tensor
+    frame: torch.Tensor | None
+    grad: torch.Tensor | None
+    entries: torch.Tensor
+    edges: list[int]
+    grid: tuple[torch.Tensor, torch.Tensor, float]
+    rows: int
+    size: tuple[int, int, int]
+    n_frames: int
+
+
+def _sample_grid(size_hw, src_hw, device, dtype) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """The pixels' sample positions (columns (W,), rows (H,)): their centres, or with
+    ``src_hw`` the source pixels' (:func:`resampled_positions`), and the largest shift
+    between the two (< 0.5 px)."""
+    h, w = size_hw
+    if src_hw is None:
+        return torch.arange(w, device=device, dtype=dtype), torch.arange(h, device=device, dtype=dtype), 0.0
+    gu = resampled_positions(int(src_hw[1]), w, device, dtype)
+    gv = resampled_positions(int(src_hw[0]), h, device, dtype)
+    shift = float(
+        max(
+            (gu - torch.arange(w, dtype=dtype, device=device)).abs().max(),
+            (gv - torch.arange(h, dtype=dtype, device=device)).abs().max(),
+        )
+    )
+    if shift >= 0.5:
+        raise ValueError(f"sample positions must lie within 0.5 px of the pixel centres, got up to {shift:.3f}")
+    return gu, gv, shift
+
+
+def _project(
+    points_cam: torch.Tensor,
+    K: torch.Tensor,
+    size_hw: tuple[int, int],
+    st: RenderSettings,
+    valid: torch.Tensor,
+    normals_cam: torch.Tensor | None,
+    sigma_m: torch.Tensor | None,
+    frame: torch.Tensor | None,
+    src_hw: tuple[int, int] | None,
+    block_rows: int | None,
+) -> _Projected:
+    """Project the points, order the visible ones front to back and group them by the
+    blocks of ``block_rows`` pixel rows they reach (None: one block)."""
+    b, n = points_cam.shape[:2]
+    h, w = int(size_hw[0]), int(size_hw[1])
+    dev, dt = points_cam.device, points_cam.dtype
+    gu, gv, shift = _sample_grid((h, w), src_hw, dev, dt)
+    r = float(st.radius_px)
+    uv, z = project(points_cam, K, eps=st.min_depth_m)
+    uv_f, z_f = uv.reshape(-1, 2), z.reshape(-1)
+    iz_all = 1.0 / z_f.clamp_min(st.min_depth_m)
+    with torch.no_grad():
+        if sigma_m is None:
+            sig_1m = KINECT_SIGMA_1M if st.noise_sigma_1m is None else st.noise_sigma_1m
+            sz = depth_sigma_m(z_f.detach(), sig_1m, st.noise_sigma_abs_m)
+        else:
+            sz = sigma_m.detach().reshape(-1).to(dt)
+        s_all = _inverse_depth_std(sz, iz_all.detach())
+        u, v = uv_f[:, 0].detach(), uv_f[:, 1].detach()
+        ok = valid.reshape(-1) & (z_f.detach() > st.min_depth_m) & torch.isfinite(u) & torch.isfinite(v)
+        ok &= (u > float(gu[0]) - r) & (u < float(gu[-1]) + r) & (v > float(gv[0]) - r) & (v < float(gv[-1]) + r)
+        pid = ok.nonzero().squeeze(1)
+        pid = pid.index_select(0, front_to_back(iz_all.detach().index_select(0, pid)))  # front first
+        rows = b * h if block_rows is None else max(1, int(block_rows))
+        if rows >= b * h:
+            entries, edges = pid, [0, pid.numel()]
+        else:
+            # every point in the blocks of its first and last candidate row (a point
+            # reaches at most span rows: two blocks), front first within a block
+            span = int(math.floor(2 * (r + shift))) + 1
+            y0 = torch.ceil(v.index_select(0, pid) - r - shift).long()
+            img = torch.div(pid, n, rounding_mode="floor") * h if b > 1 else 0
+            k0 = torch.div(y0.clamp(0, h - 1) + img, rows, rounding_mode="floor")
+            k1 = torch.div((y0 + span - 1).clamp(0, h - 1) + img, rows, rounding_mode="floor")
+            twice = k1 != k0
+            reps = 1 + twice.to(torch.long)
+            entries = torch.repeat_interleave(pid, reps)
+            block = torch.repeat_interleave(k0, reps)
+            second = torch.cumsum(reps, 0) - 1  # the second entry of a point in two blocks
+            block[second[twice]] = k1[twice]
+            key = block.to(torch.int16 if block.numel() == 0 or int(block.max()) < 2**15 else torch.int32)
+            order = torch.sort(key, stable=True).indices
+            entries = entries.index_select(0, order)
+            n_blocks = -(-(b * h) // rows)
+            counts = torch.bincount(block, minlength=n_blocks)
+            edges = [0, *torch.cumsum(counts, 0).tolist()]
+    n_frames = 0 if frame is None or frame.numel() == 0 else int(frame.max()) + 1
+    grad = None if normals_cam is None else _inverse_depth_planes(points_cam, normals_cam, K, st)
+    fr = None if frame is None else frame.reshape(-1)
+    return _Projected(uv_f, iz_all, s_all, fr, grad, entries, edges, (gu, gv, shift), rows, (b, h, w), n_frames)
+
+
+def _rasterise_block(pr: _Projected, k: int, radius_px: float) -> RenderCandidates:
+    """The candidates of block ``k`` (its pixels counted from the block's first)."""
+    b, h, w = pr.size
+    gu, gv, shift = pr.grid
+    r = float(radius_px)
+    g_lo, g_hi = k * pr.rows, min((k + 1) * pr.rows, b * h)  # the block's rows of the stacked images
+    n_pix = (g_hi - g_lo) * w
+    n = pr.uv.shape[0] // b
+    with torch.no_grad():
+        ids = pr.entries[pr.edges[k] : pr.edges[k + 1]]
+        u = pr.uv[:, 0].detach().index_select(0, ids)
+        v = pr.uv[:, 1].detach().index_select(0, ids)
+        # sample positions within r of u lie in columns [ceil(u - r - shift), floor(u + r + shift)]
+        span = int(math.floor(2 * (r + shift))) + 1
+        off = torch.arange(span, device=u.device)
+        x0 = torch.ceil(u - r - shift).long()
+        y0 = torch.ceil(v - r - shift).long()
+        cols = x0[:, None] + off[None, :]
+        rows = y0[:, None] + off[None, :]
+        if b > 1:
+            y0 = y0 + (torch.div(ids, n, rounding_mode="floor") * h - g_lo)  # the first row within the block
+        else:
+            y0 = y0 - g_lo
+        # squared distances per axis; a column or row outside the image (or the block) gets
+        # a huge one, so that the (P, span, span) sum below needs a single comparison
+        far = 4.0 * r * r + 1.0
+        dx2 = (gu[cols.clamp(0, w - 1)] - u[:, None]) ** 2 + ((cols < 0) | (cols >= w)) * far
+        row_b = y0[:, None] + off[None, :]
+        dy2 = (gv[rows.clamp(0, h - 1)] - v[:, None]) ** 2
+        dy2 += ((rows < 0) | (rows >= h) | (row_b < 0) | (row_b >= g_hi - g_lo)) * far
+        inside = (dy2[:, :, None] + dx2[:, None, :]) < r * r
+        del dx2, dy2
+        slot, oy, ox = _cells_inside(inside)
+        del inside
+        col = x0.index_select(0, slot) + ox
+        pixel = (y0.index_select(0, slot) + oy) * w + col  # within the block
+        key = pixel.to(torch.int16) if n_pix < 2**15 else pixel.to(torch.int32)
+        pixel, order = torch.sort(key, stable=True)  # by pixel, front first (stable: the entries' order)
+        pixel = pixel.long()
+        slot = slot.index_select(0, order)
+        col = col.index_select(0, order)
+        row = torch.div(pixel, w, rounding_mode="floor") + g_lo  # the row of the stacked images
+        if b > 1:
+            row = row % h
+        point = ids.index_select(0, slot)
+    # projection minus sample position, px (differentiable): the block's projections, then
+    # each candidate's from them (small arrays, in the cache)
+    uv_b = pr.uv.index_select(0, ids)
+    ox = uv_b[:, 0].index_select(0, slot) - gu.index_select(0, col)
+    oy = uv_b[:, 1].index_select(0, slot) - gv.index_select(0, row)
+    return RenderCandidates(
+        pixel,
+        point,
+        ox,
+        oy,
+        ox * ox + oy * oy,
+        iz=pr.iz.index_select(0, ids).index_select(0, slot),
+        s=pr.s.index_select(0, ids).index_select(0, slot),
+        frame=None if pr.frame is None else pr.frame.index_select(0, ids).index_select(0, slot),
+        grad=pr.grad,
+        iz_point=pr.iz.detach(),
+        size=pr.size,
+        n_frames=pr.n_frames,
+        first_pixel=g_lo * w,
+        n_pixels=n_pix,
+    )
+
+
+def _check(points_cam, K, size_hw, valid, normals_cam, sigma_m, frame) -> torch.Tensor:
+    valid = check_points(points_cam, K, valid, size_hw)
+    b, n = points_cam.shape[:2]
+    for name, t, shape in (
+        ("normals_cam", normals_cam, (b, n, 3)),
+        ("sigma_m", sigma_m, (b, n)),
+        ("frame", frame, (b, n)),
+    ):
+        if t is not None and tuple(t.shape) != shape:
+            raise ValueError(
+                f"{name} must be {shape} to match points_cam {tuple(points_cam.shape)}, got {tuple(t.shape)}"
+            )
+    return valid
+
+
+def rasterise_blocks(
+    points_cam: torch.Tensor,
+    K: torch.Tensor,
+    size_hw: tuple[int, int],
+    settings: RenderSettings = RenderSettings(),
+    *,
+    valid: torch.Tensor | None = None,
+    normals_cam: torch.Tensor | None = None,
+    sigma_m: torch.Tensor | None = None,
+    frame: torch.Tensor | None = None,
+    src_hw: tuple[int, int] | None = None,
+    block_rows: int | None = None,
+) -> list[RenderCandidates]:
+    """Step 1 of :func:`~depthgt.gt.render.compositor.render_gt` in blocks of
+    ``block_rows`` pixel rows of the stacked images (None: one block): each block's
+    candidates with their inverse depths, sigmas and frames, sorted by pixel and front
+    first. Args: as :func:`rasterise_gt`."""
+    valid = _check(points_cam, K, size_hw, valid, normals_cam, sigma_m, frame)
+    pr = _project(points_cam, K, size_hw, settings, valid, normals_cam, sigma_m, frame, src_hw, block_rows)
+    return [_rasterise_block(pr, k, settings.radius_px) for k in range(len(pr.edges) - 1)]
+
+
 def rasterise_gt(
     points_cam: torch.Tensor,
     K: torch.Tensor,
@@ -131,71 +401,22 @@ def rasterise_gt(
     frame: torch.Tensor | None = None,
     src_hw: tuple[int, int] | None = None,
 ) -> RenderCandidates:
-    """Step 1 of :func:`render_gt`: the candidates of every pixel, with their inverse
-    depths, sigmas and frames, sorted by pixel and front first (the points sorted by
-    inverse depth once, :func:`depthgt.rasterise.front_to_back`, and the candidates made
-    in that order, then one stable sort by pixel).
+    """Step 1 of :func:`~depthgt.gt.render.compositor.render_gt`: the candidates of every
+    pixel, with their inverse depths, sigmas and frames, sorted by pixel and front first
+    (:func:`rasterise_blocks`, the blocks concatenated).
 
-    Args: as :func:`render_gt`. Returns: :class:`RenderCandidates`.
+    Args: as :func:`~depthgt.gt.render.compositor.render_gt`. Returns: :class:`RenderCandidates`.
     """
-    valid = check_points(points_cam, K, valid, size_hw)
-    b, n = points_cam.shape[:2]
-    for name, t, shape in (
-        ("normals_cam", normals_cam, (b, n, 3)),
-        ("sigma_m", sigma_m, (b, n)),
-        ("frame", frame, (b, n)),
-    ):
-        if t is not None and tuple(t.shape) != shape:
-            raise ValueError(
-                f"{name} must be {shape} to match points_cam {tuple(points_cam.shape)}, got {tuple(t.shape)}"
-            )
-    st = settings
-    h, w = int(size_hw[0]), int(size_hw[1])
-    dev, dt = points_cam.device, points_cam.dtype
-    grid = None
-    if src_hw is not None:
-        grid = (resampled_positions(int(src_hw[1]), w, dev, dt), resampled_positions(int(src_hw[0]), h, dev, dt))
-    z_all = points_cam[..., 2].reshape(-1)
-    iz_all = 1.0 / z_all.clamp_min(st.min_depth_m)
-    with torch.no_grad():  # the candidates come front first: one sort of the points, not of the candidates
-        by_depth = front_to_back(iz_all)
-    cand, _ = candidates(
+    blocks = rasterise_blocks(
         points_cam,
         K,
-        valid,
-        (h, w),
-        radius_px=st.radius_px,
-        min_depth=st.min_depth_m,
-        grid_uv=grid,
-        point_order=by_depth,
+        size_hw,
+        settings,
+        valid=valid,
+        normals_cam=normals_cam,
+        sigma_m=sigma_m,
+        frame=frame,
+        src_hw=src_hw,
+        block_rows=None,
     )
-    n_frames = 0 if frame is None or frame.numel() == 0 else int(frame.max()) + 1
-    with torch.no_grad():
-        if sigma_m is None:
-            sig_1m = KINECT_SIGMA_1M if st.noise_sigma_1m is None else st.noise_sigma_1m
-            sz = depth_sigma_m(z_all.detach(), sig_1m, st.noise_sigma_abs_m)
-        else:
-            sz = sigma_m.detach().reshape(-1).to(dt)
-        s_all = _inverse_depth_std(sz, iz_all.detach())
-    grad = None if normals_cam is None else _inverse_depth_planes(points_cam, normals_cam, K, st)
-    with torch.no_grad():
-        pixel, order = sort_by_pixel(cand.pixel)  # by pixel, front first (stable: the candidates' order)
-    point = cand.point.index_select(0, order)
-    # projection minus sample position, px
-    ox, oy = (-cand.dx).index_select(0, order), (-cand.dy).index_select(0, order)
-    d2 = ox * ox + oy * oy  # as the rasteriser computes it (dx^2 + dy^2, dx = -ox): bit for bit, cheaper than a gather
-    fr = None if frame is None else frame.reshape(-1).index_select(0, point)
-    return RenderCandidates(
-        pixel,
-        point,
-        ox,
-        oy,
-        d2,
-        iz=iz_all.index_select(0, point),
-        s=s_all.index_select(0, point),
-        frame=fr,
-        grad=grad,
-        iz_point=iz_all.detach(),
-        size=(b, h, w),
-        n_frames=n_frames,
-    )
+    return RenderCandidates.concat(blocks)
