@@ -23,9 +23,10 @@ from depthgt.gt.coverage import CoverageResult, add_coverage_views
 from depthgt.gt.patches import make_patches, patch_record
 from depthgt.gt.planning import coverage_candidates, stable_seed
 from depthgt.gt.render import Fusion, fuse
+from depthgt.gt.render.settings import RenderSettings
 from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
 from depthgt.registration import Alignment, FrameSetData, align, load_frameset, poses_from_source
-from depthgt.settings import STAGES, RenderSettings, Settings
+from depthgt.settings import STAGES, Settings
 from depthgt.sources.base import Scene
 
 __all__ = [

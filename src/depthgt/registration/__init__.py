@@ -15,15 +15,20 @@ Settings and presets: :class:`depthgt.settings.RegistrationSettings`,
 :func:`depthgt.settings.registration_settings`. Imported lazily by callers (torch is heavy).
 """
 
-from depthgt.registration.align import Alignment, align, photometric_for
-from depthgt.registration.encoder import build_encoder
-from depthgt.registration.frameset import FrameSetData, Registration, load_frameset, poses_from_source
-from depthgt.registration.given import register_given
-from depthgt.registration.local import refine_source_poses, register_refine
-from depthgt.registration.methods import METHODS
-from depthgt.registration.overfit import pretrain_encoder, register_frameset, register_overfit
-from depthgt.registration.refine import refine_poses
-from depthgt.registration.result import RegistrationResult
+from typing import TYPE_CHECKING
+
+from depthgt.lazy import lazy_names
+
+if TYPE_CHECKING:  # the package's names, each imported on first use (below)
+    from depthgt.registration.align import Alignment, align, photometric_for
+    from depthgt.registration.encoder import build_encoder
+    from depthgt.registration.frameset import FrameSetData, Registration, load_frameset, poses_from_source
+    from depthgt.registration.given import register_given
+    from depthgt.registration.local import refine_source_poses, register_refine
+    from depthgt.registration.methods import METHODS
+    from depthgt.registration.overfit import pretrain_encoder, register_frameset, register_overfit
+    from depthgt.registration.refine import refine_poses
+    from depthgt.registration.result import RegistrationResult
 
 __all__ = [
     "METHODS",
@@ -44,3 +49,5 @@ __all__ = [
     "register_overfit",
     "register_refine",
 ]
+
+__getattr__, __dir__ = lazy_names(__name__, __file__)

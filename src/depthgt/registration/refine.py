@@ -30,7 +30,7 @@ from kornia.geometry.liegroup import Se3
 from depthgt.device import plain_cpu_convolutions
 from depthgt.geometry import backproject, resize_depth_nearest, resize_rgb, scale_intrinsics
 from depthgt.noise_law import estimate_noise_sigma_1m
-from depthgt.settings import RefineSettings
+from depthgt.registration.settings import RefineSettings
 
 __all__ = [
     "RefineResult",

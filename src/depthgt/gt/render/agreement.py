@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from depthgt.gt.render.rasteriser import _HIT_PX, RenderCandidates
-from depthgt.settings import RenderSettings
+from depthgt.gt.render.settings import RenderSettings
 
 #: frame agreement: samples within this of a target sample are compared with it (px);
 #: a frame is judged on at least this many comparisons

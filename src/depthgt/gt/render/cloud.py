@@ -12,9 +12,9 @@ from kornia.geometry.linalg import transform_points
 
 from depthgt.device import plain_cpu_convolutions
 from depthgt.geometry import backproject
+from depthgt.gt.render.settings import RenderSettings
 from depthgt.noise_law import Residuals, depth_sigma_m, noise_sigma_1m_from, second_difference_residuals
 from depthgt.rasterise import resampled_positions
-from depthgt.settings import RenderSettings
 
 __all__ = ["TargetCloud", "cloud_in_target"]
 

@@ -8,8 +8,8 @@ import torch
 
 from depthgt.gt.render.agreement import _agreement_slot, _frame_agreement
 from depthgt.gt.render.rasteriser import _HIT_PX, RenderCandidates, rasterise_gt
+from depthgt.gt.render.settings import RenderSettings
 from depthgt.rasterise import rank_in_pixel
-from depthgt.settings import RenderSettings
 
 __all__ = ["GTRender", "composite_gt", "render_gt"]
 

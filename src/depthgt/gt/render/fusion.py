@@ -20,9 +20,9 @@ import torch
 from depthgt.gt.render.cloud import cloud_in_target
 from depthgt.gt.render.compositor import GTRender, composite_gt
 from depthgt.gt.render.rasteriser import rasterise_gt
+from depthgt.gt.render.settings import RenderSettings
 from depthgt.noise_law import depth_sigma_m, noise_sigma_1m_from, second_difference_residuals
 from depthgt.registration.frameset import FrameSetData
-from depthgt.settings import RenderSettings
 
 __all__ = ["Fusion", "fuse", "frames_left_out_whole", "whole_frame_threshold"]
 

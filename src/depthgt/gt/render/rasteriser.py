@@ -6,9 +6,9 @@ from typing import NamedTuple
 
 import torch
 
+from depthgt.gt.render.settings import RenderSettings
 from depthgt.noise_law import KINECT_SIGMA_1M, depth_sigma_m
 from depthgt.rasterise import candidates, check_points, front_to_back, resampled_positions, sort_by_pixel
-from depthgt.settings import RenderSettings
 
 __all__ = ["RenderCandidates", "rasterise_gt"]
 
