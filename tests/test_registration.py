@@ -638,11 +638,13 @@ def test_every_method_is_one_entry_of_the_table(monkeypatch):
         module, function = m.register.split(":")
         assert callable(getattr(importlib.import_module(module), function)), m
         assert set(m.preset_cost) <= set(REGISTRATION_PRESETS), m
-    assert {n for n, m in registration.METHODS.items() if m.uses_source_poses} == {"given", "refine"}
-    assert {n for n, m in registration.METHODS.items() if m.pretrained_encoder} == {"overfit"}
+    given_, refine_, overfit_ = (registration.METHODS[n] for n in ("given", "refine", "overfit"))
+    assert given_.uses_source_poses and refine_.uses_source_poses and not overfit_.uses_source_poses
+    assert overfit_.pretrained_encoder and not given_.pretrained_encoder and not refine_.pretrained_encoder
+    assert overfit_.job_cost("paper").mem_mb > overfit_.job_cost("fast").mem_mb == given_.job_cost("paper").mem_mb
     assert RegistrationSettings(method="overfit").uses_source_poses is False
-    with pytest.raises(ConfigError, match="registration.method: must be one of given, refine, overfit"):
-        RegistrationSettings(method="icp")
+    with pytest.raises(ConfigError, match=r"registration.method: must be one of given, refine, .*got 'no_such'"):
+        RegistrationSettings(method="no_such")
     offsets = [0, -2, 2]
     gen = torch.Generator().manual_seed(0)
     T_world = torch.stack([_random_T(gen, 5.0, 0.1) for _ in offsets])
