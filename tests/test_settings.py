@@ -411,6 +411,10 @@ _QUOTED = re.compile(r"""[(\[{]\s*((?:["'][^"'\n]*["']\s*,\s*)+["'][^"'\n]*["'])
 _GET = re.compile(r"""\.(?:get|pop|setdefault)\(\s*["'](\w+)["']\s*,\s*([^)]+)\)""")
 
 
+def _rule_files(repo: Path) -> list[Path]:
+    return [repo / "Snakefile", *sorted((repo / "workflow").rglob("*.smk"))]
+
+
 def _written_twice(repo: Path) -> tuple[list[str], set[tuple]]:
     """Where ``repo``'s code (src/depthgt, workflow/*.py) and rules (Snakefile,
     workflow/*.smk) write a settings enum or default again: (the places, the repeated
@@ -445,7 +449,7 @@ def _written_twice(repo: Path) -> tuple[list[str], set[tuple]]:
                         found.add(entry)
                         if entry not in KNOWN_REPEATED_DEFAULTS:
                             repeated.append(f"{entry[0]}:{node.lineno}: {key!r} falls back to its default {value!r}")
-    for path in [repo / "Snakefile", *sorted((repo / "workflow").rglob("*.smk"))]:
+    for path in _rule_files(repo):
         text = path.read_text()
         for m in _QUOTED.finditer(text):
             values = set(re.findall(r"""["']([^"']*)["']""", m.group(1)))
@@ -640,3 +644,23 @@ def test_the_embedded_defaults_apply_wherever_snakemake_starts(tmp_path):
     ]
     own = make_workdir(tmp_path / "own", mine)
     assert planned(own) == ["000006-000033.zip"]  # its own config, the settings' defaults (target_step 1)
+
+
+def test_the_rules_and_the_stages_ask_the_registries_not_names():
+    """Rules, workflow scripts, the GT stage, the jobs and the settings never compare a
+    registration method's or a source kind's name: they ask the entry's properties
+    (``uses_source_poses``, ``pretrained_encoder``, ``cost``; ``has_truth``), so that a
+    new method or kind is its module and one entry."""
+    from depthgt.registration.methods import METHODS
+    from depthgt.sources.base import KINDS
+
+    names = "|".join(sorted(map(re.escape, {*METHODS, *KINDS})))
+    compared = re.compile(
+        rf"""[=!]=\s*["'](?:{names})["']|["'](?:{names})["']\s*[=!]=|\bin\s*[(\[{{]\s*["'](?:{names})["']"""
+    )
+    files = [*_rule_files(REPO), *sorted((REPO / "workflow/scripts").glob("*.py"))]
+    files += [p for d in ("gt", "jobs", "registration") for p in sorted((REPO / "src/depthgt" / d).rglob("*.py"))]
+    files += sorted((REPO / "src/depthgt").rglob("settings*.py"))
+    found = [f"{p.relative_to(REPO)}: {m.group(0)}" for p in files for m in compared.finditer(p.read_text())]
+    assert not found, "names compared where a registry entry's property belongs:\n" + "\n".join(found)
+    assert compared.search('if SETTINGS.registration.method == "overfit":') and compared.search('kind != "synthetic"')

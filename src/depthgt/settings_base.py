@@ -34,7 +34,7 @@ from typing import Any, Literal, NoReturn, TypeVar, dataclass_transform
 
 from depthgt.errors import ConfigError
 
-__all__ = ["fail", "require", "section", "check_keys", "build", "mapping", "typed", "choices"]
+__all__ = ["fail", "require", "section", "check_keys", "build", "mapping", "choices"]
 
 T = TypeVar("T")
 
@@ -118,13 +118,6 @@ def mapping(value, where: str) -> dict:
     if not isinstance(value, Mapping):
         fail(where, f"must be a mapping, got {type(value).__name__} {value!r}")
     return dict(value)
-
-
-def typed(value, kind: type, where: str):
-    """``value`` when it is a ``kind`` (an int is no bool, an int is a float), else :func:`fail`."""
-    if not _is(value, kind):
-        fail(where, f"must be {kind.__name__}, got {type(value).__name__} {value!r}")
-    return value
 
 
 def choices(hint) -> tuple:
