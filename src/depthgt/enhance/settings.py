@@ -32,7 +32,7 @@ class TrainSettings:
             LapDENConfig overrides).
         loss_params: keyword arguments of the model's loss (``lapden``: LossConfig fields).
         epochs: number of epochs; batch_size: patches per step; lr: Adam learning rate
-            (defaults 6, 8, 1e-3: the config's ``enhance.train``, docs/configuration.md).
+            (the default config sets them in ``enhance.train``, docs/configuration.md).
         lr_schedule: ``constant`` (``lr`` at every step) or ``cosine`` (``lr`` at the first
             step, decaying along half a cosine to 0 after the last step of ``epochs``:
             :func:`depthgt.enhance.train.learning_rate`). With ``cosine`` the epochs are part
