@@ -8,8 +8,12 @@ level, inside functions, under ``TYPE_CHECKING``) is read from the source with `
 * leaves: the top-level modules (errors, io, geometry, atomic, device, registry,
   status, the metric vocabulary, the depth operators, ...) import only leaves;
 * sources/synth: the adapters and the synthetic scenes read no settings;
-* settings: builds every stage's settings and checks each source's options through
-  the adapters' protocol (``sources.base.check_options``), so it sits above them;
+* settings: every stage's settings module, wherever it sits (``gt/render/settings.py``,
+  ``registration/settings.py``, ...: :data:`SETTINGS_MODULES`), the registry of
+  registration methods they check names against, and the builder ``depthgt.settings``
+  that imports them all. They are one unit: torch-free, importing only leaves,
+  sources/synth (``sources.base.check_options``) and each other, so that the builder
+  and any stage may import them;
 * registration -> gt -> data (the torch Dataset over the manifests) -> enhance -> eval
   -> jobs/cli.
 
@@ -29,6 +33,11 @@ from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 PACKAGE = SRC / "depthgt"
+
+#: Modules of the settings layer besides every module named ``settings`` (a stage's
+#: settings beside the stage): the registration methods' registry, whose names and
+#: properties the registration settings ask.
+SETTINGS_MODULES = frozenset({"depthgt.registration.methods"})
 
 # units by layer, lowest first; a top-level module not named here is a leaf
 LAYERS: tuple[tuple[str, frozenset[str]], ...] = (
@@ -86,7 +95,10 @@ def internal_imports(path: Path, name: str | None = None) -> list[tuple[str, int
 
 
 def unit_of(module: str) -> str:
-    """The top-level module or the subpackage a module belongs to."""
+    """The top-level module or the subpackage a module belongs to; every module of the
+    settings layer belongs to ``depthgt.settings``."""
+    if module.rsplit(".", 1)[-1] == "settings" or module in SETTINGS_MODULES:
+        return "depthgt.settings"
     parts = module.split(".")
     return ".".join(parts[:2]) if len(parts) > 1 else module
 

@@ -30,6 +30,7 @@ from typing import Any
 from depthgt import runlock
 from depthgt.errors import DepthGTError
 from depthgt.gt import store
+from depthgt.gt.settings import SPLITS
 
 __all__ = ["main", "repo_root", "snakemake_command", "scene_outputs"]
 
@@ -364,8 +365,8 @@ def _parser() -> argparse.ArgumentParser:
     x.add_argument(
         "--split",
         nargs="+",
-        choices=["train", "val", "test"],
-        default=["train", "val", "test"],
+        choices=SPLITS,
+        default=list(SPLITS),
         help="splits to export (default: all)",
     )
     x.add_argument(

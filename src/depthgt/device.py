@@ -12,7 +12,7 @@ import ctypes
 import ctypes.util
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal, get_args
 
 from depthgt.errors import ConfigError
 
@@ -20,12 +20,18 @@ if TYPE_CHECKING:
     import torch
 
 __all__ = [
+    "Device",
+    "DEVICES",
     "resolve_device",
     "cuda_device_count",
     "check_device_available",
     "keep_freed_memory",
     "plain_cpu_convolutions",
 ]
+
+#: The device choices (config ``device``, ``enhance.train.device``).
+Device = Literal["auto", "cpu", "cuda"]
+DEVICES: tuple[str, ...] = get_args(Device)
 
 _NO_CUDA = (
     "config key device: cuda was asked for but no CUDA device is available (use device: auto to fall back to the CPU)"
@@ -49,7 +55,7 @@ def resolve_device(name: str = "auto") -> torch.device:
         if not torch.cuda.is_available():
             raise ConfigError(_NO_CUDA)
         return torch.device("cuda")
-    raise ConfigError(f"config key device: must be auto, cpu or cuda, got {name!r}")
+    raise ConfigError(f"config key device: must be one of {', '.join(DEVICES)}, got {name!r}")
 
 
 def cuda_device_count() -> int:

@@ -1,20 +1,26 @@
 # Config validation, wildcard constraints and input functions. Nothing heavy is
 # imported here: the DAG is built without torch, kornia or OpenEXR.
 from snakemake.exceptions import WorkflowError
-from snakemake.utils import validate
 
 from depthgt import runlock  # standard library only
 from depthgt.device import check_device_available  # torch-free
-from depthgt.settings import check_config, check_scene_name, check_workflow, settings_from_config, stage_config
+from depthgt.settings import (  # torch-free
+    check_scene_name,
+    check_workflow,
+    config_with_defaults,
+    settings_from_config,
+    stage_config,
+)
 from depthgt.sources.base import check_scene_identity, scene_file  # numpy only
 
-check_config(config, workflow.source_path("../schemas/config.schema.yaml"))
-validate(config, schema="../schemas/config.schema.yaml", set_default=True)
-# Every stage's settings, checked before any job runs (unknown keys, values, bounds,
-# patches.size <= resize, registration keys whatever the method); jobs rebuild theirs
-# from the config sections their rule passes (STAGES below).
+# Every stage's settings, checked before any job runs: the one check of the config
+# (unknown keys at any depth, types, choices, bounds, patches.size <= resize, registration
+# keys whatever the method; every section's problem at once). Jobs rebuild theirs from the
+# config sections their rule passes (STAGES below).
 SETTINGS = settings_from_config(config)
-check_workflow(SETTINGS)  # what no single section decides (overfit pretraining needs a train split)
+check_workflow(SETTINGS)  # what no single section decides (a source at least; the encoder's pretraining)
+# the defaults the rules' params and the recorded source entries hold (depthgt.settings.WRITTEN_DEFAULTS)
+config.update(config_with_defaults(config))
 
 SOURCES = {src["name"]: src for src in config["sources"]}  # names checked unique by the settings
 
@@ -23,10 +29,10 @@ def _scenes_of(src):
     if src["scenes"] == "all":
         from depthgt.sources.base import list_scenes
 
-        found = list_scenes(src["kind"], src.get("root"), **src.get("options", {}))
+        found = list_scenes(src["kind"], src["root"], **src["options"])
         if not found:  # an empty folder, or one of another kind: nothing would be built, silently
             raise WorkflowError(
-                f"sources[{src['name']}]: scenes: all finds no {src['kind']} scene under {src.get('root')} "
+                f"sources[{src['name']}]: scenes: all finds no {src['kind']} scene under {src['root']} "
                 "(an empty folder, or data of another kind?)"
             )
         return found
@@ -62,7 +68,7 @@ def scene_data(wildcards):
     Snakemake then re-runs the index when the file changes); folder sources have too
     many files to list."""
     src = SOURCES[wildcards.dataset]
-    path = scene_file(src["kind"], src.get("root"), wildcards.scene, **src.get("options", {}))
+    path = scene_file(src["kind"], src["root"], wildcards.scene, **src["options"])
     return {"scene_file": path} if path else {}
 
 
@@ -79,7 +85,7 @@ def _plan_batches():
     plan = {}
     for name, scene in SCENES:
         src = SOURCES[name]
-        n = frame_count(src["kind"], src.get("root"), scene, **src.get("options", {}))
+        n = frame_count(src["kind"], src["root"], scene, **src["options"])
         plan[name, scene] = SETTINGS.frameset.batches(n)
     return plan
 
@@ -137,17 +143,16 @@ def train_threads(wildcards):
         return 2
     return max(1, min(2, cores // 4))
 
-# Frame sets: peak RSS (benchmarks/*.tsv, max_rss) and CPU time on one core, measured at
-# 256x256: given poses 0.6 GB / 5 s (7-Scenes), overfit fast 0.7 GB / 9 s, overfit paper
-# 5.9 GB / 830 s (issue 9); declared with headroom. A job that handles several frame sets
-# in turn needs the memory of one and the time of all.
-_REG = config["registration"]
-_OVERFIT_PAPER = _REG.get("method") == "overfit" and _REG.get("preset") != "fast"
-# frameset.selection coverage: the batch keeps the span's frames and the candidates' clouds;
-# measured 1.7 GB peak RSS (7-Scenes, given and refine, bench_pipeline.py --selection coverage)
-_COVERAGE = config["frameset"].get("selection") == "coverage"
-FRAMESET_MEM_MB = 8000 if _OVERFIT_PAPER else (4000 if _COVERAGE else 2000)
-FRAMESET_CPU_S = 1800 if _OVERFIT_PAPER else 60
+# Frame sets: the memory and CPU time one frame set of the registration method costs
+# (its entry's JobCost, depthgt.registration.methods: measured peak RSS and CPU time,
+# declared with headroom). A job that handles several frame sets in turn needs the memory
+# of one and the time of all. frameset.selection coverage: the batch keeps the span's frames
+# and the candidates' clouds; measured 1.7 GB peak RSS (7-Scenes, given and refine,
+# bench_pipeline.py --selection coverage).
+_JOB = SETTINGS.registration.job_cost
+_COVERAGE = SETTINGS.frameset.selection == "coverage"
+FRAMESET_MEM_MB = max(_JOB.mem_mb, 4000) if _COVERAGE else _JOB.mem_mb
+FRAMESET_CPU_S = _JOB.cpu_s
 
 
 def frameset_runtime_min(n_framesets=1):

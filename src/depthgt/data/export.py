@@ -43,7 +43,7 @@ from depthgt.atomic import write_atomic
 from depthgt.data.dataset import KINDS, GTDataset
 from depthgt.errors import DepthGTError
 from depthgt.gt.card import CHECKSUMS, sha256_file
-from depthgt.settings import SPLITS
+from depthgt.gt.settings import SPLITS
 
 __all__ = [
     "FORMATS",

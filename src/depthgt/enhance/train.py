@@ -52,8 +52,8 @@ from depthgt import registry
 from depthgt.atomic import write_atomic
 from depthgt.data import GTDataset, training_fields
 from depthgt.device import resolve_device
+from depthgt.enhance.settings import TrainSettings
 from depthgt.errors import ConfigError
-from depthgt.settings import TrainSettings
 from depthgt.testhook import hold
 
 __all__ = [

@@ -20,8 +20,8 @@ import numpy as np
 import pandas as pd
 
 from depthgt.gt import store
+from depthgt.gt.settings import SPLITS
 from depthgt.metric_vocabulary import unit_of
-from depthgt.settings import SPLITS
 from depthgt.status import Status
 
 FRAMESET_COLUMNS = [

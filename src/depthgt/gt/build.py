@@ -27,9 +27,10 @@ from depthgt.gt.planning import coverage_candidates, stable_seed
 from depthgt.gt.render import Fusion, fuse
 from depthgt.gt.render.cloud import cached_geometry, frame_geometry
 from depthgt.gt.render.fusion import SetGeometry, fuse_sets
+from depthgt.gt.render.settings import RenderSettings
 from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
 from depthgt.registration import Alignment, FrameSetData, align, load_frameset, poses_from_source
-from depthgt.settings import STAGES, RenderSettings, Settings
+from depthgt.settings import STAGES, Settings
 from depthgt.sources.base import Scene
 
 __all__ = [

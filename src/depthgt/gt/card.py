@@ -42,7 +42,7 @@ from depthgt import io
 from depthgt.atomic import write_atomic
 from depthgt.errors import DepthGTError
 from depthgt.gt import store
-from depthgt.settings import SPLITS
+from depthgt.gt.settings import SPLITS
 from depthgt.status import Status
 
 __all__ = [

@@ -41,11 +41,13 @@ from kornia.geometry.liegroup import Se3
 from depthgt import geometry
 from depthgt.errors import FrameError
 from depthgt.gt.render import Fusion, fuse, whole_frame_threshold
+from depthgt.gt.render.settings import RenderSettings
+from depthgt.gt.settings import FrameSetSettings
 from depthgt.metric_vocabulary import depth_errors
 from depthgt.registration import Alignment, FrameSetData, load_frameset, photometric_for
 from depthgt.registration.local import refine_source_poses
 from depthgt.registration.methods import METHODS
-from depthgt.settings import FrameSetSettings, RegistrationSettings, RenderSettings
+from depthgt.registration.settings import RegistrationSettings
 from depthgt.sources.base import Scene, check_frame
 from depthgt.status import Status
 

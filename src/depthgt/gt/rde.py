@@ -45,8 +45,8 @@ from depthgt.atomic import save_npz, work_dir, write_atomic
 from depthgt.errors import ConfigError, FrameError
 from depthgt.gt import store
 from depthgt.gt.patches import crop_pairs, patch_record
+from depthgt.gt.settings import SPLITS, RDESettings
 from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
-from depthgt.settings import SPLITS, RDESettings
 from depthgt.status import Status
 
 __all__ = [

@@ -37,8 +37,8 @@ import torch
 from depthgt.atomic import save_npz, write_atomic
 from depthgt.gt import store
 from depthgt.gt.render import fuse
+from depthgt.gt.render.settings import RenderSettings
 from depthgt.registration import load_frameset
-from depthgt.settings import RenderSettings
 from depthgt.sources.base import Scene
 from depthgt.status import Status
 

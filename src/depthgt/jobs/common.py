@@ -67,7 +67,7 @@ def open_source_scene(source: dict[str, Any], scene: str, need_poses: bool = Tru
     When the registration does not need the source's poses, a kind whose poses are
     optional (:class:`depthgt.sources.base.SourceKind`) is opened with
     ``require_pose=False`` so that frames with non-finite poses (ScanNet has them) stay
-    usable. ``colour_matches_depth: true|false`` overrides the kind's (``auto``).
+    usable. A ``colour_matches_depth: true|false`` overrides the kind's (``auto``).
     """
     options = dict(source.get("options") or {})
     if not need_poses and source_kind(source["kind"]).poses_optional:
@@ -78,7 +78,7 @@ def open_source_scene(source: dict[str, Any], scene: str, need_poses: bool = Tru
         raise ConfigError(
             f"config sources entry {source.get('name')!r} (kind {source['kind']}): bad options: {err}"
         ) from err
-    colour = source.get("colour_matches_depth", "auto")
-    if colour != "auto":
-        opened.colour_matches_depth = bool(colour)
+    colour = source.get("colour_matches_depth")
+    if isinstance(colour, bool):
+        opened.colour_matches_depth = colour
     return opened

@@ -11,7 +11,7 @@ import torch
 
 from depthgt.registration import methods
 from depthgt.registration.frameset import FrameSetData
-from depthgt.settings import RegistrationSettings
+from depthgt.registration.settings import RegistrationSettings
 from depthgt.status import Status
 
 __all__ = ["Alignment", "align", "photometric_for"]

@@ -15,7 +15,7 @@ from depthgt import geometry
 from depthgt.errors import FrameError
 from depthgt.framecache import FrameCache
 from depthgt.registration.result import RegistrationResult
-from depthgt.settings import RegistrationSettings
+from depthgt.registration.settings import RegistrationSettings
 from depthgt.sources.base import Scene, check_frame
 
 __all__ = ["FrameSetData", "Registration", "load_frameset", "poses_from_source"]

@@ -23,7 +23,7 @@ from depthgt.registration.checks import check_neighbours, set_status
 from depthgt.registration.frameset import FrameSetData, poses_from_source
 from depthgt.registration.refine import refine_poses
 from depthgt.registration.result import RegistrationResult
-from depthgt.settings import RegistrationSettings
+from depthgt.registration.settings import RegistrationSettings
 
 __all__ = ["register_refine", "refine_source_poses"]
 

@@ -33,7 +33,7 @@ from depthgt.registration.losses import correspondence_loss, default_render_fn, 
 from depthgt.registration.procrustes import procrustes_random_subsets
 from depthgt.registration.refine import Level, LevelSettings, RefineResult, pair_mean_cost, refine_poses
 from depthgt.registration.result import RegistrationResult
-from depthgt.settings import RegistrationSettings
+from depthgt.registration.settings import RegistrationSettings
 
 __all__ = ["register_overfit", "register_frameset", "pretrain_encoder", "frameset_loss"]
 

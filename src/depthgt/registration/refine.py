@@ -37,7 +37,7 @@ from depthgt.noise_law import (
     second_difference_residuals,
     sorted_residuals,
 )
-from depthgt.settings import RefineSettings
+from depthgt.registration.settings import RefineSettings
 
 __all__ = [
     "RefineResult",

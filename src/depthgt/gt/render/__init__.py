@@ -21,13 +21,25 @@ Layouts: points (B, N, 3) metres in the camera frame, intrinsics (B, 3, 3) at th
 output resolution, images (B, C, H, W), depth (B, 1, H, W) metres with 0 = nothing.
 """
 
-from depthgt.gt.render.cloud import TargetCloud, cloud_in_target
-from depthgt.gt.render.compositor import GTRender, composite_gt, render_gt
-from depthgt.gt.render.fusion import Fusion, frames_left_out_whole, fuse, whole_frame_threshold
-from depthgt.gt.render.rasteriser import RenderCandidates, rasterise_gt
-from depthgt.noise_law import KINECT_SIGMA_1M, depth_sigma_m, estimate_noise_sigma_1m
-from depthgt.rasterise import resampled_positions
-from depthgt.splatting import SoftSplat, splat_soft  # re-exported: the renderer's public names
+from typing import TYPE_CHECKING
+
+from depthgt.lazy import lazy_names
+
+if TYPE_CHECKING:  # the package's names, each imported on first use (below)
+    from depthgt.gt.render.cloud import TargetCloud, cloud_in_target
+    from depthgt.gt.render.compositor import GTRender, composite_gt, render_gt
+    from depthgt.gt.render.fusion import (
+        Fusion,
+        SetGeometry,
+        frames_left_out_whole,
+        fuse,
+        fuse_sets,
+        whole_frame_threshold,
+    )
+    from depthgt.gt.render.rasteriser import RenderCandidates, rasterise_gt
+    from depthgt.noise_law import KINECT_SIGMA_1M, depth_sigma_m, estimate_noise_sigma_1m
+    from depthgt.rasterise import resampled_positions
+    from depthgt.splatting import SoftSplat, splat_soft  # re-exported: the renderer's public names
 
 __all__ = [
     "SoftSplat",
@@ -41,6 +53,8 @@ __all__ = [
     "cloud_in_target",
     "Fusion",
     "fuse",
+    "fuse_sets",
+    "SetGeometry",
     "frames_left_out_whole",
     "whole_frame_threshold",
     "depth_sigma_m",
@@ -48,3 +62,5 @@ __all__ = [
     "resampled_positions",
     "KINECT_SIGMA_1M",
 ]
+
+__getattr__, __dir__ = lazy_names(__name__, __file__)

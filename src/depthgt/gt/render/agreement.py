@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from depthgt.gt.render.rasteriser import HIT_PX, RenderCandidates
-from depthgt.settings import RenderSettings
+from depthgt.gt.render.settings import RenderSettings
 
 __all__ = ["frame_agreement", "agreement_slot"]
 

@@ -21,6 +21,7 @@ from kornia.geometry.linalg import transform_points
 from depthgt.device import plain_cpu_convolutions
 from depthgt.framecache import FrameCache
 from depthgt.geometry import backproject
+from depthgt.gt.render.settings import RenderSettings
 from depthgt.noise_law import (
     Residuals,
     depth_sigma_m,
@@ -29,7 +30,6 @@ from depthgt.noise_law import (
     sorted_residuals,
 )
 from depthgt.rasterise import resampled_positions
-from depthgt.settings import RenderSettings
 
 __all__ = [
     "TargetCloud",

@@ -24,8 +24,8 @@ import torch
 
 from depthgt.gt.render.agreement import agreement_slot, frame_agreement
 from depthgt.gt.render.rasteriser import HIT_PX, RenderCandidates, rasterise_gt
+from depthgt.gt.render.settings import RenderSettings
 from depthgt.rasterise import rank_in_pixel
-from depthgt.settings import RenderSettings
 
 __all__ = ["GTRender", "composite_gt", "render_gt", "BLOCK_ROWS"]
 

@@ -26,9 +26,9 @@ from depthgt.gt.render.cloud import (
 )
 from depthgt.gt.render.compositor import BLOCK_ROWS, GTRender, composite_gt
 from depthgt.gt.render.rasteriser import rasterise_blocks
+from depthgt.gt.render.settings import RenderSettings
 from depthgt.noise_law import depth_sigma_m, noise_sigma_1m_of
 from depthgt.registration.frameset import FrameSetData
-from depthgt.settings import RenderSettings
 
 __all__ = [
     "Fusion",

@@ -17,9 +17,9 @@ from typing import NamedTuple
 import torch
 
 from depthgt.geometry import project
+from depthgt.gt.render.settings import RenderSettings
 from depthgt.noise_law import KINECT_SIGMA_1M, depth_sigma_m
 from depthgt.rasterise import _cells_inside, check_points, front_to_back, resampled_positions
-from depthgt.settings import RenderSettings
 
 __all__ = ["HIT_PX", "RenderCandidates", "rasterise_blocks", "rasterise_gt"]
 
