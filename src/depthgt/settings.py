@@ -139,8 +139,8 @@ class FrameSetSettings:
         coverage_max_angle_deg: nor one whose viewing direction is turned further.
         coverage_min_fill_px: a view is added only when it would fill at least this
             many of the still-empty pixels. The span, views and these limits were
-            checked on tuning data and kept (bench/README "The span, views and limits
-            tuned": a wider span fills more on long recordings at some accuracy).
+            checked on tuning data and kept (docs/decisions.md "The span, views and limits
+            of coverage": a wider span fills more on long recordings at some accuracy).
         coverage_mixed_margin_px, coverage_mixed_jump_rel: an added view's samples
             within ``coverage_mixed_margin_px`` pixels of a hole of its own depth or of a
             jump (the window's depth range above ``coverage_mixed_jump_rel`` times the
@@ -322,7 +322,7 @@ class RenderSettings:
 
     Defaults were chosen on the TUNING set of bench/bench_gt_protocol.py (synthetic
     ``room`` and ``varied`` scenes of seed 0, Kinect v1 profile) and are reported on its
-    disjoint EVALUATION set (docs/gt-renderer.md, bench/README.md).
+    disjoint EVALUATION set (docs/gt-renderer.md, docs/decisions.md).
 
     Attributes:
         m: at most this many samples of the chosen surface per pixel, nearest to the
@@ -365,7 +365,7 @@ class RenderSettings:
             frames, the behaviour before) puts the foreground outside its edge. Chosen
             on the real tuning data (bench/bench_real.py: 7-Scenes leave-target-out
             8.49 -> 7.92 mm, TUM refined 6.85 -> 6.09 mm) and checked on the synthetic
-            tuning set (unchanged within 0.01 mm), see bench/README.md.
+            tuning set (unchanged within 0.01 mm), see docs/decisions.md "The edge vote".
         edge_vote_slack_px: added to each frame's reach: one frame's samples lie about
             1 px apart, so its farthest sample falls short of its edge by up to 1 px
             (half of it on average); without it the vote shrinks thin structures of
@@ -925,7 +925,7 @@ REGISTRATION_PRESETS: dict[str, dict[str, Any]] = {
     # correspondence initialisation, no overfit iterations, then chaining and a
     # sparser refinement, its point-to-plane scale growing as z^2 beyond 1.5 m and a
     # stronger photometric term (chosen on bench_gt_protocol.py's tuning sets: pose
-    # error vs the source's poses and GT error; bench/README.md).
+    # error vs the source's poses and GT error; docs/decisions.md "The fast preset's refinement").
     "fast": {
         "n_blocks": 1,
         "channels": 32,

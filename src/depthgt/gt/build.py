@@ -1,7 +1,7 @@
 """One frame set: load -> align -> render GT -> quality -> patches -> write.
 
 :func:`process_frameset` reads like the algorithm; each step is a small function that
-the tests call on their own. Outputs (DESIGN.md layout, every path given by the caller
+the tests call on their own. Outputs (docs/output-layout.md, every path given by the caller
 in :class:`FrameSetOutputs`) are written atomically (:func:`depthgt.atomic.write_atomic`)
 so that a killed job leaves no half file.
 """
@@ -61,7 +61,7 @@ log = logging.getLogger(__name__)
 
 
 class FrameSetOutputs(NamedTuple):
-    """The files of one frame set (DESIGN.md output layout)."""
+    """The files of one frame set (docs/output-layout.md)."""
 
     gt: Path
     input: Path
@@ -185,7 +185,7 @@ def photometric_for(settings: RegistrationSettings, colour_matches_depth: bool) 
     ``registration.photometric`` says so: ``off``, or ``auto`` on a source whose colour
     is not the depth's camera at the depth's instant (on the TUM tuning frames the term
     biased the refined poses: residuals in units of the noise, median 1.33 with it and
-    0.99 without, bench/README "Real recordings")."""
+    0.99 without, docs/decisions.md "The photometric term")."""
     if settings.photometric == "on" or (settings.photometric == "auto" and colour_matches_depth):
         return settings
     return replace(settings, refine_settings=replace(settings.refine_settings, photo_weight=0.0))

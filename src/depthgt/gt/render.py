@@ -16,7 +16,7 @@ candidates without the target's (:meth:`RenderCandidates.without_frame`). No Pyt
 ``tests/render_reference.py`` holds the plain loop versions (test oracles).
 
 Measured (bench/bench_gt_protocol.py, evaluation set of 45 synthetic frame sets never
-used for tuning, see bench/README.md): from the clean depth of the 6 neighbours
+used for tuning, see bench/README.md "GT on the synthetic evaluation set"): from the clean depth of the 6 neighbours
 with exact poses the GT is within 0.95 mm MAE of the truth (grazing pixels 1.4 mm,
 beyond 4 m 1.9 mm); from Kinect-noised depth its MAE is 0.26x the input's where both
 have depth.
