@@ -15,7 +15,10 @@ A reference is
     (``**Which poses.** ...``).
 Comment markers and line breaks are read through, so a wrapped reference counts. Not
 references: paths with placeholders (``bench/NAME.py``, ``results/{model}/``), lower-case
-bare names (outputs such as ``card.md``), and ```` ```python ```` examples of files to write."""
+bare names (outputs such as ``card.md``), and ```` ```python ```` examples of files to write.
+
+And the renderer's settings table in docs/gt-renderer.md lists every ``render`` key with
+the default the code has."""
 
 from __future__ import annotations
 
@@ -206,3 +209,22 @@ def test_the_reader_finds_each_kind_of_broken_reference(tmp_path):
             "src/m.py: DESIGN.md is not a file of the repository",
         ]
     )
+
+
+def test_the_renderer_page_lists_every_render_setting_with_its_default():
+    """docs/gt-renderer.md "Settings" is where a user reads the `render` keys: one row per
+    field of RenderSettings, with the field's default."""
+    import dataclasses
+
+    from depthgt.settings import RenderSettings
+
+    text = (REPO / "docs" / "gt-renderer.md").read_text().split("## Settings", 1)[1]
+    rows = dict(re.findall(r"^\| `(\w+)` \| ([^|]+?) \|", text, re.M))
+    fields = {f.name: f.default for f in dataclasses.fields(RenderSettings)}
+    assert sorted(rows) == sorted(fields)
+    for name, default in fields.items():
+        written = rows[name].strip("`")
+        if default is None or isinstance(default, bool | str):
+            assert written == {None: "null", True: "true", False: "false"}.get(default, default), name
+        else:
+            assert float(written) == default, name
