@@ -2,7 +2,7 @@
 EVALUATION set to report on, scored per pixel category against the synthetic truth.
 
 Sets (frame sets of targets 8, 20, 32 of 40-frame sequences, 640x480 frames resized to
-256x256 as the workflow does, the pipeline's own code path ``depthgt.gt.build.fuse``):
+256x256 as the workflow does, the pipeline's own code path ``depthgt.gt.render.fuse``):
 
 * ``tuning``: ``room`` family seed 0 (room_000-002) and ``varied`` family seed 0
   (varied_000-003), Kinect v1 profile. Every renderer default is chosen on these.

@@ -4,8 +4,8 @@ Trains each model for one epoch capped at ``--steps`` steps (``train()`` with ``
 ``max_batches_per_epoch: --steps``, no validation) from the build's training manifest,
 with the settings its config gives the model (``results/report/config.yaml``), and prints
 the seconds per step and per full epoch of the training split. A build's training cost is
-(training pairs / batch size) x epochs x seconds per step (bench/README.md, "What the
-default build costs").
+(training pairs / batch size) x epochs x seconds per step (docs/decisions.md, "Threads
+per training on 2 cores").
 
     python3 bench/bench_train_steps.py WORKDIR                       # every learned model, 2 threads
     python3 bench/bench_train_steps.py WORKDIR --models lapden rde --threads 1 --steps 20

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from conftest import in_background, make_workdir
+from conftest import early, in_background, make_workdir
 from sens_writer import write_sens
 
 from depthgt.gt.assemble import FRAMESET_COLUMNS, scenes_without_framesets
@@ -85,9 +85,10 @@ def test_a_dataset_with_no_patch_kept_writes_empty_manifests_and_says_why(tmp_pa
     assert "scene_too_short" in out.summary_md.read_text()
 
 
-def _empty_sens_build(tmp_path: Path):
-    """A .sens whose header announces 0 frames beside a synthetic scene, built to ``dataset`` (conftest.EarlyRuns)."""
-    data = tmp_path / "data"
+@early()
+def empty_sens_build(folder: Path):
+    """A .sens whose header announces 0 frames beside a synthetic scene, built to ``dataset`` (an early run)."""
+    data = folder / "data"
     data.mkdir()
     K = np.array([[60.0, 0, 40], [0, 60, 30], [0, 0, 1]])
     write_sens(
@@ -116,15 +117,12 @@ def _empty_sens_build(tmp_path: Path):
         "frameset": {"neighbours": 1, "stride": 1, "target_step": 1, "batch_size": 4},
         "patches": {"count": 1, "size": 16, "max_missing": 1.0},
     }
-    return in_background(make_workdir(tmp_path / "wd", config), "dataset")
+    return in_background(make_workdir(folder / "wd", config), "dataset")
 
 
-EARLY_RUNS = {"test_empty_sens_is_named_in_summary": _empty_sens_build}  # conftest.EarlyRuns
-
-
-def test_empty_sens_is_named_in_summary(early_run):
+def test_empty_sens_is_named_in_summary(empty_sens_build):
     """A .sens whose header announces 0 frames, beside a scene that builds."""
-    wd = early_run
+    wd = empty_sens_build
     data = wd.parent / "data"
     md = (wd / "results/dataset/summary.md").read_text()
     assert f"| scan | scene0000_00 | 0 | empty_scene: the source yields no frame (root {data}) |" in md, md

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from conftest import in_background, make_workdir
+from conftest import early, in_background, make_workdir
 
 from depthgt.errors import FrameError
 from depthgt.gt import store
@@ -100,9 +100,10 @@ def _export_scannet(root, n_frames=12):
     return scene
 
 
-def _bad_frames_build(tmp_path: Path):
-    """A ScanNet export with a truncated JPEG (frame 5) and a non-finite pose (frame 8), built to ``dataset`` (conftest.EarlyRuns)."""
-    scene = _export_scannet(tmp_path / "data")
+@early()
+def bad_frames_build(folder: Path):
+    """A ScanNet export with a truncated JPEG (frame 5) and a non-finite pose (frame 8), built to ``dataset`` (an early run)."""
+    scene = _export_scannet(folder / "data")
     jpg = scene / "color" / "5.jpg"
     jpg.write_bytes(jpg.read_bytes()[:-200])
     np.savetxt(scene / "pose" / "8.txt", np.full((4, 4), np.nan))
@@ -112,18 +113,15 @@ def _bad_frames_build(tmp_path: Path):
             {"name": "scan", "kind": "scannet", "root": str(scene.parent), "scenes": ["scene0000_00"], "split": "train"}
         ],
     )
-    return in_background(make_workdir(tmp_path / "wd", config), "dataset")
+    return in_background(make_workdir(folder / "wd", config), "dataset")
 
 
-EARLY_RUNS = {"test_a_bad_frame_found_by_the_batches_is_recorded": _bad_frames_build}  # conftest.EarlyRuns
-
-
-def test_a_bad_frame_found_by_the_batches_is_recorded(early_run):
+def test_a_bad_frame_found_by_the_batches_is_recorded(bad_frames_build):
     """A truncated JPEG (frame 5) and a non-finite pose (frame 8, registration given)
     are found by the batches that read them: batches of 4 targets overlap, so frame 5 is
     read by two of them and listed once; each frame set holding one is skipped with the
     frame's reason and file, in frames.parquet and in the dataset summary."""
-    wd = early_run
+    wd = bad_frames_build
     sdir = wd / "results/scenes/scan/scene0000_00"
     index = pd.read_parquet(sdir / "index.parquet")
     assert set(index.loc[index["is_target"], "frameset_status"]) == {"planned"}  # the index did not know

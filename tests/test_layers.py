@@ -1,4 +1,4 @@
-"""The stages import downwards only (DESIGN.md "Layers"), imports inside functions counted.
+"""The stages import downwards only (docs/development.md "Layers"), imports inside functions counted.
 
 Every ``import``/``from ... import`` of ``depthgt`` anywhere in ``src/depthgt`` (module
 level, inside functions, under ``TYPE_CHECKING``) is read from the source with ``ast``
@@ -170,10 +170,13 @@ def test_every_module_has_a_layer():
 def test_stages_import_downwards_only():
     found = upward(all_edges())
     new = {edge: where for edge, where in found.items() if edge not in KNOWN_VIOLATIONS}
-    assert not new, 'upward imports (DESIGN.md "Layers"; move the shared part to a leaf below both):\n' + "\n".join(
-        f"{', '.join(where)}: {src} ({LAYERS[layer_of(unit_of(src))][0]}) imports {dst} "
-        f"({LAYERS[layer_of(unit_of(dst))][0]})"
-        for (src, dst), where in sorted(new.items())
+    assert not new, (
+        'upward imports (docs/development.md "Layers"; move the shared part to a leaf below both):\n'
+        + "\n".join(
+            f"{', '.join(where)}: {src} ({LAYERS[layer_of(unit_of(src))][0]}) imports {dst} "
+            f"({LAYERS[layer_of(unit_of(dst))][0]})"
+            for (src, dst), where in sorted(new.items())
+        )
     )
 
 

@@ -477,13 +477,12 @@ def test_no_enum_or_default_is_written_twice():
 def test_the_check_for_repeated_enums_and_defaults_sees_them(tmp_path):
     """_written_twice finds a tuple of an enum's choices and a fallback with a settings
     default, in code and in the rules."""
-    (tmp_path / "src/depthgt").mkdir(parents=True)
-    (tmp_path / "workflow/rules").mkdir(parents=True)
+    code, rules = tmp_path / "src" / "depthgt", tmp_path / "workflow" / "rules"  # not paths of this repository
+    code.mkdir(parents=True)
+    rules.mkdir(parents=True)
     (tmp_path / "Snakefile").write_text("")
-    (tmp_path / "src/depthgt/fake.py").write_text(
-        'PLANES = ("none", "fit", "normals", "other")\nx = c.get("stride", 2)\n'
-    )
-    (tmp_path / "workflow/rules/fake.smk").write_text('if c.get("filter_on", "gt") in ["gt", "input", "both"]:\n')
+    (code / "fake.py").write_text('PLANES = ("none", "fit", "normals", "other")\nx = c.get("stride", 2)\n')
+    (rules / "fake.smk").write_text('if c.get("filter_on", "gt") in ["gt", "input", "both"]:\n')
     text = "\n".join(_written_twice(tmp_path)[0])
     assert "fake.py:1: RenderSettings.plane" in text and "fake.py:2: 'stride' falls back to its default 2" in text
     assert "PatchSettings.filter_on" in text and """.get('filter_on', "gt"): a default""" in text

@@ -16,12 +16,11 @@ import re
 import socket
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pandas as pd
 import pytest
-from conftest import REPO, TINY, make_workdir
+from conftest import REPO, TINY, early, make_workdir
 
 pytestmark = pytest.mark.slow
 
@@ -37,15 +36,15 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-class EarlyStart:
-    """The single-node cluster and this file's two runs, started in a thread when the test
-    session starts (conftest ``_started_early``): most of a run's time is the executor
-    waiting between job-state checks, so they overlap with the other test files and with
-    each other. ``cpu``: TINY to ``dataset``; ``cuda``: its test scene to ``framesets``
-    with ``device: cuda``."""
+class SlurmRuns:
+    """The single-node cluster and this file's two runs: ``cpu``, TINY to ``dataset``;
+    ``cuda``, its test scene to ``framesets`` with ``device: cuda``. An early run in a lane
+    of its own (:func:`slurm_runs`): most of a run's time is the executor waiting between
+    job-state checks, so they overlap with the other test files and with each other."""
 
-    def __init__(self, tmp_path_factory):
-        state = tmp_path_factory.mktemp("slurm-state")
+    def __init__(self, folder: Path):
+        state = folder / "state"
+        state.mkdir()
         self.env = dict(
             os.environ,
             DEPTHGT_SLURM_STATE=str(state),
@@ -54,35 +53,29 @@ class EarlyStart:
             DEPTHGT_SLURM_GPUS="2",
         )
         self.workdirs = {
-            "cpu": make_workdir(tmp_path_factory.mktemp("slurm-cpu"), TINY),
+            "cpu": make_workdir(folder / "cpu", TINY),
             "cuda": make_workdir(  # one scene, one frame set
-                tmp_path_factory.mktemp("slurm-cuda"), dict(TINY, sources=TINY["sources"][1:], device="cuda")
+                folder / "cuda", dict(TINY, sources=TINY["sources"][1:], device="cuda")
             ),
         }
         self.start: subprocess.CompletedProcess | None = None
         self.procs: dict[str, subprocess.Popen] = {}
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
 
-    def _run(self) -> None:
+    def __call__(self) -> SlurmRuns:
+        """Starts the cluster, then the two runs (not waited for: :func:`finished`)."""
         self.start = subprocess.run(
             ["bash", str(SCRIPT), "start"], env=self.env, capture_output=True, text=True, timeout=900
         )
         if self.start.returncode == 0:
-            env = dict(
-                self.env, SLURM_CONF=str(Path(self.env["DEPTHGT_SLURM_STATE"]) / "slurm.conf"), OMP_NUM_THREADS="1"
-            )
             self.procs = {
-                "cpu": snakemake_on_slurm(self.workdirs["cpu"], env, "dataset"),
-                "cuda": snakemake_on_slurm(self.workdirs["cuda"], env, "framesets"),
+                "cpu": snakemake_on_slurm(self.workdirs["cpu"], self.cluster(), "dataset"),
+                "cuda": snakemake_on_slurm(self.workdirs["cuda"], self.cluster(), "framesets"),
             }
+        return self
 
     def cluster(self) -> dict[str, str]:
         """The running cluster's environment (SLURM_CONF set); skips where the script
         cannot set one up."""
-        self._thread.join(timeout=900)
-        if self.start is None:
-            pytest.fail("cluster/slurm-local.sh start did not end within 900 s")
         if self.start.returncode == 3:  # the script's code for "SLURM cannot be installed or set up here"
             pytest.skip(f"no SLURM cluster on this machine: {self.start.stderr.strip()}")
         assert self.start.returncode == 0, (
@@ -91,7 +84,7 @@ class EarlyStart:
         return dict(self.env, SLURM_CONF=str(Path(self.env["DEPTHGT_SLURM_STATE"]) / "slurm.conf"), OMP_NUM_THREADS="1")
 
     def stop(self) -> None:
-        self._thread.join(timeout=900)
+        """At the session's end: the runs killed if still going, the cluster stopped."""
         for proc in self.procs.values():
             if proc.poll() is None:
                 proc.kill()
@@ -99,26 +92,16 @@ class EarlyStart:
         subprocess.run(["bash", str(SCRIPT), "stop"], env=self.env, capture_output=True, text=True, timeout=300)
 
 
-_early: EarlyStart | None = None
-
-
-def start_early(tmp_path_factory) -> EarlyStart:
-    """Called by conftest ``_started_early`` when this file's tests are selected."""
-    global _early
-    _early = EarlyStart(tmp_path_factory)
-    return _early
+@early(lane="slurm")
+def slurm_runs(folder: Path) -> SlurmRuns:
+    """The cluster and its two runs, started with the test session (an early run)."""
+    return SlurmRuns(folder)
 
 
 @pytest.fixture(scope="module")
-def early() -> EarlyStart:
-    assert _early is not None, "conftest._started_early starts the cluster and the runs"
-    return _early
-
-
-@pytest.fixture(scope="module")
-def slurm(early) -> dict[str, str]:
+def slurm(slurm_runs) -> dict[str, str]:
     """Environment of the running single-node cluster (stopped when the session ends)."""
-    return early.cluster()
+    return slurm_runs.cluster()
 
 
 def snakemake_on_slurm(workdir: Path, env: dict[str, str], target: str, *args: str) -> subprocess.Popen:
@@ -161,9 +144,12 @@ def finished(proc: subprocess.Popen, workdir: Path) -> subprocess.CompletedProce
 
 
 @pytest.fixture(scope="module")
-def runs(early, slurm) -> dict[str, tuple[Path, subprocess.CompletedProcess]]:
-    """The two runs of :class:`EarlyStart`, waited for."""
-    return {name: (early.workdirs[name], finished(proc, early.workdirs[name])) for name, proc in early.procs.items()}
+def runs(slurm_runs, slurm) -> dict[str, tuple[Path, subprocess.CompletedProcess]]:
+    """The two runs of :class:`SlurmRuns`, waited for."""
+    return {
+        name: (slurm_runs.workdirs[name], finished(proc, slurm_runs.workdirs[name]))
+        for name, proc in slurm_runs.procs.items()
+    }
 
 
 def submitted_jobs(log: str) -> list[dict]:

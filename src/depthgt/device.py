@@ -102,8 +102,7 @@ def keep_freed_memory(max_block_mib: int = 32, trim_mib: int = 1024) -> bool:
     ~2 million candidates) many times per frame set. By default glibc maps each block
     over 128 KiB afresh and unmaps it when freed, so every allocation page-faults anew:
     measured on the 7-Scenes fixture, 0.23 s of system time per frame set (126,000 minor
-    faults) on top of 0.91 s of user time; with this, 0.002 s (bench/README.md "CPU per
-    frame set"). The results are the same; the process keeps its peak memory instead of
+    faults) on top of 0.91 s of user time; with this, 0.002 s. The results are the same; the process keeps its peak memory instead of
     returning it between frame sets. Called by the frame-set batch job (a process of its
     own). Written by hand: no library sets malloc's thresholds (glibc's ``mallopt``, by
     ctypes). Elsewhere (macOS, musl) nothing happens.

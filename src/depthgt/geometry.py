@@ -1,6 +1,6 @@
 """Camera geometry at the working resolution.
 
-Conventions (see DESIGN.md): depth (B, 1, H, W) float32 metres with 0 = invalid;
+Conventions (see docs/output-layout.md): depth (B, 1, H, W) float32 metres with 0 = invalid;
 intrinsics (B, 3, 3); poses (B, 4, 4) camera-to-world, ``T_j_to_t`` maps points of
 camera j into camera t; points (B, N, 3).
 

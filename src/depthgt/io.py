@@ -346,7 +346,7 @@ def write_rgb_png(path: str | Path, rgb: np.ndarray) -> None:
 
 
 #: libwebp's lossless effort for :func:`write_rgb_webp`: method 3 at quality 0. On 11
-#: real 256x256 frames (bench/README.md "Bytes per frame set", format 3): 86.3 kB in
+#: real 256x256 frames (docs/decisions.md "The stored format"): 86.3 kB in
 #: 25 ms CPU, against 84.0 kB in 79 ms (method 4), 84.0 kB in 124 ms (OpenCV's lossless
 #: WebP, which has no effort setting) and PNG's 116 kB in 3.5 ms.
 WEBP_METHOD, WEBP_EFFORT = 3, 0
@@ -368,7 +368,7 @@ def write_rgb_webp(path: str | Path, rgb: np.ndarray) -> None:
 
 #: EXR compressions :func:`write_exr` offers: ``zip`` (zlib, every OpenEXR reader) and
 #: ``htj2k`` (lossless high-throughput JPEG 2000, OpenEXR >= 3.4: on a frame set's
-#: fixed-point GT 42 % smaller than zip, bench/README.md "Bytes per frame set").
+#: fixed-point GT 42 % smaller than zip, docs/decisions.md "The stored format").
 EXR_COMPRESSIONS = ("zip", "htj2k")
 #: The header attribute that names the fixed-point channels: JSON ``{channel: units per value}``.
 FIXED_POINT_ATTRIBUTE = "depthgt_fixed_point"

@@ -134,7 +134,7 @@ def train_threads(wildcards):
     """Threads of one training (the train_model rule), a quarter of --cores, one at least, two
     at most. The four trainings (LapDEN, RDE, DDRNet, SDD) are small networks on 128x128
     patches: on 2 cores two side by side on one thread each took the default build from
-    ~80 to 69 min (bench/README "Threads per training on 2 cores"), and with 8 cores or
+    ~80 to 69 min (docs/decisions.md "Threads per training on 2 cores"), and with 8 cores or
     more each gets the two threads it always had. Without a
     core count (a cluster run without --cores): two."""
     try:

@@ -1,7 +1,7 @@
 """One frame set: load -> align -> render GT -> quality -> patches -> write.
 
 :func:`process_frameset` reads like the algorithm; each step is a small function that
-the tests call on their own. Outputs (DESIGN.md layout, every path given by the caller
+the tests call on their own. Outputs (docs/output-layout.md, every path given by the caller
 in :class:`FrameSetOutputs`) are written atomically (:func:`depthgt.atomic.write_atomic`)
 so that a killed job leaves no half file.
 """
@@ -55,7 +55,7 @@ log = logging.getLogger(__name__)
 
 
 class FrameSetOutputs(NamedTuple):
-    """The files of one frame set (DESIGN.md output layout)."""
+    """The files of one frame set (docs/output-layout.md)."""
 
     gt: Path
     input: Path

@@ -2,7 +2,7 @@
 
 The paper's window (t +- k*stride) shares the target's projector shadows, black and
 specular surfaces and undistortion border, so some of the target's pixels get no GT
-from it however the renderer is set (bench/README "What limits..."). Coverage keeps
+from it however the renderer is set (docs/decisions.md "What more completeness would cost"). Coverage keeps
 that window as the core, rendered exactly as with ``window``, and adds up to
 ``coverage_views`` frames from within +-``coverage_span`` frames:
 
@@ -122,7 +122,7 @@ def mixed_samples(depth_m: torch.Tensor, margin_px: int, jump_rel: float) -> tor
 
     Inside the window the target's neighbours outvote such samples; a view added for
     coverage fills the pixels where they see nothing, so there nothing would. Chosen on
-    tuning data (bench/README "Views added for coverage"): beside holes on the synthetic
+    tuning data (docs/decisions.md "Mixed samples of the added views"): beside holes on the synthetic
     tuning set (the added pixels' mean error 129 -> 48 mm; the jumps changed nothing
     there), at jumps on the shared real recordings (the added views' leave-target-out
     check 164 -> 103 mm on 7-Scenes, 111 -> 80 mm on TUM).

@@ -64,8 +64,8 @@ class FrameSetSettings:
         coverage_max_angle_deg: nor one whose viewing direction is turned further.
         coverage_min_fill_px: a view is added only when it would fill at least this
             many of the still-empty pixels. The span, views and these limits were
-            checked on tuning data and kept (bench/README "The span, views and limits
-            tuned": a wider span fills more on long recordings at some accuracy).
+            checked on tuning data and kept (docs/decisions.md "The span, views and limits
+            of coverage": a wider span fills more on long recordings at some accuracy).
         coverage_mixed_margin_px, coverage_mixed_jump_rel: an added view's samples
             within ``coverage_mixed_margin_px`` pixels of a hole of its own depth or of a
             jump (the window's depth range above ``coverage_mixed_jump_rel`` times the

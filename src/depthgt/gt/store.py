@@ -116,7 +116,7 @@ GT_UNITS = {"Z": 2**14}
 #: the spread of a sigma estimated from a few dozen samples; values below 2^-20 m,
 #: 0.95 um, are stored as 2^-20 m). The sigma spans 0.3 mm to 0.14 m on real data, so
 #: a relative grid keeps its small values as well as its large ones
-#: (bench/README.md "Bytes per frame set").
+#: (docs/decisions.md "The stored format").
 GT_LOG_GRID = {"S": (8, 2.0**-20)}
 #: the frame set's colour member: lossless WebP (:func:`depthgt.io.write_rgb_webp`)
 RGB_MEMBER = "rgb.webp"

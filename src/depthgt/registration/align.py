@@ -73,7 +73,7 @@ def photometric_for(settings: RegistrationSettings, colour_matches_depth: bool) 
     ``registration.photometric`` says so: ``off``, or ``auto`` on a source whose colour
     is not the depth's camera at the depth's instant (on the TUM tuning frames the term
     biased the refined poses: residuals in units of the noise, median 1.33 with it and
-    0.99 without, bench/README "Real recordings")."""
+    0.99 without, docs/decisions.md "The photometric term")."""
     if settings.photometric == "on" or (settings.photometric == "auto" and colour_matches_depth):
         return settings
     return replace(settings, refine_settings=replace(settings.refine_settings, photo_weight=0.0))

@@ -429,7 +429,7 @@ REGISTRATION_PRESETS: dict[str, dict[str, Any]] = {
     # correspondence initialisation, no overfit iterations, then chaining and a
     # sparser refinement, its point-to-plane scale growing as z^2 beyond 1.5 m and a
     # stronger photometric term (chosen on bench_gt_protocol.py's tuning sets: pose
-    # error vs the source's poses and GT error; bench/README.md).
+    # error vs the source's poses and GT error; docs/decisions.md "The fast preset's refinement").
     "fast": {
         "n_blocks": 1,
         "channels": 32,

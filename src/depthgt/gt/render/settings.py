@@ -23,7 +23,7 @@ class RenderSettings:
 
     Defaults were chosen on the TUNING set of bench/bench_gt_protocol.py (synthetic
     ``room`` and ``varied`` scenes of seed 0, Kinect v1 profile) and are reported on its
-    disjoint EVALUATION set (docs/gt-renderer.md, bench/README.md).
+    disjoint EVALUATION set (docs/gt-renderer.md, docs/decisions.md).
 
     Attributes:
         m: at most this many samples of the chosen surface per pixel, nearest to the
@@ -66,7 +66,7 @@ class RenderSettings:
             frames, the behaviour before) puts the foreground outside its edge. Chosen
             on the real tuning data (bench/bench_real.py: 7-Scenes leave-target-out
             8.49 -> 7.92 mm, TUM refined 6.85 -> 6.09 mm) and checked on the synthetic
-            tuning set (unchanged within 0.01 mm), see bench/README.md.
+            tuning set (unchanged within 0.01 mm), see docs/decisions.md "The edge vote".
         edge_vote_slack_px: added to each frame's reach: one frame's samples lie about
             1 px apart, so its farthest sample falls short of its edge by up to 1 px
             (half of it on average); without it the vote shrinks thin structures of
