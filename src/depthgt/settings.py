@@ -264,6 +264,23 @@ class SplitSettings:
         _require(self.block_frames >= 1, "split.block_frames", f"must be >= 1, got {self.block_frames}")
 
 
+@dataclass(frozen=True)
+class DatasetSettings:
+    """Config ``dataset``: what the dataset assembly and the run's checks accept.
+
+    Attributes:
+        allow_empty: keep a dataset in which no frame set was built (by default the
+            dataset job fails then, naming the reasons: a build that keeps nothing is
+            an error, not a success).
+        check_space: before the first job, refuse a run whose planned frame sets do
+            not fit on the results file system (measured bytes per frame set x the
+            frame sets still to build; :mod:`depthgt.space`); false: warn only.
+    """
+
+    allow_empty: bool = False
+    check_space: bool = True
+
+
 # --------------------------------------------------------------------------- patches
 
 
@@ -1306,6 +1323,7 @@ class Settings:
     registration: RegistrationSettings = RegistrationSettings()
     enhance: EnhanceSettings = EnhanceSettings()
     evaluation: EvaluationSettings = EvaluationSettings()
+    dataset: DatasetSettings = DatasetSettings()
 
     def __post_init__(self):
         _require(self.seed >= 0, "seed", f"must be >= 0, got {self.seed}")
@@ -1452,6 +1470,7 @@ TOP_LEVEL_KEYS = (
     "registration",
     "enhance",
     "evaluation",
+    "dataset",
 )
 
 
@@ -1489,6 +1508,7 @@ def settings_from_config(config: Mapping[str, Any], sections: tuple[str, ...] | 
         registration=registration_settings(config.get("registration")),
         enhance=_enhance_settings(config.get("enhance"), seed, device),
         evaluation=build(EvaluationSettings, config.get("evaluation"), "evaluation"),
+        dataset=build(DatasetSettings, config.get("dataset"), "dataset"),
     )
     if sections is None or {"patches", "resize"} <= set(sections):
         _require(

@@ -90,6 +90,8 @@ __all__ = [
     "read_frame_images",
     "extract_frameset",
     "FORMAT_VERSION",
+    "MEASURED_FRAMESET_BYTES",
+    "MEASURED_RESIZE",
     "GT_UNITS",
     "GT_LOG_GRID",
     "RGB_MEMBER",
@@ -146,6 +148,15 @@ CHANNELS = {
         "the crops are cut from the images above on read"
     },
 }
+
+#: bytes on disk of one frame set in this format at the working resolution
+#: :data:`MEASURED_RESIZE` (its share of a shard), measured (bench/README.md "Bytes per
+#: frame set", format 3): 0.241 MB on the real 7-Scenes recording, 0.234 MB on TUM
+#: (:data:`MEASURED_FRAMESET_BYTES` ``real`` is the larger), 0.271 MB on synthetic rooms
+#: with their clean truth; the run's space check (:mod:`depthgt.gt.space`) plans with them
+MEASURED_FRAMESET_BYTES = {"real": 241_000, "synthetic": 271_000}
+#: the working resolution (``resize``) of :data:`MEASURED_FRAMESET_BYTES`
+MEASURED_RESIZE = 256
 
 FRAMESET_FILES = ("gt.exr", "input.exr", RGB_MEMBER, "poses.json", "patches.npz", "frameset.json")
 BATCH_MEMBER = "batch.json"
