@@ -105,8 +105,13 @@ def changed_keys(old: Mapping[str, Any], new: Mapping[str, Any], prefix: str = "
         name = f"{prefix}{key}"
         if a == b:
             continue
-        if isinstance(a, Mapping) and isinstance(b, Mapping):
-            out += changed_keys(a, b, f"{name}.")
+        if isinstance(a, Mapping) or isinstance(b, Mapping):
+            if (isinstance(a, Mapping) or a is _UNSET) and (isinstance(b, Mapping) or b is _UNSET):
+                out += changed_keys({} if a is _UNSET else a, {} if b is _UNSET else b, f"{name}.")
+                continue
+            out.append(
+                f"{name}: {'(unset)' if a is _UNSET else _label(a)} -> {'(unset)' if b is _UNSET else _label(b)}"
+            )
         elif name == "sources" and _named(a) and _named(b):
             olds, news = {s["name"]: s for s in a}, {s["name"]: s for s in b}
             for n in sorted(set(olds) | set(news)):

@@ -201,11 +201,19 @@ def _cmd_show(args: argparse.Namespace) -> int:
 
 
 def _cmd_extract(args: argparse.Namespace) -> int:
+    from depthgt.gt.extract import extract_plain, planned_files
+
     results = _results(args)
-    present = [n for n in store.FRAMESET_FILES if (Path(args.dest) / n).exists()]
+    dest = Path(args.dest).absolute()
+    names = store.FRAMESET_FILES if args.raw else planned_files(args.format)
+    present = [n for n in names if (dest / n).exists()]
     if present and not args.force:
-        raise DepthGTError(f"{args.dest} already holds {', '.join(present)}: pick another folder or pass --force")
-    for p in store.extract_frameset(results, args.dataset, args.scene, args.target, args.dest):
+        raise DepthGTError(f"{dest} already holds {', '.join(present)}: pick another folder or pass --force")
+    if args.raw:
+        written = store.extract_frameset(results, args.dataset, args.scene, args.target, dest)
+    else:
+        written = extract_plain(results, args.dataset, args.scene, args.target, dest, fmt=args.format)
+    for p in written:
         print(p)
     return 0
 
@@ -379,11 +387,22 @@ def _parser() -> argparse.ArgumentParser:
     e = sub.add_parser(
         "extract",
         parents=[common, fs],
-        help="one frame set's files into a folder",
-        description="Write one built frame set's files (gt.exr, input.exr, rgb.webp, poses.json, "
-        "patches.npz, frameset.json) into DEST.",
+        help="one frame set's files into a folder, readable by any tool",
+        description="Write one built frame set into DEST as files other tools read: the GT depth, its "
+        "expected standard deviation (confidence), the input depth and, for synthetic sources, the truth as "
+        "float32 EXR in metres (channel Y; gt_depth_m.exr, ...) and/or 16-bit PNG in millimetres "
+        "(gt_depth_mm.png; the deviation in 0.1 mm, gt_sigma_100um.png), 0 = no value; rgb.png; poses.json, "
+        "patches.npz, frameset.json; units.json describing every file. --raw: the shard's members as stored "
+        "(gt.exr in depthgt's fixed point, rgb.webp, ...), for depthgt's own readers.",
     )
     e.add_argument("dest")
+    e.add_argument(
+        "--format",
+        choices=["exr", "png16", "both"],
+        default="both",
+        help="depth files: float32 EXR in metres, 16-bit PNG in mm, or both (default: both)",
+    )
+    e.add_argument("--raw", action="store_true", help="the shard's members as stored, not converted")
     e.add_argument("--force", action="store_true", help="overwrite those files where DEST holds them")
     e.set_defaults(func=_cmd_extract)
 

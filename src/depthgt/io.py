@@ -644,6 +644,24 @@ def decode_exr(data: bytes, where: str) -> dict[str, np.ndarray]:
     return _exr_channels(io.BytesIO(data), where)
 
 
+#: 16-bit PNG depth for other tools (``depthgt export``, ``depthgt extract``): millimetres,
+#: as ScanNet and NYU-v2 store depth
+PNG16_DEPTH_UNITS_PER_M = 1000
+#: 16-bit PNG of the GT's expected standard deviation: units of 0.1 mm (mostly a few mm)
+PNG16_SIGMA_UNITS_PER_M = 10000
+
+
+def encode_png16(depth_m: np.ndarray, units_per_m: float, where: str) -> bytes:
+    """(H, W) metres -> 16-bit PNG bytes of ``round(depth * units_per_m)``; 0, non-finite
+    and values beyond 65535 units are written as 0 (missing)."""
+    q = np.round(np.asarray(depth_m, dtype=np.float64) * units_per_m)
+    q[~np.isfinite(q) | (q > 65535) | (q < 0)] = 0
+    ok, buf = cv2.imencode(".png", q.astype(np.uint16))
+    if not ok:
+        raise OSError(f"{where}: cv2.imencode failed")
+    return buf.tobytes()
+
+
 def write_json(path: str | Path, obj: Any) -> None:
     """Write ``obj`` as indented JSON with sorted keys (stable bytes), numpy scalars
     and arrays converted to Python values."""

@@ -219,8 +219,10 @@ onstart:
         if warning:
             print(warning, file=sys.stderr)
     except Exception as err:
+        # one line, before any job: Snakemake would add its traceback of this handler
         runlock.release()
-        raise WorkflowError(str(err)) from None
+        print(f"depthgt: error: {err}", file=sys.stderr)
+        raise SystemExit(1) from None
     buildconfig.remember(".", CONFIG_LAYERS)
 
 

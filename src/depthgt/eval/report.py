@@ -49,7 +49,7 @@ def framesets_to_look_at(framesets: pd.DataFrame, per_criterion: int = 2) -> pd.
     every criterion it was chosen for (column ``why``).
 
     >>> fs = pd.DataFrame({"dataset": ["a"] * 3, "scene": ["s"] * 3, "target": [1, 2, 3], "status": ["ok"] * 3,
-    ...     "frameset": ["x"] * 3, "leave_target_out_mae_m": [0.01, 0.03, np.nan], "gt_missing": [0.1, 0.0, 0.2],
+    ...     "frameset": ["x"] * 3, "leave_target_out_mae_m": [0.01, 0.03, float("nan")], "gt_missing": [0.1, 0.0, 0.2],
     ...     "neighbours_left_out": [0, 0, 0]})
     >>> [(r.target, len(r.why)) for r in framesets_to_look_at(fs, 1).itertuples()]
     [(2, 1), (3, 1)]
@@ -62,8 +62,8 @@ def framesets_to_look_at(framesets: pd.DataFrame, per_criterion: int = 2) -> pd.
             if column not in of:
                 continue
             values = pd.to_numeric(of[column], errors="coerce")
-            ranked = of[values.notna() & ((values > 0) if column == "neighbours_left_out" else True)]
-            ranked = ranked.assign(rank_value=values).sort_values(
+            keep = values.notna() & ((values > 0) if column == "neighbours_left_out" else True)
+            ranked = of.assign(rank_value=values)[keep].sort_values(
                 ["rank_value", "scene", "target"], ascending=[False, True, True]
             )
             for r in ranked.head(per_criterion).itertuples():
@@ -126,10 +126,7 @@ def _summary_section(results: Path) -> str:
         )
     summary = json.loads(summary_json.read_text())
     counts = pd.DataFrame(
-        [
-            {"split": s, "frame sets": summary["framesets"][s], "patch pairs": summary["pairs"][s]}
-            for s in SPLITS
-        ]
+        [{"split": s, "frame sets": summary["framesets"][s], "patch pairs": summary["pairs"][s]} for s in SPLITS]
     )
     lines = [html.escape(line.removeprefix("depthgt: ").strip()) for line in console_summary(summary)]
     body = _table(counts) + "<p>" + "<br>".join(lines) + "</p>"

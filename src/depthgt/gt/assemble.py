@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import NamedTuple
 
@@ -478,13 +479,25 @@ def empty_dataset(summary: dict) -> bool:
     return sum(summary["framesets"].values()) == 0
 
 
+def reason_tag(reason: str) -> str:
+    """The kind of a skip reason: its tag before the first ``:``; for a member frame that
+    was unusable (``frame 5: unreadable (...)``), that frame's reason.
+
+    >>> reason_tag("frame 5: unreadable (x.png: truncated)"), reason_tag("split_guard: members in two splits")
+    ('an unusable frame (unreadable)', 'split_guard')
+    """
+    m = re.match(r"frame \d+: (\w+)", reason)
+    if m:
+        return f"an unusable frame ({m.group(1)})"
+    return reason.split(":")[0].strip() or "unknown"
+
+
 def reason_counts(records: list[dict], top: int = 3) -> list[tuple[str, int, dict]]:
     """The most common reasons (the tag before the first ``:``) of skipped records, each
     with its count and its first record (an example), most common first."""
     counts: dict[str, list] = {}
     for r in records:
-        tag = str(r.get("reason", "")).split(":")[0].strip() or "unknown"
-        counts.setdefault(tag, [0, r])[0] += 1
+        counts.setdefault(reason_tag(str(r.get("reason", ""))), [0, r])[0] += 1
     ranked = sorted(counts.items(), key=lambda kv: (-kv[1][0], kv[0]))
     return [(tag, n, first) for tag, (n, first) in ranked[:top]]
 

@@ -18,7 +18,16 @@ from pathlib import Path
 from depthgt.errors import DepthGTError
 from depthgt.gt import store
 
-__all__ = ["PlannedShard", "frameset_bytes", "free_bytes", "SpaceNeed", "space_need", "check_space", "disk_full_line"]
+__all__ = [
+    "PlannedShard",
+    "frameset_bytes",
+    "free_bytes",
+    "SpaceNeed",
+    "space_need",
+    "check_space",
+    "is_disk_full",
+    "disk_full_line",
+]
 
 
 @dataclass(frozen=True)
@@ -32,14 +41,16 @@ class PlannedShard:
 
 
 def frameset_bytes(resize: int, synthetic: bool) -> int:
-    """Bytes on disk of one frame set at working resolution ``resize`` (the measured
-    size, scaled with the pixel count).
+    """Bytes on disk of one frame set at working resolution ``resize``: the measured
+    size, its images scaled with the pixel count (the JSON members and the patch
+    record, :data:`depthgt.gt.store.MEASURED_FRAMESET_FIXED_BYTES`, do not scale).
 
     >>> frameset_bytes(256, False), frameset_bytes(128, True)
-    (241000, 67750)
+    (241000, 73000)
     """
     measured = store.MEASURED_FRAMESET_BYTES["synthetic" if synthetic else "real"]
-    return int(round(measured * (resize / store.MEASURED_RESIZE) ** 2))
+    fixed = store.MEASURED_FRAMESET_FIXED_BYTES
+    return int(round(fixed + (measured - fixed) * (resize / store.MEASURED_RESIZE) ** 2))
 
 
 def free_bytes(path: str | Path) -> int:
@@ -106,7 +117,10 @@ def check_space(workdir: str | Path, plan: Iterable[PlannedShard], resize: int, 
 
 def is_disk_full(exc: BaseException) -> bool:
     """Whether an exception is the file system running out of space (or quota)."""
-    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
+    if not isinstance(exc, OSError):
+        return False
+    # pyarrow's and some libraries' OSErrors carry no errno, only the system's message
+    return exc.errno in (errno.ENOSPC, errno.EDQUOT) or "No space left on device" in str(exc)
 
 
 def disk_full_line(workdir: str | Path, plan: Iterable[PlannedShard] | None = None, resize: int | None = None) -> str:

@@ -92,6 +92,7 @@ __all__ = [
     "FORMAT_VERSION",
     "MEASURED_FRAMESET_BYTES",
     "MEASURED_RESIZE",
+    "MEASURED_FRAMESET_FIXED_BYTES",
     "GT_UNITS",
     "GT_LOG_GRID",
     "RGB_MEMBER",
@@ -157,6 +158,9 @@ CHANNELS = {
 MEASURED_FRAMESET_BYTES = {"real": 241_000, "synthetic": 271_000}
 #: the working resolution (``resize``) of :data:`MEASURED_FRAMESET_BYTES`
 MEASURED_RESIZE = 256
+#: the part of :data:`MEASURED_FRAMESET_BYTES` that does not grow with the resolution:
+#: the JSON members (~5 kB) and the patch record (~2 kB)
+MEASURED_FRAMESET_FIXED_BYTES = 7_000
 
 FRAMESET_FILES = ("gt.exr", "input.exr", RGB_MEMBER, "poses.json", "patches.npz", "frameset.json")
 BATCH_MEMBER = "batch.json"

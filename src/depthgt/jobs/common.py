@@ -110,8 +110,10 @@ def logging_to(
         if line is None:
             log.exception("job failed")
             raise
-        console.setLevel(logging.CRITICAL + 1)  # the line goes to the console once, below
-        log.error(line)
+        # one line in the log (Snakemake shows the log of a failed job: show-failed-logs) and
+        # on the console; the run's end names what it needs (depthgt.jobs.outcome)
+        console.setLevel(logging.CRITICAL + 1)
+        log.error(line.removeprefix("depthgt: error: "))
         print(line, file=sys.stderr)
         raise SystemExit(1) from None
     finally:

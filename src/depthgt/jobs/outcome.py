@@ -22,7 +22,7 @@ from depthgt.gt.space import PlannedShard, disk_full_line, space_need
 __all__ = ["summary_lines", "memory_failures", "end_of_run_lines"]
 
 
-def summary_lines(workdir: str | Path, scenes: Sequence[tuple[str, str]]) -> list[str]:
+def summary_lines(workdir: str | Path, scenes: Sequence[tuple[str, str]], failed: bool = False) -> list[str]:
     """The build's console summary (:func:`depthgt.gt.assemble.console_summary`): from the
     dataset's summary when it is up to date with the scenes' tables, else from the
     tables of the ``scenes`` built so far (and a line saying the dataset is not
@@ -52,10 +52,11 @@ def summary_lines(workdir: str | Path, scenes: Sequence[tuple[str, str]]) -> lis
     )
     lines = console_summary(summary)
     lines[0] = lines[0].replace("depthgt: ", f"depthgt: so far, in {len(built)} of {len(tables)} scenes: ", 1)
-    lines.append(
-        f"depthgt: the dataset ({results / 'dataset'}) is not assembled from these frame sets yet: "
-        "`depthgt build dataset` writes it, with summary.md listing every skipped frame and frame set"
-    )
+    if not failed:
+        lines.append(
+            f"depthgt: the dataset ({results / 'dataset'}) is not assembled from these frame sets yet: "
+            "`depthgt build dataset` writes it, with summary.md listing every skipped frame and frame set"
+        )
     return lines
 
 
@@ -107,19 +108,20 @@ def end_of_run_lines(
     scenes: Sequence[tuple[str, str]],
     plan: Iterable[PlannedShard],
     resize: int,
-    snakemake_log: str | Path | None = None,
+    snakemake_log: str | Path | Sequence[str | Path] | None = None,
     mem_mb: Mapping[str, int | None] | None = None,
     failed: bool = False,
 ) -> list[str]:
     """Every line a run ends with: the summary (:func:`summary_lines`) and, for a failed
     run, one line for a full disk (the folder, its bytes free and what the rest of the
-    build needs) and one per job that ran out of memory (:func:`memory_failures`)."""
-    lines = summary_lines(workdir, scenes)
+    build needs) and one per job that ran out of memory (:func:`memory_failures`), read
+    from Snakemake's log of the run (``snakemake_log``: a path or the paths Snakemake's
+    ``onerror`` gets)."""
+    lines = summary_lines(workdir, scenes, failed=failed)
     if not failed:
         return lines
-    text = ""
-    if snakemake_log and Path(snakemake_log).is_file():
-        text = Path(snakemake_log).read_text(errors="replace")
+    logs = [snakemake_log] if isinstance(snakemake_log, (str, Path)) else list(snakemake_log or [])
+    text = "".join(Path(p).read_text(errors="replace") for p in logs if p and Path(p).is_file())
     plan = list(plan)
     if (
         "No space left on device" in text
@@ -128,4 +130,7 @@ def end_of_run_lines(
     ):
         lines.append(disk_full_line(workdir, plan, resize))
     lines += memory_failures(text, mem_mb or {})
+    empty = re.search(r"the dataset is empty: .*", text)
+    if empty:
+        lines.append(f"depthgt: error: {empty.group(0).strip()}")
     return lines
