@@ -198,8 +198,14 @@ def _space_plan():
 def _end_of_run(log, failed):
     from depthgt.jobs.outcome import end_of_run_lines
 
-    mem = {r.name: r.resources.get("mem_mb") for r in workflow.rules}
-    mem = {k: v for k, v in mem.items() if isinstance(v, int)}
+    mem = {}
+    for r in workflow.rules:  # the memory each rule declares (a snakemake Resource; a function has no value)
+        try:
+            value = getattr(r.resources.get("mem_mb"), "value", r.resources.get("mem_mb"))
+        except Exception:
+            continue
+        if isinstance(value, int):
+            mem[r.name] = value
     try:
         lines = end_of_run_lines(".", SCENES, _space_plan(), SETTINGS.resize, log, mem, failed=failed)
     except Exception as err:  # the summary must not hide the run's own outcome

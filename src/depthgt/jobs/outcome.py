@@ -82,13 +82,9 @@ def memory_failures(snakemake_log: str, mem_mb: Mapping[str, int | None]) -> lis
     """
     out = []
     seen = set()
-    blocks = re.split(r"(?=^\[.*\]\n|^Error in rule )", snakemake_log, flags=re.M)
-    for i, block in enumerate(blocks):
-        m = re.match(r"Error in rule (\w+):", block)
-        if not m or m.group(1) in seen:
-            continue
-        context = (blocks[i - 1] if i else "") + block
-        if not _MEMORY.search(context):
+    for record in _failure_records(snakemake_log):
+        m = re.search(r"^Error in rule (\w+):", record, re.M)
+        if not m or m.group(1) in seen or not _MEMORY.search(record):
             continue
         rule = m.group(1)
         seen.add(rule)
@@ -101,6 +97,23 @@ def memory_failures(snakemake_log: str, mem_mb: Mapping[str, int | None]) -> lis
             "SLURM for exactly this), then run the same command again"
         )
     return out
+
+
+def _failure_records(text: str) -> list[str]:
+    """Snakemake's log cut into one piece per failed job: its ``RuleException`` (how the
+    job's process ended), its ``Error in rule`` block and the details after it."""
+    records, start, has_error = [], None, False
+    for m in re.finditer(r"^(RuleException|Error in rule)", text, re.M):
+        if m.group(1) == "RuleException" or has_error or start is None:
+            if start is not None:
+                records.append(text[start : m.start()])
+            start = m.start()
+            has_error = m.group(1) == "Error in rule"
+        else:
+            has_error = True
+    if start is not None:
+        records.append(text[start:])
+    return records
 
 
 def end_of_run_lines(
