@@ -1,4 +1,5 @@
 # depthgt: ground-truth depth datasets from raw RGB-D video (see README.md).
+import copy
 import os
 import sys
 
@@ -28,7 +29,7 @@ CONFIG_LAYERS = buildconfig.layered_config(
     reconfigure=None if workflow.is_main_process else True,
 )
 config.clear()
-config.update(CONFIG_LAYERS.config)
+config.update(copy.deepcopy(CONFIG_LAYERS.config))  # validation fills in defaults: not into what is remembered
 if workflow.is_main_process and CONFIG_LAYERS.notice():
     print(CONFIG_LAYERS.notice(), file=sys.stderr)
 

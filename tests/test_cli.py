@@ -211,7 +211,11 @@ def test_a_directory_built_with_a_configfile_remembers_it(tmp_path):
     wd = tmp_path / "wd"  # no config/config.yaml: the embedded default (20 rooms) is the base
     index = "results/scenes/syn/room_000/index.json"
     depthgt("build", "-d", str(wd), "--cores", "1", index, "--configfile", str(mine))
-    assert yaml.safe_load((wd / "results/config/overrides.yaml").read_text())["sources"] == TINY["sources"]
+    assert yaml.safe_load((wd / "results/config/overrides.yaml").read_text()) == TINY
+    from depthgt.buildconfig import merge
+
+    default = yaml.safe_load((REPO / "config/config.yaml").read_text())
+    assert yaml.safe_load((wd / "results/config/config.yaml").read_text()) == merge(default, TINY)  # no defaults added
     proc = depthgt("build", "-d", str(wd), "-n", index)
     assert "Nothing to be done" in proc.stdout + proc.stderr
     proc = depthgt("rebuild", "-d", str(wd), "-n", "--cores", "1", "syn", "room_000")

@@ -302,7 +302,20 @@ def test_export_command(built, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "depthgt.cli", "-h"], capture_output=True, text=True)
     assert "export" in proc.stdout and "verify" in proc.stdout
     dest = tmp_path / "cli"
-    args = ["export", str(dest), "-d", str(built), "--split", "val", "test", "--kind", "frames", "--workers", "2"]
+    args = [
+        "export",
+        str(dest),
+        "-d",
+        str(built),
+        "--split",
+        "val",
+        "--split",
+        "test",
+        "--kind",
+        "frames",
+        "--workers",
+        "2",
+    ]
     assert cli_main(args) == 0
     index = pd.read_csv(dest / "index.csv")
     assert list(index["split"].unique()) == ["val", "test"] and (index["patch"] == -1).all()
