@@ -257,7 +257,7 @@ def card_markdown(card: Mapping[str, Any]) -> str:
             "Mean over scenes (metres; completeness as a fraction); reference `truth`: the clean depth of "
             "synthetic sources, `target_raw`: the target's own sensor depth left out of the GT.",
             "",
-            wide.round(4).to_markdown(),
+            wide.round(4).reset_index().to_markdown(index=False),
             "",
         ]
     lines += [
