@@ -14,6 +14,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+import yaml
 from conftest import _snakemake_command, depthgt_command, make_workdir, synthetic_source
 
 from depthgt.errors import DepthGTError
@@ -58,7 +59,7 @@ def test_a_failure_a_job_explains_is_one_line(tmp_path):
 
 
 def test_space_check_figures(tmp_path, monkeypatch):
-    assert space.frameset_bytes(256, False) == 241_000  # the measured size of a real frame set
+    assert space.frameset_bytes(256, False) == 235_000  # the measured size of a real frame set
     monkeypatch.setattr(space, "free_bytes", lambda path: 30_000)
     need = space.space_need(tmp_path, PLAN, 64)
     assert need.framesets == 2 and need.needed == 2 * space.frameset_bytes(64, True) and not need.fits
@@ -100,10 +101,10 @@ def _mount_tmpfs(path: Path, size: str) -> None:
 
 @pytest.mark.slow
 def test_a_full_disk_is_announced_before_work_and_is_one_line_when_it_happens(tmp_path):
-    """results/ on a 64 kB file system: the plan (two frame sets, ~47 kB estimated, 64 kB
-    free once the index is written... not before) first refused before any job with the
-    figures; with dataset.check_space: false the shard writes fail, each job in one line,
-    and the run ends with the folder, the bytes free and the bytes the rest needs."""
+    """results/ on a 64 kB file system: a plan of 8 frame sets (~188 kB estimated) is
+    refused before any job, with the figures; two frame sets started with
+    dataset.check_space: false fail writing their shards, each job in one line, and the
+    run ends with the folder, the bytes free and the bytes the rest needs."""
     wd = make_workdir(tmp_path / "wd", dict(SMALL, sources=[dict(SMALL["sources"][0], options={"n_frames": 20})]))
     results = wd / "results"
     _mount_tmpfs(results, "64k")
@@ -119,9 +120,9 @@ def test_a_full_disk_is_announced_before_work_and_is_one_line_when_it_happens(tm
             "the rest of the build needs about 188.0 kB (188000 bytes) (8 frame sets still to build" in proc.stderr
         ), proc.stderr[-3000:]
         assert "Traceback" not in proc.stdout + proc.stderr and not list(results.iterdir())  # no job ran
-        # started anyway: the shards do not fit
+        # two frame sets (~47 kB estimated), started anyway: the shards do not fit beside their work files
         nocheck = tmp_path / "nocheck.yaml"
-        nocheck.write_text("dataset: {check_space: false}\n")
+        nocheck.write_text(yaml.safe_dump({"dataset": {"check_space": False}, "sources": SMALL["sources"]}))
         build = ["build", "-d", str(wd), "--cores", "2", "dataset", "--configfile", str(nocheck)]
         proc = subprocess.run(depthgt_command(*build), capture_output=True, text=True, env=env)
         said = proc.stdout + proc.stderr

@@ -152,10 +152,11 @@ CHANNELS = {
 
 #: bytes on disk of one frame set in this format at the working resolution
 #: :data:`MEASURED_RESIZE` (its share of a shard), measured (bench/README.md "Bytes per
-#: frame set", format 3): 0.241 MB on the real 7-Scenes recording, 0.234 MB on TUM
-#: (:data:`MEASURED_FRAMESET_BYTES` ``real`` is the larger), 0.271 MB on synthetic rooms
-#: with their clean truth; the run's space check (:mod:`depthgt.gt.space`) plans with them
-MEASURED_FRAMESET_BYTES = {"real": 241_000, "synthetic": 271_000}
+#: frame set", format 3): 0.235 MB over the 33 frame sets of the two real recordings
+#: (7-Scenes 0.241, TUM 0.234), 0.271 MB on synthetic rooms with their clean truth; the
+#: run's space check (:mod:`depthgt.gt.space`) plans with them and the README's figures
+#: (0.59 TB for every frame of ScanNet) follow from them (tests/test_docs_facts.py)
+MEASURED_FRAMESET_BYTES = {"real": 235_000, "synthetic": 271_000}
 #: the working resolution (``resize``) of :data:`MEASURED_FRAMESET_BYTES`
 MEASURED_RESIZE = 256
 #: the part of :data:`MEASURED_FRAMESET_BYTES` that does not grow with the resolution:
