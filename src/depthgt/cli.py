@@ -505,8 +505,19 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+def _absolute_paths(args: argparse.Namespace) -> None:
+    """Every path argument made absolute (not resolved: links kept), so that each message
+    names the folder or file it means whatever the current directory."""
+    for name in ("directory", "dest", "out", "pred_dir", "export", "folder", "snakefile"):
+        value = getattr(args, name, None)
+        if isinstance(value, str) and value:
+            setattr(args, name, str(Path(value).expanduser().absolute()))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
+    if args.command != "bench":
+        _absolute_paths(args)
     try:
         if args.command != "bench" and not args.snakefile:
             # the checkout the rules' conda environment installs (workflow/envs/depthgt.yaml)
