@@ -4,6 +4,7 @@ traceback (issue 42)."""
 
 from __future__ import annotations
 
+import atexit
 import errno
 import logging
 import os
@@ -15,7 +16,7 @@ from types import SimpleNamespace
 
 import pytest
 import yaml
-from conftest import _snakemake_command, depthgt_command, make_workdir, synthetic_source
+from conftest import _snakemake_command, commands_in_background, depthgt_command, make_workdir, synthetic_source
 
 from depthgt.errors import DepthGTError
 from depthgt.gt import space
@@ -90,82 +91,115 @@ def test_memory_failures_name_the_rule_and_the_memory_to_ask():
     ]
 
 
-def _mount_tmpfs(path: Path, size: str) -> None:
+def _mount_tmpfs(path: Path, size: str) -> str | None:
+    """Mount a tmpfs of ``size`` at ``path`` (unmounted when the session ends, at the
+    latest); the reason when that is impossible here."""
     if os.geteuid() != 0:
-        pytest.skip("mounting a small tmpfs needs root")
+        return "mounting a small tmpfs needs root"
     path.mkdir(parents=True, exist_ok=True)
     proc = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True)
     if proc.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {proc.stderr.decode().strip()}")
+        return f"cannot mount a tmpfs here: {proc.stderr.decode().strip()}"
+    atexit.register(subprocess.run, ["umount", str(path)], capture_output=True)
+    return None
+
+
+def _full_disk_runs(tmp_path: Path):
+    """results/ on a 64 kB tmpfs: ``depthgt build`` of 8 frame sets, then of 2 with
+    dataset.check_space: false (conftest.EarlyRuns)."""
+    wd = make_workdir(tmp_path / "wd", dict(SMALL, sources=[dict(SMALL["sources"][0], options={"n_frames": 20})]))
+    results = wd / "results"
+    why = _mount_tmpfs(results, "64k")
+    if why:
+        return lambda: (wd, why, [], [])
+    nocheck = tmp_path / "nocheck.yaml"
+    nocheck.write_text(yaml.safe_dump({"dataset": {"check_space": False}, "sources": SMALL["sources"]}))
+    build = ["build", "-d", str(wd), "--cores", "2", "dataset"]
+    run = commands_in_background([depthgt_command(*build), depthgt_command(*build, "--configfile", str(nocheck))])
+
+    def runs():
+        try:
+            done = run()
+            return wd, None, done, sorted(str(p) for p in results.rglob("*.zip*"))  # shards left there
+        finally:
+            subprocess.run(["umount", str(results)], capture_output=True)
+
+    return runs
 
 
 @pytest.mark.slow
-def test_a_full_disk_is_announced_before_work_and_is_one_line_when_it_happens(tmp_path):
+def test_a_full_disk_is_announced_before_work_and_is_one_line_when_it_happens(early_run):
     """results/ on a 64 kB file system: a plan of 8 frame sets (~188 kB estimated) is
     refused before any job, with the figures; two frame sets started with
     dataset.check_space: false fail writing their shards, each job in one line, and the
     run ends with the folder, the bytes free and the bytes the rest needs."""
-    wd = make_workdir(tmp_path / "wd", dict(SMALL, sources=[dict(SMALL["sources"][0], options={"n_frames": 20})]))
+    wd, why, runs, shards = early_run
+    if why:
+        pytest.skip(why)
+    refused, failed = runs
     results = wd / "results"
-    _mount_tmpfs(results, "64k")
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    try:
-        # 8 frame sets (~188 kB estimated) do not fit: refused before the first job
-        proc = subprocess.run(
-            depthgt_command("build", "-d", str(wd), "--cores", "2", "dataset"), capture_output=True, text=True, env=env
-        )
-        assert proc.returncode != 0
-        assert (
-            f"depthgt: error: not enough space for the planned frame sets: {results} has 65.5 kB (65536 bytes) free; "
-            "the rest of the build needs about 188.0 kB (188000 bytes) (8 frame sets still to build" in proc.stderr
-        ), proc.stderr[-3000:]
-        assert "Traceback" not in proc.stdout + proc.stderr and not list(results.iterdir())  # no job ran
-        # two frame sets (~47 kB estimated), started anyway: the shards do not fit beside their work files
-        nocheck = tmp_path / "nocheck.yaml"
-        nocheck.write_text(yaml.safe_dump({"dataset": {"check_space": False}, "sources": SMALL["sources"]}))
-        build = ["build", "-d", str(wd), "--cores", "2", "dataset", "--configfile", str(nocheck)]
-        proc = subprocess.run(depthgt_command(*build), capture_output=True, text=True, env=env)
-        said = proc.stdout + proc.stderr
-        assert proc.returncode != 0 and "Traceback" not in said, said[-4000:]
-        assert "depthgt: warning: not enough space for the planned frame sets" in proc.stderr
-        last = [line for line in proc.stderr.splitlines() if line.startswith("depthgt: error: no space left")][-1]
-        assert last.startswith(f"depthgt: error: no space left on the device of {results}: {results} has ")
-        assert "the rest of the build needs about" in last and "frame sets still to build" in last
-        assert not list(results.rglob("*.zip"))  # no torn shard
-    finally:
-        subprocess.run(["umount", str(results)], capture_output=True)
+    assert refused.returncode != 0
+    assert (
+        f"depthgt: error: not enough space for the planned frame sets: {results} has 65.5 kB (65536 bytes) free; "
+        "the rest of the build needs about 188.0 kB (188000 bytes) (8 frame sets still to build" in refused.stderr
+    ), refused.stderr[-3000:]
+    assert "Traceback" not in refused.stdout + refused.stderr
+    said = failed.stdout + failed.stderr
+    assert failed.returncode != 0 and "Traceback" not in said, said[-4000:]
+    assert "depthgt: warning: not enough space for the planned frame sets" in failed.stderr
+    last = [line for line in failed.stderr.splitlines() if line.startswith("depthgt: error: no space left")][-1]
+    assert last.startswith(f"depthgt: error: no space left on the device of {results}: {results} has ")
+    assert "the rest of the build needs about" in last and "frame sets still to build" in last
+    assert shards == []  # no torn shard, no temporary file left taking the space
 
 
-@pytest.mark.slow
-def test_a_job_killed_for_its_memory_names_the_rule_and_mem_mb(tmp_path):
-    """A frame-set job killed with SIGKILL (what the kernel's OOM killer does) while it
-    runs: the run ends with the rule and the mem_mb to raise."""
+def _killed_job_run(tmp_path: Path):
+    """A frame-set job killed with SIGKILL while it runs (conftest.EarlyRuns): the
+    workflow started, the job's process killed once it holds (depthgt.testhook)."""
     wd = make_workdir(tmp_path / "wd", SMALL)
     hold = tmp_path / "hold"
     env = dict(
         os.environ, OMP_NUM_THREADS="1", DEPTHGT_TEST_HOLD_DIR=str(hold), DEPTHGT_TEST_HOLD_AT="job:logs/framesets/*"
     )
-    proc = subprocess.Popen(
-        _snakemake_command(wd, "framesets"), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
-    )
-    try:
-        deadline = time.time() + 300
-        while time.time() < deadline and proc.poll() is None and not list(hold.glob("*.held")):
-            time.sleep(0.05)
-        held = list(hold.glob("*.held"))
-        assert held, f"no frame-set job started ({proc.poll()})"
-        os.kill(int(held[0].name.split(".")[-2]), signal.SIGKILL)
-        (hold / "release").write_text("")  # the other job goes on
-        out, err = proc.communicate(timeout=300)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+
+    def run() -> subprocess.CompletedProcess:
+        proc = subprocess.Popen(
+            _snakemake_command(wd, "framesets"), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+        )
+        try:
+            deadline = time.time() + 600
+            while time.time() < deadline and proc.poll() is None and not list(hold.glob("*.held")):
+                time.sleep(0.05)
+            held = list(hold.glob("*.held"))
+            if held:
+                os.kill(int(held[0].name.split(".")[-2]), signal.SIGKILL)
+            (hold / "release").write_text("")  # the other job goes on
+            out, err = proc.communicate(timeout=600)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+    return run
+
+
+EARLY_RUNS = {  # conftest.EarlyRuns
+    "test_a_full_disk_is_announced_before_work_and_is_one_line_when_it_happens": _full_disk_runs,
+    "test_a_job_killed_for_its_memory_names_the_rule_and_mem_mb": _killed_job_run,
+}
+
+
+@pytest.mark.slow
+def test_a_job_killed_for_its_memory_names_the_rule_and_mem_mb(early_run):
+    """A frame-set job killed with SIGKILL (what the kernel's OOM killer does) while it
+    runs: the run ends with the rule and the mem_mb to raise."""
+    proc = early_run
     assert proc.returncode != 0
     assert (
         "depthgt: error: job frameset_batch was killed, most likely over its memory (mem_mb=2000): raise it, "
-        "e.g. --set-resources frameset_batch:mem_mb=4000" in err
-    ), err[-4000:]
+        "e.g. --set-resources frameset_batch:mem_mb=4000" in proc.stderr
+    ), proc.stderr[-4000:]
 
 
 def test_end_of_run_lines_of_a_failed_run_without_a_plan_to_build(tmp_path):

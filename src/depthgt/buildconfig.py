@@ -240,6 +240,7 @@ def layered_config(
     configfiles: Sequence[str | Path] = (),
     config_args: Mapping[str, Any] | None = None,
     reconfigure: bool | None = None,
+    check_sources: bool = True,
 ) -> Layers:
     """The config of a command in ``workdir`` (module docstring).
 
@@ -249,6 +250,8 @@ def layered_config(
         configfiles: this command's ``--configfile`` files, in order.
         config_args: this command's ``--config`` values (merged last).
         reconfigure: apply changes to an existing build; None: read :data:`RECONFIGURE_ENV`.
+        check_sources: check that every source's root exists (:func:`check_roots`;
+            ``depthgt report`` reads the results only).
 
     Raises:
         ConfigError: a file that does not parse; a ``root`` that does not exist (naming
@@ -283,7 +286,8 @@ def layered_config(
         layers.base_changes = changed_keys(last, built_with)
         if layers.changes and not reconfigure:
             raise ConfigError(layers.refusal(wd))
-    check_roots(new, wd, rules)
+    if check_sources:
+        check_roots(new, wd, rules)
     return layers
 
 

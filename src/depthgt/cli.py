@@ -71,7 +71,7 @@ def snakemake_command(args: argparse.Namespace, *extra: str) -> list[str]:
     return cmd
 
 
-def build_config(args: argparse.Namespace) -> buildconfig.Layers:
+def build_config(args: argparse.Namespace, check_sources: bool = True) -> buildconfig.Layers:
     """The config the command runs with in its working directory (the base, the build's
     remembered --configfile layer, this command's --configfile files;
     :mod:`depthgt.buildconfig`), checked before Snakemake starts: a file that does not
@@ -82,6 +82,7 @@ def build_config(args: argparse.Namespace) -> buildconfig.Layers:
         _snakefile(args).parent / "config" / "config.yaml",
         [Path(c) for c in getattr(args, "configfile", None) or []],
         reconfigure=bool(getattr(args, "reconfigure", False)),
+        check_sources=check_sources,
     )
     if getattr(args, "reconfigure", False):
         os.environ[buildconfig.RECONFIGURE_ENV] = "1"  # the child Snakemake applies the change too
@@ -284,7 +285,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
         raise DepthGTError(
             f"{wd} holds no build ({wd / 'results' / 'framesets'} is missing): check -d, or run `depthgt build`"
         )
-    layers = build_config(args)
+    layers = build_config(args, check_sources=False)  # the report reads results/ only
     out = Path(args.out).resolve() if args.out else wd / "report.html"
     source = f"{layers.base}" + (
         f" with {wd / buildconfig.OVERRIDES}" if (wd / buildconfig.OVERRIDES).is_file() else ""
