@@ -105,17 +105,17 @@ def _mount_tmpfs(path: Path, size: str) -> str | None:
 
 
 def _full_disk_runs(tmp_path: Path):
-    """results/ on a 64 kB tmpfs: ``depthgt build`` of 8 frame sets, then of 2 with
-    dataset.check_space: false (conftest.EarlyRuns)."""
+    """results/ on a 64 kB tmpfs: ``depthgt build`` of 8 frame sets, then of 2
+    (conftest.EarlyRuns)."""
     wd = make_workdir(tmp_path / "wd", dict(SMALL, sources=[dict(SMALL["sources"][0], options={"n_frames": 20})]))
     results = wd / "results"
     why = _mount_tmpfs(results, "64k")
     if why:
         return lambda: (wd, why, [], [])
-    nocheck = tmp_path / "nocheck.yaml"
-    nocheck.write_text(yaml.safe_dump({"dataset": {"check_space": False}, "sources": SMALL["sources"]}))
+    two = tmp_path / "two.yaml"
+    two.write_text(yaml.safe_dump({"sources": SMALL["sources"]}))
     build = ["build", "-d", str(wd), "--cores", "2", "dataset"]
-    run = commands_in_background([depthgt_command(*build), depthgt_command(*build, "--configfile", str(nocheck))])
+    run = commands_in_background([depthgt_command(*build), depthgt_command(*build, "--configfile", str(two))])
 
     def runs():
         try:
@@ -130,9 +130,9 @@ def _full_disk_runs(tmp_path: Path):
 @pytest.mark.slow
 def test_a_full_disk_is_announced_before_work_and_is_one_line_when_it_happens(early_run):
     """results/ on a 64 kB file system: a plan of 8 frame sets (~188 kB estimated) is
-    refused before any job, with the figures; two frame sets started with
-    dataset.check_space: false fail writing their shards, each job in one line, and the
-    run ends with the folder, the bytes free and the bytes the rest needs."""
+    refused before any job, with the figures; two frame sets (~47 kB estimated) pass the
+    check and fail writing their shards beside their work files, each job in one line,
+    and the run ends with the folder, the bytes free and the bytes the rest needs."""
     wd, why, runs, shards = early_run
     if why:
         pytest.skip(why)
@@ -146,7 +146,8 @@ def test_a_full_disk_is_announced_before_work_and_is_one_line_when_it_happens(ea
     assert "Traceback" not in refused.stdout + refused.stderr
     said = failed.stdout + failed.stderr
     assert failed.returncode != 0 and "Traceback" not in said, said[-4000:]
-    assert "depthgt: warning: not enough space for the planned frame sets" in failed.stderr
+    # the estimate (~47 kB) fit the 64 kB: no warning; the shards and their work files did not
+    assert "not enough space for the planned frame sets" not in failed.stderr
     last = [line for line in failed.stderr.splitlines() if line.startswith("depthgt: error: no space left")][-1]
     assert last.startswith(f"depthgt: error: no space left on the device of {results}: {results} has ")
     assert "the rest of the build needs about" in last and "frame sets still to build" in last
