@@ -323,7 +323,7 @@ def run_dataset(
     out = DatasetOutputs(**{k: outputs.get(k) for k in DatasetOutputs._fields})
     summary = assemble(scene_framesets, scene_patches, scene_quality, scene_frames, index_jsons, out)
     if empty_dataset(summary) and not allow_empty:
-        log.error("the dataset summary:\n%s", Path(out.summary_md).read_text())
+        log.info("the dataset summary:\n%s", Path(out.summary_md).read_text())
         raise DepthGTError(empty_dataset_message(summary))
     log.info(
         "dataset: %s pairs, %d frame sets skipped, %d of %d frames read unusable",
