@@ -176,6 +176,44 @@ def in_background(workdir: Path, *args: str) -> Callable[[], Path]:
     return run
 
 
+def depthgt_command(*args: str) -> list[str]:
+    """The ``depthgt`` command line of this checkout (``python -m depthgt.cli``)."""
+    return [sys.executable, "-m", "depthgt.cli", *args]
+
+
+def commands_in_background(
+    commands: list[list[str]], env: dict[str, str] | None = None, cwd: Path | None = None
+) -> Callable[[], list[subprocess.CompletedProcess]]:
+    """Like :func:`in_background`, for runs whose failure the test reads: ``commands``
+    one after another in subprocesses (in the environment of now, ``env`` added),
+    returning each one's CompletedProcess (output captured) whatever its exit status."""
+    full_env = dict(os.environ, OMP_NUM_THREADS="1", **(env or {}))
+
+    def run() -> list[subprocess.CompletedProcess]:
+        done = []
+        for cmd in commands:
+            if _STOP.is_set():
+                raise RuntimeError(f"the test session ended before {' '.join(cmd)} started")
+            proc = subprocess.Popen(
+                cmd,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                env=full_env,
+                cwd=cwd,
+                start_new_session=True,
+            )
+            _LIVE.add(proc)
+            try:
+                out, err = proc.communicate()
+            finally:
+                _LIVE.discard(proc)
+            done.append(subprocess.CompletedProcess(cmd, proc.returncode, out, err))
+        return done
+
+    return run
+
+
 class _Declared(NamedTuple):
     prepare: Callable[[Path], Callable[[], object]]
     module: str  # the declaring module: its tests see the fixture (every test for conftest)
@@ -192,7 +230,7 @@ def early(*, lane: str = "workflow") -> Callable[[Callable[[Path], Callable[[], 
 
     ``NAME(folder)`` prepares the run's inputs in an empty folder, in the main thread, and
     returns ``run``: a function of no arguments that only runs subprocesses
-    (:func:`in_background`; nothing in-process runs in the background, since tests
+    (:func:`in_background`, :func:`commands_in_background`; nothing in-process runs in the background, since tests
     monkeypatch the library). When a selected test uses NAME (also through another
     fixture), the session prepares it at its start and calls ``run`` in the background
     thread of its ``lane``, the lane's runs one after another in the order the tests need

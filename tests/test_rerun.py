@@ -49,7 +49,7 @@ def copy_build(built: Path, dest: Path) -> Path:
 def test_staged_targets_run_each_job_once(small_framesets, tmp_path):
     wd = copy_build(small_framesets, tmp_path / "staged")
     # the dataset needs no index, frame set or summary job again (the frame cache is gone)
-    assert planned_jobs(wd, "dataset") == {"dataset": 1}
+    assert planned_jobs(wd, "dataset") == {"training_manifests": 1, "dataset": 1}
     snakemake(wd, "dataset")
     assert planned_jobs(wd, "dataset") == {}
     # nor does the RDE GT (it reads the source, not the temporary frame cache)
@@ -73,6 +73,20 @@ def test_a_registration_setting_reruns_frame_sets_not_the_index(small_framesets,
     make_workdir_config(wd, dict(SMALL, registration={"method": "given", "preset": "fast"}))
     jobs = planned_jobs(wd, "framesets")
     assert jobs.get("frameset_batch") == 1 and "scene_index" not in jobs, jobs
+
+
+def test_a_test_source_added_to_a_finished_dataset_leaves_the_training_manifests(small_framesets, tmp_path):
+    """New test data (a `split: test` source) runs its frame sets and the dataset again,
+    not the job that writes the train and val manifests the trainings read (issue 42)."""
+    wd = copy_build(small_framesets, tmp_path / "test-added")
+    snakemake(wd, "dataset")
+    train = wd / "results/dataset/train.parquet"
+    before = train.stat().st_mtime_ns
+    bigger = dict(SMALL, sources=[*SMALL["sources"], synthetic_source("mine", ["room_001"], "test", 14, 160, 120)])
+    make_workdir_config(wd, bigger)
+    jobs = planned_jobs(wd, "dataset")
+    assert jobs == {"scene_index": 1, "frameset_batch": 1, "scene_summary": 1, "dataset": 1}, jobs
+    assert "training_manifests" not in planned_jobs(wd, "train") and train.stat().st_mtime_ns == before
 
 
 @early()

@@ -17,6 +17,7 @@ config            settings                                             module
 ``enhance``       :class:`EnhanceSettings` (:class:`TrainSettings`)    :mod:`depthgt.enhance.settings`
 ``enhance.rde``   :class:`RDESettings`                                 :mod:`depthgt.gt.settings`
 ``evaluation``    :class:`EvaluationSettings`                          :mod:`depthgt.eval.settings`
+``dataset``       :class:`DatasetSettings`                             :mod:`depthgt.gt.settings`
 ================  ===================================================  =========================================
 
 This module is the builder: :func:`settings_from_config` makes every section's settings
@@ -48,7 +49,7 @@ from depthgt.enhance.settings import EnhanceSettings, TrainSettings, enhance_set
 from depthgt.errors import ConfigError
 from depthgt.eval.settings import EvaluationSettings
 from depthgt.gt.render.settings import RenderSettings
-from depthgt.gt.settings import SPLITS, FrameSetSettings, PatchSettings, RDESettings, SplitSettings
+from depthgt.gt.settings import SPLITS, DatasetSettings, FrameSetSettings, PatchSettings, RDESettings, SplitSettings
 from depthgt.registration.settings import (
     REGISTRATION_KEYS,
     REGISTRATION_PRESETS,
@@ -98,6 +99,7 @@ __all__ = [
     "RDESettings",
     "EnhanceSettings",
     "EvaluationSettings",
+    "DatasetSettings",
 ]
 
 # Upper bound of the working resolution (a typo such as resize: 25600 would otherwise be
@@ -127,6 +129,7 @@ class Settings:
     registration: RegistrationSettings = RegistrationSettings()
     enhance: EnhanceSettings = EnhanceSettings()
     evaluation: EvaluationSettings = EvaluationSettings()
+    dataset: DatasetSettings = DatasetSettings()
 
     def __post_init__(self):
         require(self.seed >= 0, "seed", f"must be >= 0, got {self.seed}")
@@ -196,6 +199,7 @@ SECTIONS: dict[str, type | Callable[[Any, Settings], Any]] = {
     "registration": _registration,
     "enhance": _enhance,
     "evaluation": EvaluationSettings,
+    "dataset": DatasetSettings,
 }
 
 

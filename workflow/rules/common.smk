@@ -1,5 +1,7 @@
 # Config validation, wildcard constraints and input functions. Nothing heavy is
 # imported here: the DAG is built without torch, kornia or OpenEXR.
+import sys
+
 from snakemake.exceptions import WorkflowError
 
 from depthgt import runlock  # standard library only
@@ -32,7 +34,7 @@ def _scenes_of(src):
         found = list_scenes(src["kind"], src["root"], **src["options"])
         if not found:  # an empty folder, or one of another kind: nothing would be built, silently
             raise WorkflowError(
-                f"sources[{src['name']}]: scenes: all finds no {src['kind']} scene under {src['root']} "
+                f"sources[{src['name']}]: scenes: all finds no {src['kind']} scene under {os.path.abspath(src['root'] or '.')} "
                 "(an empty folder, or data of another kind?)"
             )
         return found
@@ -104,8 +106,14 @@ def all_shards():
     return [f"results/framesets/{d}/{s}/{a:06d}-{b:06d}.zip" for d, s in SCENES for a, b in BATCHES[d, s]]
 
 
-def scene_summaries(what="framesets", ext="parquet"):
-    return [f"results/scenes/{d}/{s}/{what}.{ext}" for d, s in SCENES]
+def scene_summaries(what="framesets", ext="parquet", scenes=None):
+    return [f"results/scenes/{d}/{s}/{what}.{ext}" for d, s in (SCENES if scenes is None else scenes)]
+
+
+# The scenes whose frame sets may be in the train or val split: those of every source
+# but the `split: test` ones (their own job writes the training manifests, rule
+# training_manifests: a test source added or changed leaves the trainings as they are).
+TRAINING_SCENES = [(d, s) for d, s in SCENES if SETTINGS.source(d).split != "test"]
 
 
 # The sections of the config that decide a stage's outputs (depthgt.settings.STAGES, the
@@ -171,19 +179,69 @@ def frameset_runtime_min(n_framesets=1):
 # (torch-free check). It runs in `onstart` because the executor is known only there
 # (while this file is parsed a SLURM run still looks local); on a cluster the submitting
 # node may have no GPU, there each job checks before any work (depthgt.device).
+# The run's config is remembered once its jobs are about to start (depthgt.buildconfig):
+# later commands in this working directory run with it without --configfile.
+# Before the first job the planned frame sets must fit on the results file system
+# (depthgt.gt.space: the format's measured bytes per frame set x the frame sets whose
+# shard is not built yet; config dataset.check_space: false warns only). At the end the
+# run prints its summary (frame sets built and skipped with the top reasons, frames
+# unusable, patch pairs kept, where summary.md is) and, when it failed, one line for a
+# full disk or a job over its memory (depthgt.jobs.outcome).
+def _space_plan():
+    from depthgt.gt.space import PlannedShard
+
+    step = SETTINGS.frameset.target_step
+    return [
+        PlannedShard(f"results/framesets/{d}/{s}/{a:06d}-{b:06d}.zip", (b - a) // step + 1, HAS_TRUTH[d])
+        for d, s in SCENES
+        for a, b in BATCHES[d, s]
+    ]
+
+
+
+
+def _end_of_run(log, failed):
+    from depthgt.jobs.outcome import end_of_run_lines
+
+    mem = {}
+    for r in workflow.rules:  # the memory each rule declares (a snakemake Resource; a function has no value)
+        try:
+            value = getattr(r.resources.get("mem_mb"), "value", r.resources.get("mem_mb"))
+        except Exception:
+            continue
+        if isinstance(value, int):
+            mem[r.name] = value
+    try:
+        lines = end_of_run_lines(".", SCENES, _space_plan(), SETTINGS.resize, log, mem, failed=failed)
+    except Exception as err:  # the summary must not hide the run's own outcome
+        lines = [f"depthgt: (no summary: {type(err).__name__}: {err})"]
+    for line in lines:
+        print(line, file=sys.stderr)
+
+
 onstart:
     runlock.acquire()
-    if workflow.local_exec:
-        try:
+    try:
+        if workflow.local_exec:
             check_device_available(SETTINGS.device)
-        except Exception:
-            runlock.release()
-            raise
+        from depthgt.gt.space import check_space
+
+        warning = check_space(".", _space_plan(), SETTINGS.resize, refuse=SETTINGS.dataset.check_space)
+        if warning:
+            print(warning, file=sys.stderr)
+    except Exception as err:
+        # one line, before any job: Snakemake would add its traceback of this handler
+        runlock.release()
+        print(f"depthgt: error: {err}", file=sys.stderr)
+        raise SystemExit(1) from None
+    buildconfig.remember(".", CONFIG_LAYERS)
 
 
 onsuccess:
     runlock.release()
+    _end_of_run(log, failed=False)
 
 
 onerror:
     runlock.release()
+    _end_of_run(log, failed=True)

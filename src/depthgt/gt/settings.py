@@ -1,6 +1,7 @@
 """The GT stage's settings (torch-free): how frame sets are formed (config
-``frameset``), the split of ``auto`` sources (``split``), the patch crops (``patches``)
-and the global reconstruction of the RDE GT (``enhance.rde``, :mod:`depthgt.gt.rde`).
+``frameset``), the split of ``auto`` sources (``split``), the patch crops (``patches``),
+what the dataset assembly and the run's checks accept (``dataset``) and the global
+reconstruction of the RDE GT (``enhance.rde``, :mod:`depthgt.gt.rde`).
 The renderer's are beside it, :mod:`depthgt.gt.render.settings`."""
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ __all__ = [
     "FrameSetSettings",
     "SplitSettings",
     "PatchSettings",
+    "DatasetSettings",
     "RDESettings",
     "MAX_PATCH_COUNT",
     "MAX_NEIGHBOURS",
@@ -216,6 +218,23 @@ class PatchSettings:
             "patches.max_gt_sigma_m",
             f"must be null or > 0, got {self.max_gt_sigma_m}",
         )
+
+
+@section("dataset")
+class DatasetSettings:
+    """What the dataset assembly and the run's checks accept (config ``dataset``).
+
+    Attributes:
+        allow_empty: keep a dataset in which no frame set was built (by default the
+            dataset job fails then, naming the reasons: a build that keeps nothing is
+            an error, not a success).
+        check_space: before the first job, refuse a run whose planned frame sets do
+            not fit on the results file system (measured bytes per frame set x the
+            frame sets still to build; :mod:`depthgt.gt.space`); false: warn only.
+    """
+
+    allow_empty: bool = False
+    check_space: bool = True
 
 
 @section("enhance.rde")

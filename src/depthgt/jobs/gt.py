@@ -20,9 +20,16 @@ import pandas as pd
 from depthgt import io
 from depthgt.atomic import work_dir, write_atomic
 from depthgt.device import keep_freed_memory, resolve_device
-from depthgt.errors import FrameError
+from depthgt.errors import DepthGTError, FrameError
 from depthgt.gt import store
-from depthgt.gt.assemble import DatasetOutputs, assemble, summarize_scene
+from depthgt.gt.assemble import (
+    DatasetOutputs,
+    assemble,
+    empty_dataset,
+    empty_dataset_message,
+    summarize_scene,
+    write_manifests,
+)
 from depthgt.gt.card import build_card, write_card
 from depthgt.gt.index import build_index, select_pretraining_framesets
 from depthgt.jobs.common import open_source_scene
@@ -35,6 +42,7 @@ __all__ = [
     "run_frameset_batch",
     "run_scene_summary",
     "run_dataset",
+    "run_training_manifests",
     "run_pretrain_registration",
 ]
 
@@ -188,21 +196,35 @@ def run_dataset(
     outputs: Mapping[str, str],
     shards: list[str] | None = None,
     config: Mapping[str, Any] | None = None,
+    manifests: list[str] | None = None,
+    allow_empty: bool = False,
 ) -> None:
     """Assemble the dataset manifests from the per-scene summaries and write the dataset
     card (:mod:`depthgt.gt.card`).
 
     Args:
-        outputs: the paths ``train``, ``val``, ``test``, ``framesets``, ``summary``,
-            ``summary_md``, ``quality`` (:class:`depthgt.gt.assemble.DatasetOutputs`) and
-            ``card``, ``card_md``.
+        outputs: the paths ``framesets``, ``summary``, ``summary_md``, ``quality``,
+            ``card``, ``card_md`` and those of the manifests to write here, of ``train``,
+            ``val``, ``test`` (:class:`depthgt.gt.assemble.DatasetOutputs`).
         shards: every frame-set shard of the build (checksummed in the card).
+        manifests: manifests written by another job (:func:`run_training_manifests`),
+            checksummed in the card.
+        allow_empty: keep a dataset without any built frame set (config
+            ``dataset.allow_empty``); otherwise such a dataset fails the job with a
+            :class:`~depthgt.errors.DepthGTError` saying why, after the summary
+            (Markdown) is written to the log.
         config: the config sections that decide the GT (stage ``dataset`` of
             :data:`depthgt.settings.STAGES`; their resolved settings, defaults filled in,
             are recorded in the card).
+
+    Raises:
+        DepthGTError: an empty dataset without ``allow_empty``.
     """
-    out = DatasetOutputs(**{k: outputs[k] for k in DatasetOutputs._fields})
+    out = DatasetOutputs(**{k: outputs.get(k) for k in DatasetOutputs._fields})
     summary = assemble(scene_framesets, scene_patches, scene_quality, scene_frames, index_jsons, out)
+    if empty_dataset(summary) and not allow_empty:
+        log.info("the dataset summary:\n%s", Path(out.summary_md).read_text())
+        raise DepthGTError(empty_dataset_message(summary))
     log.info(
         "dataset: %s pairs, %d frame sets skipped, %d of %d frames read unusable",
         summary["pairs"],
@@ -218,7 +240,7 @@ def run_dataset(
         pd.read_csv(out.quality),
         [json.loads(Path(p).read_text()) for p in index_jsons],
         stage_settings(config or {}, "dataset").doc(*STAGES["dataset"].top),
-        [*(shards or []), *out],
+        [*(shards or []), *(p for p in out if p is not None), *(manifests or [])],
     )
     write_card(card, outputs["card"], outputs["card_md"])
     log.info(
@@ -227,6 +249,14 @@ def run_dataset(
         card["depthgt"]["version"],
         card["depthgt"]["commit"],
     )
+
+
+def run_training_manifests(scene_patches: list[str], outputs: Mapping[str, str]) -> None:
+    """Write the ``train`` and ``val`` manifests (``outputs``: split -> path) from the
+    patch tables of the scenes that can hold such frame sets (the sources not
+    ``split: test``; :func:`depthgt.gt.assemble.write_manifests`)."""
+    rows = write_manifests(scene_patches, dict(outputs))
+    log.info("training manifests: %s patch pairs from %d scenes", rows, len(scene_patches))
 
 
 def run_pretrain_registration(
