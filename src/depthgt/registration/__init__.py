@@ -15,7 +15,7 @@ Settings and presets: :class:`depthgt.settings.RegistrationSettings`,
 :func:`depthgt.settings.registration_settings`. Imported lazily by callers (torch is heavy).
 """
 
-from depthgt.registration.align import Alignment, align, photometric_for
+from depthgt.registration.align import Alignment, align, align_many, photometric_for
 from depthgt.registration.encoder import build_encoder
 from depthgt.registration.frameset import FrameSetData, Registration, load_frameset, poses_from_source
 from depthgt.registration.given import register_given
@@ -29,6 +29,7 @@ __all__ = [
     "METHODS",
     "Alignment",
     "align",
+    "align_many",
     "load_frameset",
     "photometric_for",
     "FrameSetData",
