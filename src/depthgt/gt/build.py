@@ -9,7 +9,9 @@ so that a killed job leaves no half file.
 from __future__ import annotations
 
 import logging
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -29,7 +31,7 @@ from depthgt.gt.render.cloud import cached_geometry, frame_geometry
 from depthgt.gt.render.fusion import SetGeometry, fuse_sets
 from depthgt.gt.render.settings import RenderSettings
 from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
-from depthgt.registration import Alignment, FrameSetData, align, load_frameset, poses_from_source
+from depthgt.registration import Alignment, FrameSetData, align, align_many, load_frameset, poses_from_source
 from depthgt.settings import STAGES, Settings
 from depthgt.sources.base import Scene
 
@@ -52,6 +54,9 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: threads that finish a group of frame sets side by side on a GPU (statistics, patches, files)
+FINISH_WORKERS = 8
 
 
 class FrameSetOutputs(NamedTuple):
@@ -214,33 +219,54 @@ def process_framesets(
     ``candidates`` per set; the rest as :func:`process_frameset`) and return their
     frameset.json contents. Each set is read and aligned on its own; their GTs are
     rendered together (:func:`render_targets`: in one pass on a GPU); then each set's
-    coverage views, statistics, patches and files. Every step's time is recorded per
-    set in its poses.json (a shared render's time split evenly)."""
+    coverage views, statistics, patches and files (on a GPU by :data:`FINISH_WORKERS`
+    threads side by side). Every step's time is recorded per set in its poses.json (a
+    shared render's time split evenly; the CPU seconds of steps done by threads side by
+    side count every thread's)."""
     reg = settings.registration
     device = resolve_device(settings.device)
     candidates = candidates or [None] * len(fids)
     clocks = [_StepClock() for _ in fids]
-    datas, alignments = [], []
+    datas = []
     for fid, clock in zip(fids, clocks):
-        data = load_frameset(
-            scene, fid.members, settings.size_hw, need_poses=reg.uses_source_poses, device=device, cache=cache
+        datas.append(
+            load_frameset(
+                scene, fid.members, settings.size_hw, need_poses=reg.uses_source_poses, device=device, cache=cache
+            )
         )
         clock.lap("load_resize")
-        seed = stable_seed(settings.seed, fid.dataset, scene.name, fid.target)
-        alignments.append(align(data, fid.offsets, reg, seed, encoder_state))
-        datas.append(data)
-        clock.lap("align")
+    seeds = [stable_seed(settings.seed, fid.dataset, scene.name, fid.target) for fid in fids]
+    together = _StepClock()
+    if len(fids) == 1 or len({tuple(f.offsets) for f in fids}) > 1:
+        alignments = [align(d, f.offsets, reg, s_, encoder_state) for d, f, s_ in zip(datas, fids, seeds)]
+    else:
+        alignments = align_many(datas, fids[0].offsets, reg, seeds, encoder_state)
+    together.lap("align")
+    for clock in clocks:
+        clock.add("align", together, len(fids))
     shared = _StepClock()
     fusions = render_targets(datas, alignments, settings.render)
     shared.lap("render")
-    docs = []
-    for k, (fid, out, clock) in enumerate(zip(fids, outs, clocks)):
+    for clock in clocks:
         clock.add("render", shared, len(fids))
-        docs.append(
-            _finish_frameset(scene, fid, FrameSetOutputs(*(Path(p) for p in out)), datas[k], alignments[k], fusions[k],
-                             settings, candidates[k], clock)
-        )  # fmt: skip
-    return docs
+
+    def finish(k: int) -> dict[str, Any]:
+        out = FrameSetOutputs(*(Path(p) for p in outs[k]))
+        return _finish_frameset(
+            scene, fids[k], out, datas[k], alignments[k], fusions[k], settings, candidates[k], clocks[k]
+        )
+
+    # On a GPU the sets' statistics, patches and files (CPU work: EXR and WebP encoding,
+    # most of it outside the GIL) are made by a few threads side by side, so the device
+    # does not wait on them; with coverage the views are read through the scene's frame
+    # cache, which is not shared between threads.
+    workers = 1
+    if device.type == "cuda" and settings.frameset.selection != "coverage":
+        workers = min(FINISH_WORKERS, len(fids), os.cpu_count() or 1)
+    if workers <= 1:
+        return [finish(k) for k in range(len(fids))]
+    with ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(finish, range(len(fids))))
 
 
 def _finish_frameset(

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 from depthgt.lazy import lazy_names
 
 if TYPE_CHECKING:  # the package's names, each imported on first use (below)
-    from depthgt.registration.align import Alignment, align, photometric_for
+    from depthgt.registration.align import Alignment, align, align_many, photometric_for
     from depthgt.registration.encoder import build_encoder
     from depthgt.registration.frameset import FrameSetData, Registration, load_frameset, poses_from_source
     from depthgt.registration.given import register_given
@@ -35,6 +35,7 @@ __all__ = [
     "METHODS",
     "Alignment",
     "align",
+    "align_many",
     "load_frameset",
     "photometric_for",
     "FrameSetData",

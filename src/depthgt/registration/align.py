@@ -11,10 +11,11 @@ import torch
 
 from depthgt.registration import methods
 from depthgt.registration.frameset import FrameSetData
+from depthgt.registration.result import RegistrationResult
 from depthgt.registration.settings import RegistrationSettings
 from depthgt.status import Status
 
-__all__ = ["Alignment", "align", "photometric_for"]
+__all__ = ["Alignment", "align", "align_many", "photometric_for"]
 
 
 @dataclass
@@ -54,6 +55,42 @@ def align(
     settings = photometric_for(settings, data.colour_matches_depth)
     register = methods.METHODS[settings.method]  # looked up at call time so tests can replace it
     result = register(data, offsets, settings, seed=seed, encoder_state=encoder_state)
+    return _alignment(data, offsets, settings, result)
+
+
+def align_many(
+    datas: list[FrameSetData],
+    offsets: list[int],
+    settings: RegistrationSettings,
+    seeds: list[int],
+    encoder_state: dict | None = None,
+) -> list[Alignment]:
+    """:func:`align` of several frame sets of one camera (the same members' shape and
+    ``offsets``; ``seeds`` one each). On a GPU, a method that registers sets together
+    (its :class:`~depthgt.registration.methods.RegistrationMethod` names ``together``) does so for all of them at once;
+    otherwise each is aligned on its own. The same alignments either way, up to the
+    rounding of the batched products."""
+    entry = methods.METHODS[settings.method]
+    first = datas[0]
+    if (
+        entry.together is None
+        or len(datas) < 2
+        or first.depth_m.device.type == "cpu"
+        or len({photometric_for(settings, d.colour_matches_depth) for d in datas}) > 1
+        or any(d.depth_m.shape != first.depth_m.shape or not torch.equal(d.K, first.K) for d in datas)
+    ):
+        return [align(d, offsets, settings, seed, encoder_state) for d, seed in zip(datas, seeds)]
+    settings = photometric_for(settings, first.colour_matches_depth)
+    results = entry.register_together(datas, offsets, settings)
+    return [_alignment(d, offsets, settings, r) for d, r in zip(datas, results)]
+
+
+def _alignment(
+    data: FrameSetData, offsets: list[int], settings: RegistrationSettings, result: RegistrationResult
+) -> Alignment:
+    """The :class:`Alignment` of a registration's result: the members that enter the GT
+    (the target and every neighbour registered), the status (``on_failure: exclude``
+    fails the set for any neighbour not registered) and the record for poses.json."""
     T_j_to_t = torch.as_tensor(result.T_j_to_t, dtype=torch.float64, device=data.depth_m.device)
     status, reason = result.status, result.reason
     failed = [o for o, st in zip(offsets[1:], result.neighbour_status) if st != Status.OK]

@@ -45,6 +45,10 @@ class RegistrationMethod:
         cost: a frame set's :class:`JobCost` (the frame-set rule's ``mem_mb`` and
             ``runtime``); ``preset_cost``: the cost under a ``registration.preset`` that
             changes it.
+        together: ``"module:function"`` registering several frame sets of one camera at
+            once, ``(datas, offsets, settings) -> [RegistrationResult]`` with one result
+            per set as ``register`` gives it (what a GPU batch uses:
+            :func:`~depthgt.registration.align.align_many`), or None.
     """
 
     name: str
@@ -53,15 +57,22 @@ class RegistrationMethod:
     pretrained_encoder: bool = False
     cost: JobCost = JobCost(mem_mb=2000, cpu_s=60)
     preset_cost: Mapping[str, JobCost] = field(default_factory=dict)
+    together: str | None = None
 
     def __post_init__(self):
-        if self.register.count(":") != 1:
-            raise ValueError(
-                f"registration method {self.name!r}: register must be 'module:function', got {self.register!r}"
-            )
+        for key, value in (("register", self.register), ("together", self.together)):
+            if value is not None and value.count(":") != 1:
+                raise ValueError(f"registration method {self.name!r}: {key} must be 'module:function', got {value!r}")
 
     def __call__(self, *args: Any, **kwargs: Any):
         module, function = self.register.split(":")
+        return getattr(importlib.import_module(module), function)(*args, **kwargs)
+
+    def register_together(self, *args: Any, **kwargs: Any):
+        """Call ``together`` (the method registers several frame sets at once)."""
+        if self.together is None:
+            raise ValueError(f"registration method {self.name!r} registers one frame set at a time")
+        module, function = self.together.split(":")
         return getattr(importlib.import_module(module), function)(*args, **kwargs)
 
     def job_cost(self, preset: str | None) -> JobCost:
@@ -78,7 +89,12 @@ METHODS: dict[str, RegistrationMethod] = {
         # the source's poses as they are
         RegistrationMethod("given", "depthgt.registration.given:register_given", uses_source_poses=True),
         # the source's poses refined on the frame set (joint SE(3) refinement)
-        RegistrationMethod("refine", "depthgt.registration.local:register_refine", uses_source_poses=True),
+        RegistrationMethod(
+            "refine",
+            "depthgt.registration.local:register_refine",
+            uses_source_poses=True,
+            together="depthgt.registration.local:refine_source_poses_many",
+        ),
         # the paper's registration (Sec. 3.2): no poses needed
         RegistrationMethod(
             "overfit",

@@ -259,9 +259,8 @@ class Level:
 
 #: an LM trial step smaller than this (metres of translation, radians of rotation, the
 #: largest component) after a rejected one is not evaluated: the level has converged.
-#: On the shared recordings one trial in six rejected was accepted at the next damping,
-#: every such step below this one moving the poses by under 0.3 um (issue notes in
-#: docs/decisions.md, "Refinement: convergence").
+#: Such steps, accepted, moved the poses by under 0.3 um (docs/decisions.md
+#: "Refinement: convergence").
 MIN_TRIAL_STEP = 1e-6
 
 
@@ -744,3 +743,152 @@ def _per_frame(pcost, tgt_pairs, other, Fn):
     c = torch.zeros(Fn, dtype=torch.float64, device=pcost.device)
     c.index_add_(0, other[tgt_pairs], pcost[tgt_pairs])
     return c
+
+
+class RefineSet(NamedTuple):
+    """One frame set for :func:`refine_poses_many`: its members' colour (F, 3, H, W) and
+    depth (F, 1, H, W), the poses ``T_f_to_t`` (F, 4, 4) to start from, the frame
+    ``offsets`` and the members' ``positions`` in their scene (None: no frame cache)."""
+
+    rgb: torch.Tensor
+    depth_m: torch.Tensor
+    T_f_to_t: torch.Tensor
+    offsets: list[int]
+    positions: tuple[int, ...] | None = None
+
+
+@torch.no_grad()
+def refine_poses_many(
+    sets: list[RefineSet],
+    K: torch.Tensor,
+    settings: RefineSettings = RefineSettings(),
+    cache: FrameCache | None = None,
+) -> list[RefineResult]:
+    """:func:`refine_poses` of several frame sets of one camera (intrinsics ``K`` (3, 3),
+    the same number of members and offsets) at once: every set's pairs in the same
+    residual evaluations (what keeps a GPU busy), each set with its own Levenberg-
+    Marquardt damping, trials and stopping. The same poses as one set at a time up to
+    the rounding of the batched products; the linearisation is evaluated afresh after
+    an accepted step (one evaluation more per iteration than :func:`refine_poses`).
+
+    Long because the coarse-to-fine loop carries every set's poses, damping and state
+    across scales, iterations and trials side by side; its parts are the functions of
+    :func:`refine_poses`.
+    """
+    n_sets, Fn = len(sets), sets[0].depth_m.shape[0]
+    if any(s.depth_m.shape != sets[0].depth_m.shape or list(s.offsets) != list(sets[0].offsets) for s in sets):
+        raise ValueError("refine_poses_many: every frame set needs the same members' shape and offsets")
+    dev = sets[0].depth_m.device
+    rgb = torch.cat([s.rgb for s in sets])
+    depth = torch.cat([s.depth_m for s in sets])
+    positions = None
+    if cache is not None and all(s.positions is not None for s in sets):
+        positions = tuple(p for s in sets for p in s.positions)
+    eye = torch.eye(4, dtype=torch.float64, device=dev)
+    T = torch.cat([s.T_f_to_t.to(dev, torch.float64) for s in sets]).clone()
+    T[::Fn] = eye
+    one = frame_pairs(Fn, settings.pairs, list(sets[0].offsets)).to(dev)
+    n_p = one.shape[0]
+    pairs = torch.cat([one + b * Fn for b in range(n_sets)])
+    tgt_pairs = (one[:, 0] == 0) | (one[:, 1] == 0)
+    other = torch.where(one[:, 0] == 0, one[:, 1], one[:, 0])
+    outs = [RefineResult(T_f_to_t=T[b * Fn : (b + 1) * Fn]) for b in range(n_sets)]
+    eye6 = torch.eye(6 * (Fn - 1), dtype=torch.float64, device=dev)
+    last = None
+    for li, (scale, n_it, stride, gate) in enumerate(
+        zip(settings.scales, settings.iters, settings.point_stride, settings.max_dist_m)
+    ):
+        level = Level(rgb, depth, K, scale, stride, None, cache, positions)
+        if scale == 1:
+            for b in range(n_sets):
+                outs[b].normals = level.maps[b * Fn : (b + 1) * Fn, 3:6]
+        ls = LevelSettings(
+            settings.geo_scale_m[li], settings.photo_scale, settings.photo_weight, settings.robust,
+            settings.geo_ref_depth_m,
+        )  # fmt: skip
+        lam = [settings.damping] * n_sets
+        active = [True] * n_sets
+        cur = _system(level, T, pairs, ls, gate)
+        if li == len(settings.scales) - 1:
+            for b in range(n_sets):
+                outs[b].initial_cost = _per_frame(cur.pair_cost[b * n_p : (b + 1) * n_p], tgt_pairs, other, Fn)
+        for _ in range(n_it):
+            if not any(active):
+                break
+            H, g = _assemble(cur.H_rel, cur.g_rel, cur.Tinv, pairs, n_sets * Fn)
+            Hr, gr = [], []
+            for b in range(n_sets):
+                f = slice(b * Fn + 1, (b + 1) * Fn)
+                Hr.append(H[f, f].permute(0, 2, 1, 3).reshape(6 * (Fn - 1), 6 * (Fn - 1)))
+                gr.append(g[f].reshape(-1))
+            step = [0.0] * n_sets
+            improved = [False] * n_sets
+            trying = [b for b in range(n_sets) if active[b]]
+            for _try in range(5):
+                if not trying:
+                    break
+                A = torch.stack(
+                    [Hr[b] + lam[b] * torch.diag(torch.diagonal(Hr[b]).clamp(min=1e-9)) + 1e-9 * eye6 for b in trying]
+                )
+                deltas = torch.linalg.solve(A, -torch.stack([gr[b] for b in trying])[..., None])[..., 0]
+                deltas = deltas.reshape(len(trying), Fn - 1, 6)
+                sizes = deltas.abs().flatten(1).max(1).values.tolist()
+                keep = [i for i, b in enumerate(trying) if not (_try and sizes[i] < MIN_TRIAL_STEP)]
+                trying, deltas = [trying[i] for i in keep], deltas[keep]
+                if not trying:
+                    break  # damped below a micrometre (microradian): those sets have settled
+                T_new = T.clone()
+                for i, b in enumerate(trying):
+                    f = slice(b * Fn + 1, (b + 1) * Fn)
+                    T_new[f] = Se3.exp(deltas[i]).matrix().to(torch.float64) @ T[f]
+                rows = torch.cat([torch.arange(b * n_p, (b + 1) * n_p, device=dev) for b in trying])
+                new = _system(level, T_new, pairs.index_select(0, rows), ls, gate)
+                both = cur.vis.index_select(0, rows) & new.vis
+                c_old = (cur.cost_pts.index_select(0, rows) * both).sum(1, dtype=torch.float64).view(len(trying), n_p)
+                c_new = (new.cost_pts * both).sum(1, dtype=torch.float64).view(len(trying), n_p)
+                accept = (c_new.sum(1) <= c_old.sum(1)).tolist()
+                still = []
+                for i, b in enumerate(trying):
+                    if accept[i]:
+                        f = slice(b * Fn, (b + 1) * Fn)
+                        T[f] = T_new[f]
+                        lam[b] = max(lam[b] / 3.0, 1e-7)
+                        improved[b] = True
+                        step[b] = float(deltas[i].abs().max())
+                    else:
+                        lam[b] *= 10.0
+                        still.append(b)
+                trying = still
+            if any(improved):
+                cur = _system(level, T, pairs, ls, gate)  # the linearisation at the accepted poses
+            for b in range(n_sets):
+                if active[b]:
+                    outs[b].cost_curve.append(float(cur.pair_cost[b * n_p : (b + 1) * n_p].sum()))
+                    active[b] = improved[b] and step[b] >= 1e-7
+        last = (level, cur)
+    level, cur = last
+    sel = one[:, 0] == 0  # neighbour b into the target
+    ls = replace(ls, geo_ref_depth_m=0.0)
+    for b in range(n_sets):
+        out = outs[b]
+        r = slice(b * n_p, (b + 1) * n_p)
+        H_rel, pcost, inl = cur.H_rel[r], cur.pair_cost[r], cur.inliers[r]
+        out.T_f_to_t = T[b * Fn : (b + 1) * Fn]
+        out.final_cost = _per_frame(pcost, tgt_pairs, other, Fn)
+        n_valid = level.valid[b * Fn : (b + 1) * Fn].sum(1).clamp(min=1)
+        frac = torch.ones(Fn, dtype=torch.float64, device=dev)
+        frac[one[sel, 1]] = inl[sel].to(torch.float64) / n_valid[one[sel, 1]].to(torch.float64)
+        out.inlier_fraction = frac
+        cond = torch.ones(Fn, dtype=torch.float64, device=dev)
+        H_tgt = torch.zeros(Fn, 6, 6, dtype=torch.float64, device=dev)
+        H_tgt.index_add_(0, other[tgt_pairs], H_rel[tgt_pairs])
+        d = level._depth[b * Fn : (b + 1) * Fn]
+        median = d[d > 0].median() if (d > 0).any() else torch.tensor(1.0)
+        cond[1:] = pair_information(H_tgt[1:], float(median))
+        out.condition = cond
+        out.noise_sigma_1m = _noise_sigma_1m(sets[b].depth_m, cache, sets[b].positions)
+        res_m, res_s = target_residual_stats(
+            level, T, one[sel] + b * Fn, ls, settings.max_dist_m[-1], n_sets * Fn, out.noise_sigma_1m
+        )
+        out.residual_m, out.residual_sigmas = res_m[b * Fn : (b + 1) * Fn], res_s[b * Fn : (b + 1) * Fn]
+    return outs
