@@ -41,6 +41,9 @@ def test_a_failure_a_job_explains_is_one_line(tmp_path):
     assert line.startswith(f"depthgt: error: no space left on the device of {Path('results').absolute()}: ")
     assert " free" in line
     assert failure_line(OSError("Error writing bytes to file. Detail: [errno 28] No space left on device"), job)
+    exr = RuntimeError('Failed to write pixel data to image file "results/x/.gt.exr.tmp.exr". No space left on device.')
+    assert failure_line(exr, job).startswith("depthgt: error: no space left on the device of ")  # OpenEXR's writer
+    assert failure_line(RuntimeError("something else"), job) is None
     line = failure_line(MemoryError(), job)
     assert "job train_model ran out of memory (mem_mb=16000)" in line
     assert "--set-resources train_model:mem_mb=32000" in line

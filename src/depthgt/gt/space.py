@@ -116,11 +116,16 @@ def check_space(workdir: str | Path, plan: Iterable[PlannedShard], resize: int, 
 
 
 def is_disk_full(exc: BaseException) -> bool:
-    """Whether an exception is the file system running out of space (or quota)."""
-    if not isinstance(exc, OSError):
-        return False
-    # pyarrow's and some libraries' OSErrors carry no errno, only the system's message
-    return exc.errno in (errno.ENOSPC, errno.EDQUOT) or "No space left on device" in str(exc)
+    """Whether an exception is the file system running out of space (or quota).
+
+    >>> is_disk_full(RuntimeError('Failed to write pixel data to image file "gt.exr". No space left on device.'))
+    True
+    """
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    # pyarrow's and some libraries' OSErrors carry no errno, and OpenEXR's writer raises a
+    # RuntimeError (the first write of a frame set is its gt.exr): only the system's message
+    return isinstance(exc, (OSError, RuntimeError)) and "No space left on device" in str(exc)
 
 
 def disk_full_line(workdir: str | Path, plan: Iterable[PlannedShard] | None = None, resize: int | None = None) -> str:
