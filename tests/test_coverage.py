@@ -282,8 +282,10 @@ def test_selection_parts():
     assert torch.equal(fill[0].reshape(8, 8), empty)
     depth[0, 0, 2, 3] = 0  # invalid depth fills nothing
     assert int(fill_maps(depth, K, T[:1], empty).sum()) == 5
-    with pytest.raises(ValueError, match=r"\(C, 4, 4\)"):
+    with pytest.raises(ValueError, match=r"T_c_to_t must be \(C=1, 4, 4\), got \(2, 4, 4\)"):
         fill_maps(depth, K, T, empty)
+    with pytest.raises(ValueError, match=r"K \(the frame set's one camera\) must be \(3, 3\), got \(1, 3, 3\)"):
+        fill_maps(depth, K[None], T[:1], empty)
     assert choose_views(torch.zeros(3, 5, dtype=torch.bool), 2, 1) == []
 
 

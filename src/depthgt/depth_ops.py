@@ -15,8 +15,9 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from depthgt.shapes import check_shape
+
 __all__ = [
-    "check_depth",
     "valid_avg_pool",
     "masked_avg_pool",
     "masked_mean",
@@ -24,12 +25,6 @@ __all__ = [
     "max_gradient_magnitude",
     "structure_loss",
 ]
-
-
-def check_depth(name: str, t: torch.Tensor) -> None:
-    """Raise a ValueError naming ``name`` unless ``t`` is (B, 1, H, W)."""
-    if t.ndim != 4 or t.shape[1] != 1:
-        raise ValueError(f"{name} must be (B, 1, H, W), got {tuple(t.shape)}")
 
 
 def valid_avg_pool(
@@ -84,7 +79,7 @@ def masked_avg_pool(depth_m: torch.Tensor, valid: torch.Tensor, factor: int) -> 
         depth (B, 1, H/f, W/f), mean of the valid pixels of each block (0 where none),
         and its validity (B, 1, H/f, W/f) bool.
     """
-    check_depth("depth_m", depth_m)
+    check_shape(depth_m, "B 1 H W", "depth_m")
     if depth_m.shape[-1] % factor or depth_m.shape[-2] % factor:
         raise ValueError(f"depth shape {tuple(depth_m.shape)} not divisible by pooling factor {factor}")
     if factor == 1:
@@ -114,7 +109,7 @@ def forward_gradients(depth_m: torch.Tensor, valid: torch.Tensor):
         gx, gy (B, 1, H, W) metres per pixel (last column / row 0) and their
         validity vx, vy (B, 1, H, W) bool.
     """
-    check_depth("depth_m", depth_m)
+    check_shape(depth_m, "B 1 H W", "depth_m")
     gx = F.pad(depth_m[..., :, 1:] - depth_m[..., :, :-1], (0, 1, 0, 0))
     gy = F.pad(depth_m[..., 1:, :] - depth_m[..., :-1, :], (0, 0, 0, 1))
     v = valid.bool()
@@ -151,10 +146,7 @@ def structure_loss(pred: torch.Tensor, target: torch.Tensor, valid: torch.Tensor
         pred, target: (B, 1, H, W) metres; valid: (B, 1, H, W) bool, where the
             target's gradients are trusted (both images are masked with it).
     """
-    check_depth("pred", pred)
-    check_depth("target", target)
-    if pred.shape != target.shape:
-        raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} differ in shape")
+    check_shape(target, "B 1 H W", "target", check_shape(pred, "B 1 H W", "pred"))
     mp = max_gradient_magnitude(pred, valid, window)
     mt = max_gradient_magnitude(target, valid, window)
     return masked_mean((mp - mt) ** 2, valid)

@@ -43,6 +43,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError, WebPImagePlugin  # noqa: F401
 
 from depthgt.errors import FrameError
+from depthgt.shapes import check_shape
 
 log = logging.getLogger(__name__)
 
@@ -370,8 +371,9 @@ def read_rgb(path: str | Path) -> np.ndarray:
 def _rgb_destination(path: str | Path, rgb: np.ndarray) -> Path:
     """``path`` with its folder made, once ``rgb`` is checked to be (H, W, 3) uint8."""
     path = Path(path)
-    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-        raise ValueError(f"{path}: rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+    check_shape(rgb, "H W 3", f"{path}: rgb")
+    if rgb.dtype != np.uint8:
+        raise ValueError(f"{path}: rgb must be (H, W, 3) uint8, got {rgb.dtype}")
     path.parent.mkdir(parents=True, exist_ok=True)
     return path
 

@@ -12,6 +12,7 @@ import torch
 import torch.nn.functional as F
 
 from depthgt.rasterise import resampled_positions
+from depthgt.shapes import check_shape
 
 __all__ = [
     "KINECT_SIGMA_1M",
@@ -73,8 +74,7 @@ def second_difference_residuals(depth_m: torch.Tensor, src_hw: tuple[int, int] |
     from ``src_hw`` (None: sampled at the pixel centres). Computed once per frame set,
     they give the noise estimate of every subset of its frames
     (:func:`noise_sigma_1m_from`) and the renderer's depth-edge test."""
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
-        raise ValueError(f"depth_m must be (J, 1, H, W), got {tuple(depth_m.shape)}")
+    check_shape(depth_m, "J 1 H W", "depth_m")
     d = depth_m.detach().to(torch.float64)
     h, w = d.shape[-2:]
     ok = d > 0

@@ -48,6 +48,7 @@ from depthgt.registration import Alignment, FrameSetData, load_frameset, photome
 from depthgt.registration.local import refine_source_poses
 from depthgt.registration.methods import METHODS
 from depthgt.registration.settings import RegistrationSettings
+from depthgt.shapes import check_shape
 from depthgt.sources.base import Scene, check_frame
 from depthgt.status import Status
 
@@ -73,8 +74,7 @@ def view_limits(T_c_to_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         baseline_m (C,), angle_deg (C,): the distance between the optical centres and
         the angle between the optical axes (a roll about the axis does not count).
     """
-    if T_c_to_t.ndim != 3 or T_c_to_t.shape[1:] != (4, 4):
-        raise ValueError(f"T_c_to_t must be (C, 4, 4), got {tuple(T_c_to_t.shape)}")
+    check_shape(T_c_to_t, "C 4 4", "T_c_to_t")
     baseline = T_c_to_t[:, :3, 3].norm(dim=1)
     angle = torch.rad2deg(torch.arccos(T_c_to_t[:, 2, 2].clamp(-1.0, 1.0)))  # z axis of c seen in t, against t's
     return baseline, angle
@@ -85,7 +85,7 @@ def fill_maps(depth_m: torch.Tensor, K: torch.Tensor, T_c_to_t: torch.Tensor, em
 
     Args:
         depth_m: (C, 1, H, W) candidates' depth in metres, 0 = invalid.
-        K: (3, 3) intrinsics of every frame at (H, W).
+        K: (3, 3) the frame set's one camera (every frame's intrinsics) at (H, W).
         T_c_to_t: (C, 4, 4) poses of the candidates in the target camera.
         empty: (H, W) bool, the target's pixels without GT.
 
@@ -93,13 +93,11 @@ def fill_maps(depth_m: torch.Tensor, K: torch.Tensor, T_c_to_t: torch.Tensor, em
         (C, H*W) bool: pixel p of the target is empty and some valid point of candidate c
         projects (nearest pixel, in front of the camera) onto it.
     """
-    c = depth_m.shape[0]
-    h, w = depth_m.shape[-2:]
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1 or T_c_to_t.shape != (c, 4, 4) or empty.shape != (h, w):
-        raise ValueError(
-            f"fill_maps: depth_m (C, 1, H, W), T_c_to_t (C, 4, 4) and empty (H, W) must agree, got "
-            f"{tuple(depth_m.shape)}, {tuple(T_c_to_t.shape)}, {tuple(empty.shape)}"
-        )
+    sizes = check_shape(depth_m, "C 1 H W", "fill_maps: depth_m")
+    check_shape(T_c_to_t, "C 4 4", "fill_maps: T_c_to_t", sizes)
+    check_shape(empty, "H W", "fill_maps: empty", sizes)
+    check_shape(K, "3 3", "fill_maps: K (the frame set's one camera)")
+    c, h, w = sizes["C"], sizes["H"], sizes["W"]
     dt = depth_m.dtype
     Kb = K.to(dt)[None].expand(c, 3, 3)
     pts = geometry.backproject(depth_m, Kb)
@@ -205,7 +203,7 @@ def chain_poses(
     Args:
         frames: offset -> (rgb (3, H, W), depth_m (1, H, W)) of every frame at hand:
             the core's members and the candidates.
-        K: (3, 3) intrinsics at (H, W).
+        K: (3, 3) the frame set's one camera at (H, W).
         known: offset -> (4, 4) float64 pose in the target of the core's registered
             members (the target, offset 0, included).
         wanted: the candidates' offsets; the chain walks as far as the farthest of them.

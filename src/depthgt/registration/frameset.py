@@ -28,7 +28,9 @@ class FrameSetData:
     Attributes:
         rgb: (F, 3, H, W) float in [0, 1].
         depth_m: (F, 1, H, W) raw depth, 0 = invalid.
-        K: (3, 3) float64 intrinsics at (H, W).
+        K: (3, 3) float64 intrinsics at (H, W): the frame set's one camera, every
+            member's (a function taking several images' intrinsics takes them (F, 3, 3):
+            ``K.expand(F, 3, 3)``; docs/development.md "Shapes and intrinsics").
         T_world_cam: (F, 4, 4) float64 camera-to-world poses, or None.
         truth_m: (F, 1, H, W) clean depth when the source knows it, else None.
         frame_ids: the source's ids of the members.

@@ -24,6 +24,7 @@ from depthgt.registration.frameset import FrameSetData, poses_from_source
 from depthgt.registration.refine import RefineResult, RefineSet, refine_poses, refine_poses_many
 from depthgt.registration.result import RegistrationResult
 from depthgt.registration.settings import RegistrationSettings
+from depthgt.shapes import check_shape
 
 __all__ = ["register_refine", "refine_source_poses", "refine_source_poses_many"]
 
@@ -70,7 +71,7 @@ def refine_source_poses(
 
     Args:
         rgb: (F, 3, H, W) colour in [0, 1]; depth_m: (F, 1, H, W) metres, 0 = invalid;
-            K: (3, 3) intrinsics at (H, W) (the target first in each).
+            K: (3, 3) the frame set's one camera at (H, W) (the target first in each).
         offsets: frame offsets, ``offsets[0] == 0``.
         T_j_to_t: (F-1, 4, 4) the source's poses of the neighbours in the target camera.
         settings: its ``refine_settings`` and ``checks``.
@@ -111,13 +112,14 @@ def refine_source_poses_many(
 
 def _start(depth_m: torch.Tensor, offsets: list[int], T_j_to_t: torch.Tensor) -> torch.Tensor:
     """(F, 4, 4) float64 poses to start from (the target's the identity), inputs checked."""
-    Fn = depth_m.shape[0]
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1 or Fn < 2:
-        raise ValueError(f"depth_m must be (F >= 2, 1, H, W), got {tuple(depth_m.shape)}")
+    Fn = check_shape(depth_m, "F 1 H W", "depth_m")["F"]
+    if Fn < 2:
+        raise ValueError(f"depth_m must be (F >= 2, 1, H, W): a target and a neighbour, got {tuple(depth_m.shape)}")
     if len(offsets) != Fn or offsets[0] != 0:
         raise ValueError(f"offsets must list {Fn} offsets with the target's 0 first, got {offsets}")
-    if T_j_to_t.shape != (Fn - 1, 4, 4) or not torch.isfinite(T_j_to_t).all():
-        raise ValueError(f"T_j_to_t must be finite ({Fn - 1}, 4, 4), got {tuple(T_j_to_t.shape)}")
+    check_shape(T_j_to_t, "J 4 4", "T_j_to_t", {"J": Fn - 1})
+    if not torch.isfinite(T_j_to_t).all():
+        raise ValueError("T_j_to_t must be finite")
     dev = depth_m.device
     eye = torch.eye(4, dtype=torch.float64, device=dev)[None]
     T_start = torch.cat([eye, T_j_to_t.to(dev, torch.float64)])

@@ -38,6 +38,7 @@ from depthgt.noise_law import (
     sorted_residuals,
 )
 from depthgt.registration.settings import RefineSettings
+from depthgt.shapes import check_shape
 
 __all__ = [
     "RefineResult",
@@ -200,8 +201,8 @@ class Level:
 
     Args:
         rgb: (F, 3, H, W) colour in [0, 1]; depth_m: (F, 1, H, W) metres, 0 = invalid;
-        K: (3, 3) intrinsics at (H, W); scale: downscale factor; stride: source pixel
-        stride.
+        K: (3, 3) the frames' one camera at (H, W); scale: downscale factor; stride:
+        source pixel stride.
         maps_of: a dict shared by the levels of one frame set (the same rgb, depth_m
             and K), in which each scale's maps, which do not depend on ``stride``, are
             computed once (the chaining and the refinement both use scale 2).
@@ -573,7 +574,7 @@ def refine_poses(
     Args:
         rgb: (F, 3, H, W) colour in [0, 1].
         depth_m: (F, 1, H, W) depth in metres, 0 = invalid.
-        K: (3, 3) intrinsics at (H, W).
+        K: (3, 3) the frame set's one camera (every frame's intrinsics) at (H, W).
         T_f_to_t: (F, 4, 4) initial poses of each frame in the target camera
             (``T_f_to_t[0]`` is replaced by the identity).
         settings: :class:`RefineSettings`.
@@ -591,11 +592,11 @@ def refine_poses(
     damping and the accepted system across scales and iterations; its parts
     (``_system``, ``_accept``, ``_assemble``, the per-frame statistics) are functions.
     """
-    Fn = depth_m.shape[0]
-    if rgb.shape != (Fn, 3, *depth_m.shape[-2:]):
-        raise ValueError(f"rgb must be ({Fn}, 3, H, W) like depth_m {tuple(depth_m.shape)}, got {tuple(rgb.shape)}")
-    if T_f_to_t.shape != (Fn, 4, 4):
-        raise ValueError(f"T_f_to_t must be ({Fn}, 4, 4), got {tuple(T_f_to_t.shape)}")
+    sizes = check_shape(depth_m, "F 1 H W", "depth_m")
+    check_shape(rgb, "F 3 H W", "rgb", sizes)
+    check_shape(T_f_to_t, "F 4 4", "T_f_to_t", sizes)
+    check_shape(K, "3 3", "K (the frame set's one camera)")
+    Fn = sizes["F"]
     dev = depth_m.device
     T = T_f_to_t.to(dev, torch.float64).clone()
     T[0] = torch.eye(4, dtype=torch.float64, device=dev)
@@ -764,7 +765,7 @@ def refine_poses_many(
     settings: RefineSettings = RefineSettings(),
     cache: FrameCache | None = None,
 ) -> list[RefineResult]:
-    """:func:`refine_poses` of several frame sets of one camera (intrinsics ``K`` (3, 3),
+    """:func:`refine_poses` of several frame sets of one camera (its intrinsics ``K`` (3, 3),
     the same number of members and offsets) at once: every set's pairs in the same
     residual evaluations (what keeps a GPU busy), each set with its own Levenberg-
     Marquardt damping, trials and stopping. The same poses as one set at a time up to
@@ -775,6 +776,7 @@ def refine_poses_many(
     across scales, iterations and trials side by side; its parts are the functions of
     :func:`refine_poses`.
     """
+    check_shape(K, "3 3", "K (the frame sets' one camera)")
     n_sets, Fn = len(sets), sets[0].depth_m.shape[0]
     if any(s.depth_m.shape != sets[0].depth_m.shape or list(s.offsets) != list(sets[0].offsets) for s in sets):
         raise ValueError("refine_poses_many: every frame set needs the same members' shape and offsets")

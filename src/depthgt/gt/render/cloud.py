@@ -30,6 +30,7 @@ from depthgt.noise_law import (
     sorted_residuals,
 )
 from depthgt.rasterise import resampled_positions
+from depthgt.shapes import check_shape
 
 __all__ = [
     "TargetCloud",
@@ -139,18 +140,15 @@ def frame_geometry(
             ``depth_m`` and ``K`` when the caller has them (the registration's
             refinement computes the same), else computed here.
     """
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
-        raise ValueError(f"depth_m must be (J, 1, H, W), got {tuple(depth_m.shape)}")
+    sizes = check_shape(depth_m, "J 1 H W", "depth_m")
     j, _, h, w = depth_m.shape
     K = K.to(depth_m.dtype)
     points = backproject(depth_m, K) if src_hw is None else _backproject_resampled(depth_m, K, src_hw)
     if normals is None:
         with plain_cpu_convolutions():  # 3x3 filters: ~3x faster than oneDNN's on one thread
             normals = depth_to_normals(depth_m, K)  # (J, 3, H, W)
-    elif normals.shape != (j, 3, h, w):
-        raise ValueError(
-            f"normals must be ({j}, 3, H, W) to match depth_m {tuple(depth_m.shape)}, got {tuple(normals.shape)}"
-        )
+    else:
+        check_shape(normals, "J 3 H W", "normals", sizes)
     res = second_difference_residuals(depth_m, src_hw)
     return FrameGeometry(
         points,
@@ -194,8 +192,7 @@ def cloud_from_geometry(
     ``noise_sigma_1m`` or, None, estimated from these frames (:func:`noise_sigma_1m_of`).
     """
     j = geom.points.shape[0]
-    if T_j_to_t.shape != (j, 4, 4):
-        raise ValueError(f"T_j_to_t must be ({j}, 4, 4) to match the {j} frames, got {tuple(T_j_to_t.shape)}")
+    check_shape(T_j_to_t, "J 4 4", "T_j_to_t", {"J": j})
     dtype = geom.points.dtype
     T = T_j_to_t.to(dtype)
     pts = transform_points(T, geom.points)  # (J, HW, 3)
@@ -243,7 +240,7 @@ def cached_geometry(
     normal_max_jump_rel: float = 0.05,
 ) -> FrameGeometry:
     """:func:`frame_geometry` of the frames at ``positions`` (their depth ``depth_m`` (F,
-    1, H, W), intrinsics ``K`` (3, 3)), each frame's computed once per batch job
+    1, H, W), ``K`` (3, 3) their one camera), each frame's computed once per batch job
     (``cache``: the job's :class:`~depthgt.framecache.FrameCache`), in that order."""
     index = {p: i for i, p in enumerate(positions)}
 

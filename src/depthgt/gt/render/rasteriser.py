@@ -20,6 +20,7 @@ from depthgt.geometry import project
 from depthgt.gt.render.settings import RenderSettings
 from depthgt.noise_law import KINECT_SIGMA_1M, depth_sigma_m
 from depthgt.rasterise import _cells_inside, check_points, front_to_back, resampled_positions
+from depthgt.shapes import check_shape
 
 __all__ = ["HIT_PX", "RenderCandidates", "rasterise_blocks", "rasterise_gt"]
 
@@ -361,16 +362,10 @@ def _rasterise_block(pr: _Projected, k: int, radius_px: float) -> RenderCandidat
 
 def _check(points_cam, K, size_hw, valid, normals_cam, sigma_m, frame) -> torch.Tensor:
     valid = check_points(points_cam, K, valid, size_hw)
-    b, n = points_cam.shape[:2]
-    for name, t, shape in (
-        ("normals_cam", normals_cam, (b, n, 3)),
-        ("sigma_m", sigma_m, (b, n)),
-        ("frame", frame, (b, n)),
-    ):
-        if t is not None and tuple(t.shape) != shape:
-            raise ValueError(
-                f"{name} must be {shape} to match points_cam {tuple(points_cam.shape)}, got {tuple(t.shape)}"
-            )
+    sizes = {"B": points_cam.shape[0], "N": points_cam.shape[1]}
+    for name, t, spec in (("normals_cam", normals_cam, "B N 3"), ("sigma_m", sigma_m, "B N"), ("frame", frame, "B N")):
+        if t is not None:
+            check_shape(t, spec, name, sizes)
     return valid
 
 
