@@ -1,5 +1,7 @@
 # depthgt: ground-truth depth datasets from raw RGB-D video (see README.md).
+import copy
 import os
+import sys
 
 from snakemake.utils import min_version
 
@@ -9,8 +11,27 @@ min_version("9.21")
 # The config: the working directory's config/config.yaml when it holds one (a working
 # directory of its own, `depthgt build -d DIR`), else the embedded default beside this
 # file, wherever Snakemake is started: `-s path/to/Snakefile -d elsewhere --configfile
-# mine.yaml` applies mine.yaml over the same defaults as in the checkout.
+# mine.yaml` applies mine.yaml over the same defaults as in the checkout. Over it go the
+# --configfile files the build ran with before (results/config/overrides.yaml, written
+# by the first real run) and this run's; a run whose --configfile changes keys of an
+# existing build stops, naming them, unless DEPTHGT_RECONFIGURE=1 (depthgt.buildconfig).
 configfile: "config/config.yaml" if os.path.isfile("config/config.yaml") else os.path.join(workflow.basedir, "config/config.yaml")
+
+
+from depthgt import buildconfig  # standard library and PyYAML only
+
+CONFIG_LAYERS = buildconfig.layered_config(
+    ".",
+    os.path.join(workflow.basedir, "config/config.yaml"),
+    workflow.config_settings.configfiles,
+    dict(workflow.config_settings.config),
+    # jobs Snakemake spawns run with the config their main run remembered
+    reconfigure=None if workflow.is_main_process else True,
+)
+config.clear()
+config.update(copy.deepcopy(CONFIG_LAYERS.config))  # validation fills in defaults: not into what is remembered
+if workflow.is_main_process and CONFIG_LAYERS.notice():
+    print(CONFIG_LAYERS.notice(), file=sys.stderr)
 
 
 include: "workflow/rules/common.smk"

@@ -40,10 +40,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_gt_protocol as protocol  # noqa: E402  (the sets and the frame-set cache)
 
 from depthgt.eval.bootstrap import BOOTSTRAP_LEVEL, BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED, resample_counts  # noqa: E402
-from depthgt.gt.build import Alignment, fuse, poses_from_source  # noqa: E402
 from depthgt.gt.cache import ResizedScene  # noqa: E402
 from depthgt.gt.coverage import add_coverage_views  # noqa: E402
 from depthgt.gt.planning import coverage_candidates  # noqa: E402
+from depthgt.gt.render import fuse  # noqa: E402
+from depthgt.registration import Alignment, poses_from_source  # noqa: E402
 from depthgt.settings import FrameSetSettings, RenderSettings, registration_settings  # noqa: E402
 from depthgt.sources.base import open_scene  # noqa: E402
 
@@ -93,17 +94,17 @@ def main() -> None:
                     T = poses_from_source(data)
                     core = fuse(data, T, render)
                     ref = data.truth_m[0, 0].numpy()
-                    core_z = core.depth[0, 0].numpy()
+                    core_z = core.gt.depth[0, 0].numpy()
                     empty_total += int(((core_z <= 0) & (ref > 0)).sum())
                     splits = np.full(protocol.N_FRAMES, "train", dtype=object)
                     for m, fs in variants.items():
                         cands = coverage_candidates(splits, t, item["members"], fs)
                         members = list(range(len(item["members"])))
                         cov = add_coverage_views(frames, t, cands, data, Alignment(T, members), core, fs, reg, render)
-                        z = cov.render.depth[0, 0].numpy()
+                        z = cov.render.gt.depth[0, 0].numpy()
                         added = (core_z <= 0) & (z > 0) & (ref > 0)
                         errors[m].append((z - ref)[added])
-                        counts[m].append(cov.render.count[0, 0].numpy()[added])
+                        counts[m].append(cov.render.gt.count[0, 0].numpy()[added])
                         measured[m].append(data.depth_m[0, 0].numpy()[added] > 0)
                 print(f"{set_name} {name} s{group['seed']} {group['sensor']}: done", file=sys.stderr, flush=True)
         print(f"\n{set_name}: {empty_total} truth pixels the core leaves without GT")

@@ -2,7 +2,7 @@
 EVALUATION set to report on, scored per pixel category against the synthetic truth.
 
 Sets (frame sets of targets 8, 20, 32 of 40-frame sequences, 640x480 frames resized to
-256x256 as the workflow does, the pipeline's own code path ``depthgt.gt.build.fuse``):
+256x256 as the workflow does, the pipeline's own code path ``depthgt.gt.render.fuse``):
 
 * ``tuning``: ``room`` family seed 0 (room_000-002) and ``varied`` family seed 0
   (varied_000-003), Kinect v1 profile. Every renderer default is chosen on these.
@@ -64,10 +64,11 @@ import numpy as np
 import pandas as pd
 import torch
 
-from depthgt.gt.build import Alignment, FrameSetData, fuse, load_frameset, poses_from_source
 from depthgt.gt.cache import ResizedScene
 from depthgt.gt.coverage import add_coverage_views
 from depthgt.gt.planning import coverage_candidates, stable_seed
+from depthgt.gt.render import fuse
+from depthgt.registration import Alignment, FrameSetData, load_frameset, poses_from_source
 from depthgt.settings import FrameSetSettings, RenderSettings, registration_settings
 
 REPO = Path(__file__).resolve().parents[1]
@@ -409,7 +410,7 @@ def run_set(
                     added_views.append(sum(v["status"] == "ok" for v in cov.record["added"]))
                     filled_px.append(cov.record.get("filled_px", 0))
                     out = cov.render
-                gt = out.depth[0, 0].numpy()
+                gt = out.gt.depth[0, 0].numpy()
                 inp = data.depth_m[0, 0].numpy()
                 ref = data.truth_m[0, 0].numpy()
                 cats = categories(item)
@@ -417,10 +418,10 @@ def run_set(
                     score(p, cats, {"input": inp, "gt": gt}, ref)
                 m = (gt > 0) & (ref > 0)
                 conf_err.append(np.abs(gt - ref)[m])
-                conf_sigma.append(out.sigma[0, 0].numpy()[m])
+                conf_sigma.append(out.gt.sigma[0, 0].numpy()[m])
                 if clean and not registration:
                     own = fuse(data, poses_from_source(data), settings, depth_m=data.truth_m, members=slice(1, None))
-                    g = own.depth[0, 0].numpy()
+                    g = own.gt.depth[0, 0].numpy()
                     exact = ref
                     for cat, mask in cats.items():
                         m = mask & (exact > 0)
@@ -490,16 +491,16 @@ def added_pixels(set_name: str, base: RenderSettings, variant: RenderSettings, c
             for t in TARGETS:
                 data = load_cached(cache, group, k, t)["data"]
                 T = poses_from_source(data)
-                g0 = fuse(data, T, base).depth[0, 0].numpy()
-                out = fuse(data, T, variant)
-                g1 = out.depth[0, 0].numpy()
+                g0 = fuse(data, T, base).gt.depth[0, 0].numpy()
+                out = fuse(data, T, variant).gt
+                g1 = out.gt.depth[0, 0].numpy()
                 ref = data.truth_m[0, 0].numpy()
                 new = (g0 <= 0) & (g1 > 0) & (ref > 0)
                 n_ref += int((ref > 0).sum())
                 n_base += int(((g0 > 0) & (ref > 0)).sum())
                 added.append(np.abs(g1 - ref)[new])
                 shared.append(np.abs(g0 - ref)[(g0 > 0) & (ref > 0)])
-                sig.append(out.sigma[0, 0].numpy()[new])
+                sig.append(out.gt.sigma[0, 0].numpy()[new])
     e, e0, sg = np.concatenate(added), np.concatenate(shared), np.concatenate(sig)
     if not e.size:
         return f"{set_name}: the variant adds no GT pixel"
@@ -526,8 +527,8 @@ def run_fixture(fixture: Path, settings: RenderSettings, step: int) -> list[dict
     for t in range(fs.reach, len(scene) - fs.reach, step):
         data = load_frameset(scene, [t + o for o in fs.offsets], SIZE, True, torch.device("cpu"))
         T = poses_from_source(data)
-        gt = fuse(data, T, settings).depth[0, 0].numpy()
-        lto = fuse(data, T, settings, members=slice(1, None)).depth[0, 0].numpy()
+        gt = fuse(data, T, settings).gt.depth[0, 0].numpy()
+        lto = fuse(data, T, settings, members=slice(1, None)).gt.depth[0, 0].numpy()
         inp = data.depth_m[0, 0].numpy()
         s = depth_errors(lto, inp)
         rows.append(

@@ -89,13 +89,19 @@ def run(source: dict, scene_name: str, mode: str, n: int, config: dict, selectio
         open_source_scene(source, scene_name, need_poses=need), settings.size_hw, keep=2 * span + 2, need_pose=need
     )
     rows = []
+    try:  # the batch's per-frame cache (absent in older checkouts)
+        from depthgt.framecache import FrameCache
+
+        shared = {"cache": FrameCache(keep=2 * span + 2)}
+    except ImportError:
+        shared = {}
     with tempfile.TemporaryDirectory() as tmp:
         for t in range(fs.reach, min(len(scene) - fs.reach, fs.reach + n + 1)):  # consecutive targets, as a batch
             members = [t + o for o in fs.offsets]
             out = FrameSetOutputs.in_dir(Path(tmp) / f"{t:06d}")
             c0 = time.process_time()
             try:
-                process_frameset(scene, source["name"], t, members, "train", out, settings)
+                process_frameset(scene, source["name"], t, members, "train", out, settings, **shared)
             except FrameError as err:  # a frame without a pose etc.: the batch records it; here it is skipped
                 print(f"{source['name']} target {t}: skipped ({err})")
                 continue

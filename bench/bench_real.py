@@ -74,12 +74,14 @@ import torch.nn.functional as F
 from depthgt.errors import FrameError
 from depthgt.eval.bootstrap import bootstrap_means
 from depthgt.eval.metrics import pose_errors
-from depthgt.gt.build import align, fuse, load_frameset, poses_from_source, quality_statistics
+from depthgt.gt.build import quality_statistics
 from depthgt.gt.cache import ResizedScene
 from depthgt.gt.coverage import add_coverage_views, fill_maps
 from depthgt.gt.patches import make_patches
 from depthgt.gt.planning import coverage_candidates, stable_seed
+from depthgt.gt.render import fuse
 from depthgt.jobs.common import open_source_scene
+from depthgt.registration import align, load_frameset, poses_from_source
 from depthgt.settings import FrameSetSettings, PatchSettings, RenderSettings, registration_settings
 
 REPO = Path(__file__).resolve().parents[1]
@@ -155,8 +157,8 @@ def run(
             al = align(data_fs, fs.offsets, reg, seed=t)
             sec = time.perf_counter() - t0
             torch.save((al, sec), key)
-        gt = fuse(data_fs, al.T_j_to_t, render, members=al.fused, leave_target_out=True)
-        core_left_out, extra = gt.left_out, {}
+        fusion = fuse(data_fs, al.T_j_to_t, render, members=al.fused, leave_target_out=True)
+        core_fusion, extra = fusion, {}
         if selection == "coverage":
             c0 = time.process_time()
             members = [t + o for o in fs.offsets]
@@ -166,7 +168,7 @@ def run(
                 coverage_candidates(splits, t, members, fs),
                 data_fs,
                 al,
-                gt,
+                fusion,
                 fs,
                 reg,
                 render,
@@ -189,7 +191,8 @@ def run(
                 )
                 e = pose_errors(np.stack([np.asarray(cov.T_j_to_t[o], np.float64) for o in fused_added]), ref_added)
                 extra.update(added_rot=e.rot_err_deg.tolist(), added_trans=np.asarray(e.trans_err_cm).tolist())
-            gt = cov.render
+            fusion = cov.render
+        gt = fusion.gt
         gt_np = gt.depth[0, 0].numpy()
         depth_in = data_fs.depth_m[0, 0].numpy()
         rgb8 = (data_fs.rgb[0].permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
@@ -201,7 +204,7 @@ def run(
             if m > 0 and np.isfinite(agree[k]) and agree[k] < render.min_frame_agreement:
                 dropped[m] = True
         kept = sum(1 for m in al.fused if m > 0 and not dropped[m])
-        stats = quality_statistics(data_fs, al, gt_np, render, left_out=core_left_out)
+        stats = quality_statistics(data_fs, al, gt_np, render, core_fusion)
         lto = stats.get("leave_target_out", {})
         inp = data_fs.depth_m[0, 0]
         ref = poses_from_source(data_fs)
@@ -219,7 +222,7 @@ def run(
             gt_completeness=float((gt.depth[0, 0] > 0).float().mean()),
             input_completeness=float((inp > 0).float().mean()),
             lto_mae_mm=1000 * float(lto.get("mae_m", np.nan)),
-            **_edge_split(core_left_out, data_fs.depth_m[0, 0]),
+            **_edge_split(core_fusion.left_out, data_fs.depth_m[0, 0]),
             agreement_median=float(np.nanmedian(agree[1:])) if np.isfinite(agree[1:]).any() else np.nan,
             rot=err.rot_err_deg.tolist(),
             trans=np.asarray(err.trans_err_cm).tolist(),

@@ -12,8 +12,8 @@ per validation batch, and the whole process's CPU seconds (start-up, reading, an
 compilation included). ``--predict-frames N`` then scores the trained model on the first
 N test frames with the evaluation's code (:func:`depthgt.eval.evaluate.evaluate_frames`:
 reading, prediction, metrics) and prints its CPU seconds per frame. A build's training
-cost is (training pairs / batch size) x epochs x seconds per step (bench/README.md, "What
-the default build costs").
+cost is (training pairs / batch size) x epochs x seconds per step (docs/decisions.md,
+"Threads per training on 2 cores").
 
 CPU seconds are this process's own (``time.process_time``, one torch thread by default as
 the 2-core build's trainings run): on a shared machine they move far less than wall

@@ -12,6 +12,7 @@ import threading
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import pytest
 import yaml
@@ -134,16 +135,22 @@ def digest_outputs(workdir: Path) -> dict[str, str]:
     return out
 
 
-# the early runs' live workflow processes, killed when the session ends before they do
+# ------------------------------------------------------------------------------ early runs
+# A workflow run whose result the tests only read can start with the test session: on 2
+# cores it then overlaps with the other tests instead of waiting for its turn. Such a run
+# is declared where it is defined, as a session fixture (@early); the session starts the
+# ones its selected tests use (_early_runs).
+
+#: the early runs' live workflow processes, killed when the session ends before they do
 _LIVE: set[subprocess.Popen] = set()
 _STOP = threading.Event()
 
 
 def in_background(workdir: Path, *args: str) -> Callable[[], Path]:
-    """The part of an early run (:class:`EarlyRuns`) that runs in the background: the
-    workflow on ``workdir`` with ``args`` in a subprocess, in the environment of now (a
-    test may change ``os.environ`` for a moment while it runs); returns ``workdir``. A
-    session that ends first (``-x``, Ctrl-C) kills it rather than waiting for it."""
+    """The part of an early run (:func:`early`) that runs in the background: the workflow
+    on ``workdir`` with ``args`` in a subprocess, in the environment of now (a test may
+    change ``os.environ`` for a moment while it runs); returns ``workdir``. A session that
+    ends first (``-x``, Ctrl-C) kills it rather than waiting for it."""
     env = dict(os.environ, OMP_NUM_THREADS="1")
 
     def run() -> Path:
@@ -169,64 +176,108 @@ def in_background(workdir: Path, *args: str) -> Callable[[], Path]:
     return run
 
 
-def _tiny_build(folder: Path) -> Callable[[], Path]:
-    return in_background(make_workdir(folder, TINY), "dataset")
+def depthgt_command(*args: str) -> list[str]:
+    """The ``depthgt`` command line of this checkout (``python -m depthgt.cli``)."""
+    return [sys.executable, "-m", "depthgt.cli", *args]
 
 
-def _tiny_report(folder: Path) -> Callable[[], Path]:
-    return in_background(make_workdir(folder, TINY_ENHANCE), "report")
+def commands_in_background(
+    commands: list[list[str]], env: dict[str, str] | None = None, cwd: Path | None = None
+) -> Callable[[], list[subprocess.CompletedProcess]]:
+    """Like :func:`in_background`, for runs whose failure the test reads: ``commands``
+    one after another in subprocesses (in the environment of now, ``env`` added),
+    returning each one's CompletedProcess (output captured) whatever its exit status."""
+    full_env = dict(os.environ, OMP_NUM_THREADS="1", **(env or {}))
+
+    def run() -> list[subprocess.CompletedProcess]:
+        done = []
+        for cmd in commands:
+            if _STOP.is_set():
+                raise RuntimeError(f"the test session ended before {' '.join(cmd)} started")
+            proc = subprocess.Popen(
+                cmd,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                env=full_env,
+                cwd=cwd,
+                start_new_session=True,
+            )
+            _LIVE.add(proc)
+            try:
+                out, err = proc.communicate()
+            finally:
+                _LIVE.discard(proc)
+            done.append(subprocess.CompletedProcess(cmd, proc.returncode, out, err))
+        return done
+
+    return run
 
 
-# session fixtures whose builds start early (EarlyRuns) when a selected test uses them
-EARLY_FIXTURES = {"tiny_build": _tiny_build, "tiny_report": _tiny_report}
+class _Declared(NamedTuple):
+    prepare: Callable[[Path], Callable[[], object]]
+    module: str  # the declaring module: its tests see the fixture (every test for conftest)
+    lane: str
 
 
-def _early_or_now(name: str, tmp_path_factory) -> Path:
-    if _EARLY is not None and name in _EARLY.names():
-        return _EARLY.result(name)
-    return EARLY_FIXTURES[name](tmp_path_factory.mktemp(name))()
+#: the early fixtures, by name (a fixture's name is its function's)
+_DECLARED: dict[str, _Declared] = {}
 
 
-@pytest.fixture(scope="session")
-def tiny_build(tmp_path_factory) -> Path:
-    """TINY built to the ``dataset`` target once per test session, shared by the test
-    files that only read it (test_workflow, test_data, test_profiles): a test that
-    changes a build works on a copy or a build of its own. Started early (EarlyRuns)."""
-    return _early_or_now("tiny_build", tmp_path_factory)
+def early(*, lane: str = "workflow") -> Callable[[Callable[[Path], Callable[[], object]]], object]:
+    """Declares an early run: ``@early()`` on ``def NAME(folder) -> run`` makes NAME a
+    session fixture whose value is what ``run()`` returns.
 
+    ``NAME(folder)`` prepares the run's inputs in an empty folder, in the main thread, and
+    returns ``run``: a function of no arguments that only runs subprocesses
+    (:func:`in_background`, :func:`commands_in_background`; nothing in-process runs in the background, since tests
+    monkeypatch the library). When a selected test uses NAME (also through another
+    fixture), the session prepares it at its start and calls ``run`` in the background
+    thread of its ``lane``, the lane's runs one after another in the order the tests need
+    them; the fixture waits for the result. A workflow run is mostly one job process at a
+    time, so on 2 cores the ``workflow`` lane overlaps with the other tests; a run that
+    mostly waits (a SLURM cluster's) takes a lane of its own. A ``run`` with a ``stop()``
+    method has it called when the session ends. A failed preparation fails the fixture's
+    tests, not the session."""
 
-@pytest.fixture(scope="session")
-def tiny_report(tmp_path_factory) -> Path:
-    """TINY_ENHANCE built to the ``report`` target once per test session, shared by
-    test_workflow_enhance (which reads it) and test_train_resume (which copies it).
-    Started early (EarlyRuns)."""
-    return _early_or_now("tiny_report", tmp_path_factory)
+    def declare(prepare: Callable[[Path], Callable[[], object]]):
+        name = prepare.__name__
+        known = _DECLARED.get(name)
+        if known is not None and known.module != prepare.__module__:
+            raise ValueError(f"two early fixtures named {name}: in {known.module} and {prepare.__module__}")
+        _DECLARED[name] = _Declared(prepare, prepare.__module__, lane)
+
+        def fixture(_early_runs: EarlyRuns):
+            return _early_runs.value(name)
+
+        fixture.__doc__ = prepare.__doc__
+        return pytest.fixture(scope="session", name=name)(fixture)
+
+    return declare
 
 
 class EarlyRuns:
-    """The workflow runs of selected tests (a module's ``EARLY_RUNS``: test name -> a
-    function of an empty folder), started at the session's start. Each function prepares
-    its inputs there at once, in the main thread, and returns the rest: a function of no
-    arguments that only runs subprocesses (:func:`in_background`) and returns what the test
-    reads. Those run one after another in one background thread. A workflow run is mostly
-    one job process at a time, so on 2 cores it overlaps with the other tests rather than
-    waiting for its turn; the test then asserts on the result (:func:`early_run`). Nothing
-    in-process runs in the background: tests monkeypatch the library (a frame reader
-    counting its calls saw the frames an early run generated)."""
+    """The early runs of one test session (:func:`early`): prepared at its start, run in
+    one background thread per lane, their results handed to their fixtures."""
 
-    def __init__(self, tmp_path_factory, runs: list[tuple[str, Callable[[Path], Callable[[], object]]]]):
-        self._runs = [(name, self._prepared(fn, tmp_path_factory.mktemp(name[:40]))) for name, fn in runs]
+    def __init__(self, tmp_path_factory, names: list[str]):
+        self._tmp = tmp_path_factory
+        self._jobs: dict[str, Callable[[], object]] = {}
         self._done: dict[str, tuple[bool, object]] = {}
         self._cond = threading.Condition()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        lanes: dict[str, list[str]] = {}
+        for name in names:
+            self._jobs[name] = self._prepared(name)
+            lanes.setdefault(_DECLARED[name].lane, []).append(name)
+        self._threads = [threading.Thread(target=self._run, args=(lane,), daemon=True) for lane in lanes.values()]
+        for thread in self._threads:
+            thread.start()
 
-    @staticmethod
-    def _prepared(fn: Callable[[Path], Callable[[], object]], folder: Path) -> Callable[[], object]:
-        """``fn(folder)``, or a job that raises its error: a failed preparation fails its
-        own test (:meth:`result`), not the session."""
+    def _prepared(self, name: str) -> Callable[[], object]:
+        """The run of ``name``, prepared in a folder of its own; or a run that raises the
+        preparation's error (its tests fail, the session goes on)."""
         try:
-            return fn(folder)
+            return _DECLARED[name].prepare(self._tmp.mktemp(name))
         except Exception as e:
             err = e
 
@@ -235,84 +286,78 @@ class EarlyRuns:
 
             return failed
 
-    def _run(self) -> None:
-        for name, job in self._runs:
+    def _run(self, names: list[str]) -> None:
+        for name in names:
             try:
-                out = (True, job())
-            except BaseException as e:  # handed to the test, which raises it
+                out = (True, self._jobs[name]())
+            except BaseException as e:  # handed to the fixture, which raises it
                 out = (False, e)
             with self._cond:
                 self._done[name] = out
                 self._cond.notify_all()
 
-    def names(self) -> set[str]:
-        return {name for name, _ in self._runs}
-
-    def result(self, name: str, timeout: float = 1800):
+    def value(self, name: str, timeout: float = 1800):
+        """The result of ``name``'s run, waited for; a run no selected test asked for at
+        the session's start (a fixture requested on the fly) runs here and now."""
+        if name not in self._jobs:
+            self._jobs[name] = self._prepared(name)
+            return self._jobs[name]()
         with self._cond:
             if not self._cond.wait_for(lambda: name in self._done, timeout=timeout):
-                pytest.fail(f"the early run of {name} did not end within {timeout} s")
+                pytest.fail(f"the early run {name} did not end within {timeout} s")
             ok, value = self._done[name]
         if not ok:
             raise value
         return value
 
     def stop(self) -> None:
-        """Kills the runs still going (a session ended early: their tests will not read
-        them) and waits for the thread."""
+        """Kills the workflow runs still going (a session ended early: their tests will not
+        read them), waits for the lanes, then stops the runs that have a ``stop()``."""
         _STOP.set()
         for proc in list(_LIVE):
             try:
                 os.killpg(proc.pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
-        self._thread.join(timeout=60)
-
-
-_EARLY: EarlyRuns | None = None
+        for thread in self._threads:
+            thread.join(timeout=900)
+        for job in self._jobs.values():
+            if hasattr(job, "stop"):
+                job.stop()
 
 
 @pytest.fixture(scope="session", autouse=True)
-def _started_early(request, tmp_path_factory):
-    """At the session's start: a selected test module that defines
-    ``start_early(tmp_path_factory)`` has it called (and the object it returns ``stop()``-ed
-    at the end): test_slurm's runs spend most of their time waiting for the executor's
-    job-state checks, so they start before every other test and overlap with them. And the
-    ``EARLY_RUNS`` of the selected tests and the builds of the ``EARLY_FIXTURES`` they use
-    start in :class:`EarlyRuns`, in the order the tests need them."""
-    global _EARLY
+def _early_runs(request, tmp_path_factory):
+    """At the session's start, the early fixtures (:func:`early`) that the selected tests
+    use, in the order the tests need them, each seen only by the tests of the module that
+    declares it (conftest's: every test)."""
     _STOP.clear()
-    items = request.session.items
-    modules = {getattr(item, "module", None) for item in items}  # doctests have none
-    modules = sorted((m for m in modules if hasattr(m, "start_early")), key=lambda m: m.__name__)
-    started = [m.start_early(tmp_path_factory) for m in modules]
-    runs, seen = [], set()  # in the order the tests need them
-    for item in items:
-        wanted = [(f, EARLY_FIXTURES[f]) for f in EARLY_FIXTURES if f in getattr(item, "fixturenames", ())]
-        fn = getattr(getattr(item, "module", None), "EARLY_RUNS", {}).get(getattr(item, "originalname", None))
-        if fn is not None:
-            wanted.append((item.originalname, fn))
-        for name, fn in wanted:
-            if name not in seen:
-                seen.add(name)
-                runs.append((name, fn))
-    if runs:
-        _EARLY = EarlyRuns(tmp_path_factory, runs)
-        started.append(_EARLY)
-    yield
-    for s in started:
-        s.stop()
-    _EARLY = None
+    names = []
+    for item in request.session.items:
+        module = getattr(getattr(item, "module", None), "__name__", None)  # doctests have none
+        for name in getattr(item, "fixturenames", ()):
+            declared = _DECLARED.get(name)
+            if declared is not None and declared.module in ("conftest", module) and name not in names:
+                names.append(name)
+    runs = EarlyRuns(tmp_path_factory, names)
+    yield runs
+    runs.stop()
 
 
-@pytest.fixture
-def early_run(request, tmp_path):
-    """What the test's entry in its module's ``EARLY_RUNS`` returned (:class:`EarlyRuns`),
-    waited for; run here in ``tmp_path`` when it was not started early."""
-    name = request.node.originalname
-    if _EARLY is not None and name in _EARLY.names():
-        return _EARLY.result(name)
-    return request.module.EARLY_RUNS[name](tmp_path)()
+@early()
+def tiny_build(folder: Path) -> Callable[[], Path]:
+    """TINY built to the ``dataset`` target once per test session, shared by the test
+    files that only read it (test_workflow, test_data, test_cli, test_profiles): a test
+    that changes a build works on a copy or a build of its own. An early run."""
+    return in_background(make_workdir(folder, TINY), "dataset")
+
+
+@early()
+def tiny_report(folder: Path) -> Callable[[], Path]:
+    """TINY_ENHANCE built to the ``report`` target once per test session, shared by
+    test_workflow_enhance (which reads it) and test_train_resume (which copies it). An
+    early run."""
+    return in_background(make_workdir(folder, TINY_ENHANCE), "report")
 
 
 @pytest.fixture(autouse=True)

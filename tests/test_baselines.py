@@ -34,7 +34,7 @@ def test_registry_and_input_checks():
     np.testing.assert_array_equal(run_baseline("input", noisy, rgb), noisy)
     with pytest.raises(ValueError, match="unknown baseline"):
         run_baseline("bm3d", noisy, rgb)
-    with pytest.raises(ValueError, match=r"rgb must be \(H, W, 3\)"):
+    with pytest.raises(ValueError, match=r"rgb must be \(H=16, W=16, 3\), got \(8, 16, 3\)"):
         run_baseline("rgf", noisy, rgb[:8])
     with pytest.raises(ValueError, match="checkpoint"):
         run_baseline("learned", noisy, rgb)

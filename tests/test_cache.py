@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from depthgt.errors import FrameError
-from depthgt.gt.build import load_frameset
 from depthgt.gt.cache import ResizedScene
 from depthgt.jobs.common import open_source_scene
+from depthgt.registration import load_frameset
 from depthgt.sources.base import Scene
 
 

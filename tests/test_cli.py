@@ -67,13 +67,7 @@ def test_build_names_a_config_file_that_is_not_valid_yaml(tmp_path):
     proc = depthgt("build", "-d", str(tmp_path / "wd"), "-n", "--configfile", str(bad), check=False)
     assert proc.returncode == 2 and f"--configfile {bad}:3:1: not valid YAML" in proc.stderr
     proc = depthgt("build", "-d", str(tmp_path / "wd"), "-n", "--configfile", str(tmp_path / "none.yaml"), check=False)
-    assert proc.returncode == 2 and "none.yaml: file not found" in proc.stderr
-    # what Snakemake reads passes: JSON (tabs included) and YAML
-    from depthgt.cli import _check_yaml_files
-
-    (tmp_path / "tabs.json").write_text('{\n\t"seed": 1\n}')
-    (tmp_path / "ok.yaml").write_text("seed: 1\n")
-    _check_yaml_files([tmp_path / "tabs.json", tmp_path / "ok.yaml"])
+    assert proc.returncode == 2 and "none.yaml: file not found" in proc.stderr  # (JSON and YAML: test_buildconfig)
 
 
 def test_build_names_a_source_whose_scenes_all_finds_nothing(tmp_path):
@@ -105,20 +99,54 @@ def test_show_names_a_frame_set_that_was_not_built(built):
     assert proc.returncode == 2 and "not built" in proc.stderr and "000999" in proc.stderr
 
 
-def test_extract_writes_the_frame_set_files(built, tmp_path):
+def test_extract_writes_files_standard_tools_read(built, tmp_path):
+    """Depth and confidence as float32 EXR in metres (OpenEXR's own module, no depthgt
+    code) and 16-bit PNG in millimetres (OpenCV), units in the names and units.json."""
+    import json
+
+    import cv2
+    import numpy as np
+    import OpenEXR
+
+    from depthgt.gt.store import read_frameset
+
     proc = depthgt("extract", "-d", str(built), "syn", "room_001", "6", str(tmp_path / "fs"))
     names = sorted(Path(p).name for p in proc.stdout.split())
-    assert names == sorted(["gt.exr", "input.exr", "rgb.webp", "poses.json", "patches.npz", "frameset.json"])
+    depth = ["gt_depth", "gt_sigma", "input_depth", "truth_depth"]  # synthetic: the truth too
+    assert names == sorted(
+        [f"{d}_m.exr" for d in depth]
+        + ["gt_depth_mm.png", "gt_sigma_100um.png", "input_depth_mm.png", "truth_depth_mm.png"]
+        + ["rgb.png", "poses.json", "patches.npz", "frameset.json", "units.json"]
+    )
+    rec = read_frameset(built / "results", "syn", "room_001", 6)
+    with OpenEXR.File(str(tmp_path / "fs" / "gt_depth_m.exr")) as f:
+        assert list(f.channels()) == ["Y"] and not any(k.startswith("depthgt") for k in f.header())
+        gt = f.channels()["Y"].pixels
+    assert gt.dtype == np.float32 and np.array_equal(gt, rec.gt_m)  # metres, exactly the stored GT
+    with OpenEXR.File(str(tmp_path / "fs" / "gt_sigma_m.exr")) as f:
+        assert np.array_equal(f.channels()["Y"].pixels, rec.gt_sigma_m)
+    mm = cv2.imread(str(tmp_path / "fs" / "gt_depth_mm.png"), cv2.IMREAD_UNCHANGED)
+    assert mm.dtype == np.uint16 and np.abs(mm / 1000.0 - rec.gt_m).max() <= 0.0005 + 1e-7
+    sigma = cv2.imread(str(tmp_path / "fs" / "gt_sigma_100um.png"), cv2.IMREAD_UNCHANGED)
+    assert np.abs(sigma / 10000.0 - rec.gt_sigma_m).max() <= 0.00005 + 1e-7
+    assert np.array_equal(cv2.imread(str(tmp_path / "fs" / "rgb.png"))[..., ::-1], rec.rgb)
+    units = json.loads((tmp_path / "fs" / "units.json").read_text())["files"]
+    assert units["gt_depth_m.exr"]["unit"] == "m" and units["gt_depth_mm.png"]["unit"] == "mm"
+    assert units["gt_sigma_100um.png"]["metres_per_unit"] == 0.0001
+    # --format png16 only; --raw: the shard's members as stored, read back by depthgt
+    proc = depthgt("extract", "-d", str(built), "syn", "room_001", "6", str(tmp_path / "png"), "--format", "png16")
+    assert not list((tmp_path / "png").glob("*.exr")) and (tmp_path / "png" / "gt_depth_mm.png").is_file()
+    depthgt("extract", "-d", str(built), "syn", "room_001", "6", str(tmp_path / "raw"), "--raw")
     from depthgt.io import read_exr
 
-    assert read_exr(tmp_path / "fs" / "gt.exr")["Z"].shape == (TINY["resize"],) * 2
+    assert np.array_equal(read_exr(tmp_path / "raw" / "gt.exr")["Z"], rec.gt_m)
     # a folder holding such files is not overwritten without --force; bad folders are named
-    (tmp_path / "fs" / "gt.exr").write_bytes(b"mine")
+    (tmp_path / "fs" / "gt_depth_m.exr").write_bytes(b"mine")
     proc = depthgt("extract", "-d", str(built), "syn", "room_001", "6", str(tmp_path / "fs"), check=False)
-    assert proc.returncode == 2 and "already holds gt.exr" in proc.stderr and "--force" in proc.stderr
-    assert (tmp_path / "fs" / "gt.exr").read_bytes() == b"mine"
+    assert proc.returncode == 2 and "already holds gt_depth_m.exr" in proc.stderr and "--force" in proc.stderr
+    assert (tmp_path / "fs" / "gt_depth_m.exr").read_bytes() == b"mine"
     depthgt("extract", "-d", str(built), "syn", "room_001", "6", str(tmp_path / "fs"), "--force")
-    assert read_exr(tmp_path / "fs" / "gt.exr")["Z"].shape == (TINY["resize"],) * 2
+    assert (tmp_path / "fs" / "gt_depth_m.exr").read_bytes() != b"mine"
     (tmp_path / "afile").write_text("")
     proc = depthgt("extract", "-d", str(built), "syn", "room_001", "6", str(tmp_path / "afile" / "x"), check=False)
     assert proc.returncode == 2 and "afile" in proc.stderr and "Traceback" not in proc.stderr
@@ -126,6 +154,82 @@ def test_extract_writes_the_frame_set_files(built, tmp_path):
     assert proc.returncode == 2 and "holds no build" in proc.stderr
     proc = depthgt("show", "-d", str(built), "syn", "room_000", "6", "--out", str(tmp_path / "p.jpgx"), check=False)
     assert proc.returncode == 2 and "--out" in proc.stderr and "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize(
+    "argv, expected",
+    [
+        (["export", "-d", "wd", "--kind", "frames", "--split", "test", "DEST"], {"dest": "DEST", "split": ["test"]}),
+        (
+            ["export", "DEST", "--split", "test", "--split", "val", "-d", "wd"],
+            {"dest": "DEST", "split": ["test", "val"]},
+        ),
+        (
+            ["rebuild", "-d", "wd", "--configfile", "c.yaml", "synthetic", "room_001"],
+            {"configfile": ["c.yaml"], "dataset": "synthetic", "scene": "room_001"},
+        ),
+        (
+            ["build", "dataset", "--configfile", "a.yaml", "-n", "--configfile", "b.yaml", "framesets"],
+            {"configfile": ["a.yaml", "b.yaml"], "targets": ["dataset", "framesets"], "dry_run": True},
+        ),
+        (["show", "syn", "--out", "p.png", "room_000", "6"], {"scene": "room_000", "target": 6, "out": "p.png"}),
+    ],
+)
+def test_options_and_positionals_in_any_order(argv, expected):
+    from depthgt.cli import parse_args
+
+    args = parse_args(argv)
+    assert {k: getattr(args, k) for k in expected} == expected
+
+
+def test_a_list_option_takes_one_value_and_says_so():
+    proc = depthgt("export", "-d", "wd", "--split", "test", "train", "DEST", check=False)
+    assert proc.returncode == 2
+    assert "unrecognized arguments: DEST" in proc.stderr and "repeat --configfile or --split" in proc.stderr
+
+
+def test_export_with_options_before_the_destination(built, tmp_path):
+    import pandas as pd
+
+    dest = tmp_path / "export"
+    depthgt("export", "-d", str(built), "--kind", "frames", "--split", "test", str(dest))
+    index = pd.read_parquet(dest / "index.parquet")
+    assert set(index["split"]) == {"test"} and len(index) == 1  # the test room's one frame set
+    assert (dest / index["gt"].iloc[0]).is_file()
+
+
+def test_a_directory_built_with_a_configfile_remembers_it(tmp_path):
+    """The issue's trap: a directory built with --configfile, then commands without it.
+    They run with the build's config (nothing new planned, the scene's own shard); a
+    --configfile that changes a key is refused naming it (by depthgt and by a plain
+    Snakemake run) until --reconfigure applies it."""
+    import yaml
+    from conftest import snakemake
+
+    mine = tmp_path / "mine.yaml"
+    mine.write_text(yaml.safe_dump(TINY))
+    wd = tmp_path / "wd"  # no config/config.yaml: the embedded default (20 rooms) is the base
+    index = "results/scenes/syn/room_000/index.json"
+    depthgt("build", "-d", str(wd), "--cores", "1", index, "--configfile", str(mine))
+    assert yaml.safe_load((wd / "results/config/overrides.yaml").read_text()) == TINY
+    from depthgt.buildconfig import merge
+
+    default = yaml.safe_load((REPO / "config/config.yaml").read_text())
+    assert yaml.safe_load((wd / "results/config/config.yaml").read_text()) == merge(default, TINY)  # no defaults added
+    proc = depthgt("build", "-d", str(wd), "-n", index)
+    assert "Nothing to be done" in proc.stdout + proc.stderr
+    proc = depthgt("rebuild", "-d", str(wd), "-n", "--cores", "1", "syn", "room_000")
+    shards = {line.strip() for line in (proc.stdout + proc.stderr).split() if line.endswith(".zip")}
+    assert shards == {"results/framesets/syn/room_000/000006-000007.zip"}, proc.stdout[-3000:]
+    other = tmp_path / "other.yaml"
+    other.write_text("seed: 9\n")
+    proc = depthgt("build", "-d", str(wd), "-n", "--configfile", str(other), index, check=False)
+    assert proc.returncode == 2 and "seed: 3 -> 9" in proc.stderr and "Traceback" not in proc.stderr
+    proc = snakemake(wd, "-n", index, "--configfile", str(other), check=False)
+    said = proc.stdout + proc.stderr
+    assert proc.returncode != 0 and "seed: 3 -> 9" in said and "DEPTHGT_RECONFIGURE=1" in said
+    proc = depthgt("build", "-d", str(wd), "-n", "--reconfigure", "--configfile", str(other), index)
+    assert "scene_index" in proc.stdout  # the seed decides the index: planned again
 
 
 def test_rebuild_runs_only_that_scene(built, tmp_path):
@@ -156,10 +260,28 @@ def test_scene_outputs_matches_whole_folders_only():
     ]
 
 
-def test_report_of_an_unfinished_build_says_what_to_run(built, tmp_path):
-    # the report of a finished build is tested in test_workflow_enhance (it needs training)
-    proc = depthgt("report", "-d", str(built), "--out", str(tmp_path / "r.html"), check=False)
-    assert proc.returncode == 2 and "depthgt build" in proc.stderr
+def test_report_of_a_dataset_only_build_without_pygments(built, tmp_path):
+    """`depthgt report` after the main install (no pygments) on a build without trained
+    models: the summary, the GT-quality table, per source the frame sets to look at first
+    as panels with their commands; --configfile as for build."""
+    out = tmp_path / "r.html"
+    code = "import sys; sys.modules['pygments'] = None; from depthgt.cli import main; sys.exit(main(sys.argv[1:]))"
+    proc = subprocess.run(
+        [sys.executable, "-c", code, "report", "-d", str(built), "--out", str(out)], capture_output=True, text=True
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    page = out.read_text()
+    assert "<h2>Dataset</h2>" in page and "6 frame sets built (train 4, val 1, test 1)" in page
+    assert "<h2>GT quality" in page and "truth@input_valid" in page and "(&#x27;syn&#x27;" not in page
+    assert "Frame sets to look at first" in page and page.count("data:image/png;base64,") >= 3
+    for source in ("syn", "synval", "syntest"):
+        assert f"<h3>{source}</h3>" in page
+    assert f"depthgt extract -d {built} syn room_" in page and f"depthgt rebuild -d {built} syn room_" in page
+    assert "No tables yet" in page
+    seed = tmp_path / "seed.yaml"
+    seed.write_text("seed: 11\n")
+    proc = depthgt("report", "-d", str(built), "--configfile", str(seed), "--out", str(out), check=False)
+    assert proc.returncode == 2 and "seed: 3 -> 11" in proc.stderr
     proc = depthgt("report", "-d", str(tmp_path / "typo"), "--out", str(tmp_path / "r.html"), check=False)
     assert proc.returncode == 2 and "holds no build" in proc.stderr and not (tmp_path / "typo").exists()
 

@@ -225,8 +225,9 @@ def test_failing_added_view_left_out_with_its_reason(window, tmp_path, monkeypat
     """With ``refine``, an added view whose refinement fails the neighbour checks is not
     fused: the GT is the window's, the view is recorded with the registration's reason."""
     from depthgt import registration
+    from depthgt.registration import local
 
-    real = registration.METHODS["refine"]
+    real = local.register_refine  # the entry registration.METHODS["refine"] calls
     calls = []
 
     def refine(data, offsets, settings, **kwargs):
@@ -244,7 +245,7 @@ def test_failing_added_view_left_out_with_its_reason(window, tmp_path, monkeypat
             n_correspondences=[0] * n,
         )
 
-    monkeypatch.setitem(registration.METHODS, "refine", refine)
+    monkeypatch.setattr(local, "register_refine", refine)
     settings = settings_from_config(
         {
             "resize": 64,
@@ -258,7 +259,7 @@ def test_failing_added_view_left_out_with_its_reason(window, tmp_path, monkeypat
     assert len(calls) == 2 and calls[1][0] == 0 and calls[1][1:] == [v["offset"] for v in added]
     assert added and all(v["status"] == "failed" and v["reason"] == "residual 9.0 noise sigmas > 3" for v in added)
     assert "filled_px" not in doc["coverage"] and poses["coverage_T_j_to_t"] == {}
-    monkeypatch.setitem(registration.METHODS, "refine", real)
+    monkeypatch.setattr(local, "register_refine", real)
     settings_w = settings_from_config({"resize": 64, "patches": {"size": 32}, "registration": {"method": "refine"}})
     _, gt_w, _ = _build(tmp_path, "fail_w", settings_w)
     for ch in ("Z", "S"):
@@ -281,8 +282,10 @@ def test_selection_parts():
     assert torch.equal(fill[0].reshape(8, 8), empty)
     depth[0, 0, 2, 3] = 0  # invalid depth fills nothing
     assert int(fill_maps(depth, K, T[:1], empty).sum()) == 5
-    with pytest.raises(ValueError, match=r"\(C, 4, 4\)"):
+    with pytest.raises(ValueError, match=r"T_c_to_t must be \(C=1, 4, 4\), got \(2, 4, 4\)"):
         fill_maps(depth, K, T, empty)
+    with pytest.raises(ValueError, match=r"K \(the frame set's one camera\) must be \(3, 3\), got \(1, 3, 3\)"):
+        fill_maps(depth, K[None], T[:1], empty)
     assert choose_views(torch.zeros(3, 5, dtype=torch.bool), 2, 1) == []
 
 
@@ -309,9 +312,9 @@ def test_batch_job_adds_views_of_the_targets_split_reading_each_frame_once(tmp_p
     recorded in each frame set's frameset.json and their frames in batch.json; with
     ``overfit`` (the core's poses from the scene here) the views come from the chain."""
     if method == "overfit":
-        from depthgt import registration
+        from depthgt.registration import overfit
 
-        monkeypatch.setitem(registration.METHODS, "overfit", _true_overfit)
+        monkeypatch.setattr(overfit, "register_overfit", _true_overfit)
     source = {
         "name": "syn",
         "kind": "synthetic",
@@ -395,9 +398,9 @@ def test_overfit_chains_the_added_views_through_the_core(window, tmp_path, monke
     """Without the source's poses (``overfit``) the candidates' poses come from a chain
     through the core's members: the chained poses match the scene's, the added views
     fill the shadow as with ``given`` poses, and the core's pixels stay the window's."""
-    from depthgt import registration
+    from depthgt.registration import overfit
 
-    monkeypatch.setitem(registration.METHODS, "overfit", _true_overfit)
+    monkeypatch.setattr(overfit, "register_overfit", _true_overfit)
     _, gt_w, _ = window
     doc, gt, poses = _build(tmp_path, "ofc", _overfit_settings(coverage_max_angle_deg=20.0))
     cov = doc["coverage"]
@@ -427,10 +430,10 @@ def test_overfit_chains_the_added_views_through_the_core(window, tmp_path, monke
 def test_overfit_chain_stops_at_a_failing_link(tmp_path, monkeypatch):
     """A link that fails its checks ends the chain on its side: nothing beyond it is
     chosen or fused, and the record says where and why."""
-    from depthgt import registration
     from depthgt.gt import coverage
+    from depthgt.registration import overfit
 
-    monkeypatch.setitem(registration.METHODS, "overfit", _true_overfit)
+    monkeypatch.setattr(overfit, "register_overfit", _true_overfit)
     real = coverage.refine_source_poses
 
     def refine(rgb, depth_m, K, offsets, T_start, settings):

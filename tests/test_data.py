@@ -302,7 +302,20 @@ def test_export_command(built, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "depthgt.cli", "-h"], capture_output=True, text=True)
     assert "export" in proc.stdout and "verify" in proc.stdout
     dest = tmp_path / "cli"
-    args = ["export", str(dest), "-d", str(built), "--split", "val", "test", "--kind", "frames", "--workers", "2"]
+    args = [
+        "export",
+        str(dest),
+        "-d",
+        str(built),
+        "--split",
+        "val",
+        "--split",
+        "test",
+        "--kind",
+        "frames",
+        "--workers",
+        "2",
+    ]
     assert cli_main(args) == 0
     index = pd.read_csv(dest / "index.csv")
     assert list(index["split"].unique()) == ["val", "test"] and (index["patch"] == -1).all()
@@ -405,6 +418,11 @@ def test_verify_names_the_changed_shard(built, tmp_path, capsys):
     capsys.readouterr()
     assert cli_main(["verify", str(wd)]) == 1
     assert f"FAILED {shard}: sha256 differs" in capsys.readouterr().out
+    # newer than the card: a scene rebuilt and the dataset not assembled again reads as such
+    assert "run `depthgt build dataset` to assemble the dataset and its card again" in report.problems[0]
+    card = wd / "results/dataset/card.json"
+    os.utime(shard, ns=(card.stat().st_mtime_ns - 10**9,) * 2)
+    assert verify(wd).problems[0].endswith("sha256 differs from the card " + f"{card} (changed or corrupt)")
     with pytest.raises(DepthGTError, match="holds no dataset card"):
         verify(tmp_path / "nothing")
     env = dict(os.environ)

@@ -82,7 +82,7 @@ def test_push_pull_fill_keeps_valid_pixels_and_odd_sizes():
     d2[holes] = 0.0
     f2 = push_pull_fill(d2, d2 > 0)
     assert torch.equal(f2[~holes], d2[~holes]) and (f2[holes] >= 1.0).all() and (f2[holes] <= 2.0).all()
-    with pytest.raises(ValueError, match="valid shape"):
+    with pytest.raises(ValueError, match=r"valid must be \(B=2, 1, H=9, W=7\), got \(1, 1, 9, 7\)"):
         push_pull_fill(d2, holes[:1])
 
 

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from conftest import in_background, make_workdir
+from conftest import commands_in_background, depthgt_command, early, make_workdir
 
 from depthgt.errors import FrameError
 from depthgt.gt import store
@@ -100,11 +100,21 @@ def _export_scannet(root, n_frames=12):
     return scene
 
 
-def _bad_frames_build(tmp_path: Path):
-    """A ScanNet export with a truncated JPEG (frame 5) and a non-finite pose (frame 8), built to ``dataset`` (conftest.EarlyRuns)."""
-    scene = _export_scannet(tmp_path / "data")
+def corrupt_png(path: Path) -> None:
+    """Flip a byte of a PNG's image data: libpng fails on it and prints its own message."""
+    data = bytearray(path.read_bytes())
+    data[data.find(b"IDAT") + 10] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+@early()
+def bad_frames_build(folder: Path):
+    """A ScanNet export with a truncated JPEG (frame 5), a corrupt depth PNG (frame 6) and
+    a non-finite pose (frame 8), built to ``dataset`` by ``depthgt build`` (an early run)."""
+    scene = _export_scannet(folder / "data")
     jpg = scene / "color" / "5.jpg"
     jpg.write_bytes(jpg.read_bytes()[:-200])
+    corrupt_png(scene / "depth" / "6.png")
     np.savetxt(scene / "pose" / "8.txt", np.full((4, 4), np.nan))
     config = dict(
         SMALL,
@@ -112,18 +122,20 @@ def _bad_frames_build(tmp_path: Path):
             {"name": "scan", "kind": "scannet", "root": str(scene.parent), "scenes": ["scene0000_00"], "split": "train"}
         ],
     )
-    return in_background(make_workdir(tmp_path / "wd", config), "dataset")
+    wd = make_workdir(folder / "wd", config)
+    run = commands_in_background([depthgt_command("build", "-d", str(wd), "--cores", "2", "dataset")])
+    return lambda: (wd, run()[0])
 
 
-EARLY_RUNS = {"test_a_bad_frame_found_by_the_batches_is_recorded": _bad_frames_build}  # conftest.EarlyRuns
-
-
-def test_a_bad_frame_found_by_the_batches_is_recorded(early_run):
+def test_a_bad_frame_found_by_the_batches_is_recorded(bad_frames_build):
     """A truncated JPEG (frame 5) and a non-finite pose (frame 8, registration given)
     are found by the batches that read them: batches of 4 targets overlap, so frame 5 is
     read by two of them and listed once; each frame set holding one is skipped with the
-    frame's reason and file, in frames.parquet and in the dataset summary."""
-    wd = early_run
+    frame's reason and file, in frames.parquet and in the dataset summary. A corrupt depth
+    PNG (frame 6) is named with libpng's own words; the console shows depthgt's sentences
+    naming the files (never a bare libpng message) and ends with the build's summary."""
+    wd, proc = bad_frames_build
+    assert proc.returncode == 0, proc.stderr[-4000:]
     sdir = wd / "results/scenes/scan/scene0000_00"
     index = pd.read_parquet(sdir / "index.parquet")
     assert set(index.loc[index["is_target"], "frameset_status"]) == {"planned"}  # the index did not know
@@ -135,8 +147,9 @@ def test_a_bad_frame_found_by_the_batches_is_recorded(early_run):
     frames = pd.read_parquet(sdir / "frames.parquet").set_index("position")
     assert list(frames.index) == list(range(12))
     bad = frames[~frames["valid"]]
-    assert list(bad.index) == [5, 8] and list(bad["reason"]) == ["unreadable", "nonfinite_pose"]
+    assert list(bad.index) == [5, 6, 8] and list(bad["reason"]) == ["unreadable", "unreadable", "nonfinite_pose"]
     assert "scene0000_00/color/5.jpg: truncated JPEG" in bad.loc[5, "message"]
+    assert "scene0000_00/depth/6.png: cannot decode PNG image (libpng error: IDAT:" in bad.loc[6, "message"]
     assert "scene0000_00 frame 8: pose is not a finite" in bad.loc[8, "message"]
 
     fs = pd.read_parquet(wd / "results/dataset/framesets.parquet").set_index("target")
@@ -151,25 +164,40 @@ def test_a_bad_frame_found_by_the_batches_is_recorded(early_run):
     assert summary["frames_read"] == 12
     assert [(f["position"], f["frame_id"], f["reason"]) for f in summary["frames_skipped"]] == [
         (5, "5", "unreadable"),
+        (6, "6", "unreadable"),
         (8, "8", "nonfinite_pose"),
     ]
     assert [r["target"] for r in summary["framesets_skipped"]] == [4, 5, 6, 7, 8, 9]
     md = (wd / "results/dataset/summary.md").read_text()
-    assert "unusable (skipped): 2. Frame sets skipped: 6." in md
+    assert "unusable (skipped): 3. Frame sets skipped: 6." in md
     # each frame's file or name and problem: in its row of the frames, and in each frame set it made skip
     assert (
         md.count("color/5.jpg: truncated JPEG") == 1 + 3
         and md.count("scene0000_00 frame 8: pose is not a finite") == 1 + 3
     )
+    # the console: each skipped frame set in depthgt's words, no bare library message, then the summary
+    console = proc.stderr
+    assert not [line for line in console.splitlines() if line.startswith("libpng")], console[-4000:]
+    assert "depthgt: warning: frame set scan/scene0000_00/000007 skipped: frame 6: unreadable" in console
+    assert "depth/6.png: cannot decode PNG image (libpng error: IDAT:" in console
+    assert "depthgt: 4 frame sets built (train 4, val 0, test 0), 6 skipped; 3 of 12 frames read unusable" in console, (
+        console[-4000:]
+    )
+    assert (
+        "depthgt:   4 frame sets skipped for an unusable frame (unreadable), e.g. scan/scene0000_00/000004: "
+        "frame 5: unreadable (" in console
+    )
+    assert "depthgt:   2 frame sets skipped for an unusable frame (nonfinite_pose)" in console
+    assert f"depthgt: every skipped frame and frame set with its reason: {wd / 'results/dataset/summary.md'}" in console
 
 
 def test_pretraining_skips_a_frame_set_with_an_unusable_frame(tmp_path, monkeypatch, caplog):
     """A drawn frame set holding an unreadable frame is skipped with a warning and the
     first spare of the draw replaces it; pretraining gets the usable sets it asked for."""
     from depthgt import registration
-    from depthgt.gt.build import load_frameset
     from depthgt.gt.index import select_pretraining_framesets
     from depthgt.jobs.gt import run_pretrain_registration, run_scene_index
+    from depthgt.registration import load_frameset
 
     config = dict(SMALL, registration={"method": "overfit", "preset": "fast", "pretrain": {"framesets": 3}})
     index_json = tmp_path / "index.json"

@@ -12,8 +12,9 @@ import pytest
 import torch
 
 from depthgt.eval.metrics import depth_errors
-from depthgt.gt.build import fuse, load_frameset, poses_from_source
+from depthgt.gt.render import fuse
 from depthgt.jobs.common import open_source_scene
+from depthgt.registration import load_frameset, poses_from_source
 from depthgt.settings import FrameSetSettings, RenderSettings
 
 
@@ -33,7 +34,7 @@ def framesets():
 @pytest.fixture(scope="module")
 def rendered(framesets):
     """The default GT of every frame set (GTRender), rendered once for the module."""
-    return [fuse(data, T, RenderSettings()) for data, T in framesets]
+    return [fuse(data, T, RenderSettings()).gt for data, T in framesets]
 
 
 def test_gt_beats_input_against_truth(framesets, rendered):
@@ -55,7 +56,7 @@ def test_gt_beats_input_against_truth(framesets, rendered):
 def test_leave_target_out_uses_neighbours_only(framesets, rendered):
     data, T = framesets[0]
     full = rendered[0].depth[0, 0].numpy()
-    lto = fuse(data, T, RenderSettings(), members=slice(1, None)).depth[0, 0].numpy()
+    lto = fuse(data, T, RenderSettings(), members=slice(1, None)).gt.depth[0, 0].numpy()
     truth = data.truth_m[0, 0].numpy()
     s = depth_errors(lto, truth)
     assert s["completeness"] > 0.9 and s["mae_m"] < 0.01
@@ -72,11 +73,11 @@ def test_leave_target_out_beside_the_gt_is_the_same_render(framesets, members):
     data, T = framesets[1]
     st = RenderSettings(leave_target_out_stride=1)
     both = fuse(data, T, st, members=members, leave_target_out=True)
-    alone = fuse(data, T, st, members=slice(1, None) if isinstance(members, slice) else members[1:])
+    alone = fuse(data, T, st, members=slice(1, None) if isinstance(members, slice) else members[1:]).gt
     gt = fuse(data, T, st, members=members)
     assert both.left_out is not None and gt.left_out is None
-    for a, b in ((both, gt), (both.left_out, alone)):
-        for name in ("depth", "weight_sum", "count", "sigma")[: 4 if a is both else 3]:
+    for a, b in ((both.gt, gt.gt), (both.left_out, alone)):
+        for name in ("depth", "weight_sum", "count", "sigma")[: 4 if a is both.gt else 3]:
             assert torch.equal(getattr(a, name), getattr(b, name)), name
     assert not both.left_out.sigma.any()
     capped = replace(st, max_sigma_m=0.004)  # sigma decides which pixels stay: estimated, and the same
@@ -85,7 +86,7 @@ def test_leave_target_out_beside_the_gt_is_the_same_render(framesets, members):
         for m, lto in ((members, True), (slice(1, None) if isinstance(members, slice) else members[1:], False))
     )
     for name in ("depth", "sigma"):
-        assert torch.equal(getattr(c_both.left_out, name), getattr(c_alone, name)), name
+        assert torch.equal(getattr(c_both.left_out, name), getattr(c_alone.gt, name)), name
     assert c_both.left_out.sigma.any() and (c_both.left_out.depth > 0).sum() < (both.left_out.depth > 0).sum()
     assert (both.left_out.depth > 0).float().mean() > 0.8
     # without neighbours there is nothing to leave the target out of
@@ -120,17 +121,17 @@ def test_confidence_tracks_actual_error(framesets, rendered):
     data, T = framesets[0]
     thr = float(np.quantile(s, 0.8))
     full = rendered[0].depth[0, 0].numpy()
-    cut = fuse(data, T, RenderSettings(max_sigma_m=thr))
+    cut = fuse(data, T, RenderSettings(max_sigma_m=thr)).gt
     assert 0 < (cut.depth[0, 0].numpy() > 0).sum() < (full > 0).sum()
     assert (cut.sigma[0, 0].numpy()[cut.depth[0, 0].numpy() > 0] <= thr).all()
 
 
 def test_gt_reuses_the_refinements_normals_unchanged(framesets):
     """The refinement's full-resolution normals (kornia's, of the same depth) go on to the
-    renderer instead of being computed again when every member is fused: the GT and the
-    leave-target-out render are bit for bit those of the renderer's own normals (for a
-    subset the renderer computes its own: a smaller batch rounds differently)."""
-    from depthgt.gt.build import align
+    renderer instead of being computed again: the GT and the leave-target-out render
+    are bit for bit those of the renderer's own normals, for every member or a subset
+    (the normals of all members are computed together either way)."""
+    from depthgt.registration import align
     from depthgt.settings import registration_settings
 
     data, _ = framesets[0]
@@ -148,14 +149,14 @@ def test_gt_reuses_the_refinements_normals_unchanged(framesets):
         )
         own = fuse(data, alignment.T_j_to_t, RenderSettings(), members=members, leave_target_out=True)
         for name in ("depth", "weight_sum", "count", "sigma"):
-            assert torch.equal(getattr(reused, name), getattr(own, name)), name
+            assert torch.equal(getattr(reused.gt, name), getattr(own.gt, name)), name
         assert torch.equal(reused.left_out.depth, own.left_out.depth)
-        # they are what the renderer uses (all members), or ignored (a subset): zero normals
-        # (no plane correction) change the GT only where they are used
+        # they are what the renderer uses: zero normals (no plane correction) change the GT
         zero = fuse(
             data, alignment.T_j_to_t, RenderSettings(), members=members, normals=torch.zeros_like(alignment.normals)
         )
-        assert torch.equal(zero.depth, own.depth) == isinstance(members, list)
+        assert not torch.equal(zero.gt.depth, own.gt.depth)
     # normals that do not match the depth are not used (a depth other than the raw one)
     other = fuse(data, alignment.T_j_to_t, RenderSettings(), depth_m=data.depth_m * 1.01, normals=alignment.normals)
-    assert torch.equal(other.depth, fuse(data, alignment.T_j_to_t, RenderSettings(), depth_m=data.depth_m * 1.01).depth)
+    alone = fuse(data, alignment.T_j_to_t, RenderSettings(), depth_m=data.depth_m * 1.01)
+    assert torch.equal(other.gt.depth, alone.gt.depth)

@@ -63,9 +63,9 @@ def test_rgb_errors(tmp_path):
     with pytest.raises(FrameError, match="bad.jpg") as e:
         read_rgb(tmp_path / "bad.jpg")
     assert e.value.reason == "unreadable"
-    with pytest.raises(ValueError, match=r"\(H, W, 3\) uint8"):
+    with pytest.raises(ValueError, match=r"rgb must be \(H, W, 3\), got \(4, 4\)"):
         write_rgb_png(tmp_path / "x.png", np.zeros((4, 4), np.uint8))
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"\(H, W, 3\) uint8, got float32"):
         write_rgb_png(tmp_path / "x.png", np.zeros((4, 4, 3), np.float32))
 
 

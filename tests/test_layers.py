@@ -1,4 +1,4 @@
-"""The stages import downwards only (DESIGN.md "Layers"), imports inside functions counted.
+"""The stages import downwards only (docs/development.md "Layers"), imports inside functions counted.
 
 Every ``import``/``from ... import`` of ``depthgt`` anywhere in ``src/depthgt`` (module
 level, inside functions, under ``TYPE_CHECKING``) is read from the source with ``ast``
@@ -8,10 +8,17 @@ level, inside functions, under ``TYPE_CHECKING``) is read from the source with `
 * leaves: the top-level modules (errors, io, geometry, atomic, device, registry,
   status, the metric vocabulary, the depth operators, ...) import only leaves;
 * sources/synth: the adapters and the synthetic scenes read no settings;
-* settings: builds every stage's settings and checks each source's options through
-  the adapters' protocol (``sources.base.check_options``), so it sits above them;
+* settings: every stage's settings module, wherever it sits (``gt/render/settings.py``,
+  ``registration/settings.py``, ...: :data:`SETTINGS_MODULES`), the registry of
+  registration methods they check names against, and the builder ``depthgt.settings``
+  that imports them all. They are one unit: torch-free, importing only leaves,
+  sources/synth (``sources.base.check_options``) and each other, so that the builder
+  and any stage may import them;
 * registration -> gt -> data (the torch Dataset over the manifests) -> enhance -> eval
   -> jobs/cli.
+
+Within a unit no two modules import each other, directly or through others
+(:func:`module_cycle`).
 
 A unit (a top-level module, or a subpackage such as ``depthgt.gt``) may import units of
 its own layer or lower, and the graph of units has no cycle. Edges that still point
@@ -26,6 +33,11 @@ from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 PACKAGE = SRC / "depthgt"
+
+#: Modules of the settings layer besides every module named ``settings`` (a stage's
+#: settings beside the stage): the registration methods' registry, whose names and
+#: properties the registration settings ask.
+SETTINGS_MODULES = frozenset({"depthgt.registration.methods"})
 
 # units by layer, lowest first; a top-level module not named here is a leaf
 LAYERS: tuple[tuple[str, frozenset[str]], ...] = (
@@ -83,7 +95,10 @@ def internal_imports(path: Path, name: str | None = None) -> list[tuple[str, int
 
 
 def unit_of(module: str) -> str:
-    """The top-level module or the subpackage a module belongs to."""
+    """The top-level module or the subpackage a module belongs to; every module of the
+    settings layer belongs to ``depthgt.settings``."""
+    if module.rsplit(".", 1)[-1] == "settings" or module in SETTINGS_MODULES:
+        return "depthgt.settings"
     parts = module.split(".")
     return ".".join(parts[:2]) if len(parts) > 1 else module
 
@@ -155,10 +170,13 @@ def test_every_module_has_a_layer():
 def test_stages_import_downwards_only():
     found = upward(all_edges())
     new = {edge: where for edge, where in found.items() if edge not in KNOWN_VIOLATIONS}
-    assert not new, 'upward imports (DESIGN.md "Layers"; move the shared part to a leaf below both):\n' + "\n".join(
-        f"{', '.join(where)}: {src} ({LAYERS[layer_of(unit_of(src))][0]}) imports {dst} "
-        f"({LAYERS[layer_of(unit_of(dst))][0]})"
-        for (src, dst), where in sorted(new.items())
+    assert not new, (
+        'upward imports (docs/development.md "Layers"; move the shared part to a leaf below both):\n'
+        + "\n".join(
+            f"{', '.join(where)}: {src} ({LAYERS[layer_of(unit_of(src))][0]}) imports {dst} "
+            f"({LAYERS[layer_of(unit_of(dst))][0]})"
+            for (src, dst), where in sorted(new.items())
+        )
     )
 
 
@@ -171,6 +189,50 @@ def test_known_violations_are_still_there():
 def test_no_cycle_between_packages():
     found = cycle(all_edges())
     assert found is None, "import cycle between units: " + " -> ".join(found)
+
+
+def module_cycle(edges) -> list[str] | None:
+    """A cycle in the graph of modules (imports at any depth, ``TYPE_CHECKING`` ones
+    included), or None: two modules of one package that import each other, directly or
+    through others, hold a circle open even where a function-level import lets it load."""
+    graph: dict[str, set[str]] = {}
+    for src, dst, _ in edges:
+        if src != dst:
+            graph.setdefault(src, set()).add(dst)
+    state: dict[str, int] = {}
+    path: list[str] = []
+
+    def visit(u: str) -> list[str] | None:
+        state[u] = 1
+        path.append(u)
+        for v in sorted(graph.get(u, ())):
+            if state.get(v) == 1:
+                return path[path.index(v) :] + [v]
+            if v not in state and (found := visit(v)):
+                return found
+        path.pop()
+        state[u] = 2
+        return None
+
+    for u in sorted(graph):
+        if u not in state and (found := visit(u)):
+            return found
+    return None
+
+
+def test_no_cycle_between_modules():
+    found = module_cycle(all_edges())
+    assert found is None, "import cycle between modules: " + " -> ".join(found)
+
+
+def test_the_module_cycle_check_sees_a_circle_inside_a_package(tmp_path):
+    a, b = tmp_path / "a.py", tmp_path / "b.py"
+    a.write_text("from depthgt.gt import coverage\n")
+    b.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from depthgt.gt.build import x\n")
+    edges = [("depthgt.gt.build", dst, f"a.py:{line}") for dst, line in internal_imports(a, "depthgt.gt.build")]
+    edges += [("depthgt.gt.coverage", dst, f"b.py:{line}") for dst, line in internal_imports(b, "depthgt.gt.coverage")]
+    assert cycle(edges) is None  # one unit: the package check does not see it
+    assert module_cycle(edges) == ["depthgt.gt.build", "depthgt.gt.coverage", "depthgt.gt.build"]
 
 
 def test_the_checker_sees_imports_inside_functions(tmp_path):

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from depthgt.eval.evaluate import evaluate_frames
-from depthgt.gt.build import FrameSetOutputs, fuse, load_frameset, process_frameset
+from depthgt.gt.build import FrameSetOutputs, process_frameset
 from depthgt.gt.cache import ResizedScene
 from depthgt.gt.references import (
     fused_neighbours,
@@ -23,8 +23,10 @@ from depthgt.gt.references import (
     reference_key,
     scene_references,
 )
+from depthgt.gt.render import fuse
 from depthgt.jobs.common import open_source_scene
 from depthgt.metric_vocabulary import depth_errors
+from depthgt.registration import load_frameset
 from depthgt.settings import FrameSetSettings, settings_from_config
 
 FIXTURE = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"

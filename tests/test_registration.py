@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from depthgt.errors import ConfigError
 from depthgt.eval.metrics import pose_errors
 from depthgt.registration.correspondences import find_correspondences, sample_candidates
 from depthgt.registration.encoder import build_encoder, candidate_points
@@ -582,7 +583,7 @@ def test_refine_source_poses_ends_closer_to_the_truth():
 def test_align_refine_uses_source_poses_and_photometric_rule():
     """``align`` with method refine starts from the source's poses; the photometric term
     is left out for a source whose colour is not the depth's camera at its instant."""
-    from depthgt.gt.build import FrameSetData, align, photometric_for
+    from depthgt.registration import FrameSetData, align, photometric_for
 
     offsets = [0, -2, 2]
     rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64), seed=4)
@@ -618,23 +619,32 @@ def test_align_refine_uses_source_poses_and_photometric_rule():
 
 
 def test_every_method_is_one_entry_of_the_table(monkeypatch):
-    """The methods share one signature and are picked from registration.METHODS by the
-    config's name: the table, the settings' names and the schema's enum agree; ``align``
-    calls the entry with the frame set, its offsets, the settings, the seed and the
-    encoder state, and applies ``on_failure`` to what it returns; ``given`` is the
-    source's poses, every neighbour ok, nothing estimated (poses.json records the method
-    alone)."""
-    import yaml
+    """The methods share one signature and are entries of registration.METHODS by the
+    config's name, each with what it needs (the source's poses, the pretrained encoder)
+    and costs; ``align`` calls the entry with the frame set, its offsets, the settings,
+    the seed and the encoder state, and applies ``on_failure`` to what it returns;
+    ``given`` is the source's poses, every neighbour ok, nothing estimated (poses.json
+    records the method alone)."""
+    import importlib
 
     from depthgt import registration
     from depthgt.errors import FrameError
-    from depthgt.gt.build import FrameSetData, align
+    from depthgt.registration import FrameSetData, align, overfit
+    from depthgt.registration.methods import RegistrationMethod
     from depthgt.registration.result import RegistrationResult
-    from depthgt.settings import REGISTRATION_METHODS
 
-    schema = yaml.safe_load((Path(__file__).resolve().parents[1] / "workflow/schemas/config.schema.yaml").read_text())
-    assert tuple(registration.METHODS) == REGISTRATION_METHODS
-    assert tuple(schema["properties"]["registration"]["properties"]["method"]["enum"]) == REGISTRATION_METHODS
+    assert all(isinstance(m, RegistrationMethod) and m.name == name for name, m in registration.METHODS.items())
+    for m in registration.METHODS.values():
+        module, function = m.register.split(":")
+        assert callable(getattr(importlib.import_module(module), function)), m
+        assert set(m.preset_cost) <= set(REGISTRATION_PRESETS), m
+    given_, refine_, overfit_ = (registration.METHODS[n] for n in ("given", "refine", "overfit"))
+    assert given_.uses_source_poses and refine_.uses_source_poses and not overfit_.uses_source_poses
+    assert overfit_.pretrained_encoder and not given_.pretrained_encoder and not refine_.pretrained_encoder
+    assert overfit_.job_cost("paper").mem_mb > overfit_.job_cost("fast").mem_mb == given_.job_cost("paper").mem_mb
+    assert RegistrationSettings(method="overfit").uses_source_poses is False
+    with pytest.raises(ConfigError, match=r"registration.method: must be one of given, refine, .*got 'no_such'"):
+        RegistrationSettings(method="no_such")
     offsets = [0, -2, 2]
     gen = torch.Generator().manual_seed(0)
     T_world = torch.stack([_random_T(gen, 5.0, 0.1) for _ in offsets])
@@ -663,7 +673,7 @@ def test_every_method_is_one_entry_of_the_table(monkeypatch):
             given.T_j_to_t, list(offsets), ["failed", "ok"], ["pose_jump", ""], "ok", "", [], [], [1, 2]
         )
 
-    monkeypatch.setitem(registration.METHODS, "overfit", fake)
+    monkeypatch.setattr(overfit, "register_overfit", fake)
     settings = RegistrationSettings(method="overfit", on_failure="exclude")
     al = align(data, offsets, settings, seed=7, encoder_state={"w": 1})
     assert calls == [(offsets, "overfit", 7, {"w": 1})]

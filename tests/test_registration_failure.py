@@ -13,9 +13,11 @@ import torch
 import depthgt.registration as registration
 from depthgt.errors import ConfigError
 from depthgt.gt import store
-from depthgt.gt.build import FrameSetOutputs, fuse, load_frameset, poses_from_source, process_frameset
+from depthgt.gt.build import FrameSetOutputs, process_frameset
+from depthgt.gt.render import fuse
 from depthgt.io import read_exr
 from depthgt.jobs.common import open_source_scene
+from depthgt.registration import load_frameset, poses_from_source
 from depthgt.registration.result import RegistrationResult
 from depthgt.settings import FrameSetSettings, settings_from_config
 
@@ -62,7 +64,7 @@ def _fake_registration(T_true: torch.Tensor, bad: set[int]):
 @pytest.mark.parametrize("on_failure", ["drop_neighbours", "exclude"])
 def test_failed_neighbours_are_dropped_or_the_set_excluded(scene_and_truth, tmp_path, monkeypatch, on_failure):
     scene, members, data, T_true = scene_and_truth
-    monkeypatch.setitem(registration.METHODS, "overfit", _fake_registration(T_true, {-6, 6}))
+    monkeypatch.setattr(registration.overfit, "register_overfit", _fake_registration(T_true, {-6, 6}))
     settings = settings_from_config(
         {"device": "cpu", "registration": {"method": "overfit", "preset": "fast", "on_failure": on_failure}}
     )
@@ -72,14 +74,14 @@ def test_failed_neighbours_are_dropped_or_the_set_excluded(scene_and_truth, tmp_
     assert doc["statistics"]["neighbours_fused"] == 4
     gt = read_exr(tmp_path / "gt.exr")["Z"]
     keep = [0, 2, 3, 4, 5]  # positions of offsets 0, -4, -2, 2, 4
-    expected = fuse(data, T_true, settings.render, members=keep).depth[0, 0].numpy()
+    expected = fuse(data, T_true, settings.render, members=keep).gt.depth[0, 0].numpy()
     np.testing.assert_allclose(gt, expected, atol=1e-6 + 0.5 / store.GT_UNITS["Z"])  # stored on the GT's grid
     T_bad = _fake_registration(T_true, {-6, 6})(None, [0, -6, -4, -2, 2, 4, 6], None).T_j_to_t
     no_check = replace(settings.render, min_frame_agreement=0.0, min_whole_frame_agreement=0.0)
-    with_bad = fuse(data, T_bad, no_check).depth[0, 0].numpy()
+    with_bad = fuse(data, T_bad, no_check).gt.depth[0, 0].numpy()
     assert np.abs(with_bad - gt).max() > 0.1  # the moved neighbours would have shown in the GT
     # (the renderer's own frame-agreement check also leaves such neighbours out)
-    assert (fuse(data, T_bad, settings.render).agreement[0, [1, 6]] < settings.render.min_frame_agreement).all()
+    assert (fuse(data, T_bad, settings.render).gt.agreement[0, [1, 6]] < settings.render.min_frame_agreement).all()
     if on_failure == "exclude":
         assert doc["status"] == "failed" and "-6" in doc["reason"] and "+6" in doc["reason"]
     else:

@@ -1,15 +1,15 @@
 """The registry of methods and models agrees with the baselines, the training, the
-tables, the settings and the config schema (adding a method = one entry + its function)."""
+tables and the settings (adding a method = one entry + its function)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import pytest
-import yaml
 
 from depthgt import registry
 from depthgt.enhance.baselines import BASELINES
+from depthgt.errors import ConfigError
 from depthgt.eval import tables
 from depthgt.settings import EvaluationSettings, settings_from_config
 
@@ -38,13 +38,14 @@ def test_tables_and_settings_take_names_from_the_registry():
     assert EvaluationSettings().methods == tuple(registry.METHODS)
 
 
-def test_schema_has_no_copy_of_the_method_names():
-    schema = yaml.safe_load((REPO / "workflow/schemas/config.schema.yaml").read_text())
-    methods = schema["properties"]["evaluation"]["properties"]["methods"]
-    assert "enum" not in methods["items"] and "default" not in methods
-    models = schema["properties"]["enhance"]["properties"]["models"]
-    assert "properties" not in models  # per-model entries are checked against the registry by the settings
+def test_the_settings_take_method_and_model_names_from_the_registry():
+    """No copy of the names: evaluation.methods and the enhance.models entries are
+    checked against the registry (tests/test_settings.py: no config schema beside it)."""
     assert set(settings_from_config({}).enhance.models) == set(registry.learned())
+    with pytest.raises(ConfigError, match="evaluation.methods: unknown method"):
+        settings_from_config({"evaluation": {"methods": ["input", "bilateral"]}})
+    with pytest.raises(ConfigError, match="unknown config key.*enhance.models.unet"):
+        settings_from_config({"enhance": {"models": {"unet": {}}}})
 
 
 @pytest.mark.parametrize("name", list(registry.MODELS))

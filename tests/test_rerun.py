@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from conftest import digest_outputs, in_background, make_workdir, snakemake, synthetic_source
+from conftest import digest_outputs, early, in_background, make_workdir, snakemake, synthetic_source
 
 SMALL = {
     "seed": 2,
@@ -49,7 +49,7 @@ def copy_build(built: Path, dest: Path) -> Path:
 def test_staged_targets_run_each_job_once(small_framesets, tmp_path):
     wd = copy_build(small_framesets, tmp_path / "staged")
     # the dataset needs no index, frame set or summary job again (the frame cache is gone)
-    assert planned_jobs(wd, "dataset") == {"dataset": 1}
+    assert planned_jobs(wd, "dataset") == {"training_manifests": 1, "dataset": 1}
     snakemake(wd, "dataset")
     assert planned_jobs(wd, "dataset") == {}
     # nor does the RDE GT (it reads the source, not the temporary frame cache)
@@ -75,15 +75,30 @@ def test_a_registration_setting_reruns_frame_sets_not_the_index(small_framesets,
     assert jobs.get("frameset_batch") == 1 and "scene_index" not in jobs, jobs
 
 
-def _one_per_batch_build(tmp_path: Path):
-    """SMALL with ``batch_size: 1``, built to ``framesets`` (conftest.EarlyRuns)."""
+def test_a_test_source_added_to_a_finished_dataset_leaves_the_training_manifests(small_framesets, tmp_path):
+    """New test data (a `split: test` source) runs its frame sets and the dataset again,
+    not the job that writes the train and val manifests the trainings read (issue 42)."""
+    wd = copy_build(small_framesets, tmp_path / "test-added")
+    snakemake(wd, "dataset")
+    train = wd / "results/dataset/train.parquet"
+    before = train.stat().st_mtime_ns
+    bigger = dict(SMALL, sources=[*SMALL["sources"], synthetic_source("mine", ["room_001"], "test", 14, 160, 120)])
+    make_workdir_config(wd, bigger)
+    jobs = planned_jobs(wd, "dataset")
+    assert jobs == {"scene_index": 1, "frameset_batch": 1, "scene_summary": 1, "dataset": 1}, jobs
+    assert "training_manifests" not in planned_jobs(wd, "train") and train.stat().st_mtime_ns == before
+
+
+@early()
+def one_per_batch_build(folder: Path):
+    """SMALL with ``batch_size: 1``, built to ``framesets`` (an early run)."""
     return in_background(
-        make_workdir(tmp_path / "one", dict(SMALL, frameset=dict(SMALL["frameset"], batch_size=1))), "framesets"
+        make_workdir(folder / "one", dict(SMALL, frameset=dict(SMALL["frameset"], batch_size=1))), "framesets"
     )
 
 
-def test_batch_size_changes_the_files_not_the_frame_sets(small_framesets, early_run):
-    one = early_run
+def test_batch_size_changes_the_files_not_the_frame_sets(small_framesets, one_per_batch_build):
+    one = one_per_batch_build
     many = small_framesets  # the default batch size
     shards_one = sorted(p.name for p in (one / "results/framesets/syn/room_000").glob("*.zip"))
     shards_many = sorted(p.name for p in (many / "results/framesets/syn/room_000").glob("*.zip"))
@@ -105,8 +120,9 @@ def make_workdir_config(wd, config):
     (wd / "config" / "config.yaml").write_text(yaml.safe_dump(config))
 
 
-def _truncated_sens_build(tmp_path: Path):
-    """A .sens of 12 frames cut inside frame 8's record, built to ``dataset`` (conftest.EarlyRuns)."""
+@early()
+def truncated_sens_build(folder: Path):
+    """A .sens of 12 frames cut inside frame 8's record, built to ``dataset`` (an early run)."""
     import numpy as np
     from sens_writer import write_sens
 
@@ -115,7 +131,7 @@ def _truncated_sens_build(tmp_path: Path):
 
     syn = open_source_scene({"kind": "synthetic", "options": {"n_frames": 12, "width": 80, "height": 60}}, "room_000")
     frames = [syn.read(i) for i in range(12)]
-    sens = tmp_path / "data" / "scene0000_00.sens"
+    sens = folder / "data" / "scene0000_00.sens"
     sens.parent.mkdir()
     K = np.asarray(syn.intrinsics)
     write_sens(
@@ -138,22 +154,16 @@ def _truncated_sens_build(tmp_path: Path):
         "frameset": {"neighbours": 1, "stride": 1, "target_step": 1, "batch_size": 4},
         "patches": {"count": 1, "size": 16, "max_missing": 1.0},
     }
-    return in_background(make_workdir(tmp_path / "wd", config), "dataset")
+    return in_background(make_workdir(folder / "wd", config), "dataset")
 
 
-def test_targets_a_truncated_sens_lacks_are_recorded(early_run):
+def test_targets_a_truncated_sens_lacks_are_recorded(truncated_sens_build):
     """The plan takes the frame count from the .sens header; frames cut off by a
     truncated file become recorded skips, never silently missing frame sets."""
-    wd = early_run
+    wd = truncated_sens_build
     fs = pd.read_parquet(wd / "results/dataset/framesets.parquet").set_index("target")
     assert list(fs.index) == list(range(1, 11))  # planned from the header: 12 frames
     assert (fs.loc[1:6, "status"] == "ok").all()
     assert (fs.loc[7:10, "status"] == "skipped").all() and fs.loc[7:10, "reason"].str.startswith("not_in_scene").all()
     summary = (wd / "results/dataset/summary.md").read_text()
     assert "not_in_scene" in summary and "truncated .sens" in summary
-
-
-EARLY_RUNS = {  # conftest.EarlyRuns
-    "test_batch_size_changes_the_files_not_the_frame_sets": _one_per_batch_build,
-    "test_targets_a_truncated_sens_lacks_are_recorded": _truncated_sens_build,
-}

@@ -16,12 +16,12 @@ import re
 import socket
 import subprocess
 import sys
-import threading
+import time
 from pathlib import Path
 
 import pandas as pd
 import pytest
-from conftest import REPO, TINY, make_workdir
+from conftest import REPO, TINY, digest_outputs, early, make_workdir
 
 pytestmark = pytest.mark.slow
 
@@ -37,15 +37,17 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-class EarlyStart:
-    """The single-node cluster and this file's two runs, started in a thread when the test
-    session starts (conftest ``_started_early``): most of a run's time is the executor
-    waiting between job-state checks, so they overlap with the other test files and with
-    each other. ``cpu``: TINY to ``dataset``; ``cuda``: its test scene to ``framesets``
-    with ``device: cuda``."""
+class SlurmRuns:
+    """The single-node cluster and this file's three runs: ``cpu``, TINY to ``dataset``;
+    ``cuda``, its test scene to ``framesets`` with ``device: cuda``; ``killed``, TINY to
+    ``dataset`` again, with one frame-set job cancelled (``scancel``) while it runs
+    (:meth:`_cancel_held_job`). An early run in a lane of its own (:func:`slurm_runs`):
+    most of a run's time is the executor waiting between job-state checks, so they
+    overlap with the other test files and with each other."""
 
-    def __init__(self, tmp_path_factory):
-        state = tmp_path_factory.mktemp("slurm-state")
+    def __init__(self, folder: Path):
+        state = folder / "state"
+        state.mkdir()
         self.env = dict(
             os.environ,
             DEPTHGT_SLURM_STATE=str(state),
@@ -53,36 +55,61 @@ class EarlyStart:
             DEPTHGT_SLURMD_PORT=str(free_port()),
             DEPTHGT_SLURM_GPUS="2",
         )
+        self.hold = folder / "hold"
+        self.hold.mkdir()
+        self.cancelled: str | None = None  # the SLURM job id cancelled, or why none was
         self.workdirs = {
-            "cpu": make_workdir(tmp_path_factory.mktemp("slurm-cpu"), TINY),
+            "killed": make_workdir(folder / "killed", TINY),
+            "cpu": make_workdir(folder / "cpu", TINY),
             "cuda": make_workdir(  # one scene, one frame set
-                tmp_path_factory.mktemp("slurm-cuda"), dict(TINY, sources=TINY["sources"][1:], device="cuda")
+                folder / "cuda", dict(TINY, sources=TINY["sources"][1:], device="cuda")
             ),
         }
         self.start: subprocess.CompletedProcess | None = None
         self.procs: dict[str, subprocess.Popen] = {}
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
 
-    def _run(self) -> None:
+    def __call__(self) -> SlurmRuns:
+        """Starts the cluster, then the three runs (not waited for: :func:`finished`) and
+        cancels the ``killed`` run's held job."""
         self.start = subprocess.run(
             ["bash", str(SCRIPT), "start"], env=self.env, capture_output=True, text=True, timeout=900
         )
         if self.start.returncode == 0:
-            env = dict(
-                self.env, SLURM_CONF=str(Path(self.env["DEPTHGT_SLURM_STATE"]) / "slurm.conf"), OMP_NUM_THREADS="1"
-            )
+            env = self.cluster()
+            held = dict(env, DEPTHGT_TEST_HOLD_DIR=str(self.hold), DEPTHGT_TEST_HOLD_AT=KILLED_JOB)
             self.procs = {
+                "killed": snakemake_on_slurm(self.workdirs["killed"], held, "dataset"),
                 "cpu": snakemake_on_slurm(self.workdirs["cpu"], env, "dataset"),
                 "cuda": snakemake_on_slurm(self.workdirs["cuda"], env, "framesets"),
             }
+            self._cancel_held_job(env)
+        return self
+
+    def _cancel_held_job(self, env: dict[str, str]) -> None:
+        """Wait until the frame-set job :data:`KILLED_JOB` of the ``killed`` run holds (it
+        has started, depthgt.testhook), cancel its SLURM job with ``scancel`` and let
+        every later pass go on (the retry, submitted by the profile's ``retries``)."""
+        deadline = time.time() + 600
+        try:
+            while time.time() < deadline and self.procs["killed"].poll() is None:
+                held = list(self.hold.glob("*.held"))
+                if held:
+                    pid = held[0].name.split(".")[-2]
+                    environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+                    job = dict(e.decode().split("=", 1) for e in environ if b"=" in e)["SLURM_JOB_ID"]
+                    subprocess.run(["scancel", job], env=env, check=True, capture_output=True, timeout=60)
+                    self.cancelled = job
+                    return
+                time.sleep(0.2)
+            self.cancelled = f"no held job (run exit status {self.procs['killed'].poll()})"
+        except (OSError, KeyError, subprocess.SubprocessError) as err:
+            self.cancelled = f"cannot cancel the held job: {type(err).__name__}: {err}"
+        finally:
+            (self.hold / "release").write_text("")
 
     def cluster(self) -> dict[str, str]:
         """The running cluster's environment (SLURM_CONF set); skips where the script
         cannot set one up."""
-        self._thread.join(timeout=900)
-        if self.start is None:
-            pytest.fail("cluster/slurm-local.sh start did not end within 900 s")
         if self.start.returncode == 3:  # the script's code for "SLURM cannot be installed or set up here"
             pytest.skip(f"no SLURM cluster on this machine: {self.start.stderr.strip()}")
         assert self.start.returncode == 0, (
@@ -91,7 +118,7 @@ class EarlyStart:
         return dict(self.env, SLURM_CONF=str(Path(self.env["DEPTHGT_SLURM_STATE"]) / "slurm.conf"), OMP_NUM_THREADS="1")
 
     def stop(self) -> None:
-        self._thread.join(timeout=900)
+        """At the session's end: the runs killed if still going, the cluster stopped."""
         for proc in self.procs.values():
             if proc.poll() is None:
                 proc.kill()
@@ -99,26 +126,20 @@ class EarlyStart:
         subprocess.run(["bash", str(SCRIPT), "stop"], env=self.env, capture_output=True, text=True, timeout=300)
 
 
-_early: EarlyStart | None = None
+# the frame-set job of the ``killed`` run that is cancelled while it runs (its start, depthgt.testhook)
+KILLED_JOB = "job:logs/framesets/syn/room_000/*"
 
 
-def start_early(tmp_path_factory) -> EarlyStart:
-    """Called by conftest ``_started_early`` when this file's tests are selected."""
-    global _early
-    _early = EarlyStart(tmp_path_factory)
-    return _early
-
-
-@pytest.fixture(scope="module")
-def early() -> EarlyStart:
-    assert _early is not None, "conftest._started_early starts the cluster and the runs"
-    return _early
+@early(lane="slurm")
+def slurm_runs(folder: Path) -> SlurmRuns:
+    """The cluster and its three runs, started with the test session (an early run)."""
+    return SlurmRuns(folder)
 
 
 @pytest.fixture(scope="module")
-def slurm(early) -> dict[str, str]:
+def slurm(slurm_runs) -> dict[str, str]:
     """Environment of the running single-node cluster (stopped when the session ends)."""
-    return early.cluster()
+    return slurm_runs.cluster()
 
 
 def snakemake_on_slurm(workdir: Path, env: dict[str, str], target: str, *args: str) -> subprocess.Popen:
@@ -161,9 +182,12 @@ def finished(proc: subprocess.Popen, workdir: Path) -> subprocess.CompletedProce
 
 
 @pytest.fixture(scope="module")
-def runs(early, slurm) -> dict[str, tuple[Path, subprocess.CompletedProcess]]:
-    """The two runs of :class:`EarlyStart`, waited for."""
-    return {name: (early.workdirs[name], finished(proc, early.workdirs[name])) for name, proc in early.procs.items()}
+def runs(slurm_runs, slurm) -> dict[str, tuple[Path, subprocess.CompletedProcess]]:
+    """The runs of :class:`SlurmRuns`, waited for."""
+    return {
+        name: (slurm_runs.workdirs[name], finished(proc, slurm_runs.workdirs[name]))
+        for name, proc in slurm_runs.procs.items()
+    }
 
 
 def submitted_jobs(log: str) -> list[dict]:
@@ -240,3 +264,24 @@ def test_cuda_config_requests_a_gpu_per_torch_job(slurm, runs):
     for job in jobs:
         per_job = slurm_job(job["slurm_id"], slurm).get("TresPerJob", "")
         assert (per_job == "gres:gpu:1") == (job["resources"].get("gpu", "0") == "1"), (job, per_job)
+
+
+def test_a_cancelled_job_is_retried_and_the_outputs_equal_an_uninterrupted_runs(slurm, runs, slurm_runs):
+    """A frame-set job cancelled with scancel while it runs is submitted again by the
+    profile's `retries`; the build completes with every result (each shard member, the
+    manifests, the card) equal to the uninterrupted run's, timings aside."""
+    wd, proc = runs["killed"]
+    assert slurm_runs.cancelled and slurm_runs.cancelled.isdigit(), slurm_runs.cancelled
+    assert proc.returncode == 0, f"{proc.stdout[-2000:]}\n{proc.stderr[-8000:]}"
+    assert f"SLURM-job '{slurm_runs.cancelled}' failed, SLURM status is: 'CANCELLED'" in proc.stderr, proc.stderr[
+        -6000:
+    ]
+    submissions = re.findall(r"Job (\d+) has been submitted with SLURM jobid (\d+)", proc.stderr)
+    (jobid,) = [j for j, slurm_id in submissions if slurm_id == slurm_runs.cancelled]
+    again = [slurm_id for j, slurm_id in submissions if j == jobid and slurm_id != slurm_runs.cancelled]
+    assert len(again) == 1, submissions  # the same Snakemake job, submitted once more
+    records = completion_records(slurm)
+    assert records[slurm_runs.cancelled]["JobState"] == "CANCELLED" and records[again[0]]["JobState"] == "COMPLETED"
+    clean_wd, clean = runs["cpu"]
+    assert clean.returncode == 0
+    assert digest_outputs(wd) == digest_outputs(clean_wd)

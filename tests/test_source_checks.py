@@ -105,15 +105,13 @@ def test_option_names_match_the_adapters():
 
 
 def test_the_registry_holds_every_kind_once():
-    """One entry per kind (sources.base.KINDS): the schema's enum of kinds is its keys;
-    every adapter module has the functions its entry promises; a kind whose poses are
-    optional takes require_pose; only synthetic colour matches its depth by default."""
+    """One entry per kind (sources.base.KINDS): every adapter module has the functions
+    its entry promises; a kind whose poses are optional takes require_pose; only
+    synthetic colour matches its depth by default, and only synthetic scenes know the
+    noise-free depth (``has_truth``, what the scenes it opens say)."""
     import importlib
 
-    schema = yaml.safe_load((REPO / "workflow/schemas/config.schema.yaml").read_text())
-    item = schema["properties"]["sources"]["items"]["properties"]
-    assert sorted(item["kind"]["enum"]) == base.known_kinds() == sorted(base.KINDS)
-    assert item["colour_matches_depth"]["enum"] == ["auto", True, False]
+    assert base.known_kinds() == sorted(base.KINDS)
     for kind, entry in base.KINDS.items():
         module = importlib.import_module(entry.module)
         assert callable(module.open_scene) and callable(module.list_scenes), kind
@@ -122,6 +120,11 @@ def test_the_registry_holds_every_kind_once():
         assert entry.poses_optional == ("require_pose" in params), kind
     assert {k for k, e in base.KINDS.items() if e.colour_matches_depth} == {"synthetic"}
     assert {k for k, e in base.KINDS.items() if e.single_file} == {"scannet"}
+    assert base.KINDS["synthetic"].has_truth and not any(
+        base.KINDS[k].has_truth for k in ("scannet", "sevenscenes", "tum")
+    )
+    scene = base.open_scene("synthetic", None, "room_000", n_frames=2, width=32, height=32)
+    assert scene.has_clean_depth is base.KINDS["synthetic"].has_truth is True
     with pytest.raises(ValueError, match="poses_optional needs the option require_pose"):
         base.SourceKind("depthgt.sources.tum", {}, poses_optional=True)
 
@@ -293,3 +296,38 @@ def test_workflow_stops_before_any_job(tmp_path):
     proc = _dry_run(tmp_path / "opt", bogus)
     assert proc.returncode != 0
     assert "config key sources[syn].options.bogus: unknown synthetic option" in proc.stdout + proc.stderr
+
+
+def test_a_kind_registered_outside_depthgt_passes_the_workflow_checks(tmp_path):
+    """A kind defined outside depthgt (its module registers it, imported by the user's
+    own Snakefile before it includes depthgt's) passes every check the workflow makes
+    when it starts, and its scenes are planned: a dry run lists their frame-set batches."""
+    (tmp_path / "flatcam.py").write_text(
+        "import numpy as np\n"
+        "from depthgt.sources import base\n"
+        "class Flat:\n"
+        "    name, intrinsics, image_size = 'one', np.eye(3), (4, 4)\n"
+        "    has_poses, has_clean_depth, colour_matches_depth = True, False, False\n"
+        "    def __len__(self): return 20\n"
+        "    def frame_id(self, i): return str(i)\n"
+        "    def read(self, i): raise NotImplementedError\n"
+        "def open_scene(root, scene): return Flat()\n"
+        "def list_scenes(root): return ['one']\n"
+        "base.register('flatcam', base.SourceKind('flatcam', {}))\n"
+    )
+    (tmp_path / "Snakefile").write_text(
+        f"import sys\nsys.path.insert(0, {str(tmp_path)!r})\nimport flatcam  # registers the kind\n\n"
+        f"include: {str(REPO / 'Snakefile')!r}\n"
+    )
+    (tmp_path / "config").mkdir()
+    source = {"name": "flat", "kind": "flatcam", "root": str(tmp_path), "scenes": "all", "split": "test"}
+    (tmp_path / "config/config.yaml").write_text(yaml.safe_dump({"sources": [source], "device": "cpu"}))
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(tmp_path / "Snakefile"), "-d", str(tmp_path)]
+    proc = subprocess.run(
+        [*cmd, "-n", "--cores", "1", "framesets"],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, PYTHONPATH=str(REPO / "src")),
+    )
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
+    assert "results/framesets/flat/one/000006-000013.zip" in proc.stdout

@@ -841,9 +841,9 @@ def test_colour_matches_depth_from_the_registry_and_the_config(tmp_path):
     where colour is the depth's camera at the depth's instant: every opened scene carries
     its kind's flag (synthetic only), a config source overrides it (synthetic data in
     ScanNet's layout), and the frame-set loader sees the override."""
-    from depthgt.gt.build import photometric_for
     from depthgt.gt.cache import ResizedScene
     from depthgt.jobs.common import open_source_scene
+    from depthgt.registration import photometric_for
     from depthgt.settings import RegistrationSettings
 
     make_exported(tmp_path / "scannet")

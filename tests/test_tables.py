@@ -149,6 +149,12 @@ def test_table2_one_block_per_reference():
     only_gt = tables.table2(_ev([r for r in rows if r[4] == "gt"]), KINDS)
     assert list(only_gt["reference"]) == ["depthgt GT"] * 2
     assert "neighbours only" in tables.TABLE2_CAPTION and "favours" in tables.TABLE2_PAIRED_CAPTION
+    # a caption describes the references its table holds (depthgt evaluate on a build with depthgt's GT only)
+    only_gt = pd.DataFrame({"reference": ["depthgt GT", "depthgt GT"]})
+    caption = tables.table2_caption(tables.references_in(only_gt))
+    assert caption.startswith("Table 2 (real data): methods on held-out real test frames against one reference. ")
+    assert "'depthgt GT'" in caption and "TSDF" not in caption and "neighbours only" not in caption
+    assert "three references" in tables.TABLE2_CAPTION and "One block per reference" in tables.TABLE2_CAPTION
 
 
 def test_conflicting_units_and_duplicates_raise():

@@ -157,11 +157,19 @@ def test_table2_from_7scenes_fixture(tiny_report, tmp_path):
     wd = tmp_path / "build"
     shutil.copytree(tiny_report, wd, symlinks=True)
     cfg = copy.deepcopy(TINY)
+    cfg["evaluation"]["methods"] = ["input", "rgf", "jf", "lapden"]
+    (wd / "config/config.yaml").write_text(yaml.safe_dump(cfg))
+    snakemake(wd, "results/models/lapden/best.pt")  # trained before the new test data comes
+    # one's own real recordings as a test source: their frame sets, the test manifest, the
+    # RDE and references they need, evaluation and tables run; no training, and no job
+    # that writes a training manifest (issue 42)
     cfg["sources"].append(
         {"name": "kitchen", "kind": "sevenscenes", "root": str(kitchen), "scenes": "all", "split": "test"}
     )
-    cfg["evaluation"]["methods"] = ["input", "rgf", "jf", "lapden"]
     (wd / "config/config.yaml").write_text(yaml.safe_dump(cfg))
+    jobs = planned_jobs(wd, "tables")
+    assert not {"train_model", "training_manifests", "rde_training_manifests"} & set(jobs), jobs
+    assert jobs["frameset_batch"] >= 1 and jobs["dataset"] == 1 and jobs["rde_dataset"] == 1, jobs
     snakemake(wd, "tables")
     t2 = _table(wd, "table2")
     # one block per reference: depthgt's GT, the neighbours-only render, the TSDF GT
@@ -185,6 +193,17 @@ def test_table2_from_7scenes_fixture(tiny_report, tmp_path):
     assert set(t3["dataset"]) == {"syntest"} and len(t3) == 4
     t1 = _table(wd, "table1")
     assert {"kitchen", "syntest"} <= set(t1["dataset"])
+
+
+def planned_jobs(workdir, *args) -> dict[str, int]:
+    """rule -> number of jobs a dry run of ``args`` would run (Snakemake's job table)."""
+    import re
+
+    text = snakemake(workdir, "-n", *args).stdout
+    if "Nothing to be done" in text:
+        return {}
+    table = text[text.index("Job stats:") :]
+    return {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\w+)\s+(\d+)$", table, re.M) if m.group(1) != "total"}
 
 
 def _plane_stream(n=7, hw=48):

@@ -26,12 +26,16 @@ def write_atomic(path: str | Path, writer: Callable[..., Any], *args: Any) -> Pa
 
     The temporary file keeps the suffix of ``path`` (``.{name}.tmp{suffix}``), so that
     writers choosing the format by suffix (OpenEXR, OpenCV) work. Parent folders are
-    created.
+    created. A writer that fails (a full disk) leaves no temporary file taking space.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
-    writer(tmp, *args)
+    try:
+        writer(tmp, *args)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     os.replace(tmp, path)
     return path
 

@@ -7,7 +7,7 @@
     depthgt export DEST [--format png16|exr]    the dataset as plain files (PNG/EXR + index)
     depthgt evaluate PRED_DIR         score a folder of predictions of the test frames (Tables 2/3)
     depthgt verify [DIR]              check a built dataset or an export against its card
-    depthgt report [--out FILE]       Snakemake's HTML report (tables and figures)
+    depthgt report [--out FILE]       an HTML page of the build (summary, frame sets to look at, tables)
     depthgt bench NAME [ARGS ...]     one of the benchmarks in bench/
 
 Snakemake runs in a child process (``python -m snakemake``) rather than through its
@@ -27,9 +27,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from depthgt import runlock
+from depthgt import buildconfig, runlock
 from depthgt.errors import DepthGTError
 from depthgt.gt import store
+from depthgt.gt.settings import SPLITS
 
 __all__ = ["main", "repo_root", "snakemake_command", "scene_outputs"]
 
@@ -53,45 +54,40 @@ def repo_root() -> Path:
     return root
 
 
+def _snakefile(args: argparse.Namespace) -> Path:
+    return Path(args.snakefile).absolute() if args.snakefile else repo_root() / "Snakefile"
+
+
 def snakemake_command(args: argparse.Namespace, *extra: str) -> list[str]:
     """``python -m snakemake`` with the workflow, working directory and shared options."""
-    snakefile = Path(args.snakefile) if args.snakefile else repo_root() / "Snakefile"
-    cmd = [sys.executable, "-m", "snakemake", "-s", str(snakefile), "-d", str(Path(args.directory).resolve())]
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(_snakefile(args)), "-d", str(Path(args.directory).resolve())]
     if getattr(args, "cores", None) is not None:
         cmd += ["--cores", str(args.cores)]
     if getattr(args, "profile", None):
         cmd += ["--profile", args.profile]
     cmd += list(extra)
-    # --configfile takes several values: it goes last, after the targets (Snakemake 9)
+    # --configfile takes several values in Snakemake: it goes last, after the targets
     if getattr(args, "configfile", None):
-        _check_yaml_files([Path(c) for c in args.configfile])
         cmd += ["--configfile", *[str(Path(c).resolve()) for c in args.configfile]]
     return cmd
 
 
-def _check_yaml_files(paths: Sequence[Path]) -> None:
-    """Each config file exists and parses, named with its line (Snakemake's own message
-    names neither the file nor the line); the settings are checked by the workflow."""
-    import json
-
-    import yaml
-
-    for path in paths:
-        if not path.is_file():
-            raise DepthGTError(f"--configfile {path}: file not found")
-        try:  # as Snakemake reads it: JSON first, then YAML (FullLoader), UTF-8
-            text = path.read_text(encoding="utf-8")
-            try:
-                doc = json.loads(text)
-            except json.JSONDecodeError:
-                doc = yaml.load(text, Loader=yaml.FullLoader)
-        except (UnicodeDecodeError, yaml.YAMLError) as err:
-            mark = getattr(err, "problem_mark", None)
-            where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)
-            problem = getattr(err, "problem", None) or str(err)
-            raise DepthGTError(f"--configfile {where}: not valid YAML ({problem})") from None
-        if doc is not None and not isinstance(doc, dict):
-            raise DepthGTError(f"--configfile {path}: must hold a mapping of config keys, got {type(doc).__name__}")
+def build_config(args: argparse.Namespace, check_sources: bool = True) -> buildconfig.Layers:
+    """The config the command runs with in its working directory (the base, the build's
+    remembered --configfile layer, this command's --configfile files;
+    :mod:`depthgt.buildconfig`), checked before Snakemake starts: a file that does not
+    parse, a missing source root, or a --configfile that changes keys of an existing
+    build without --reconfigure are refused in one line."""
+    layers = buildconfig.layered_config(
+        Path(args.directory).resolve(),
+        _snakefile(args).parent / "config" / "config.yaml",
+        [Path(c) for c in getattr(args, "configfile", None) or []],
+        reconfigure=bool(getattr(args, "reconfigure", False)),
+        check_sources=check_sources,
+    )
+    if getattr(args, "reconfigure", False):
+        os.environ[buildconfig.RECONFIGURE_ENV] = "1"  # the child Snakemake applies the change too
+    return layers
 
 
 def _run(cmd: Sequence[str], capture: bool = False) -> subprocess.CompletedProcess:
@@ -130,15 +126,19 @@ def _check_not_running(args: argparse.Namespace) -> None:
 
 def _cmd_build(args: argparse.Namespace) -> int:
     _check_not_running(args)
+    layers = build_config(args)
     extra = list(args.targets)
     if args.dry_run:
         extra.append("-n")
     _run(snakemake_command(args, *extra))
+    if not args.dry_run:  # also when Snakemake had nothing to do (it then calls no onstart)
+        buildconfig.remember(Path(args.directory).resolve(), layers)
     return 0
 
 
 def _cmd_rebuild(args: argparse.Namespace) -> int:
     _check_not_running(args)
+    layers = build_config(args)
     target = f"results/scenes/{args.dataset}/{args.scene}/framesets.parquet"
     # the scene's own jobs, read from the plan of all frame sets rather than hard-coded,
     # so that this follows the layout of the frame-set stage and accepts only scenes the
@@ -154,6 +154,8 @@ def _cmd_rebuild(args: argparse.Namespace) -> int:
     if args.dry_run:
         extra.append("-n")
     _run(snakemake_command(args, *extra))
+    if not args.dry_run:
+        buildconfig.remember(Path(args.directory).resolve(), layers)
     return 0
 
 
@@ -201,11 +203,19 @@ def _cmd_show(args: argparse.Namespace) -> int:
 
 
 def _cmd_extract(args: argparse.Namespace) -> int:
+    from depthgt.gt.extract import extract_plain, planned_files
+
     results = _results(args)
-    present = [n for n in store.FRAMESET_FILES if (Path(args.dest) / n).exists()]
+    dest = Path(args.dest).absolute()
+    names = store.FRAMESET_FILES if args.raw else planned_files(args.format)
+    present = [n for n in names if (dest / n).exists()]
     if present and not args.force:
-        raise DepthGTError(f"{args.dest} already holds {', '.join(present)}: pick another folder or pass --force")
-    for p in store.extract_frameset(results, args.dataset, args.scene, args.target, args.dest):
+        raise DepthGTError(f"{dest} already holds {', '.join(present)}: pick another folder or pass --force")
+    if args.raw:
+        written = store.extract_frameset(results, args.dataset, args.scene, args.target, dest)
+    else:
+        written = extract_plain(results, args.dataset, args.scene, args.target, dest, fmt=args.format)
+    for p in written:
         print(p)
     return 0
 
@@ -214,7 +224,14 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from depthgt.data import export_dataset  # torch: only for this command
 
     results = Path(args.directory) / "results"
-    index = export_dataset(results, args.dest, fmt=args.format, splits=args.split, kind=args.kind, workers=args.workers)
+    index = export_dataset(
+        results,
+        args.dest,
+        fmt=args.format,
+        splits=args.split or list(SPLITS),
+        kind=args.kind,
+        workers=args.workers,
+    )
     print(f"{len(index)} {args.kind} exported to {args.dest} (index.parquet, index.csv, SHA256SUMS, card.json)")
     return 0
 
@@ -262,19 +279,19 @@ def _cmd_verify(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    # Snakemake's report needs every file marked for it: say what to run instead of
-    # Snakemake's "marked for report but does not exist"
-    if not (Path(args.directory) / "results").is_dir():  # before Snakemake creates .snakemake/ there
+    from depthgt.eval.report import write_report  # pandas, matplotlib: only for the report
+
+    wd = Path(args.directory).resolve()
+    if not (wd / "results" / "framesets").is_dir():  # before anything is written there
         raise DepthGTError(
-            f"{Path(args.directory).resolve()} holds no build (no results/): check -d, or run `depthgt build`"
+            f"{wd} holds no build ({wd / 'results' / 'framesets'} is missing): check -d, or run `depthgt build`"
         )
-    plan = subprocess.run(snakemake_command(args, "-n", "--quiet", "all"), capture_output=True, text=True)
-    if plan.returncode != 0 or "Nothing to be done" not in plan.stdout + plan.stderr:
-        raise DepthGTError(
-            f"the build in {Path(args.directory).resolve()} is not finished (or its config fails): "
-            "run `depthgt build` first, then `depthgt report`"
-        )
-    _run(snakemake_command(args, "--report", str(Path(args.out).resolve())))
+    layers = build_config(args, check_sources=False)  # the report reads results/ only
+    out = Path(args.out).resolve() if args.out else wd / "report.html"
+    source = f"{layers.base}" + (
+        f" with {wd / buildconfig.OVERRIDES}" if (wd / buildconfig.OVERRIDES).is_file() else ""
+    )
+    print(f"report: {write_report(wd, out, layers.config, config_source=source)}")
     return 0
 
 
@@ -289,27 +306,56 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return proc.returncode
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser; an argument left over is explained: every option takes one value."""
+
+    def error(self, message: str):
+        if message.startswith("unrecognized arguments"):
+            message += (
+                " (each option takes one value: repeat --configfile or --split for several, "
+                "e.g. --split train --split test)"
+            )
+        super().error(message)
+
+
 def _parser() -> argparse.ArgumentParser:
     """The command line: one sub-parser per command (long because argparse declares each
     command and each of its options with a call of its own, one entry of the help each)."""
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="depthgt", description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument(
-        "-d", "--directory", default=".", help="working directory with config/config.yaml and results/ (default: .)"
+        "-d",
+        "--directory",
+        default=".",
+        help="working directory: gets results/ and remembers the config its first build ran with "
+        f"({buildconfig.OVERRIDES}, {buildconfig.REMEMBERED}); its config/config.yaml, when present, "
+        "replaces the embedded default; relative source roots there are relative to it (default: .)",
     )
     common.add_argument("--snakefile", help="the workflow (default: the Snakefile of depthgt's checkout)")
+    cfg = argparse.ArgumentParser(add_help=False)
+    cfg.add_argument(
+        "--configfile",
+        action="append",
+        metavar="FILE",
+        help="a config file over the working directory's config, remembered by the build (repeat the option "
+        "for several; a relative source root in it is relative to its folder)",
+    )
     run = argparse.ArgumentParser(add_help=False)
     run.add_argument("--cores", type=int, help="cores for Snakemake (default: the profile's)")
     run.add_argument("--profile", help="a Snakemake profile (e.g. profiles/slurm)")
-    run.add_argument("--configfile", nargs="+", help="config files over config/config.yaml")
+    run.add_argument(
+        "--reconfigure",
+        action="store_true",
+        help="apply a --configfile that changes keys of an existing build (otherwise refused, naming them)",
+    )
     run.add_argument("-n", "--dry-run", action="store_true", help="show the jobs, run none")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     b = sub.add_parser(
         "build",
-        parents=[common, run],
+        parents=[common, cfg, run],
         help="run the workflow",
         description="Run the workflow on the working directory's config.",
     )
@@ -318,7 +364,7 @@ def _parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser(
         "rebuild",
-        parents=[common, run],
+        parents=[common, cfg, run],
         help="build one scene again",
         description="Force one scene's jobs (frame sets, summaries) to run again.",
     )
@@ -343,11 +389,22 @@ def _parser() -> argparse.ArgumentParser:
     e = sub.add_parser(
         "extract",
         parents=[common, fs],
-        help="one frame set's files into a folder",
-        description="Write one built frame set's files (gt.exr, input.exr, rgb.webp, poses.json, "
-        "patches.npz, frameset.json) into DEST.",
+        help="one frame set's files into a folder, readable by any tool",
+        description="Write one built frame set into DEST as files other tools read: the GT depth, its "
+        "expected standard deviation (confidence), the input depth and, for synthetic sources, the truth as "
+        "float32 EXR in metres (channel Y; gt_depth_m.exr, ...) and/or 16-bit PNG in millimetres "
+        "(gt_depth_mm.png; the deviation in 0.1 mm, gt_sigma_100um.png), 0 = no value; rgb.png; poses.json, "
+        "patches.npz, frameset.json; units.json describing every file. --raw: the shard's members as stored "
+        "(gt.exr in depthgt's fixed point, rgb.webp, ...), for depthgt's own readers.",
     )
     e.add_argument("dest")
+    e.add_argument(
+        "--format",
+        choices=["exr", "png16", "both"],
+        default="both",
+        help="depth files: float32 EXR in metres, 16-bit PNG in mm, or both (default: both)",
+    )
+    e.add_argument("--raw", action="store_true", help="the shard's members as stored, not converted")
     e.add_argument("--force", action="store_true", help="overwrite those files where DEST holds them")
     e.set_defaults(func=_cmd_extract)
 
@@ -363,10 +420,9 @@ def _parser() -> argparse.ArgumentParser:
     x.add_argument("--format", choices=["png16", "exr"], default="png16", help="depth files (default: png16)")
     x.add_argument(
         "--split",
-        nargs="+",
-        choices=["train", "val", "test"],
-        default=["train", "val", "test"],
-        help="splits to export (default: all)",
+        action="append",
+        choices=SPLITS,
+        help="a split to export (repeat the option for several; default: all)",
     )
     x.add_argument(
         "--kind",
@@ -416,11 +472,15 @@ def _parser() -> argparse.ArgumentParser:
 
     rep = sub.add_parser(
         "report",
-        parents=[common],
-        help="Snakemake's HTML report",
-        description="Write Snakemake's report (tables, figures) of a finished build.",
+        parents=[common, cfg],
+        help="an HTML page of the build: summary, GT quality, frame sets to look at first, tables, figures",
+        description="Write one self-contained HTML page of whatever the build holds: the dataset's summary, the "
+        "GT-quality table, per source the frame sets to look at first (worst leave-target-out error, lowest "
+        "completeness, most neighbours left out) as panels with the commands that show, extract or rebuild "
+        "them, and the tables, figures and training curves when the build has them. (Snakemake's own report "
+        "of a finished build: python3 -m snakemake --report report.html.)",
     )
-    rep.add_argument("--out", default="report.html", help="HTML file (default: report.html)")
+    rep.add_argument("--out", help="HTML file (default: report.html in the working directory)")
     rep.set_defaults(func=_cmd_report)
 
     be = sub.add_parser(
@@ -432,8 +492,34 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """The command line, options and positionals in any order (``depthgt export DEST
+    --split test -d wd`` and ``depthgt export -d wd --split test DEST`` alike): the
+    subcommand's arguments are parsed intermixed (argparse cannot do that across
+    subparsers), every list option takes one value per flag."""
+    parser = _parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    if argv and argv[0] in sub.choices and argv[0] != "bench":  # bench passes the rest on as it is
+        args = sub.choices[argv[0]].parse_intermixed_args(argv[1:])
+        args.command = argv[0]
+        return args
+    return parser.parse_args(argv)
+
+
+def _absolute_paths(args: argparse.Namespace) -> None:
+    """Every path argument made absolute (not resolved: links kept), so that each message
+    names the folder or file it means whatever the current directory."""
+    for name in ("directory", "dest", "out", "pred_dir", "export", "folder", "snakefile"):
+        value = getattr(args, name, None)
+        if isinstance(value, str) and value:
+            setattr(args, name, str(Path(value).expanduser().absolute()))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    args = parse_args(argv)
+    if args.command != "bench":
+        _absolute_paths(args)
     try:
         if args.command != "bench" and not args.snakefile:
             # the checkout the rules' conda environment installs (workflow/envs/depthgt.yaml)

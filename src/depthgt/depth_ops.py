@@ -16,8 +16,9 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from depthgt.shapes import check_shape
+
 __all__ = [
-    "check_depth",
     "valid_avg_pool",
     "masked_avg_pool",
     "masked_mean",
@@ -27,12 +28,6 @@ __all__ = [
     "max_gradient_magnitude",
     "structure_loss",
 ]
-
-
-def check_depth(name: str, t: torch.Tensor) -> None:
-    """Raise a ValueError naming ``name`` unless ``t`` is (B, 1, H, W)."""
-    if t.ndim != 4 or t.shape[1] != 1:
-        raise ValueError(f"{name} must be (B, 1, H, W), got {tuple(t.shape)}")
 
 
 def valid_avg_pool(
@@ -87,7 +82,7 @@ def masked_avg_pool(depth_m: torch.Tensor, valid: torch.Tensor, factor: int) -> 
         depth (B, 1, H/f, W/f), mean of the valid pixels of each block (0 where none),
         and its validity (B, 1, H/f, W/f) bool.
     """
-    check_depth("depth_m", depth_m)
+    check_shape(depth_m, "B 1 H W", "depth_m")
     if depth_m.shape[-1] % factor or depth_m.shape[-2] % factor:
         raise ValueError(f"depth shape {tuple(depth_m.shape)} not divisible by pooling factor {factor}")
     if factor == 1:
@@ -117,7 +112,7 @@ def forward_gradients(depth_m: torch.Tensor, valid: torch.Tensor):
         gx, gy (B, 1, H, W) metres per pixel (last column / row 0) and their
         validity vx, vy (B, 1, H, W) bool.
     """
-    check_depth("depth_m", depth_m)
+    check_shape(depth_m, "B 1 H W", "depth_m")
     gx = F.pad(depth_m[..., :, 1:] - depth_m[..., :, :-1], (0, 1, 0, 0))
     gy = F.pad(depth_m[..., 1:, :] - depth_m[..., :-1, :], (0, 0, 0, 1))
     v = valid.bool()
@@ -147,12 +142,11 @@ def depth_normals(depth_m: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     Returns:
         (B, 3, H, W) unit normals (0 where the cross product is 0).
     """
-    check_depth("depth_m", depth_m)
+    dims = check_shape(depth_m, "B 1 H W", "depth_m")
+    check_shape(K, "B 3 3", "K", dims)
     B, _, H, W = depth_m.shape
     if H < 2 or W < 2:
         raise ValueError(f"depth_normals needs H >= 2 and W >= 2, got {tuple(depth_m.shape)}")
-    if K.shape != (B, 3, 3):
-        raise ValueError(f"K must be ({B}, 3, 3), got {tuple(K.shape)}")
     K = K.to(depth_m.dtype)
     u = torch.arange(W, dtype=depth_m.dtype, device=depth_m.device).view(1, 1, 1, W)
     v = torch.arange(H, dtype=depth_m.dtype, device=depth_m.device).view(1, 1, H, 1)
@@ -230,10 +224,7 @@ def structure_loss(pred: torch.Tensor, target: torch.Tensor, valid: torch.Tensor
         pred, target: (B, 1, H, W) metres; valid: (B, 1, H, W) bool, where the
             target's gradients are trusted (both images are masked with it).
     """
-    check_depth("pred", pred)
-    check_depth("target", target)
-    if pred.shape != target.shape:
-        raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} differ in shape")
+    check_shape(target, "B 1 H W", "target", check_shape(pred, "B 1 H W", "pred"))
     mp = max_gradient_magnitude(pred, valid, window)
     mt = max_gradient_magnitude(target, valid, window)
     return masked_mean((mp - mt) ** 2, valid)

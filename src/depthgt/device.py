@@ -12,7 +12,7 @@ import ctypes
 import ctypes.util
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal, get_args
 
 from depthgt.errors import ConfigError
 
@@ -20,12 +20,18 @@ if TYPE_CHECKING:
     import torch
 
 __all__ = [
+    "Device",
+    "DEVICES",
     "resolve_device",
     "cuda_device_count",
     "check_device_available",
     "keep_freed_memory",
     "plain_cpu_convolutions",
 ]
+
+#: The device choices (config ``device``, ``enhance.train.device``).
+Device = Literal["auto", "cpu", "cuda"]
+DEVICES: tuple[str, ...] = get_args(Device)
 
 _NO_CUDA = (
     "config key device: cuda was asked for but no CUDA device is available (use device: auto to fall back to the CPU)"
@@ -49,7 +55,7 @@ def resolve_device(name: str = "auto") -> torch.device:
         if not torch.cuda.is_available():
             raise ConfigError(_NO_CUDA)
         return torch.device("cuda")
-    raise ConfigError(f"config key device: must be auto, cpu or cuda, got {name!r}")
+    raise ConfigError(f"config key device: must be one of {', '.join(DEVICES)}, got {name!r}")
 
 
 def cuda_device_count() -> int:
@@ -96,8 +102,7 @@ def keep_freed_memory(max_block_mib: int = 32, trim_mib: int = 1024) -> bool:
     ~2 million candidates) many times per frame set. By default glibc maps each block
     over 128 KiB afresh and unmaps it when freed, so every allocation page-faults anew:
     measured on the 7-Scenes fixture, 0.23 s of system time per frame set (126,000 minor
-    faults) on top of 0.91 s of user time; with this, 0.002 s (bench/README.md "CPU per
-    frame set"). The results are the same; the process keeps its peak memory instead of
+    faults) on top of 0.91 s of user time; with this, 0.002 s. The results are the same; the process keeps its peak memory instead of
     returning it between frame sets. Called by the frame-set batch job, the training and
     the evaluation jobs (each a process of its own; a training step of LapDEN's default
     preset page-faulted 23,000 times, 44 ms of system time on 0.33 s of user time, without

@@ -1,6 +1,6 @@
 """Camera geometry at the working resolution.
 
-Conventions (see DESIGN.md): depth (B, 1, H, W) float32 metres with 0 = invalid;
+Conventions (see docs/output-layout.md): depth (B, 1, H, W) float32 metres with 0 = invalid;
 intrinsics (B, 3, 3); poses (B, 4, 4) camera-to-world, ``T_j_to_t`` maps points of
 camera j into camera t; points (B, N, 3).
 
@@ -19,6 +19,8 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.depth import depth_to_3d_v2
 from kornia.geometry.linalg import transform_points
+
+from depthgt.shapes import check_shape
 
 __all__ = [
     "scale_intrinsics",
@@ -75,8 +77,7 @@ def resize_depth_nearest(depth_m: torch.Tensor, size_hw: tuple[int, int]) -> tor
     Returns:
         (B, 1, H', W') depth.
     """
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
-        raise ValueError(f"depth_m must be (B, 1, H, W), got {tuple(depth_m.shape)}")
+    check_shape(depth_m, "B 1 H W", "depth_m")
     h, w = depth_m.shape[-2:]
     iy = _centre_indices(h, size_hw[0], depth_m.device)
     ix = _centre_indices(w, size_hw[1], depth_m.device)
@@ -85,8 +86,7 @@ def resize_depth_nearest(depth_m: torch.Tensor, size_hw: tuple[int, int]) -> tor
 
 def resize_rgb(rgb: torch.Tensor, size_hw: tuple[int, int]) -> torch.Tensor:
     """Area-averaged resize of colour (B, 3, H, W) in [0, 1] (antialiased bilinear)."""
-    if rgb.ndim != 4 or rgb.shape[1] != 3:
-        raise ValueError(f"rgb must be (B, 3, H, W), got {tuple(rgb.shape)}")
+    check_shape(rgb, "B 3 H W", "rgb")
     return F.interpolate(rgb, size=size_hw, mode="bilinear", align_corners=False, antialias=True).clamp_(0, 1)
 
 
@@ -100,10 +100,7 @@ def backproject(depth_m: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     Returns:
         (B, H*W, 3) points in metres, row-major pixel order.
     """
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
-        raise ValueError(f"depth_m must be (B, 1, H, W), got {tuple(depth_m.shape)}")
-    if K.shape != (depth_m.shape[0], 3, 3):
-        raise ValueError(f"K must be ({depth_m.shape[0]}, 3, 3), got {tuple(K.shape)}")
+    check_shape(K, "B 3 3", "K", check_shape(depth_m, "B 1 H W", "depth_m"))
     pts = depth_to_3d_v2(depth_m[:, 0], K.to(depth_m.dtype), normalize_points=False)  # (B, H, W, 3)
     return pts.reshape(depth_m.shape[0], -1, 3)
 

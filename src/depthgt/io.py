@@ -21,11 +21,16 @@ order; poses (4, 4) float64.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
+import logging
+import os
 import struct
+import sys
+import tempfile
 import warnings
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -38,6 +43,9 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError, WebPImagePlugin  # noqa: F401
 
 from depthgt.errors import FrameError
+from depthgt.shapes import check_shape
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "MAX_IMAGE_PIXELS",
@@ -191,15 +199,51 @@ def _check_complete(data: bytes, header: ImageHeader, where: str) -> None:
             )
 
 
-def _imdecode(data: bytes, header: ImageHeader, where: str) -> np.ndarray:
+@contextlib.contextmanager
+def _c_stderr() -> Iterator[list[str]]:
+    """What C libraries write to the process's stderr (file descriptor 2) while the
+    context lasts, captured instead of printed (libpng and libjpeg print their own
+    messages there); the text is in the yielded list afterwards."""
+    out: list[str] = []
     try:
-        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    except cv2.error as exc:
-        raise FrameError(
-            f"{where}: cannot decode {header.format} ({str(exc).strip().splitlines()[-1]})", "unreadable"
-        ) from exc
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no file descriptor 2 (an embedding host): nothing to capture
+        yield out
+        return
+    try:
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 2)
+            try:
+                yield out
+            finally:
+                os.dup2(saved, 2)
+                tmp.seek(0)
+                out.append(tmp.read().decode("utf-8", errors="replace").strip())
+    finally:
+        os.close(saved)
+
+
+def _imdecode(data: bytes, header: ImageHeader, where: str) -> np.ndarray:
+    """OpenCV's decode of ``data``; what the codec library says (libpng's "IDAT: CRC
+    error", libjpeg's "Corrupt JPEG data") goes into the error naming ``where``, or, for
+    an image decoded anyway, into a warning naming it, never bare onto the console."""
+    with _c_stderr() as said:
+        try:
+            img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        except cv2.error as exc:
+            img, err = None, exc
+        else:
+            err = None
+    library = " ".join(line.strip() for line in "".join(said).splitlines() if line.strip())
+    if err is not None:
+        detail = str(err).strip().splitlines()[-1] + (f"; {library}" if library else "")
+        raise FrameError(f"{where}: cannot decode {header.format} ({detail})", "unreadable") from err
     if img is None:
-        raise FrameError(f"{where}: cannot decode {header.format} image", "unreadable")
+        detail = f" ({library})" if library else ""
+        raise FrameError(f"{where}: cannot decode {header.format} image{detail}", "unreadable")
+    if library:
+        log.warning("%s: decoded, but the %s decoder reported: %s", where, header.format, library)
     if img.shape[:2] != header.hw:
         raise FrameError(
             f"{where}: decoded {img.shape[1]}x{img.shape[0]}, the {header.format} header declares {header.width}x{header.height}",
@@ -327,8 +371,9 @@ def read_rgb(path: str | Path) -> np.ndarray:
 def _rgb_destination(path: str | Path, rgb: np.ndarray) -> Path:
     """``path`` with its folder made, once ``rgb`` is checked to be (H, W, 3) uint8."""
     path = Path(path)
-    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-        raise ValueError(f"{path}: rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+    check_shape(rgb, "H W 3", f"{path}: rgb")
+    if rgb.dtype != np.uint8:
+        raise ValueError(f"{path}: rgb must be (H, W, 3) uint8, got {rgb.dtype}")
     path.parent.mkdir(parents=True, exist_ok=True)
     return path
 
@@ -346,7 +391,7 @@ def write_rgb_png(path: str | Path, rgb: np.ndarray) -> None:
 
 
 #: libwebp's lossless effort for :func:`write_rgb_webp`: method 3 at quality 0. On 11
-#: real 256x256 frames (bench/README.md "Bytes per frame set", format 3): 86.3 kB in
+#: real 256x256 frames (docs/decisions.md "The stored format"): 86.3 kB in
 #: 25 ms CPU, against 84.0 kB in 79 ms (method 4), 84.0 kB in 124 ms (OpenCV's lossless
 #: WebP, which has no effort setting) and PNG's 116 kB in 3.5 ms.
 WEBP_METHOD, WEBP_EFFORT = 3, 0
@@ -368,7 +413,7 @@ def write_rgb_webp(path: str | Path, rgb: np.ndarray) -> None:
 
 #: EXR compressions :func:`write_exr` offers: ``zip`` (zlib, every OpenEXR reader) and
 #: ``htj2k`` (lossless high-throughput JPEG 2000, OpenEXR >= 3.4: on a frame set's
-#: fixed-point GT 42 % smaller than zip, bench/README.md "Bytes per frame set").
+#: fixed-point GT 42 % smaller than zip, docs/decisions.md "The stored format").
 EXR_COMPRESSIONS = ("zip", "htj2k")
 #: The header attribute that names the fixed-point channels: JSON ``{channel: units per value}``.
 FIXED_POINT_ATTRIBUTE = "depthgt_fixed_point"
@@ -599,6 +644,24 @@ def decode_exr(data: bytes, where: str) -> dict[str, np.ndarray]:
         FrameError: ("unreadable") naming ``where`` when the bytes are not a readable EXR.
     """
     return _exr_channels(io.BytesIO(data), where)
+
+
+#: 16-bit PNG depth for other tools (``depthgt export``, ``depthgt extract``): millimetres,
+#: as ScanNet and NYU-v2 store depth
+PNG16_DEPTH_UNITS_PER_M = 1000
+#: 16-bit PNG of the GT's expected standard deviation: units of 0.1 mm (mostly a few mm)
+PNG16_SIGMA_UNITS_PER_M = 10000
+
+
+def encode_png16(depth_m: np.ndarray, units_per_m: float, where: str) -> bytes:
+    """(H, W) metres -> 16-bit PNG bytes of ``round(depth * units_per_m)``; 0, non-finite
+    and values beyond 65535 units are written as 0 (missing)."""
+    q = np.round(np.asarray(depth_m, dtype=np.float64) * units_per_m)
+    q[~np.isfinite(q) | (q > 65535) | (q < 0)] = 0
+    ok, buf = cv2.imencode(".png", q.astype(np.uint16))
+    if not ok:
+        raise OSError(f"{where}: cv2.imencode failed")
+    return buf.tobytes()
 
 
 def write_json(path: str | Path, obj: Any) -> None:

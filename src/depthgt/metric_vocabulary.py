@@ -38,6 +38,8 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
+from depthgt.shapes import check_shape
+
 if TYPE_CHECKING:
     import pandas as pd
 
@@ -111,8 +113,7 @@ def _as_hw(x: Any, name: str) -> np.ndarray:
     if hasattr(x, "detach"):
         x = x.detach().cpu().numpy()
     a = np.asarray(x, dtype=np.float64)
-    if not (a.ndim == 2 or (a.ndim == 4 and a.shape[1] == 1)):
-        raise ValueError(f"{name} must be (H, W) or (B, 1, H, W) depth, got {a.shape}")
+    check_shape(a, "H W | B 1 H W", f"{name} depth")
     return np.nan_to_num(a, nan=0.0, posinf=0.0, neginf=0.0)
 
 
@@ -185,8 +186,7 @@ def _poses(T, name: str) -> np.ndarray:
     if hasattr(T, "detach"):
         T = T.detach().cpu().numpy()
     T = np.asarray(T, dtype=np.float64)
-    if T.shape[-2:] != (4, 4):
-        raise ValueError(f"{name} must be (..., 4, 4), got {T.shape}")
+    check_shape(T, "... 4 4", name)
     return T
 
 

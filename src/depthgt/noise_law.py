@@ -7,13 +7,17 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
 from depthgt.rasterise import resampled_positions
+from depthgt.shapes import check_shape
 
 __all__ = [
     "KINECT_SIGMA_1M",
+    "sorted_residuals",
+    "noise_sigma_1m_of",
     "depth_sigma_m",
     "estimate_noise_sigma_1m",
     "second_differences",
@@ -70,8 +74,7 @@ def second_difference_residuals(depth_m: torch.Tensor, src_hw: tuple[int, int] |
     from ``src_hw`` (None: sampled at the pixel centres). Computed once per frame set,
     they give the noise estimate of every subset of its frames
     (:func:`noise_sigma_1m_from`) and the renderer's depth-edge test."""
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
-        raise ValueError(f"depth_m must be (J, 1, H, W), got {tuple(depth_m.shape)}")
+    check_shape(depth_m, "J 1 H W", "depth_m")
     d = depth_m.detach().to(torch.float64)
     h, w = d.shape[-2:]
     ok = d > 0
@@ -127,3 +130,42 @@ def estimate_noise_sigma_1m(
         residuals exist.
     """
     return noise_sigma_1m_from(second_difference_residuals(depth_m, src_hw), min_pixels=min_pixels)
+
+
+def sorted_residuals(res: Residuals) -> list[torch.Tensor]:
+    """Per frame of ``res`` (J frames), its valid |residuals| along x and y, sorted
+    (float64, CPU): what :func:`noise_sigma_1m_of` estimates any set of frames from."""
+    out = []
+    for k in range(res.iz.shape[0]):
+        if len(res.r) < 2:
+            out.append(torch.zeros(0, dtype=torch.float64))
+            continue
+        r = torch.cat([r_[k][both[k]].abs() for r_, both in zip(res.r, res.both)])
+        out.append(torch.sort(r.detach().to("cpu", torch.float64)).values)
+    return out
+
+
+def noise_sigma_1m_of(residuals: list[torch.Tensor], min_pixels: int = 2000) -> float:
+    """The sensor's depth sigma at 1 m estimated from the frames whose sorted residuals
+    are ``residuals`` (:func:`sorted_residuals`): exactly :func:`noise_sigma_1m_from`
+    of those frames -- the 68th percentile of their residuals, the k-th smallest of
+    their union, found by bisection on the values without merging them -- or
+    :data:`KINECT_SIGMA_1M` when fewer than ``min_pixels`` residuals exist.
+
+    Written by hand: torch has no k-th value of a union of sorted arrays."""
+    arrays = [r.numpy() for r in residuals if r.numel()]
+    n = sum(a.size for a in arrays)
+    if n == 0 or n < min_pixels:
+        return KINECT_SIGMA_1M
+    k = max(1, int(round(0.6827 * n)))
+    # the smallest value with at least k residuals at or below it is the k-th smallest;
+    # the non-negative float64s order as their bit patterns
+    lo, hi = 0, int(max(a[-1] for a in arrays).view(np.int64))
+    while lo < hi:
+        mid = (lo + hi) // 2
+        value = np.int64(mid).view(np.float64)
+        if sum(int(np.searchsorted(a, value, side="right")) for a in arrays) >= k:
+            hi = mid
+        else:
+            lo = mid + 1
+    return float(np.int64(lo).view(np.float64))

@@ -21,6 +21,7 @@ from typing import NamedTuple
 import torch
 
 from depthgt.geometry import project
+from depthgt.shapes import check_shape
 
 __all__ = [
     "Candidates",
@@ -35,17 +36,17 @@ __all__ = [
 
 
 def check_points(points_cam: torch.Tensor, K: torch.Tensor, valid: torch.Tensor | None, size_hw) -> torch.Tensor:
-    if points_cam.ndim != 3 or points_cam.shape[-1] != 3:
-        raise ValueError(f"points_cam must be (B, N, 3), got {tuple(points_cam.shape)}")
-    b, n, _ = points_cam.shape
-    if K.shape != (b, 3, 3):
-        raise ValueError(f"K must be ({b}, 3, 3) to match points_cam {tuple(points_cam.shape)}, got {tuple(K.shape)}")
+    """``valid`` (B, N) bool (all True for None) once ``points_cam`` (B, N, 3), ``K``
+    (B, 3, 3) and ``size_hw`` (H, W) are checked."""
+    sizes = check_shape(points_cam, "B N 3", "points_cam")
+    check_shape(K, "B 3 3", "K", sizes)
     if len(size_hw) != 2 or int(size_hw[0]) <= 0 or int(size_hw[1]) <= 0:
         raise ValueError(f"size_hw must be (H, W) with positive sizes, got {size_hw}")
     if valid is None:
-        return torch.ones(b, n, dtype=torch.bool, device=points_cam.device)
-    if valid.shape != (b, n) or valid.dtype != torch.bool:
-        raise ValueError(f"valid must be a ({b}, {n}) bool tensor, got {tuple(valid.shape)} {valid.dtype}")
+        return torch.ones(sizes["B"], sizes["N"], dtype=torch.bool, device=points_cam.device)
+    check_shape(valid, "B N", "valid", sizes)
+    if valid.dtype != torch.bool:
+        raise ValueError(f"valid must be a bool tensor, got {valid.dtype}")
     return valid
 
 
@@ -186,10 +187,8 @@ def _candidates_on_grid(
     b, n, h, w = bnhw
     r = radius_px
     gu, gv = (g.to(uv_f.dtype) for g in grid_uv)
-    if gu.shape != (w,) or gv.shape != (h,):
-        raise ValueError(
-            f"grid_uv must hold ({w},) and ({h},) sample positions, got {tuple(gu.shape)}, {tuple(gv.shape)}"
-        )
+    check_shape(gu, "W", "grid_uv[0] (the columns' sample positions)", {"W": w})
+    check_shape(gv, "H", "grid_uv[1] (the rows' sample positions)", {"H": h})
     with torch.no_grad():
         shift = float(
             max(

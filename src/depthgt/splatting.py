@@ -13,6 +13,7 @@ from typing import NamedTuple
 import torch
 
 from depthgt.rasterise import candidates, check_points, segment_rank_keep
+from depthgt.shapes import check_shape
 
 __all__ = ["SoftSplat", "splat_soft"]
 
@@ -83,8 +84,7 @@ def splat_soft(
     """
     valid = check_points(points_cam, K, valid, size_hw)
     b, n, _ = points_cam.shape
-    if features.ndim != 3 or features.shape[:2] != (b, n):
-        raise ValueError(f"features must be ({b}, {n}, C) to match points_cam, got {tuple(features.shape)}")
+    check_shape(features, "B N C", "features", {"B": b, "N": n})
     if radius_px <= 0 or max_points < 1:
         raise ValueError(f"radius_px must be > 0 and max_points >= 1, got {radius_px}, {max_points}")
     h, w = int(size_hw[0]), int(size_hw[1])

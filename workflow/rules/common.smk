@@ -1,20 +1,28 @@
 # Config validation, wildcard constraints and input functions. Nothing heavy is
 # imported here: the DAG is built without torch, kornia or OpenEXR.
+import sys
+
 from snakemake.exceptions import WorkflowError
-from snakemake.utils import validate
 
 from depthgt import runlock  # standard library only
 from depthgt.device import check_device_available  # torch-free
-from depthgt.settings import check_config, check_scene_name, check_workflow, settings_from_config, stage_config
+from depthgt.settings import (  # torch-free
+    check_scene_name,
+    check_workflow,
+    config_with_defaults,
+    settings_from_config,
+    stage_config,
+)
 from depthgt.sources.base import check_scene_identity, scene_file  # numpy only
 
-check_config(config, workflow.source_path("../schemas/config.schema.yaml"))
-validate(config, schema="../schemas/config.schema.yaml", set_default=True)
-# Every stage's settings, checked before any job runs (unknown keys, values, bounds,
-# patches.size <= resize, registration keys whatever the method); jobs rebuild theirs
-# from the config sections their rule passes (STAGES below).
+# Every stage's settings, checked before any job runs: the one check of the config
+# (unknown keys at any depth, types, choices, bounds, patches.size <= resize, registration
+# keys whatever the method; every section's problem at once). Jobs rebuild theirs from the
+# config sections their rule passes (STAGES below).
 SETTINGS = settings_from_config(config)
-check_workflow(SETTINGS)  # what no single section decides (overfit pretraining needs a train split)
+check_workflow(SETTINGS)  # what no single section decides (a source at least; the encoder's pretraining)
+# the defaults the rules' params and the recorded source entries hold (depthgt.settings.WRITTEN_DEFAULTS)
+config.update(config_with_defaults(config))
 
 SOURCES = {src["name"]: src for src in config["sources"]}  # names checked unique by the settings
 
@@ -23,10 +31,10 @@ def _scenes_of(src):
     if src["scenes"] == "all":
         from depthgt.sources.base import list_scenes
 
-        found = list_scenes(src["kind"], src.get("root"), **src.get("options", {}))
+        found = list_scenes(src["kind"], src["root"], **src["options"])
         if not found:  # an empty folder, or one of another kind: nothing would be built, silently
             raise WorkflowError(
-                f"sources[{src['name']}]: scenes: all finds no {src['kind']} scene under {src.get('root')} "
+                f"sources[{src['name']}]: scenes: all finds no {src['kind']} scene under {os.path.abspath(src['root'] or '.')} "
                 "(an empty folder, or data of another kind?)"
             )
         return found
@@ -62,7 +70,7 @@ def scene_data(wildcards):
     Snakemake then re-runs the index when the file changes); folder sources have too
     many files to list."""
     src = SOURCES[wildcards.dataset]
-    path = scene_file(src["kind"], src.get("root"), wildcards.scene, **src.get("options", {}))
+    path = scene_file(src["kind"], src["root"], wildcards.scene, **src["options"])
     return {"scene_file": path} if path else {}
 
 
@@ -79,7 +87,7 @@ def _plan_batches():
     plan = {}
     for name, scene in SCENES:
         src = SOURCES[name]
-        n = frame_count(src["kind"], src.get("root"), scene, **src.get("options", {}))
+        n = frame_count(src["kind"], src["root"], scene, **src["options"])
         plan[name, scene] = SETTINGS.frameset.batches(n)
     return plan
 
@@ -98,8 +106,14 @@ def all_shards():
     return [f"results/framesets/{d}/{s}/{a:06d}-{b:06d}.zip" for d, s in SCENES for a, b in BATCHES[d, s]]
 
 
-def scene_summaries(what="framesets", ext="parquet"):
-    return [f"results/scenes/{d}/{s}/{what}.{ext}" for d, s in SCENES]
+def scene_summaries(what="framesets", ext="parquet", scenes=None):
+    return [f"results/scenes/{d}/{s}/{what}.{ext}" for d, s in (SCENES if scenes is None else scenes)]
+
+
+# The scenes whose frame sets may be in the train or val split: those of every source
+# but the `split: test` ones (their own job writes the training manifests, rule
+# training_manifests: a test source added or changed leaves the trainings as they are).
+TRAINING_SCENES = [(d, s) for d, s in SCENES if SETTINGS.source(d).split != "test"]
 
 
 # The sections of the config that decide a stage's outputs (depthgt.settings.STAGES, the
@@ -128,7 +142,7 @@ def train_threads(wildcards):
     """Threads of one training (the train_model rule), a quarter of --cores, one at least, two
     at most. The four trainings (LapDEN, RDE, DDRNet, SDD) are small networks on 128x128
     patches: on 2 cores two side by side on one thread each took the default build from
-    ~80 to 69 min (bench/README "Threads per training on 2 cores"), and with 8 cores or
+    ~80 to 69 min (docs/decisions.md "Threads per training on 2 cores"), and with 8 cores or
     more each gets the two threads it always had. Without a
     core count (a cluster run without --cores): two."""
     try:
@@ -137,17 +151,16 @@ def train_threads(wildcards):
         return 2
     return max(1, min(2, cores // 4))
 
-# Frame sets: peak RSS (benchmarks/*.tsv, max_rss) and CPU time on one core, measured at
-# 256x256: given poses 0.6 GB / 5 s (7-Scenes), overfit fast 0.7 GB / 9 s, overfit paper
-# 5.9 GB / 830 s (issue 9); declared with headroom. A job that handles several frame sets
-# in turn needs the memory of one and the time of all.
-_REG = config["registration"]
-_OVERFIT_PAPER = _REG.get("method") == "overfit" and _REG.get("preset") != "fast"
-# frameset.selection coverage: the batch keeps the span's frames and the candidates' clouds;
-# measured 1.7 GB peak RSS (7-Scenes, given and refine, bench_pipeline.py --selection coverage)
-_COVERAGE = config["frameset"].get("selection") == "coverage"
-FRAMESET_MEM_MB = 8000 if _OVERFIT_PAPER else (4000 if _COVERAGE else 2000)
-FRAMESET_CPU_S = 1800 if _OVERFIT_PAPER else 60
+# Frame sets: the memory and CPU time one frame set of the registration method costs
+# (its entry's JobCost, depthgt.registration.methods: measured peak RSS and CPU time,
+# declared with headroom). A job that handles several frame sets in turn needs the memory
+# of one and the time of all. frameset.selection coverage: the batch keeps the span's frames
+# and the candidates' clouds; measured 1.7 GB peak RSS (7-Scenes, given and refine,
+# bench_pipeline.py --selection coverage).
+_JOB = SETTINGS.registration.job_cost
+_COVERAGE = SETTINGS.frameset.selection == "coverage"
+FRAMESET_MEM_MB = max(_JOB.mem_mb, 4000) if _COVERAGE else _JOB.mem_mb
+FRAMESET_CPU_S = _JOB.cpu_s
 
 
 def frameset_runtime_min(n_framesets=1):
@@ -166,19 +179,69 @@ def frameset_runtime_min(n_framesets=1):
 # (torch-free check). It runs in `onstart` because the executor is known only there
 # (while this file is parsed a SLURM run still looks local); on a cluster the submitting
 # node may have no GPU, there each job checks before any work (depthgt.device).
+# The run's config is remembered once its jobs are about to start (depthgt.buildconfig):
+# later commands in this working directory run with it without --configfile.
+# Before the first job the planned frame sets must fit on the results file system
+# (depthgt.gt.space: the format's measured bytes per frame set x the frame sets whose
+# shard is not built yet; config dataset.check_space: false warns only). At the end the
+# run prints its summary (frame sets built and skipped with the top reasons, frames
+# unusable, patch pairs kept, where summary.md is) and, when it failed, one line for a
+# full disk or a job over its memory (depthgt.jobs.outcome).
+def _space_plan():
+    from depthgt.gt.space import PlannedShard
+
+    step = SETTINGS.frameset.target_step
+    return [
+        PlannedShard(f"results/framesets/{d}/{s}/{a:06d}-{b:06d}.zip", (b - a) // step + 1, HAS_TRUTH[d])
+        for d, s in SCENES
+        for a, b in BATCHES[d, s]
+    ]
+
+
+
+
+def _end_of_run(log, failed):
+    from depthgt.jobs.outcome import end_of_run_lines
+
+    mem = {}
+    for r in workflow.rules:  # the memory each rule declares (a snakemake Resource; a function has no value)
+        try:
+            value = getattr(r.resources.get("mem_mb"), "value", r.resources.get("mem_mb"))
+        except Exception:
+            continue
+        if isinstance(value, int):
+            mem[r.name] = value
+    try:
+        lines = end_of_run_lines(".", SCENES, _space_plan(), SETTINGS.resize, log, mem, failed=failed)
+    except Exception as err:  # the summary must not hide the run's own outcome
+        lines = [f"depthgt: (no summary: {type(err).__name__}: {err})"]
+    for line in lines:
+        print(line, file=sys.stderr)
+
+
 onstart:
     runlock.acquire()
-    if workflow.local_exec:
-        try:
+    try:
+        if workflow.local_exec:
             check_device_available(SETTINGS.device)
-        except Exception:
-            runlock.release()
-            raise
+        from depthgt.gt.space import check_space
+
+        warning = check_space(".", _space_plan(), SETTINGS.resize, refuse=SETTINGS.dataset.check_space)
+        if warning:
+            print(warning, file=sys.stderr)
+    except Exception as err:
+        # one line, before any job: Snakemake would add its traceback of this handler
+        runlock.release()
+        print(f"depthgt: error: {err}", file=sys.stderr)
+        raise SystemExit(1) from None
+    buildconfig.remember(".", CONFIG_LAYERS)
 
 
 onsuccess:
     runlock.release()
+    _end_of_run(log, failed=False)
 
 
 onerror:
     runlock.release()
+    _end_of_run(log, failed=True)

@@ -1,5 +1,25 @@
+# The training manifests have a job of their own, whose inputs are the scenes of the
+# sources that can hold train or val frame sets (TRAINING_SCENES: split auto, train, val):
+# adding or changing a `split: test` source leaves them, and the trainings that read
+# them, untouched (the dataset job below re-runs, with the test manifest, the tables
+# and the card).
+rule training_manifests:
+    input:
+        patches=scene_summaries("patches", scenes=TRAINING_SCENES),
+    output:
+        train="results/dataset/train.parquet",
+        val="results/dataset/val.parquet",
+    conda:
+        ENV
+    log:
+        "logs/dataset-training.log",
+    script:
+        "../scripts/training_manifests.py"
+
+
 rule dataset:
     input:
+        manifests=rules.training_manifests.output,
         scenes=scene_summaries("framesets"),
         patches=scene_summaries("patches"),
         quality=scene_summaries("quality"),
@@ -7,8 +27,6 @@ rule dataset:
         indices=scene_summaries("index", "json"),
         shards=all_shards(),
     output:
-        train="results/dataset/train.parquet",
-        val="results/dataset/val.parquet",
         test="results/dataset/test.parquet",
         framesets="results/dataset/framesets.parquet",
         summary="results/dataset/summary.json",
@@ -18,6 +36,7 @@ rule dataset:
         card_md="results/dataset/card.md",
     params:
         config=GT_CONFIG,
+        allow_empty=SETTINGS.dataset.allow_empty,
     conda:
         ENV
     log:

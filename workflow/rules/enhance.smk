@@ -22,13 +22,27 @@ rule rde_scene:
         "../scripts/rde.py"
 
 
+# RDE's training manifests from the scenes that can hold train or val frame sets only
+# (as rule training_manifests): a test source added leaves the RDE training as it is.
+rule rde_training_manifests:
+    input:
+        patches=[f"results/rde/{d}/{s}/patches.parquet" for d, s in RDE_SCENES if (d, s) in TRAINING_SCENES],
+    output:
+        train="results/rde/train.parquet",
+        val="results/rde/val.parquet",
+    conda:
+        ENV
+    log:
+        "logs/rde/training-manifests.log",
+    script:
+        "../scripts/rde_training_manifests.py"
+
+
 rule rde_dataset:
     input:
         framesets=[f"results/rde/{d}/{s}/framesets.parquet" for d, s in RDE_SCENES],
         patches=[f"results/rde/{d}/{s}/patches.parquet" for d, s in RDE_SCENES],
     output:
-        train="results/rde/train.parquet",
-        val="results/rde/val.parquet",
         test="results/rde/test.parquet",
         framesets="results/rde/framesets.parquet",
     conda:

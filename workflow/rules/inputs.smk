@@ -1,6 +1,7 @@
 # Input functions and names the rules share (Snakemake's lint: functions apart from
 # rules). Nothing heavy is imported here.
 from depthgt import registry
+from depthgt.sources.base import source_kind  # numpy only
 
 # every rule's software environment (docs/development.md: --software-deployment-method conda)
 ENV = "../envs/depthgt.yaml"
@@ -11,8 +12,8 @@ def train_scene_indices(wildcards=None):
 
 
 def registration_encoder(wildcards):
-    """The pretrained encoder when frame sets are registered by the overfit method."""
-    if SETTINGS.registration.method == "overfit":
+    """The pretrained encoder when the registration method starts from it (overfit)."""
+    if SETTINGS.registration.method_entry.pretrained_encoder:
         return "results/models/registration/encoder.pt"
     return []
 
@@ -21,21 +22,23 @@ MODELS = list(registry.learned())  # every trainable model of the registry (targ
 METHODS = list(SETTINGS.evaluation.methods)
 EVALUATED_MODELS = SETTINGS.evaluation.models  # trained by the default target
 KINDS = {name: src["kind"] for name, src in SOURCES.items()}
+# sources whose kind has noise-free depth (synthetic data: evaluated against the truth)
+HAS_TRUTH = {name: source_kind(kind).has_truth for name, kind in KINDS.items()}
 MANIFESTS = {"depthgt": "results/dataset", "rde": "results/rde"}  # the GT a learned method trains on
 
 
 # Real scenes whose frame sets may be evaluated (source split = evaluation.split, or
 # auto): Table 2 scores them also against references no method was trained to imitate,
 # built per scene by rule scene_references (depthgt.gt.references).
-REFERENCE_SCENES = [(d, s) for d, s in SCENES if KINDS[d] != "synthetic"
-                    and SOURCES[d].get("split", "auto") in ("auto", SETTINGS.evaluation.split)]
+REFERENCE_SCENES = [(d, s) for d, s in SCENES if not HAS_TRUTH[d]
+                    and SOURCES[d]["split"] in ("auto", SETTINGS.evaluation.split)]
 REFERENCE_TABLES = [f"results/references/{d}/{s}/references.parquet" for d, s in REFERENCE_SCENES]
 
 # Scenes with an RDE GT (a TSDF of the stream, one per scene by rde_scene): those RDE trains and
 # validates on, the real scenes Table 2's TSDF reference needs, and synthetic test scenes
 # only when evaluation.rde_synthetic_test asks (Table 1 rows; no method needs them).
-RDE_SCENES = [(d, s) for d, s in SCENES if SOURCES[d].get("split", "auto") != SETTINGS.evaluation.split
-              or KINDS[d] != "synthetic" or SETTINGS.evaluation.rde_synthetic_test]
+RDE_SCENES = [(d, s) for d, s in SCENES if SOURCES[d]["split"] != SETTINGS.evaluation.split
+              or not HAS_TRUTH[d] or SETTINGS.evaluation.rde_synthetic_test]
 
 
 def train_config(wildcards):

@@ -11,4 +11,6 @@ with logging_to(snakemake.log[0]):
         dict(snakemake.output.items()),
         shards=list(snakemake.input.shards),
         config=snakemake.params.config,
+        manifests=list(snakemake.input.manifests),
+        allow_empty=snakemake.params.allow_empty,
     )

@@ -39,7 +39,7 @@ from torch.utils.data import Dataset
 
 from depthgt.errors import DepthGTError
 from depthgt.gt import store
-from depthgt.settings import SPLITS
+from depthgt.gt.settings import SPLITS
 from depthgt.status import Status
 
 __all__ = ["KINDS", "GTDataset", "manifest_path", "training_fields"]

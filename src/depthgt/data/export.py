@@ -32,7 +32,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import pandas as pd
 from torch.utils.data import DataLoader, Subset
@@ -43,7 +42,7 @@ from depthgt.atomic import write_atomic
 from depthgt.data.dataset import KINDS, GTDataset
 from depthgt.errors import DepthGTError
 from depthgt.gt.card import CHECKSUMS, sha256_file
-from depthgt.settings import SPLITS
+from depthgt.gt.settings import SPLITS
 
 __all__ = [
     "FORMATS",
@@ -57,27 +56,16 @@ __all__ = [
 ]
 
 FORMATS = {"png16": ".png", "exr": ".exr"}
-DEPTH_UNITS_PER_M = 1000  # millimetres, ScanNet's and NYU-v2's depth PNG unit
-SIGMA_UNITS_PER_M = 10000  # 0.1 mm: the GT's sigma is mostly a few millimetres
+DEPTH_UNITS_PER_M = io.PNG16_DEPTH_UNITS_PER_M  # millimetres, ScanNet's and NYU-v2's depth PNG unit
+SIGMA_UNITS_PER_M = io.PNG16_SIGMA_UNITS_PER_M  # 0.1 mm: the GT's sigma is mostly a few millimetres
 DEPTH_MODALITIES = ("input", "gt", "sigma", "truth")
 CARD_FILES = ("card.json", "card.md")
 INDEX_COLUMNS = ["split", "dataset", "scene", "target", "patch", "rgb", *DEPTH_MODALITIES]
-_PNG16_MAX = np.iinfo(np.uint16).max
+encode_png16 = io.encode_png16
 
 
 def _units(modality: str) -> int:
     return SIGMA_UNITS_PER_M if modality == "sigma" else DEPTH_UNITS_PER_M
-
-
-def encode_png16(depth_m: np.ndarray, units_per_m: float, where: str) -> bytes:
-    """(H, W) metres -> 16-bit PNG bytes of ``round(depth * units_per_m)``; 0, non-finite
-    and values beyond 65535 units are written as 0 (missing)."""
-    q = np.round(np.asarray(depth_m, dtype=np.float64) * units_per_m)
-    q[~np.isfinite(q) | (q > _PNG16_MAX) | (q < 0)] = 0
-    ok, buf = cv2.imencode(".png", q.astype(np.uint16))
-    if not ok:
-        raise OSError(f"{where}: cv2.imencode failed")
-    return buf.tobytes()
 
 
 def read_depth(path: str | Path, modality: str = "gt") -> np.ndarray:

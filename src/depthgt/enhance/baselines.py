@@ -37,6 +37,7 @@ from kornia.color import rgb_to_grayscale
 
 from depthgt.depth_ops import valid_avg_pool
 from depthgt.enhance.train import load_model, predict_depth
+from depthgt.shapes import check_shape
 
 __all__ = ["BASELINES", "register_baseline", "run_baseline", "identity", "rgf", "jf", "learned", "box_fill"]
 
@@ -57,14 +58,12 @@ def register_baseline(name: str):
 
 def _check_inputs(depth_m: np.ndarray, rgb: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
     d = np.asarray(depth_m)
-    if d.ndim != 2:
-        raise ValueError(f"depth_m must be (H, W), got {d.shape}")
+    sizes = check_shape(d, "H W", "depth_m")
     d = np.nan_to_num(d.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
     d[d < 0] = 0.0
     if rgb is not None:
         rgb = np.asarray(rgb)
-        if rgb.shape != (*d.shape, 3):
-            raise ValueError(f"rgb must be (H, W, 3) = {(*d.shape, 3)} to match depth_m, got {rgb.shape}")
+        check_shape(rgb, "H W 3", "rgb", sizes)
     return d, rgb
 
 

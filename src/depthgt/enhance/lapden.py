@@ -43,6 +43,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from depthgt.depth_ops import masked_avg_pool, valid_avg_pool
+from depthgt.shapes import check_shape
 
 __all__ = [
     "LapDENConfig",
@@ -137,10 +138,7 @@ def push_pull_fill(depth_m: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     Returns:
         (B, 1, H, W) metres; holes filled, 0 only in images with no valid pixel.
     """
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
-        raise ValueError(f"depth_m must be (B, 1, H, W), got {tuple(depth_m.shape)}")
-    if valid.shape != depth_m.shape:
-        raise ValueError(f"valid shape {tuple(valid.shape)} != depth shape {tuple(depth_m.shape)}")
+    check_shape(valid, "B 1 H W", "valid", check_shape(depth_m, "B 1 H W", "depth_m"))
     w = valid.to(depth_m.dtype)
     levels = [(depth_m * w, w)]
     while min(levels[-1][0].shape[-2:]) > 1:
@@ -197,8 +195,7 @@ class LapDEN(nn.Module):
             nn.init.zeros_(head.bias)
 
     def forward(self, depth_m: torch.Tensor) -> list[torch.Tensor]:
-        if depth_m.ndim != 4 or depth_m.shape[1] != 1:
-            raise ValueError(f"LapDEN expects depth (B, 1, H, W), got {tuple(depth_m.shape)}")
+        check_shape(depth_m, "B 1 H W", "LapDEN: depth_m")
         if depth_m.shape[-1] % 4 or depth_m.shape[-2] % 4:
             raise ValueError(f"LapDEN needs H and W divisible by 4, got {tuple(depth_m.shape)}")
         s = self.config.negative_slope

@@ -27,6 +27,7 @@ import torch.nn.functional as F
 
 from depthgt.depth_ops import depth_normals
 from depthgt.enhance.losses import depth_l1, normal_l1
+from depthgt.shapes import check_shape
 
 __all__ = ["DDRNetDenoise", "PartialConv2d", "SDDUNet", "ddrnet_loss", "sdd_loss", "normal_smoothness"]
 
@@ -191,8 +192,7 @@ def _float_terms(*terms: tuple[str, torch.Tensor]) -> dict[str, float]:
 
 
 def _check_input(depth_m: torch.Tensor, multiple: int, who: str) -> None:
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
-        raise ValueError(f"{who} expects depth (B, 1, H, W), got {tuple(depth_m.shape)}")
+    check_shape(depth_m, "B 1 H W", f"{who}: depth_m")
     if depth_m.shape[-1] % multiple or depth_m.shape[-2] % multiple:
         raise ValueError(f"{who} needs H and W divisible by {multiple}, got {tuple(depth_m.shape)}")
 

@@ -40,7 +40,6 @@ from dataclasses import dataclass, fields
 import torch
 
 from depthgt.depth_ops import (
-    check_depth,
     depth_normals,
     forward_gradients,
     masked_avg_pool,
@@ -49,6 +48,7 @@ from depthgt.depth_ops import (
     window_max,
 )
 from depthgt.geometry import scale_intrinsics
+from depthgt.shapes import check_shape
 
 __all__ = [
     "LossConfig",
@@ -128,8 +128,7 @@ def normal_l1(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor, K: torc
     Args:
         pred, gt: (B, 1, H, W) metres; valid: (B, 1, H, W) bool; K: (B, 3, 3) at (H, W).
     """
-    if K.ndim != 3 or K.shape[-2:] != (3, 3) or K.shape[0] != pred.shape[0]:
-        raise ValueError(f"K must be (B, 3, 3) with B={pred.shape[0]}, got {tuple(K.shape)}")
+    check_shape(K, "B 3 3", "K", {"B": pred.shape[0]})
     K = K.to(pred.dtype)
     n_pred = depth_normals(pred, K)
     n_gt = depth_normals(gt, K)
@@ -166,7 +165,7 @@ def lapden_loss(outputs: list[torch.Tensor], batch: dict, config: LossConfig = L
     if isinstance(outputs, torch.Tensor):
         outputs = [outputs]
     gt, K = batch["gt"], batch["K"]
-    check_depth("batch['gt']", gt)
+    check_shape(gt, "B 1 H W", "batch['gt']")
     weights = config.scale_weights[-len(outputs) :]
     if len(weights) != len(outputs):
         raise ValueError(f"{len(outputs)} outputs but only {len(config.scale_weights)} scale_weights")

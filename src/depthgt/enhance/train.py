@@ -52,8 +52,9 @@ from depthgt import registry
 from depthgt.atomic import write_atomic
 from depthgt.data import GTDataset, training_fields
 from depthgt.device import resolve_device
+from depthgt.enhance.settings import TrainSettings
 from depthgt.errors import ConfigError
-from depthgt.settings import TrainSettings
+from depthgt.shapes import check_shape
 from depthgt.testhook import hold
 
 __all__ = [
@@ -547,8 +548,7 @@ def predict(model: nn.Module, depth_m: torch.Tensor, chunk: int = 8) -> torch.Te
     Returns:
         (B, 1, H, W) metres on the input's device, negatives clamped to 0.
     """
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1:
-        raise ValueError(f"predict expects depth (B, 1, H, W), got {tuple(depth_m.shape)}")
+    check_shape(depth_m, "B 1 H W", "predict: depth_m")
     model.eval()
     dev = next(model.parameters()).device
     H, W = depth_m.shape[-2:]
@@ -568,6 +568,5 @@ def predict(model: nn.Module, depth_m: torch.Tensor, chunk: int = 8) -> torch.Te
 def predict_depth(model: nn.Module, depth_m: np.ndarray) -> np.ndarray:
     """:func:`predict` for one (H, W) float32 depth image in metres -> (H, W) float32."""
     d = np.asarray(depth_m, dtype=np.float32)
-    if d.ndim != 2:
-        raise ValueError(f"predict_depth expects (H, W) depth, got {d.shape}")
+    check_shape(d, "H W", "predict_depth: depth_m")
     return predict(model, torch.from_numpy(d)[None, None])[0, 0].numpy()

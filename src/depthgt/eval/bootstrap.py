@@ -18,6 +18,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from depthgt.shapes import check_shape
+
 __all__ = [
     "BOOTSTRAP_RESAMPLES",
     "BOOTSTRAP_SEED",
@@ -74,8 +76,7 @@ def bootstrap_means(
     v = np.asarray(values, dtype=np.float64)
     if v.ndim == 1:
         v = v[:, None]
-    if v.ndim != 2:
-        raise ValueError(f"bootstrap: values must be (n_frames, k), got {v.shape}")
+    check_shape(v, "n_frames k", "bootstrap: values")
     if not 0.0 < level < 1.0:
         raise ValueError(f"bootstrap: level must be in (0, 1), got {level}")
     ok = np.isfinite(v)

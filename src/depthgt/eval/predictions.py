@@ -293,8 +293,9 @@ def evaluate_folder(
     kinds = {d: ("synthetic" if d in with_truth else "real") for d in ev["dataset"].unique()}
     written = {"eval": out_dir / "eval.parquet"}
     ev_all.to_parquet(written["eval"], index=False)
+    table2 = tables.table2(ev_all, kinds)
     built = {
-        "table2": (tables.table2(ev_all, kinds), tables.TABLE2_CAPTION),
+        "table2": (table2, tables.table2_caption(tables.references_in(table2))),
         "table3": (tables.table3(ev_all, kinds), tables.TABLE3_CAPTION),
     }
     if compare:
@@ -307,6 +308,8 @@ def evaluate_folder(
             ("table3_paired", True, "truth", tables.NO_SYNTH_NOTE, tables.TABLE3_PAIRED_CAPTION),
         ):
             table = tables.paired_table(ev_all, sorted(datasets[synthetic]), ref, note, base=method)
+            if key == "table2_paired":
+                caption = tables.table2_caption(tables.references_in(table), paired=True, base=method)
             built[key] = (table, caption.replace("LapDEN", method))
     for key, (table, caption) in built.items():
         _, written[key] = tables.write_table(table, out_dir / f"{key}.csv", out_dir / f"{key}.md", caption)

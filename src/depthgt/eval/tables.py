@@ -60,6 +60,8 @@ __all__ = [
     "markdown_view",
     "TABLE1_CAPTION",
     "TABLE2_CAPTION",
+    "table2_caption",
+    "references_in",
     "TABLE3_CAPTION",
     "TABLE2_PAIRED_CAPTION",
     "TABLE3_PAIRED_CAPTION",
@@ -124,36 +126,56 @@ _PAIRED = (
 # Table 2's references (real data), in the order of its blocks
 REAL_REFERENCES = ("gt", "neighbours", "tsdf")
 REFERENCE_LABELS = {"gt": "depthgt GT", "neighbours": "neighbours only", "tsdf": "TSDF GT"}
-_REAL_REFERENCES_TEXT = (
-    "One block per reference (column 'reference'). 'depthgt GT': the frame set's GT, the paper's protocol; it "
-    "favours LapDEN, which was trained to reproduce depthgt's GT (of other scenes), and it fuses the target's own "
-    "depth, so it also favours methods that keep the input. 'neighbours only': the frame set's fused neighbours "
-    "rendered into the target with the build's poses, without the target's own depth (the leave-target-out check "
-    "at every pixel): independent of the target's sensor noise, no method was trained on it; empty where no "
-    "neighbour sees. 'TSDF GT': the global reconstruction of the whole recording ray-cast at the target (the GT "
-    "RDE is trained on, of other scenes; it holds the target's depth among all the frames'), so it favours RDE as "
-    "depthgt's GT favours LapDEN. "
-)
+# what each reference of Table 2 is, for the captions (only the references a table holds are described)
+REFERENCE_TEXT = {
+    "gt": "'depthgt GT': the frame set's GT, the paper's protocol; it favours LapDEN, which was trained to "
+    "reproduce depthgt's GT (of other scenes), and it fuses the target's own depth, so it also favours methods "
+    "that keep the input. ",
+    "neighbours": "'neighbours only': the frame set's fused neighbours rendered into the target with the build's "
+    "poses, without the target's own depth (the leave-target-out check at every pixel): independent of the "
+    "target's sensor noise, no method was trained on it; empty where no neighbour sees. ",
+    "tsdf": "'TSDF GT': the global reconstruction of the whole recording ray-cast at the target (the GT RDE is "
+    "trained on, of other scenes; it holds the target's depth among all the frames'), so it favours RDE as "
+    "depthgt's GT favours LapDEN. ",
+}
+_COUNT = {0: "no reference", 1: "one reference", 2: "two references", 3: "three references"}
+
+
+def _references_text(references: tuple[str, ...]) -> str:
+    blocks = "One block per reference (column 'reference'). " if len(references) > 1 else ""
+    return blocks + "".join(REFERENCE_TEXT[r] for r in references)
+
+
+def references_in(table: pd.DataFrame) -> tuple[str, ...]:
+    """The references of :data:`REAL_REFERENCES` a Table 2 (or its paired table) holds,
+    from its ``reference`` column."""
+    labels = set(table["reference"]) if "reference" in table else set()
+    return tuple(r for r in REAL_REFERENCES if REFERENCE_LABELS[r] in labels)
+
+
+def table2_caption(references: tuple[str, ...] = REAL_REFERENCES, paired: bool = False, base: str = "LapDEN") -> str:
+    """Table 2's caption, describing exactly ``references`` (:func:`references_in`: the
+    references the table holds; `depthgt evaluate` scores against depthgt's GT only
+    where the build has no other)."""
+    if paired:
+        head = f"Table 2, paired (real data, {_COUNT[len(references)]} of Table 2): {base} minus every other method. "
+        return head + _references_text(references) + _PAIRED.replace("LapDEN", base)
+    head = f"Table 2 (real data): methods on held-out real test frames against {_COUNT[len(references)]}. "
+    return head + _references_text(references) + _CONVENTIONS
+
+
 TABLE1_CAPTION = (
     "Table 1: similarity of a GT to the input depth (paper Table 1): SSIM (depth/10 m, data_range 1, 11x11 Gaussian "
     "window, sigma 1.5) and L_S (paper eq. 6, 5x5 window, m^2/px^2), over pixels valid in both, mean over all runnable "
     "frame sets. depthgt's GT fuses the 7-frame local set; the global-reconstruction GT is a TSDF of the whole "
     "stream (global poses) ray-cast at each frame. Higher SSIM / lower L_S = closer in structure to the input."
 )
-TABLE2_CAPTION = (
-    "Table 2 (real data): methods on held-out real test frames against three references. "
-    + _REAL_REFERENCES_TEXT
-    + _CONVENTIONS
-)
+TABLE2_CAPTION = table2_caption()
 TABLE3_CAPTION = (
     "Table 3 (synthetic data): methods on held-out synthetic test frames against the true clean depth; "
     "the input carries Kinect-style noise. " + _CONVENTIONS
 )
-TABLE2_PAIRED_CAPTION = (
-    "Table 2, paired (real data, each reference of Table 2): LapDEN minus every other method. "
-    + _REAL_REFERENCES_TEXT
-    + _PAIRED
-)
+TABLE2_PAIRED_CAPTION = table2_caption(paired=True)
 TABLE3_PAIRED_CAPTION = (
     "Table 3, paired (synthetic data, reference: the true clean depth): LapDEN minus every other method. " + _PAIRED
 )

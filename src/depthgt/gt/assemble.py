@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import NamedTuple
 
@@ -20,8 +21,8 @@ import numpy as np
 import pandas as pd
 
 from depthgt.gt import store
+from depthgt.gt.settings import SPLITS
 from depthgt.metric_vocabulary import unit_of
-from depthgt.settings import SPLITS
 from depthgt.status import Status
 
 FRAMESET_COLUMNS = [
@@ -39,6 +40,8 @@ FRAMESET_COLUMNS = [
     "input_missing",
     "gt_missing",
     "gt_median_sigma_m",
+    "neighbours_left_out",
+    "leave_target_out_mae_m",
 ]
 # (estimate, frameset.json statistics key, reference) of the GT quality table
 QUALITY_KEYS = (
@@ -131,6 +134,8 @@ def summarize_scene(
             "input_missing": np.nan,
             "gt_missing": np.nan,
             "gt_median_sigma_m": np.nan,
+            "neighbours_left_out": np.nan,
+            "leave_target_out_mae_m": np.nan,
         }
         loc = by_target.get(target)
         if loc is not None:
@@ -146,6 +151,8 @@ def summarize_scene(
                 input_missing=st["input_missing"],
                 gt_missing=st["gt_missing"],
                 gt_median_sigma_m=st.get("gt_median_sigma_m", np.nan),
+                neighbours_left_out=neighbours_left_out(doc),
+                leave_target_out_mae_m=float(st.get("leave_target_out", {}).get("mae_m", np.nan)),
             )
             npz = store.read_npz(f"{loc}/patches.npz")
             kept, boxes = npz["kept"], npz["all_boxes"]
@@ -205,6 +212,8 @@ def summarize_scene(
                 "input_missing": np.nan,
                 "gt_missing": np.nan,
                 "gt_median_sigma_m": np.nan,
+                "neighbours_left_out": np.nan,
+                "leave_target_out_mae_m": np.nan,
             }
         )
     frame_rows = [
@@ -229,12 +238,25 @@ def summarize_scene(
     )
 
 
-class DatasetOutputs(NamedTuple):
-    """The files of the dataset assembly (``results/dataset/`` in the workflow)."""
+def neighbours_left_out(doc: dict) -> float:
+    """How many of a built frame set's neighbours its GT does not use: those the
+    registration did not fuse and those the renderer left out (``frameset.json``'s
+    ``members``, ``statistics.neighbours_fused`` and ``render_left_out``)."""
+    st = doc.get("statistics", {})
+    if "neighbours_fused" not in st or "members" not in doc:
+        return float("nan")
+    return float(len(doc["members"]) - 1 - int(st["neighbours_fused"]) + len(st.get("render_left_out", [])))
 
-    train: Path
-    val: Path
-    test: Path
+
+class DatasetOutputs(NamedTuple):
+    """The files of the dataset assembly (``results/dataset/`` in the workflow); a
+    manifest given as None is not written (the workflow writes ``train`` and ``val`` in a
+    job of their own, :func:`write_manifests`: adding a test source leaves them, and the
+    trainings that read them, untouched)."""
+
+    train: Path | None
+    val: Path | None
+    test: Path | None
     framesets: Path
     summary: Path
     summary_md: Path
@@ -279,19 +301,20 @@ def assemble(
         no frame set with the reason (``scenes_without_framesets``: an empty scene, one
         too short, or one whose every frame set was skipped).
     """
-    out = DatasetOutputs(*(Path(p) for p in out))
+    out = DatasetOutputs(*(None if p is None else Path(p) for p in out))
     for p in out:
-        p.parent.mkdir(parents=True, exist_ok=True)
+        if p is not None:
+            p.parent.mkdir(parents=True, exist_ok=True)
     fs = _concat([Path(p) for p in scene_framesets], FRAMESET_COLUMNS)
     patches = _concat([Path(p) for p in scene_patches], PATCH_COLUMNS)
     quality = _concat([Path(p) for p in scene_quality], None)
     frames = _concat([Path(p) for p in scene_frames], FRAME_COLUMNS)
     metas = [json.loads(Path(p).read_text()) for p in index_jsons]
 
-    # astype: a build that kept nothing has an empty object column, which would select columns
-    kept = patches[patches["kept"].astype(bool)].reset_index(drop=True)
+    kept = kept_patches(patches)
     for split in SPLITS:
-        kept[kept["split"] == split].reset_index(drop=True).to_parquet(getattr(out, split), index=False)
+        if getattr(out, split) is not None:
+            kept[kept["split"] == split].reset_index(drop=True).to_parquet(getattr(out, split), index=False)
     fs.to_parquet(out.framesets, index=False)
 
     if len(quality):
@@ -302,7 +325,17 @@ def assemble(
         per_scene = pd.DataFrame(columns=["dataset", "scene", "estimate", "reference", "metric", "unit", "value"])
     per_scene.to_csv(out.quality, index=False)
 
-    summary = {
+    summary = summarise(fs, patches, frames, metas)
+    out.summary.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    out.summary_md.write_text(_summary_md(summary, per_scene))
+    return summary
+
+
+def summarise(fs: pd.DataFrame, patches: pd.DataFrame, frames: pd.DataFrame, metas: list[dict]) -> dict:
+    """The summary of :func:`assemble` from the concatenated tables of the scenes (frame
+    sets, patches, frames read) and their ``index.json`` documents."""
+    kept = kept_patches(patches)
+    return {
         "pairs": {s: int((kept["split"] == s).sum()) for s in SPLITS},
         "patches_drawn": int(len(patches)),
         "patches_kept": int(len(kept)),
@@ -329,9 +362,29 @@ def assemble(
             for r in frames[~frames["valid"].astype(bool)].itertuples()
         ],
     }
-    out.summary.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
-    out.summary_md.write_text(_summary_md(summary, per_scene))
-    return summary
+
+
+def kept_patches(patches: pd.DataFrame) -> pd.DataFrame:
+    """The kept rows of a patch table (the manifests' rows)."""
+    # astype: a build that kept nothing has an empty object column, which would select columns
+    return patches[patches["kept"].astype(bool)].reset_index(drop=True)
+
+
+def write_manifests(scene_patches: list[str | Path], out: dict[str, str | Path]) -> dict[str, int]:
+    """Write the manifests of the splits in ``out`` (split -> path; one row per kept
+    patch pair, as :func:`assemble` writes them) from the per-scene patch tables, in the
+    order given. Returns the rows per split."""
+    unknown = sorted(set(out) - set(SPLITS))
+    if unknown:
+        raise ValueError(f"no split {unknown}; the splits are {', '.join(SPLITS)}")
+    kept = kept_patches(_concat([Path(p) for p in scene_patches], PATCH_COLUMNS))
+    rows = {}
+    for split, path in out.items():
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        table = kept[kept["split"] == split].reset_index(drop=True)
+        table.to_parquet(path, index=False)
+        rows[split] = len(table)
+    return rows
 
 
 def scenes_without_framesets(fs: pd.DataFrame, metas: list[dict]) -> list[dict]:
@@ -415,10 +468,79 @@ def _summary_md(summary: dict, quality: pd.DataFrame) -> str:
         lines += [
             "## GT quality (mean over scenes; metres, completeness as a fraction)",
             "",
-            wide.round(4).to_markdown(),
+            wide.round(4).reset_index().to_markdown(index=False),
             "",
         ]
     return "\n".join(lines)
+
+
+def empty_dataset(summary: dict) -> bool:
+    """Whether a summary (:func:`assemble`) holds no built frame set in any split."""
+    return sum(summary["framesets"].values()) == 0
+
+
+def reason_tag(reason: str) -> str:
+    """The kind of a skip reason: its tag before the first ``:``; for a member frame that
+    was unusable (``frame 5: unreadable (...)``), that frame's reason.
+
+    >>> reason_tag("frame 5: unreadable (x.png: truncated)"), reason_tag("split_guard: members in two splits")
+    ('an unusable frame (unreadable)', 'split_guard')
+    """
+    m = re.match(r"frame \d+: (\w+)", reason)
+    if m:
+        return f"an unusable frame ({m.group(1)})"
+    return reason.split(":")[0].strip() or "unknown"
+
+
+def reason_counts(records: list[dict], top: int = 3) -> list[tuple[str, int, dict]]:
+    """The most common reasons (the tag before the first ``:``) of skipped records, each
+    with its count and its first record (an example), most common first."""
+    counts: dict[str, list] = {}
+    for r in records:
+        counts.setdefault(reason_tag(str(r.get("reason", ""))), [0, r])[0] += 1
+    ranked = sorted(counts.items(), key=lambda kv: (-kv[1][0], kv[0]))
+    return [(tag, n, first) for tag, (n, first) in ranked[:top]]
+
+
+def empty_dataset_message(summary: dict) -> str:
+    """Why a dataset holds no frame set, in one paragraph: the scenes without one and
+    their reasons, and how to keep an empty dataset anyway."""
+    scenes = summary.get("scenes_without_framesets", [])
+    why = "; ".join(f"{r['dataset']}/{r['scene']} ({r['n_frames']} frames): {r['reason']}" for r in scenes[:5])
+    if len(scenes) > 5:
+        why += f"; and {len(scenes) - 5} more scenes"
+    return (
+        "the dataset is empty: no frame set was built"
+        + (f" ({why})" if why else "")
+        + ". Every skipped frame and frame set is listed in the summary above (and in this log). "
+        "Fix the sources or the settings, or set dataset.allow_empty: true to keep an empty dataset"
+    )
+
+
+def console_summary(summary: dict, summary_md: str | Path | None = None) -> list[str]:
+    """The lines a build prints at its end: frame sets built and skipped with the top
+    reasons (one example each, naming the file), frames unusable, patch pairs kept, and
+    where the full summary is."""
+    fs, pairs = summary["framesets"], summary["pairs"]
+    skipped = summary["framesets_skipped"]
+    lines = [
+        f"depthgt: {sum(fs.values())} frame sets built ("
+        + ", ".join(f"{s} {fs[s]}" for s in SPLITS)
+        + f"), {len(skipped)} skipped; {len(summary['frames_skipped'])} of {summary['frames_read']} frames read "
+        f"unusable; {sum(pairs.values())} patch pairs kept ("
+        + ", ".join(f"{s} {pairs[s]}" for s in SPLITS)
+        + f"), {summary['patches_rejected']} rejected by the missing filter"
+    ]
+    for tag, n, first in reason_counts(skipped):
+        example = f"{first['dataset']}/{first['scene']}/{int(first['target']):06d}: {first['reason']}"
+        if len(example) > 300:
+            example = example[:297] + "..."
+        lines.append(f"depthgt:   {n} frame sets skipped for {tag}, e.g. {example}")
+    for r in summary.get("scenes_without_framesets", [])[:3]:
+        lines.append(f"depthgt:   scene {r['dataset']}/{r['scene']} has no frame set: {r['reason']}")
+    if summary_md is not None:
+        lines.append(f"depthgt: every skipped frame and frame set with its reason: {Path(summary_md).absolute()}")
+    return lines
 
 
 def _cell(text: str) -> str:

@@ -1,7 +1,7 @@
 """One frame set: load -> align -> render GT -> quality -> patches -> write.
 
 :func:`process_frameset` reads like the algorithm; each step is a small function that
-the tests call on their own. Outputs (DESIGN.md layout, every path given by the caller
+the tests call on their own. Outputs (docs/output-layout.md, every path given by the caller
 in :class:`FrameSetOutputs`) are written atomically (:func:`depthgt.atomic.write_atomic`)
 so that a killed job leaves no half file.
 """
@@ -9,44 +9,40 @@ so that a killed job leaves no half file.
 from __future__ import annotations
 
 import logging
+import os
 import time
-from dataclasses import dataclass, replace
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
-from depthgt import geometry, io, registration
+from depthgt import io
 from depthgt.atomic import save_npz, write_atomic
 from depthgt.device import resolve_device
+from depthgt.framecache import FrameCache
 from depthgt.gt import store
+from depthgt.gt.coverage import CoverageResult, add_coverage_views
 from depthgt.gt.patches import make_patches, patch_record
 from depthgt.gt.planning import coverage_candidates, stable_seed
-from depthgt.gt.render import GTRender, cloud_in_target, composite_gt, rasterise_gt
+from depthgt.gt.render import Fusion, fuse
+from depthgt.gt.render.cloud import cached_geometry, frame_geometry
+from depthgt.gt.render.fusion import SetGeometry, fuse_sets
+from depthgt.gt.render.settings import RenderSettings
 from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
-from depthgt.noise_law import depth_sigma_m, noise_sigma_1m_from, second_difference_residuals
-from depthgt.registration.frameset import FrameSetData, poses_from_source
-from depthgt.settings import STAGES, RegistrationSettings, RenderSettings, Settings
-from depthgt.sources.base import Scene, check_frame
-from depthgt.status import Status
-
-if TYPE_CHECKING:  # depthgt.gt.coverage imports this module
-    from depthgt.gt.coverage import CoverageResult
+from depthgt.registration import Alignment, FrameSetData, align, align_many, load_frameset, poses_from_source
+from depthgt.settings import STAGES, Settings
+from depthgt.sources.base import Scene
 
 __all__ = [
-    "FrameSetData",
     "FrameSetOutputs",
-    "Alignment",
-    "load_frameset",
-    "poses_from_source",
-    "align",
-    "photometric_for",
-    "fuse",
     "quality_statistics",
     "FrameSetId",
     "StoredImages",
     "process_frameset",
+    "process_framesets",
+    "render_targets",
     "render_target",
     "cover",
     "stored_images",
@@ -59,9 +55,12 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: threads that finish a group of frame sets side by side on a GPU (statistics, patches, files)
+FINISH_WORKERS = 8
+
 
 class FrameSetOutputs(NamedTuple):
-    """The files of one frame set (DESIGN.md output layout)."""
+    """The files of one frame set (docs/output-layout.md)."""
 
     gt: Path
     input: Path
@@ -82,222 +81,31 @@ class FrameSetOutputs(NamedTuple):
 OUTPUT_FILES = tuple(p.name for p in FrameSetOutputs.in_dir("."))
 
 
-def load_frameset(
-    scene: Scene, members: list[int], size_hw: tuple[int, int], need_poses: bool, device: torch.device
-) -> FrameSetData:
-    """Read the member frames of any :class:`~depthgt.sources.base.Scene` and bring them
-    to ``size_hw`` (depth nearest/valid-aware, colour area-averaged, intrinsics scaled).
-
-    A scene whose frames already have the working size (a
-    :class:`depthgt.gt.cache.ResizedScene`) is not resized again; it tells the size of
-    the images it was resized from by ``source_size``.
-
-    Raises:
-        FrameError: a member frame is unusable (the batch job checks the members
-            before it builds a frame set, and records such a set as skipped).
-    """
-    frames = []
-    for m in members:
-        where = f"{scene.name} frame {scene.frame_id(m)}"
-        frames.append(check_frame(scene.read(m), scene.image_size, where, need_pose=need_poses))
-    size_hw = (int(size_hw[0]), int(size_hw[1]))
-    same = tuple(scene.image_size) == size_hw
-
-    def depth_at_size(arrays: list[np.ndarray]) -> torch.Tensor:
-        d = torch.from_numpy(np.stack(arrays))[:, None].to(device)
-        return d if same else geometry.resize_depth_nearest(d, size_hw)
-
-    rgb = torch.from_numpy(np.stack([f.rgb for f in frames])).permute(0, 3, 1, 2).to(device).float() / 255.0
-    truth = None
-    if all(f.clean_depth_m is not None for f in frames):
-        truth = depth_at_size([f.clean_depth_m for f in frames])
-    poses = None
-    if all(f.T_world_cam is not None for f in frames) and all(np.isfinite(f.T_world_cam).all() for f in frames):
-        poses = torch.from_numpy(np.stack([f.T_world_cam for f in frames])).to(device)
-    K = np.asarray(scene.intrinsics, dtype=np.float64)
-    if not same:
-        K = geometry.scale_intrinsics(K, scene.image_size, size_hw)
-    return FrameSetData(
-        rgb=rgb if same else geometry.resize_rgb(rgb, size_hw),
-        depth_m=depth_at_size([f.depth_m for f in frames]),
-        K=torch.as_tensor(K, device=device),
-        T_world_cam=poses,
-        truth_m=truth,
-        frame_ids=[scene.frame_id(m) for m in members],
-        src_hw=tuple(getattr(scene, "source_size", scene.image_size)),
-        colour_matches_depth=bool(getattr(scene, "colour_matches_depth", True)),  # test doubles may not say
-    )
-
-
-@dataclass
-class Alignment:
-    """The neighbours' poses in the target camera and what enters the GT.
-
-    Attributes:
-        T_j_to_t: (F-1, 4, 4) float64.
-        fused: positions of the members rendered into the GT (0 = the target).
-        status, reason: "ok" | "failed" and why.
-        info: the registration record written to poses.json.
-        normals: (F, 3, H, W) the members' normals as the registration's refinement
-            computed them (the renderer's own, reused), or None.
-    """
-
-    T_j_to_t: torch.Tensor
-    fused: list[int]
-    status: str = Status.OK
-    reason: str = ""
-    info: dict | None = None
-    normals: torch.Tensor | None = None
-
-
-def align(
-    data: FrameSetData, offsets: list[int], settings: RegistrationSettings, seed: int, encoder_state: dict | None = None
-) -> Alignment:
-    """Poses of the neighbours in the target camera by the method ``settings.method``
-    names in :data:`depthgt.registration.METHODS` (the source's, the source's refined
-    on the set, or the overfit registration's), with the photometric rule of
-    :func:`photometric_for`. A neighbour that did not register never enters the GT;
-    with ``on_failure: exclude`` the set fails.
-
-    Args:
-        offsets: frame offsets of the members, ``offsets[0] == 0``.
-        seed: seed of the registration (initialisation, candidates, subsets).
-    """
-    settings = photometric_for(settings, data.colour_matches_depth)
-    register = registration.METHODS[settings.method]  # looked up at call time so tests can replace it
-    result = register(data, offsets, settings, seed=seed, encoder_state=encoder_state)
-    T_j_to_t = torch.as_tensor(result.T_j_to_t, dtype=torch.float64, device=data.depth_m.device)
-    status, reason = result.status, result.reason
-    failed = [o for o, st in zip(offsets[1:], result.neighbour_status) if st != Status.OK]
-    if failed and status == Status.OK and settings.on_failure == "exclude":
-        status, reason = Status.FAILED, f"neighbours_not_registered(offsets {','.join(f'{o:+d}' for o in failed)})"
-    fused = [0] + [i + 1 for i, st in enumerate(result.neighbour_status) if st == Status.OK]
-    info: dict[str, Any] = {"method": settings.method}
-    if result.estimated:
-        info["photometric_weight"] = settings.refine_settings.photo_weight
-        info.update(result.to_dict())
-        info["fused_offsets"] = [offsets[i] for i in fused]
-    return Alignment(T_j_to_t, fused, status, reason, info, result.normals)
-
-
-def photometric_for(settings: RegistrationSettings, colour_matches_depth: bool) -> RegistrationSettings:
-    """The registration settings with the refinement's photometric term off where
-    ``registration.photometric`` says so: ``off``, or ``auto`` on a source whose colour
-    is not the depth's camera at the depth's instant (on the TUM tuning frames the term
-    biased the refined poses: residuals in units of the noise, median 1.33 with it and
-    0.99 without, bench/README "Real recordings")."""
-    if settings.photometric == "on" or (settings.photometric == "auto" and colour_matches_depth):
-        return settings
-    return replace(settings, refine_settings=replace(settings.refine_settings, photo_weight=0.0))
-
-
-def fuse(
-    data: FrameSetData,
-    T_j_to_t: torch.Tensor,
-    settings: RenderSettings,
-    depth_m: torch.Tensor | None = None,
-    members: slice | list[int] = slice(None),
-    leave_target_out: bool = False,
-    normals: torch.Tensor | None = None,
-) -> GTRender:
-    """Render the aligned members into the target view (paper eq. 5).
-
-    Args:
-        T_j_to_t: (F-1, 4, 4) poses of the neighbours (the target's is the identity).
-        depth_m: (F, 1, H, W) depth to fuse (default: the raw depth of the members).
-        members: which members to use (``slice(1, None)`` leaves the target out; a
-            list of positions, 0 = the target, keeps those).
-        leave_target_out: with the target among the members and neighbours beside it,
-            also render the neighbours alone into ``left_out`` (the leave-target-out
-            check of :func:`quality_statistics`): the same result as fusing
-            ``members`` without the target (at the pixels of every
-            ``settings.leave_target_out_stride``-th row and column), sharing the clouds,
-            the projection and the sort with the GT render.
-        normals: (F, 3, H, W) kornia's ``depth_to_normals`` of all F members' raw depth
-            when the caller has them (``Alignment.normals``); used when every member is
-            fused (a batch of other frames rounds the convolution differently, which
-            the normalisation can amplify where the gradients vanish), for the raw
-            depth (no ``depth_m``) and when they match it in shape and dtype.
-    """
-    depth = (data.depth_m if depth_m is None else depth_m)[members]
-    n_all = data.depth_m.shape[0]
-    chosen = list(range(n_all))[members] if isinstance(members, slice) else list(members)
-    if normals is not None and (
-        depth_m is not None
-        or chosen != list(range(n_all))
-        or normals.shape != (n_all, 3, *data.depth_m.shape[-2:])
-        or normals.dtype != depth.dtype
-        or normals.device != depth.device
-    ):
-        normals = None
-    eye = torch.eye(4, dtype=T_j_to_t.dtype, device=T_j_to_t.device)[None]
-    T = torch.cat([eye, T_j_to_t], dim=0)[members]
-    K = data.K[None].expand(depth.shape[0], 3, 3)
-    residuals = second_difference_residuals(depth, data.src_hw)  # the noise estimates and the normals' edge test
-    cloud = cloud_in_target(
-        depth,
-        K,
-        T,
-        src_hw=data.src_hw,
-        noise_sigma_1m=settings.noise_sigma_1m,
-        noise_sigma_abs_m=settings.noise_sigma_abs_m,
-        residuals=residuals,
-        normals=normals,
-    )
-    h, w = data.depth_m.shape[-2:]
-    with_target = bool(chosen) and chosen[0] == 0  # the target's own depth is fused, as frame 0 of the cloud
-    cands = rasterise_gt(
-        cloud.points,
-        data.K[None].to(depth.dtype),
-        (h, w),
-        settings,
-        valid=cloud.valid,
-        normals_cam=cloud.normals,
-        sigma_m=cloud.sigma_m,
-        frame=cloud.frame,
-        src_hw=data.src_hw,
-    )
-    gt = composite_gt(cands, settings, target_frame=0 if with_target else None)
-    if not (with_target and leave_target_out and len(chosen) > 1):
-        return gt
-    lo_sigma = None
-    if settings.noise_sigma_1m is None:
-        # the noise law as fusing the neighbours alone estimates it (without the target's depth)
-        sigma_1m = noise_sigma_1m_from(residuals, frames=slice(1, None))
-        lo_sigma = torch.cat(
-            [torch.zeros_like(depth[:1]), depth_sigma_m(depth[1:], sigma_1m, settings.noise_sigma_abs_m)]
-        )
-        lo_sigma = lo_sigma.reshape(1, -1).to(cloud.sigma_m.dtype)
-    # the leave-target-out render: the same compositor over the same candidates minus the target's
-    neighbours = cands.without_frame(0, stride=settings.leave_target_out_stride, sigma_m=lo_sigma)
-    return gt._replace(left_out=composite_gt(neighbours, settings, with_sigma=False))
-
-
 def quality_statistics(
     data: FrameSetData,
     alignment: Alignment,
     gt_m: np.ndarray,
     settings: RenderSettings,
-    left_out: GTRender | None = None,
+    fusion: Fusion | None = None,
 ) -> dict:
     """Depth errors of the GT (:func:`depthgt.metric_vocabulary.depth_errors`).
 
     With a clean truth: ``gt_vs_truth``, ``input_vs_truth`` and
     ``gt_vs_truth_input_valid`` (the fair accuracy comparison: only where the sensor has
     data). Without: ``leave_target_out``, the neighbours fused alone against the target's
-    raw valid depth -- the only accuracy check possible on real data (``left_out``: that
-    render when :func:`fuse` made it beside the GT, else it is rendered here).
+    raw valid depth -- the only accuracy check possible on real data -- at the pixels
+    where ``fusion`` (:func:`depthgt.gt.render.fuse` with ``leave_target_out``) rendered
+    it; without that render it is rendered here.
     """
     depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
     stats: dict[str, Any] = {}
     if data.truth_m is None:
         fused = alignment.fused
         if len(fused) > 1:
-            if left_out is None:
-                left_out = fuse(data, alignment.T_j_to_t, settings, members=fused[1:])
-            lto = left_out.depth[0, 0].detach().cpu().numpy()
-            k = settings.leave_target_out_stride  # fuse(leave_target_out=True) rendered these pixels only
-            stats["leave_target_out"] = depth_errors(lto[::k, ::k].astype(np.float32), depth_in[::k, ::k])
+            if fusion is None or fusion.left_out is None:
+                alone = fuse(data, alignment.T_j_to_t, settings, members=fused[1:])
+                fusion = Fusion(alone.gt, alone.members, (), alone.gt, settings.leave_target_out_stride)
+            stats["leave_target_out"] = depth_errors(fusion.left_out_depth(), fusion.on_lto_grid(depth_in))
     else:
         truth = data.truth_m[0, 0].cpu().numpy().astype(np.float32)
         stats["gt_vs_truth"] = depth_errors(gt_m, truth)
@@ -355,6 +163,13 @@ class _StepClock:
         self.wall_s[name], self.cpu_s[name] = round(wall - self._wall, 4), round(cpu - self._cpu, 4)
         self._wall, self._cpu = wall, cpu
 
+    def add(self, name: str, shared: _StepClock, n: int) -> None:
+        """Step ``name`` of ``shared`` (a step done for ``n`` frame sets at once), this
+        set's even share; the clock restarts now."""
+        self.wall_s[name] = round(shared.wall_s[name] / n, 4)
+        self.cpu_s[name] = round(shared.cpu_s[name] / n, 4)
+        self._wall, self._cpu = time.perf_counter(), time.process_time()
+
 
 def process_frameset(
     scene: Scene,
@@ -366,9 +181,11 @@ def process_frameset(
     settings: Settings,
     encoder_state: dict | None = None,
     candidates: list[int] | None = None,
+    cache: FrameCache | None = None,
 ) -> dict[str, Any]:
     """Build every output of one frame set and return frameset.json's content: read,
-    align, render (with the coverage views when selected), statistics, patches, write.
+    align, render (with the coverage views when selected), statistics, patches, write
+    (:func:`process_framesets` of one).
 
     Args:
         scene: the scene (:class:`~depthgt.gt.cache.ResizedScene` in the
@@ -382,25 +199,95 @@ def process_frameset(
             for coverage may come from (the batch job's
             :func:`~depthgt.gt.planning.coverage_candidates`); None: every frame within
             ``coverage_span`` (the scene in one split).
+        cache: the batch job's per-frame results (:class:`~depthgt.framecache.FrameCache`:
+            the registration's pyramid, the renderer's geometry), or None.
     """
     fid = FrameSetId(dataset, scene.name, target, list(members), split)
-    out = FrameSetOutputs(*(Path(p) for p in out))
-    clock = _StepClock()
+    return process_framesets(scene, [fid], [out], settings, encoder_state, [candidates], cache)[0]
+
+
+def process_framesets(
+    scene: Scene,
+    fids: list[FrameSetId],
+    outs: list[FrameSetOutputs],
+    settings: Settings,
+    encoder_state: dict | None = None,
+    candidates: list[list[int] | None] | None = None,
+    cache: FrameCache | None = None,
+) -> list[dict[str, Any]]:
+    """Build the frame sets ``fids`` of one scene (outputs ``outs``, coverage candidates
+    ``candidates`` per set; the rest as :func:`process_frameset`) and return their
+    frameset.json contents. Each set is read and aligned on its own; their GTs are
+    rendered together (:func:`render_targets`: in one pass on a GPU); then each set's
+    coverage views, statistics, patches and files (on a GPU by :data:`FINISH_WORKERS`
+    threads side by side). Every step's time is recorded per set in its poses.json (a
+    shared render's time split evenly; the CPU seconds of steps done by threads side by
+    side count every thread's)."""
     reg = settings.registration
     device = resolve_device(settings.device)
-    data = load_frameset(scene, fid.members, settings.size_hw, need_poses=reg.uses_source_poses, device=device)
-    clock.lap("load_resize")
-    alignment = align(data, fid.offsets, reg, stable_seed(settings.seed, dataset, scene.name, target), encoder_state)
-    clock.lap("align")
-    gt = render_target(data, alignment, settings.render)
-    clock.lap("render")
+    candidates = candidates or [None] * len(fids)
+    clocks = [_StepClock() for _ in fids]
+    datas = []
+    for fid, clock in zip(fids, clocks):
+        datas.append(
+            load_frameset(
+                scene, fid.members, settings.size_hw, need_poses=reg.uses_source_poses, device=device, cache=cache
+            )
+        )
+        clock.lap("load_resize")
+    seeds = [stable_seed(settings.seed, fid.dataset, scene.name, fid.target) for fid in fids]
+    together = _StepClock()
+    if len(fids) == 1 or len({tuple(f.offsets) for f in fids}) > 1:
+        alignments = [align(d, f.offsets, reg, s_, encoder_state) for d, f, s_ in zip(datas, fids, seeds)]
+    else:
+        alignments = align_many(datas, fids[0].offsets, reg, seeds, encoder_state)
+    together.lap("align")
+    for clock in clocks:
+        clock.add("align", together, len(fids))
+    shared = _StepClock()
+    fusions = render_targets(datas, alignments, settings.render)
+    shared.lap("render")
+    for clock in clocks:
+        clock.add("render", shared, len(fids))
+
+    def finish(k: int) -> dict[str, Any]:
+        out = FrameSetOutputs(*(Path(p) for p in outs[k]))
+        return _finish_frameset(
+            scene, fids[k], out, datas[k], alignments[k], fusions[k], settings, candidates[k], clocks[k]
+        )
+
+    # On a GPU the sets' statistics, patches and files (CPU work: EXR and WebP encoding,
+    # most of it outside the GIL) are made by a few threads side by side, so the device
+    # does not wait on them; with coverage the views are read through the scene's frame
+    # cache, which is not shared between threads.
+    workers = 1
+    if device.type == "cuda" and settings.frameset.selection != "coverage":
+        workers = min(FINISH_WORKERS, len(fids), os.cpu_count() or 1)
+    if workers <= 1:
+        return [finish(k) for k in range(len(fids))]
+    with ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(finish, range(len(fids))))
+
+
+def _finish_frameset(
+    scene: Scene,
+    fid: FrameSetId,
+    out: FrameSetOutputs,
+    data: FrameSetData,
+    alignment: Alignment,
+    fusion: Fusion,
+    settings: Settings,
+    candidates: list[int] | None,
+    clock: _StepClock,
+) -> dict[str, Any]:
+    """A rendered frame set's coverage views (when selected), statistics, patches and files."""
     coverage = None
     if settings.frameset.selection == "coverage":
-        coverage = cover(scene, fid, data, alignment, gt, settings, candidates=candidates)
-        gt = coverage.render  # the core's GT where it has one, the added views' only where it has none
+        coverage = cover(scene, fid, data, alignment, fusion, settings, candidates=candidates)
+        fusion = coverage.render  # the core's GT where it has one, the added views' only where it has none
         clock.lap("coverage")
-    images = stored_images(data, gt, out)
-    stats = frameset_statistics(data, alignment, gt, images, fid.offsets, settings.render)
+    images = stored_images(data, fusion, out)
+    stats = frameset_statistics(data, alignment, fusion, images, fid.offsets, settings.render)
     if coverage is not None:
         stats.update(coverage.statistics)
     clock.lap("quality")
@@ -417,10 +304,45 @@ def process_frameset(
     return doc
 
 
-def render_target(data: FrameSetData, alignment: Alignment, settings: RenderSettings) -> GTRender:
-    """The GT of the target from the members the alignment fused (:func:`fuse`); without
-    a clean truth also the leave-target-out render that :func:`quality_statistics`
-    checks the GT with (real data)."""
+def render_targets(datas: list[FrameSetData], alignments: list[Alignment], settings: RenderSettings) -> list[Fusion]:
+    """:func:`render_target` of each frame set; the sets with their target fused rendered
+    together (:func:`depthgt.gt.render.fusion.fuse_sets`: one pass on a GPU, set by set
+    on the CPU) when they come from one camera at one size."""
+    if len(datas) == 1 or datas[0].depth_m.device.type == "cpu":
+        return [render_target(d, a, settings) for d, a in zip(datas, alignments)]
+    first = datas[0]
+    same = all(
+        d.src_hw == first.src_hw and d.depth_m.shape[1:] == first.depth_m.shape[1:] and torch.equal(d.K, first.K)
+        for d in datas
+    )
+    if not same or any(a.fused[0] != 0 for a in alignments) or len({d.truth_m is None for d in datas}) > 1:
+        return [render_target(d, a, settings) for d, a in zip(datas, alignments)]
+    sets = []
+    for data, alignment in zip(datas, alignments):
+        members = (
+            alignment.fused if len(alignment.fused) < data.depth_m.shape[0] else list(range(data.depth_m.shape[0]))
+        )
+        if data.cache is not None and data.positions is not None:
+            geometry = cached_geometry(data.cache, data.positions, data.depth_m, data.K, src_hw=data.src_hw)
+        else:
+            geometry = frame_geometry(
+                data.depth_m, data.K[None].expand(data.depth_m.shape[0], 3, 3), src_hw=data.src_hw
+            )
+        eye = torch.eye(4, dtype=alignment.T_j_to_t.dtype, device=alignment.T_j_to_t.device)[None]
+        T = torch.cat([eye, alignment.T_j_to_t])[members]
+        sets.append(SetGeometry(geometry.take(members), T, tuple(members)))
+    real = [d.truth_m is None for d in datas]
+    fused = fuse_sets(
+        sets, first.K, tuple(first.depth_m.shape[-2:]), settings, src_hw=first.src_hw, leave_target_out=True
+    )
+    # the leave-target-out render is kept for real data only (as render_target does)
+    return [f if r else f._replace(left_out=None) for f, r in zip(fused, real)]
+
+
+def render_target(data: FrameSetData, alignment: Alignment, settings: RenderSettings) -> Fusion:
+    """The GT of the target from the members the alignment fused
+    (:func:`depthgt.gt.render.fuse`); without a clean truth also the leave-target-out
+    render that :func:`quality_statistics` checks the GT with (real data)."""
     fused = alignment.fused
     return fuse(
         data,
@@ -437,20 +359,17 @@ def cover(
     fid: FrameSetId,
     data: FrameSetData,
     alignment: Alignment,
-    gt: GTRender,
+    core: Fusion,
     settings: Settings,
     candidates: list[int] | None = None,
 ) -> CoverageResult:
-    """The GT with views added where ``gt`` (the core's) has none
+    """The GT with views added where ``core`` (the core's render) has none
     (:func:`depthgt.gt.coverage.add_coverage_views`, ``frameset.selection: coverage``).
 
     Args:
         candidates: the frames the added views may come from; None: every frame of the
             scene within ``frameset.coverage_span`` (the scene in one split).
     """
-    # depthgt.gt.coverage builds on this module (load_frameset, fuse): imported here, where it is used
-    from depthgt.gt.coverage import add_coverage_views
-
     if candidates is None:
         splits = np.full(len(scene), fid.split, dtype=object)
         candidates = coverage_candidates(splits, fid.target, fid.members, settings.frameset)
@@ -460,7 +379,7 @@ def cover(
         list(candidates),
         data,
         alignment,
-        gt,
+        core,
         settings.frameset,
         settings.registration,
         settings.render,
@@ -468,9 +387,10 @@ def cover(
     )
 
 
-def stored_images(data: FrameSetData, gt: GTRender, out: FrameSetOutputs) -> StoredImages:
-    """The target's GT, raw depth, truth and colour as the shard stores them
-    (:func:`depthgt.gt.store.stored_gt`, :func:`depthgt.gt.store.stored_input`)."""
+def stored_images(data: FrameSetData, fusion: Fusion, out: FrameSetOutputs) -> StoredImages:
+    """The target's GT (``fusion.gt``), raw depth, truth and colour as the shard stores
+    them (:func:`depthgt.gt.store.stored_gt`, :func:`depthgt.gt.store.stored_input`)."""
+    gt = fusion.gt
     channels = {
         "Z": gt.depth[0, 0].detach().cpu().numpy().astype(np.float32),
         "S": gt.sigma[0, 0].detach().cpu().numpy().astype(np.float32),
@@ -486,7 +406,7 @@ def stored_images(data: FrameSetData, gt: GTRender, out: FrameSetOutputs) -> Sto
 def frameset_statistics(
     data: FrameSetData,
     alignment: Alignment,
-    gt: GTRender,
+    fusion: Fusion,
     images: StoredImages,
     offsets: list[int],
     settings: RenderSettings,
@@ -495,6 +415,7 @@ def frameset_statistics(
     the stored GT, the neighbours fused, the renderer's agreement per neighbour) and of
     its accuracy (:func:`quality_statistics`)."""
     gt_depth, gt_sigma = images.gt["Z"], images.gt["S"]
+    gt = fusion.gt
     stats: dict[str, Any] = {
         "input_missing": float((images.depth_in <= 0).mean()),
         "gt_missing": float((gt_depth <= 0).mean()),
@@ -502,17 +423,16 @@ def frameset_statistics(
         "gt_median_sigma_m": float(np.median(gt_sigma[gt_depth > 0])) if (gt_depth > 0).any() else float("nan"),
         "neighbours_fused": len(alignment.fused) - 1,
     }
-    # neighbours the renderer left out: too few of their samples agree with the target's depth
-    offsets_fused = [offsets[i] for i in alignment.fused]
+    # the renderer's agreement of each fused member with the target's depth, and the
+    # neighbours it left out whole
+    offsets_fused = [offsets[i] for i in fusion.members]
     share = gt.agreement[0].cpu().numpy()
     stats["render_agreement"] = {f"{o:+d}": round(float(a), 4) for o, a in zip(offsets_fused, share) if np.isfinite(a)}
-    # with tiles a frame is left out whole only below min_whole_frame_agreement
-    whole = settings.min_whole_frame_agreement if settings.agreement_tile_px > 0 else settings.min_frame_agreement
-    stats["render_left_out"] = [o for o, a in zip(offsets_fused, share) if np.isfinite(a) and a < whole and o != 0]
+    stats["render_left_out"] = [offsets[i] for i in fusion.frames_left_out]
     if gt.disagreement is not None and float(gt.disagreement[0, 0].sum()) > 0:
         # share of the neighbours' compared samples that the agreement check kept
         stats["render_kept_share"] = round(float(gt.disagreement[0, 2].sum() / gt.disagreement[0, 0].sum()), 4)
-    stats.update(quality_statistics(data, alignment, gt_depth, settings, left_out=gt.left_out))
+    stats.update(quality_statistics(data, alignment, gt_depth, settings, fusion))
     return stats
 
 

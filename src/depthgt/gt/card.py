@@ -42,7 +42,7 @@ from depthgt import io
 from depthgt.atomic import write_atomic
 from depthgt.errors import DepthGTError
 from depthgt.gt import store
-from depthgt.settings import SPLITS
+from depthgt.gt.settings import SPLITS
 from depthgt.status import Status
 
 __all__ = [
@@ -257,7 +257,7 @@ def card_markdown(card: Mapping[str, Any]) -> str:
             "Mean over scenes (metres; completeness as a fraction); reference `truth`: the clean depth of "
             "synthetic sources, `target_raw`: the target's own sensor depth left out of the GT.",
             "",
-            wide.round(4).to_markdown(),
+            wide.round(4).reset_index().to_markdown(index=False),
             "",
         ]
     lines += [
@@ -306,14 +306,30 @@ class Verification:
         return not self.problems
 
 
-def _check_file(path: Path, sha256: str, size: int | None, what: str, report: Verification) -> None:
+def _check_file(
+    path: Path, sha256: str, size: int | None, what: str, report: Verification, card: Path | None = None
+) -> None:
+    """One file against its checksum; ``card``: the build's card, when a file written
+    after it (a scene rebuilt, the dataset not assembled again) is to be told apart
+    from a changed or corrupt one."""
     report.checked += 1
     if not path.is_file():
         report.problems.append(f"{path}: missing ({what})")
-    elif size is not None and path.stat().st_size != size:
-        report.problems.append(f"{path}: {path.stat().st_size} bytes, the {what} records {size}")
+        return
+    differs = None
+    if size is not None and path.stat().st_size != size:
+        differs = f"{path}: {path.stat().st_size} bytes, the {what} records {size}"
     elif sha256_file(path) != sha256:
-        report.problems.append(f"{path}: sha256 differs from the {what} (changed or corrupt)")
+        differs = f"{path}: sha256 differs from the {what}"
+    if differs is None:
+        return
+    if card is not None and path.stat().st_mtime_ns > card.stat().st_mtime_ns:
+        report.problems.append(
+            f"{differs}; it is newer than the card: if its scene was rebuilt (`depthgt rebuild`), run "
+            "`depthgt build dataset` to assemble the dataset and its card again; otherwise it was changed or is corrupt"
+        )
+    else:
+        report.problems.append(f"{differs} (changed or corrupt)")
 
 
 def verify(folder: str | Path) -> Verification:
@@ -341,7 +357,9 @@ def verify(folder: str | Path) -> Verification:
                         f"{store.FORMAT_VERSION}: rebuild every scene (`depthgt rebuild DATASET SCENE`) and the dataset (`depthgt build dataset`)"
                     )
                 for rel, entry in card["files"].items():
-                    _check_file(results / rel, entry["sha256"], entry.get("bytes"), f"card {card_path}", report)
+                    _check_file(
+                        results / rel, entry["sha256"], entry.get("bytes"), f"card {card_path}", report, card_path
+                    )
             except (KeyError, TypeError, AttributeError) as err:  # a card edited or written by something else
                 report.problems.append(f"{card_path}: not a dataset card ({type(err).__name__}: {err})")
             return report

@@ -2,7 +2,7 @@
 
 The paper's window (t +- k*stride) shares the target's projector shadows, black and
 specular surfaces and undistortion border, so some of the target's pixels get no GT
-from it however the renderer is set (bench/README "What limits..."). Coverage keeps
+from it however the renderer is set (docs/decisions.md "What more completeness would cost"). Coverage keeps
 that window as the core, rendered exactly as with ``window``, and adds up to
 ``coverage_views`` frames from within +-``coverage_span`` frames:
 
@@ -38,13 +38,17 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.liegroup import Se3
 
-from depthgt import geometry, registration
+from depthgt import geometry
 from depthgt.errors import FrameError
-from depthgt.gt.build import Alignment, FrameSetData, fuse, load_frameset, photometric_for
-from depthgt.gt.render import GTRender
+from depthgt.gt.render import Fusion, fuse, whole_frame_threshold
+from depthgt.gt.render.settings import RenderSettings
+from depthgt.gt.settings import FrameSetSettings
 from depthgt.metric_vocabulary import depth_errors
+from depthgt.registration import Alignment, FrameSetData, load_frameset, photometric_for
 from depthgt.registration.local import refine_source_poses
-from depthgt.settings import FrameSetSettings, RegistrationSettings, RenderSettings
+from depthgt.registration.methods import METHODS
+from depthgt.registration.settings import RegistrationSettings
+from depthgt.shapes import check_shape
 from depthgt.sources.base import Scene, check_frame
 from depthgt.status import Status
 
@@ -70,8 +74,7 @@ def view_limits(T_c_to_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         baseline_m (C,), angle_deg (C,): the distance between the optical centres and
         the angle between the optical axes (a roll about the axis does not count).
     """
-    if T_c_to_t.ndim != 3 or T_c_to_t.shape[1:] != (4, 4):
-        raise ValueError(f"T_c_to_t must be (C, 4, 4), got {tuple(T_c_to_t.shape)}")
+    check_shape(T_c_to_t, "C 4 4", "T_c_to_t")
     baseline = T_c_to_t[:, :3, 3].norm(dim=1)
     angle = torch.rad2deg(torch.arccos(T_c_to_t[:, 2, 2].clamp(-1.0, 1.0)))  # z axis of c seen in t, against t's
     return baseline, angle
@@ -82,7 +85,7 @@ def fill_maps(depth_m: torch.Tensor, K: torch.Tensor, T_c_to_t: torch.Tensor, em
 
     Args:
         depth_m: (C, 1, H, W) candidates' depth in metres, 0 = invalid.
-        K: (3, 3) intrinsics of every frame at (H, W).
+        K: (3, 3) the frame set's one camera (every frame's intrinsics) at (H, W).
         T_c_to_t: (C, 4, 4) poses of the candidates in the target camera.
         empty: (H, W) bool, the target's pixels without GT.
 
@@ -90,13 +93,11 @@ def fill_maps(depth_m: torch.Tensor, K: torch.Tensor, T_c_to_t: torch.Tensor, em
         (C, H*W) bool: pixel p of the target is empty and some valid point of candidate c
         projects (nearest pixel, in front of the camera) onto it.
     """
-    c = depth_m.shape[0]
-    h, w = depth_m.shape[-2:]
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1 or T_c_to_t.shape != (c, 4, 4) or empty.shape != (h, w):
-        raise ValueError(
-            f"fill_maps: depth_m (C, 1, H, W), T_c_to_t (C, 4, 4) and empty (H, W) must agree, got "
-            f"{tuple(depth_m.shape)}, {tuple(T_c_to_t.shape)}, {tuple(empty.shape)}"
-        )
+    sizes = check_shape(depth_m, "C 1 H W", "fill_maps: depth_m")
+    check_shape(T_c_to_t, "C 4 4", "fill_maps: T_c_to_t", sizes)
+    check_shape(empty, "H W", "fill_maps: empty", sizes)
+    check_shape(K, "3 3", "fill_maps: K (the frame set's one camera)")
+    c, h, w = sizes["C"], sizes["H"], sizes["W"]
     dt = depth_m.dtype
     Kb = K.to(dt)[None].expand(c, 3, 3)
     pts = geometry.backproject(depth_m, Kb)
@@ -119,7 +120,7 @@ def mixed_samples(depth_m: torch.Tensor, margin_px: int, jump_rel: float) -> tor
 
     Inside the window the target's neighbours outvote such samples; a view added for
     coverage fills the pixels where they see nothing, so there nothing would. Chosen on
-    tuning data (bench/README "Views added for coverage"): beside holes on the synthetic
+    tuning data (docs/decisions.md "Mixed samples of the added views"): beside holes on the synthetic
     tuning set (the added pixels' mean error 129 -> 48 mm; the jumps changed nothing
     there), at jumps on the shared real recordings (the added views' leave-target-out
     check 164 -> 103 mm on 7-Scenes, 111 -> 80 mm on TUM).
@@ -202,7 +203,7 @@ def chain_poses(
     Args:
         frames: offset -> (rgb (3, H, W), depth_m (1, H, W)) of every frame at hand:
             the core's members and the candidates.
-        K: (3, 3) intrinsics at (H, W).
+        K: (3, 3) the frame set's one camera at (H, W).
         known: offset -> (4, 4) float64 pose in the target of the core's registered
             members (the target, offset 0, included).
         wanted: the candidates' offsets; the chain walks as far as the farthest of them.
@@ -283,11 +284,11 @@ class CoverageResult:
             view was added.
     """
 
-    render: GTRender
+    render: Fusion
     record: dict[str, Any]
     statistics: dict[str, Any] = field(default_factory=dict)
     T_j_to_t: dict[int, list] = field(default_factory=dict)
-    full: GTRender | None = None
+    full: Fusion | None = None
 
 
 def _usable(scene: Scene, positions: list[int], need_pose: bool) -> tuple[list[int], dict[int, str]]:
@@ -318,7 +319,7 @@ def _register(
     (F-1, 4, 4), the chain's poses."""
     settings = photometric_for(reg, data.colour_matches_depth)
     if reg.uses_source_poses:
-        register = registration.METHODS[reg.method]  # looked up at call time so tests can replace it
+        register = METHODS[reg.method]  # looked up at call time so tests can replace it
         res = register(data, offsets, settings)
     else:
         if T_start is None:
@@ -334,7 +335,7 @@ def add_coverage_views(
     candidates: list[int],
     data: FrameSetData,
     alignment: Alignment,
-    core: GTRender,
+    core: Fusion,
     fs: FrameSetSettings,
     reg: RegistrationSettings,
     render: RenderSettings,
@@ -358,7 +359,7 @@ def add_coverage_views(
     (:func:`view_limits`, :func:`fill_maps`, :func:`choose_views`, ``_register``).
     """
     h, w = data.depth_m.shape[-2:]
-    empty = core.depth[0, 0] <= 0
+    empty = core.gt.depth[0, 0] <= 0
     record: dict[str, Any] = {
         "selection": "coverage",
         "candidates": len(candidates),
@@ -366,10 +367,8 @@ def add_coverage_views(
         "added": [],
     }
 
-    def keep() -> GTRender:  # nothing added: the core's render as it is
-        return GTRender(
-            core.depth, core.weight_sum, core.count, core.sigma, core.agreement, core.disagreement, core.left_out
-        )
+    def keep() -> Fusion:  # nothing added: the core's render as it is
+        return core
 
     need_pose = reg.uses_source_poses
     usable, bad = _usable(scene, candidates, need_pose)
@@ -459,35 +458,38 @@ def add_coverage_views(
     T_both = torch.cat([alignment.T_j_to_t.to(torch.float64), T_added.to(alignment.T_j_to_t.device, torch.float64)])
     members = [*alignment.fused, *(n + k for k in ok)]
     full = fuse(both, T_both, render, members=members, leave_target_out=data.truth_m is None)
-    whole = render.min_whole_frame_agreement if render.agreement_tile_px > 0 else render.min_frame_agreement
-    share = full.agreement[0].cpu().numpy() if full.agreement.numel() else np.full(len(members), np.nan)
-    filled = empty & (full.depth[0, 0] > 0)
+    share = full.gt.agreement[0].cpu().numpy() if full.gt.agreement.numel() else np.full(len(members), np.nan)
+    filled = empty & (full.gt.depth[0, 0] > 0)
+    left_whole = set(full.frames_left_out)
     for j, k in enumerate(ok):
         a = float(share[len(alignment.fused) + j])
         views[k]["render_agreement"] = round(a, 4) if math.isfinite(a) else None
-        if math.isfinite(a) and a < whole:  # the renderer left it out whole: it fills nothing
-            views[k]["status"], views[k]["reason"] = Status.FAILED, f"render_agreement {a:.3f} < {whole}"
+        if n + k in left_whole:  # the renderer left it out whole: it fills nothing
+            views[k]["status"], views[k]["reason"] = (
+                Status.FAILED,
+                f"render_agreement {a:.3f} < {whole_frame_threshold(render)}",
+            )
         planned = fill[picks[k][0]].reshape(h, w)
         views[k]["filled_px"] = int((planned & filled).sum()) if views[k]["status"] == Status.OK else 0
     record["filled_px"] = int(filled.sum())
     m = filled[None, None]
-    merged = GTRender(
-        torch.where(m, full.depth, core.depth),
-        torch.where(m, full.weight_sum, core.weight_sum),
-        torch.where(m, full.count, core.count),
-        torch.where(m, full.sigma, core.sigma),
-        core.agreement,
-        core.disagreement,
-        core.left_out,
+    c, f = core.gt, full.gt
+    merged = core._replace(
+        gt=c._replace(
+            depth=torch.where(m, f.depth, c.depth),
+            weight_sum=torch.where(m, f.weight_sum, c.weight_sum),
+            count=torch.where(m, f.count, c.count),
+            sigma=torch.where(m, f.sigma, c.sigma),
+        )
     )
     stats: dict[str, Any] = {}
-    if full.left_out is not None:
-        k = render.leave_target_out_stride  # fuse rendered these pixels only
-        lto = full.left_out.depth[0, 0].detach().cpu().numpy().astype(np.float32)
-        depth_in = data.depth_m[0, 0].cpu().numpy().astype(np.float32)
-        stats["leave_target_out_all_views"] = depth_errors(lto[::k, ::k], depth_in[::k, ::k])
+    lto = full.left_out_depth()
+    if lto is not None:
+        depth_in = full.on_lto_grid(data.depth_m[0, 0].cpu().numpy().astype(np.float32))
+        stats["leave_target_out_all_views"] = depth_errors(lto, depth_in)
         # where the core's neighbours alone left the target empty: the added views' own check
-        core_lto = core.left_out.depth[0, 0].detach().cpu().numpy() if core.left_out is not None else np.zeros_like(lto)
-        stats["leave_target_out_added"] = depth_errors(lto[::k, ::k], depth_in[::k, ::k], mask=core_lto[::k, ::k] <= 0)
+        core_lto = core.left_out_depth()
+        core_empty = core_lto <= 0 if core_lto is not None else np.ones_like(lto, dtype=bool)
+        stats["leave_target_out_added"] = depth_errors(lto, depth_in, mask=core_empty)
     poses = {offsets[1 + k]: T_added[k].detach().cpu().numpy().tolist() for k in ok if views[k]["status"] == Status.OK}
     return CoverageResult(merged, record, stats, poses, full)

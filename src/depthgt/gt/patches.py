@@ -18,7 +18,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from depthgt.settings import PatchSettings
+from depthgt.gt.settings import PatchFilter, PatchSettings
+from depthgt.settings_base import choices
 
 __all__ = [
     "crop_boxes",
@@ -133,8 +134,8 @@ def crop_pairs(
     """
     if input_m.shape != gt_m.shape or rgb.shape[:2] != gt_m.shape:
         raise ValueError(f"input {input_m.shape}, gt {gt_m.shape} and rgb {rgb.shape} sizes differ")
-    if filter_on not in ("gt", "input", "both"):
-        raise ValueError(f"filter_on must be gt, input or both, got {filter_on!r}")
+    if filter_on not in choices(PatchFilter):
+        raise ValueError(f"filter_on must be one of {', '.join(choices(PatchFilter))}, got {filter_on!r}")
     if gt_sigma_m is not None and gt_sigma_m.shape != gt_m.shape:
         raise ValueError(f"gt_sigma_m {gt_sigma_m.shape} and gt {gt_m.shape} sizes differ")
     if max_gt_sigma_m is not None:

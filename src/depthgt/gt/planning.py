@@ -14,7 +14,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from depthgt.settings import SPLITS, FrameSetSettings, SplitSettings
+from depthgt.gt.settings import SPLITS, FrameSetSettings, SplitSettings
 from depthgt.status import Status
 
 __all__ = ["stable_seed", "block_splits", "enumerate_framesets", "coverage_candidates", "member_problems"]

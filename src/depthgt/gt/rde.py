@@ -45,8 +45,9 @@ from depthgt.atomic import save_npz, work_dir, write_atomic
 from depthgt.errors import ConfigError, FrameError
 from depthgt.gt import store
 from depthgt.gt.patches import crop_pairs, patch_record
+from depthgt.gt.settings import SPLITS, RDESettings
 from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
-from depthgt.settings import SPLITS, RDESettings
+from depthgt.shapes import check_shape
 from depthgt.status import Status
 
 __all__ = [
@@ -95,12 +96,11 @@ class TSDFVolume:
 
 
 def _check_depth_pose_K(depth_m: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, where: str) -> None:
-    if depth_m.ndim != 2:
-        raise ValueError(f"{where}: depth must be (H, W), got {tuple(depth_m.shape)}")
-    if tuple(K.shape) != (3, 3):
-        raise ValueError(f"{where}: K must be (3, 3), got {tuple(K.shape)}")
-    if tuple(T_world_cam.shape) != (4, 4) or not torch.isfinite(T_world_cam).all():
-        raise ValueError(f"{where}: T_world_cam must be a finite (4, 4) matrix, got {tuple(T_world_cam.shape)}")
+    check_shape(depth_m, "H W", f"{where}: depth")
+    check_shape(K, "3 3", f"{where}: K")
+    check_shape(T_world_cam, "4 4", f"{where}: T_world_cam")
+    if not torch.isfinite(T_world_cam).all():
+        raise ValueError(f"{where}: T_world_cam must be a finite (4, 4) matrix")
 
 
 def scene_bounds(
@@ -255,10 +255,8 @@ def raycast(
     surface, placed by linear interpolation. Steps are processed in blocks of
     ``block`` for all pixels at once.
     """
-    if tuple(K.shape) != (3, 3) or tuple(T_world_cam.shape) != (4, 4):
-        raise ValueError(
-            f"raycast: K must be (3, 3) and T_world_cam (4, 4), got {tuple(K.shape)}, {tuple(T_world_cam.shape)}"
-        )
+    check_shape(K, "3 3", "raycast: K")
+    check_shape(T_world_cam, "4 4", "raycast: T_world_cam")
     dev = volume.tsdf.device
     H, W = size_hw
     Kinv = torch.linalg.inv(K.double()).to(dev, torch.float32)

@@ -12,7 +12,7 @@ references built differently:
   the poses ``T_j_to_t`` of ``poses.json`` and the fused members (``fused_offsets`` of
   its registration record, else every member), the frames read at the working
   resolution as the batch job read them (:class:`depthgt.gt.cache.ResizedScene`), the
-  renderer of :func:`depthgt.gt.build.fuse`. It holds none of the target's sensor noise;
+  renderer of :func:`depthgt.gt.render.fuse`. It holds none of the target's sensor noise;
   where no neighbour sees, it is empty (0 m).
 * ``tsdf``: the global-reconstruction GT of the frame (a TSDF of the whole stream
   ray-cast at the target; the RDE baseline's GT, :mod:`depthgt.gt.rde`), copied from
@@ -36,8 +36,9 @@ import torch
 
 from depthgt.atomic import save_npz, write_atomic
 from depthgt.gt import store
-from depthgt.gt.build import fuse, load_frameset
-from depthgt.settings import RenderSettings
+from depthgt.gt.render import fuse
+from depthgt.gt.render.settings import RenderSettings
+from depthgt.registration import load_frameset
 from depthgt.sources.base import Scene
 from depthgt.status import Status
 
@@ -105,7 +106,7 @@ def neighbours_only_render(
 ) -> np.ndarray:
     """The target's neighbours-only render (H, W) float32 metres, 0 where no neighbour
     sees: the build's fused neighbours with its stored poses (:func:`fused_neighbours`)
-    rendered into the target view by :func:`depthgt.gt.build.fuse` without the target.
+    rendered into the target view by :func:`depthgt.gt.render.fuse` without the target.
 
     Args:
         scene: the frame set's scene at the working resolution
@@ -122,7 +123,7 @@ def neighbours_only_render(
     members = [int(m) for m in meta["members"]]
     data = load_frameset(scene, members, (h, w), need_poses=False, device=device)
     out = fuse(data, T_j_to_t.to(data.depth_m.device), settings, members=neighbours)
-    return out.depth[0, 0].detach().cpu().numpy().astype(np.float32)
+    return out.gt.depth[0, 0].detach().cpu().numpy().astype(np.float32)
 
 
 def scene_references(

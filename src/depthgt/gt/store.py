@@ -90,6 +90,9 @@ __all__ = [
     "read_frame_images",
     "extract_frameset",
     "FORMAT_VERSION",
+    "MEASURED_FRAMESET_BYTES",
+    "MEASURED_RESIZE",
+    "MEASURED_FRAMESET_FIXED_BYTES",
     "GT_UNITS",
     "GT_LOG_GRID",
     "RGB_MEMBER",
@@ -116,7 +119,7 @@ GT_UNITS = {"Z": 2**14}
 #: the spread of a sigma estimated from a few dozen samples; values below 2^-20 m,
 #: 0.95 um, are stored as 2^-20 m). The sigma spans 0.3 mm to 0.14 m on real data, so
 #: a relative grid keeps its small values as well as its large ones
-#: (bench/README.md "Bytes per frame set").
+#: (docs/decisions.md "The stored format").
 GT_LOG_GRID = {"S": (8, 2.0**-20)}
 #: the frame set's colour member: lossless WebP (:func:`depthgt.io.write_rgb_webp`)
 RGB_MEMBER = "rgb.webp"
@@ -146,6 +149,19 @@ CHANNELS = {
         "the crops are cut from the images above on read"
     },
 }
+
+#: bytes on disk of one frame set in this format at the working resolution
+#: :data:`MEASURED_RESIZE` (its share of a shard), measured (bench/README.md "Bytes per
+#: frame set", format 3): 0.235 MB over the 33 frame sets of the two real recordings
+#: (7-Scenes 0.241, TUM 0.234), 0.271 MB on synthetic rooms with their clean truth; the
+#: run's space check (:mod:`depthgt.gt.space`) plans with them and the README's figures
+#: (0.59 TB for every frame of ScanNet) follow from them (tests/test_docs_facts.py)
+MEASURED_FRAMESET_BYTES = {"real": 235_000, "synthetic": 271_000}
+#: the working resolution (``resize``) of :data:`MEASURED_FRAMESET_BYTES`
+MEASURED_RESIZE = 256
+#: the part of :data:`MEASURED_FRAMESET_BYTES` that does not grow with the resolution:
+#: the JSON members (~5 kB) and the patch record (~2 kB)
+MEASURED_FRAMESET_FIXED_BYTES = 7_000
 
 FRAMESET_FILES = ("gt.exr", "input.exr", RGB_MEMBER, "poses.json", "patches.npz", "frameset.json")
 BATCH_MEMBER = "batch.json"

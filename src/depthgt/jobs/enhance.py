@@ -20,7 +20,7 @@ from depthgt import registry
 from depthgt.jobs.common import open_source_scene
 from depthgt.settings import stage_settings
 
-__all__ = ["run_train", "run_rde_scene", "run_rde_dataset"]
+__all__ = ["run_train", "run_rde_scene", "run_rde_dataset", "run_rde_training_manifests"]
 
 log = logging.getLogger("depthgt")
 
@@ -95,8 +95,9 @@ def run_rde_dataset(scene_framesets: list[str], scene_patches: list[str], output
     """Concatenate the scenes' RDE tables.
 
     Args:
-        outputs: the paths ``train``, ``val``, ``test`` (kept patches per split) and
-            ``framesets``.
+        outputs: the path ``framesets`` and those of the splits' manifests to write here
+            (of ``train``, ``val``, ``test``: kept patches per split; the workflow writes
+            train and val in a job of their own, :func:`run_rde_training_manifests`).
     """
     from depthgt.gt.rde import rde_dataset  # heavy: the module imports torch
 
@@ -105,5 +106,19 @@ def run_rde_dataset(scene_framesets: list[str], scene_patches: list[str], output
         Path(path).parent.mkdir(parents=True, exist_ok=True)
     fs.to_parquet(outputs["framesets"], index=False)
     for split, table in splits.items():
-        table.to_parquet(outputs[split], index=False)
-    log.info("RDE GT: %d frame sets, patches %s", len(fs), {s: len(t) for s, t in splits.items()})
+        if split in outputs:
+            table.to_parquet(outputs[split], index=False)
+    log.info("RDE GT: %d frame sets, patches %s", len(fs), {s: len(t) for s, t in splits.items() if s in outputs})
+
+
+def run_rde_training_manifests(scene_patches: list[str], outputs: Mapping[str, str]) -> None:
+    """The RDE GT's ``train`` and ``val`` manifests (``outputs``: split -> path) from the
+    patch tables of the scenes that can hold such frame sets (the sources not
+    ``split: test``), as :func:`run_rde_dataset` writes them."""
+    from depthgt.gt.rde import rde_dataset  # heavy: the module imports torch
+
+    _, splits = rde_dataset([], [pd.read_parquet(p) for p in scene_patches])
+    for split, path in outputs.items():
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        splits[split].to_parquet(path, index=False)
+    log.info("RDE training manifests: %s patch pairs", {s: len(splits[s]) for s in outputs})

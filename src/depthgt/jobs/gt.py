@@ -16,17 +16,22 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
-from tqdm import tqdm
 
 from depthgt import io
 from depthgt.atomic import work_dir, write_atomic
 from depthgt.device import keep_freed_memory, resolve_device
-from depthgt.errors import FrameError
+from depthgt.errors import DepthGTError, FrameError
 from depthgt.gt import store
-from depthgt.gt.assemble import DatasetOutputs, assemble, summarize_scene
+from depthgt.gt.assemble import (
+    DatasetOutputs,
+    assemble,
+    empty_dataset,
+    empty_dataset_message,
+    summarize_scene,
+    write_manifests,
+)
 from depthgt.gt.card import build_card, write_card
 from depthgt.gt.index import build_index, select_pretraining_framesets
-from depthgt.gt.planning import coverage_candidates, member_problems
 from depthgt.jobs.common import open_source_scene
 from depthgt.settings import STAGES, stage_settings
 from depthgt.status import Status
@@ -37,6 +42,7 @@ __all__ = [
     "run_frameset_batch",
     "run_scene_summary",
     "run_dataset",
+    "run_training_manifests",
     "run_pretrain_registration",
 ]
 
@@ -89,36 +95,18 @@ def run_frameset_batch(
     out_shard: str,
     encoder: str | None = None,
 ) -> list[dict[str, Any]]:
-    """Build the frame sets of targets ``first``..``last`` of a scene in turn and write
-    them as one shard (:func:`depthgt.gt.store.write_shard`); the encoder and the scene
-    are loaded once.
-
-    Frames are read from the source once per batch, at the working resolution
-    (:class:`depthgt.gt.cache.ResizedScene`), and checked as they are read (with
-    ``registration.method: given`` their poses too): before a planned target is built,
-    its member frames are read; a frame set with an unusable member is skipped, its
-    reason naming each such frame with its reason and message
-    (:func:`depthgt.gt.planning.member_problems`). With ``frameset.selection: coverage``
-    each target's candidate views come from the index's split tags
-    (:func:`depthgt.gt.planning.coverage_candidates`); the batch keeps the frames of
-    the wider span in memory, and an unusable candidate is only not added.
-
-    Every candidate target of the slice gets a record in the shard's ``batch.json``:
-    ``ok`` (or ``failed``: the registration) when built, else ``skipped`` with the
-    reason (unusable member frames, the index's split guard) or ``not_in_scene`` when
-    the scene holds fewer frames than planned (a truncated file). ``batch.json`` also
-    lists every frame the batch read with its outcome
-    (:class:`depthgt.gt.cache.FrameCheck`).
+    """Build the frame sets of targets ``first``..``last`` of a scene and write them as
+    one shard (:func:`depthgt.gt.store.write_shard`): the scene opened once, its frames
+    read once through the batch's frame cache (:class:`depthgt.gt.cache.ResizedScene`),
+    the encoder loaded once, the sets built by :func:`depthgt.gt.batch.build_batch`
+    (every candidate target recorded in ``batch.json``, with every frame read and its
+    outcome).
 
     Returns:
         The frame-set records of ``batch.json``.
-
-    Long because every candidate target ends in one of the records of batch.json (not in
-    the scene, not planned, unusable members, built), each written where the loop
-    decides it.
     """
     # heavy (torch): only the jobs that build frame sets need them
-    from depthgt.gt.build import FrameSetOutputs, process_frameset
+    from depthgt.gt.batch import build_batch, frames_kept
     from depthgt.gt.cache import ResizedScene
 
     keep_freed_memory()  # a process of its own: no page faults for every large tensor
@@ -126,101 +114,21 @@ def run_frameset_batch(
     settings = stage_settings(config, "frameset")
     need_poses = settings.registration.uses_source_poses
     planned = [t for t in settings.frameset.targets(last + settings.frameset.reach + 1) if first <= t <= last]
-    table = pd.read_parquet(index_parquet)
-    rows = {int(r.position): r for r in table[table["is_target"]].itertuples()}
     state = None
     if encoder:
         import torch  # heavy: only with a pretrained encoder
 
         state = torch.load(encoder, map_location="cpu", weights_only=True) or None  # {}: no pretraining
-    fs = settings.frameset
-    span = max(fs.reach, fs.coverage_span) if fs.selection == "coverage" else fs.reach  # frames a target may read
     scene_obj = ResizedScene(
         open_source_scene(source, scene, need_poses=need_poses),
         settings.size_hw,
-        keep=2 * span + 2,
+        keep=frames_kept(settings),
         need_pose=need_poses,
     )
-    splits = table.sort_values("position")["split"].to_numpy(dtype=object)  # the index's split of every frame
-    records: list[dict[str, Any]] = []
-    built: dict[int, Path] = {}
     with work_dir(out_shard) as tmp:
-        for target in tqdm(planned, desc=f"frame sets {source['name']}/{scene} {first:06d}-{last:06d}", unit="set"):
-            row = rows.get(target)
-            if row is None:
-                records.append(
-                    {
-                        "target": target,
-                        "status": Status.SKIPPED,
-                        "reason": "not_in_scene: the scene holds "
-                        f"{len(table)} frames, fewer than planned for this target",
-                        "members": [],
-                        "split": "",
-                    }
-                )
-                log.warning(
-                    "%s/%s: target %d skipped: not in the scene (%d frames)", source["name"], scene, target, len(table)
-                )
-                continue
-            members = [int(m) for m in row.members]
-            if row.frameset_status != Status.PLANNED:
-                records.append(
-                    {
-                        "target": target,
-                        "status": row.frameset_status,
-                        "reason": row.frameset_reason,
-                        "members": members,
-                        "split": row.frameset_split,
-                    }
-                )
-                continue
-            checks = [scene_obj.check(m) for m in members]
-            bad = member_problems(members, {c.position: c.problem for c in checks if not c.valid})
-            if bad:
-                records.append(
-                    {
-                        "target": target,
-                        "status": Status.SKIPPED,
-                        "reason": bad,
-                        "members": members,
-                        "split": row.frameset_split,
-                    }
-                )
-                log.warning("frame set %s/%s/%06d skipped: %s", source["name"], scene, target, bad)
-                continue
-            out = FrameSetOutputs.in_dir(Path(tmp) / f"{target:06d}")
-            doc = process_frameset(
-                scene_obj,
-                source["name"],
-                target,
-                members,
-                row.frameset_split,
-                out,
-                settings,
-                encoder_state=state,
-                candidates=coverage_candidates(splits, target, members, fs),
-            )
-            built[target] = Path(tmp) / f"{target:06d}"
-            records.append(
-                {
-                    "target": target,
-                    "status": doc["status"],
-                    "reason": doc["reason"],
-                    "members": members,
-                    "split": row.frameset_split,
-                }
-            )
-            log.info(
-                "frame set %s/%s/%06d: status %s, %d/%d patches kept, GT missing %.3f (input %.3f)",
-                source["name"],
-                scene,
-                target,
-                doc["status"],
-                doc["statistics"]["patches_kept"],
-                doc["statistics"]["patches_drawn"],
-                doc["statistics"]["gt_missing"],
-                doc["statistics"]["input_missing"],
-            )
+        records, built = build_batch(
+            scene_obj, source["name"], planned, pd.read_parquet(index_parquet), settings, tmp, encoder_state=state
+        )
         frames = [c.to_dict() for c in scene_obj.checks]
         store.write_shard(out_shard, built, records, frames=frames)
     n_bad = sum(not f["valid"] for f in frames)
@@ -288,21 +196,35 @@ def run_dataset(
     outputs: Mapping[str, str],
     shards: list[str] | None = None,
     config: Mapping[str, Any] | None = None,
+    manifests: list[str] | None = None,
+    allow_empty: bool = False,
 ) -> None:
     """Assemble the dataset manifests from the per-scene summaries and write the dataset
     card (:mod:`depthgt.gt.card`).
 
     Args:
-        outputs: the paths ``train``, ``val``, ``test``, ``framesets``, ``summary``,
-            ``summary_md``, ``quality`` (:class:`depthgt.gt.assemble.DatasetOutputs`) and
-            ``card``, ``card_md``.
+        outputs: the paths ``framesets``, ``summary``, ``summary_md``, ``quality``,
+            ``card``, ``card_md`` and those of the manifests to write here, of ``train``,
+            ``val``, ``test`` (:class:`depthgt.gt.assemble.DatasetOutputs`).
         shards: every frame-set shard of the build (checksummed in the card).
+        manifests: manifests written by another job (:func:`run_training_manifests`),
+            checksummed in the card.
+        allow_empty: keep a dataset without any built frame set (config
+            ``dataset.allow_empty``); otherwise such a dataset fails the job with a
+            :class:`~depthgt.errors.DepthGTError` saying why, after the summary
+            (Markdown) is written to the log.
         config: the config sections that decide the GT (stage ``dataset`` of
             :data:`depthgt.settings.STAGES`; their resolved settings, defaults filled in,
             are recorded in the card).
+
+    Raises:
+        DepthGTError: an empty dataset without ``allow_empty``.
     """
-    out = DatasetOutputs(**{k: outputs[k] for k in DatasetOutputs._fields})
+    out = DatasetOutputs(**{k: outputs.get(k) for k in DatasetOutputs._fields})
     summary = assemble(scene_framesets, scene_patches, scene_quality, scene_frames, index_jsons, out)
+    if empty_dataset(summary) and not allow_empty:
+        log.info("the dataset summary:\n%s", Path(out.summary_md).read_text())
+        raise DepthGTError(empty_dataset_message(summary))
     log.info(
         "dataset: %s pairs, %d frame sets skipped, %d of %d frames read unusable",
         summary["pairs"],
@@ -318,7 +240,7 @@ def run_dataset(
         pd.read_csv(out.quality),
         [json.loads(Path(p).read_text()) for p in index_jsons],
         stage_settings(config or {}, "dataset").doc(*STAGES["dataset"].top),
-        [*(shards or []), *out],
+        [*(shards or []), *(p for p in out if p is not None), *(manifests or [])],
     )
     write_card(card, outputs["card"], outputs["card_md"])
     log.info(
@@ -327,6 +249,14 @@ def run_dataset(
         card["depthgt"]["version"],
         card["depthgt"]["commit"],
     )
+
+
+def run_training_manifests(scene_patches: list[str], outputs: Mapping[str, str]) -> None:
+    """Write the ``train`` and ``val`` manifests (``outputs``: split -> path) from the
+    patch tables of the scenes that can hold such frame sets (the sources not
+    ``split: test``; :func:`depthgt.gt.assemble.write_manifests`)."""
+    rows = write_manifests(scene_patches, dict(outputs))
+    log.info("training manifests: %s patch pairs from %d scenes", rows, len(scene_patches))
 
 
 def run_pretrain_registration(
@@ -342,8 +272,7 @@ def run_pretrain_registration(
     # heavy (torch): only this job needs them
     import torch
 
-    from depthgt.gt.build import load_frameset
-    from depthgt.registration import pretrain_encoder
+    from depthgt.registration import load_frameset, pretrain_encoder
 
     settings = stage_settings(config, "pretrain")
     pre = settings.registration.pretrain

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from depthgt.metric_vocabulary import pose_delta
-from depthgt.settings import CheckSettings
+from depthgt.registration.settings import CheckSettings
 
 __all__ = ["check_neighbours", "set_status"]
 

@@ -17,6 +17,8 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 
+from depthgt.shapes import check_shape
+
 __all__ = ["Correspondences", "sample_candidates", "knn2_both", "ratio_weights", "find_correspondences"]
 
 
@@ -48,8 +50,7 @@ def sample_candidates(
         index (F, n) long flat pixel indices and mask (F, n) bool, False where a frame
         has fewer than ``n`` valid pixels (those slots hold invalid pixels).
     """
-    if valid.ndim != 4 or valid.shape[1] != 1:
-        raise ValueError(f"valid must be (F, 1, H, W), got {tuple(valid.shape)}")
+    check_shape(valid, "F 1 H W", "valid")
     flat = valid.flatten(1)
     n = min(n, flat.shape[1])
     score = torch.rand(flat.shape, generator=generator).to(flat.device) + flat.float() * 2.0
@@ -143,11 +144,10 @@ def find_correspondences(
         :class:`Correspondences` with ``points_src`` in b and ``points_dst`` in a, so
         that Procrustes on them estimates ``T_b_to_a``.
     """
-    for name, x in (("points_a", points_a), ("feats_a", feats_a), ("points_b", points_b), ("feats_b", feats_b)):
-        if x.ndim != 3:
-            raise ValueError(f"{name} must be (P, N, D), got {tuple(x.shape)}")
-    if feats_a.shape[-1] != feats_b.shape[-1]:
-        raise ValueError(f"feature sizes differ: {feats_a.shape[-1]} vs {feats_b.shape[-1]}")
+    check_shape(points_a, "P N D", "points_a")
+    check_shape(points_b, "P N D", "points_b")
+    feat_dim = check_shape(feats_a, "P N C", "feats_a")["C"]
+    check_shape(feats_b, "P N C", "feats_b", {"C": feat_dim})  # P and N may differ from a's
     feats_a = F.normalize(feats_a, dim=-1)
     feats_b = F.normalize(feats_b, dim=-1)
     nn_b_of_a, nn_a_of_b = knn2_both(feats_a, feats_b, mask_a, mask_b, max_block)

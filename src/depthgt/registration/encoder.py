@@ -12,6 +12,7 @@ import torch
 from torch import nn
 
 from depthgt.geometry import backproject
+from depthgt.shapes import check_shape
 
 __all__ = ["BasicBlock", "RGBEncoder", "build_encoder", "candidate_points"]
 
@@ -52,8 +53,7 @@ class RGBEncoder(nn.Module):
         self.head = nn.Sequential(nn.Conv2d(channels, feat_dim, 1, bias=False), nn.BatchNorm2d(feat_dim))
 
     def forward(self, rgb: torch.Tensor) -> torch.Tensor:
-        if rgb.ndim != 4 or rgb.shape[1] != 3:
-            raise ValueError(f"rgb must be (B, 3, H, W), got {tuple(rgb.shape)}")
+        check_shape(rgb, "B 3 H W", "rgb")
         return self.head(self.blocks(self.stem(rgb)))
 
 
@@ -70,8 +70,5 @@ def candidate_points(depth_m: torch.Tensor, K: torch.Tensor, index: torch.Tensor
     """(B, N, 3) camera-frame points (metres) of the pixels ``index`` (B, N) (flat,
     row-major) of ``depth_m`` (B, 1, H, W) with intrinsics ``K`` (B, 3, 3); their features
     come from :func:`depthgt.registration.overfit.encode_at`."""
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1 or index.shape[0] != depth_m.shape[0]:
-        raise ValueError(
-            f"depth_m must be (B, 1, H, W) and index (B, N), got {tuple(depth_m.shape)}, {tuple(index.shape)}"
-        )
+    check_shape(index, "B N", "index", check_shape(depth_m, "B 1 H W", "depth_m"))
     return torch.gather(backproject(depth_m, K), 1, index[..., None].expand(-1, -1, 3))

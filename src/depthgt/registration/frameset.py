@@ -1,5 +1,5 @@
 """What every registration method gets: the members of one frame set at the working
-resolution (:class:`FrameSetData`, read by :func:`depthgt.gt.build.load_frameset`), and
+resolution (:class:`FrameSetData`, read by :func:`load_frameset`), and
 the one signature of the methods (:class:`Registration`; the table of them:
 :data:`depthgt.registration.METHODS`)."""
 
@@ -8,13 +8,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol
 
+import numpy as np
 import torch
 
+from depthgt import geometry
 from depthgt.errors import FrameError
+from depthgt.framecache import FrameCache
 from depthgt.registration.result import RegistrationResult
-from depthgt.settings import RegistrationSettings
+from depthgt.registration.settings import RegistrationSettings
+from depthgt.sources.base import Scene, check_frame
 
-__all__ = ["FrameSetData", "Registration", "poses_from_source"]
+__all__ = ["FrameSetData", "Registration", "load_frameset", "poses_from_source"]
 
 
 @dataclass
@@ -24,13 +28,18 @@ class FrameSetData:
     Attributes:
         rgb: (F, 3, H, W) float in [0, 1].
         depth_m: (F, 1, H, W) raw depth, 0 = invalid.
-        K: (3, 3) float64 intrinsics at (H, W).
+        K: (3, 3) float64 intrinsics at (H, W): the frame set's one camera, every
+            member's (a function taking several images' intrinsics takes them (F, 3, 3):
+            ``K.expand(F, 3, 3)``; docs/development.md "Shapes and intrinsics").
         T_world_cam: (F, 4, 4) float64 camera-to-world poses, or None.
         truth_m: (F, 1, H, W) clean depth when the source knows it, else None.
         frame_ids: the source's ids of the members.
         src_hw: (H, W) of the source's depth images before resizing.
         colour_matches_depth: the source's colour is taken by the depth's camera at the
             depth's instant (``Scene.colour_matches_depth``).
+        positions: the members' positions in their scene, or None.
+        cache: the batch job's :class:`~depthgt.framecache.FrameCache` of per-frame
+            results (keyed by ``positions``), or None.
     """
 
     rgb: torch.Tensor
@@ -41,6 +50,65 @@ class FrameSetData:
     frame_ids: list[str]
     src_hw: tuple[int, int] | None = None
     colour_matches_depth: bool = True
+    positions: tuple[int, ...] | None = None
+    cache: FrameCache | None = None
+
+
+def load_frameset(
+    scene: Scene,
+    members: list[int],
+    size_hw: tuple[int, int],
+    need_poses: bool,
+    device: torch.device,
+    cache: FrameCache | None = None,
+) -> FrameSetData:
+    """Read the member frames of any :class:`~depthgt.sources.base.Scene` and bring them
+    to ``size_hw`` (depth nearest/valid-aware, colour area-averaged, intrinsics scaled).
+
+    A scene whose frames already have the working size (a
+    :class:`depthgt.gt.cache.ResizedScene`) is not resized again; it tells the size of
+    the images it was resized from by ``source_size``.
+
+    ``cache``: the batch job's per-frame results (:class:`~depthgt.framecache.FrameCache`),
+    kept with the frame set with the members' positions.
+
+    Raises:
+        FrameError: a member frame is unusable (the batch job checks the members
+            before it builds a frame set, and records such a set as skipped).
+    """
+    frames = []
+    for m in members:
+        where = f"{scene.name} frame {scene.frame_id(m)}"
+        frames.append(check_frame(scene.read(m), scene.image_size, where, need_pose=need_poses))
+    size_hw = (int(size_hw[0]), int(size_hw[1]))
+    same = tuple(scene.image_size) == size_hw
+
+    def depth_at_size(arrays: list[np.ndarray]) -> torch.Tensor:
+        d = torch.from_numpy(np.stack(arrays))[:, None].to(device)
+        return d if same else geometry.resize_depth_nearest(d, size_hw)
+
+    rgb = torch.from_numpy(np.stack([f.rgb for f in frames])).permute(0, 3, 1, 2).to(device).float() / 255.0
+    truth = None
+    if all(f.clean_depth_m is not None for f in frames):
+        truth = depth_at_size([f.clean_depth_m for f in frames])
+    poses = None
+    if all(f.T_world_cam is not None for f in frames) and all(np.isfinite(f.T_world_cam).all() for f in frames):
+        poses = torch.from_numpy(np.stack([f.T_world_cam for f in frames])).to(device)
+    K = np.asarray(scene.intrinsics, dtype=np.float64)
+    if not same:
+        K = geometry.scale_intrinsics(K, scene.image_size, size_hw)
+    return FrameSetData(
+        rgb=rgb if same else geometry.resize_rgb(rgb, size_hw),
+        depth_m=depth_at_size([f.depth_m for f in frames]),
+        K=torch.as_tensor(K, device=device),
+        T_world_cam=poses,
+        truth_m=truth,
+        frame_ids=[scene.frame_id(m) for m in members],
+        src_hw=tuple(getattr(scene, "source_size", scene.image_size)),
+        colour_matches_depth=bool(getattr(scene, "colour_matches_depth", True)),  # test doubles may not say
+        positions=tuple(int(m) for m in members),
+        cache=cache,
+    )
 
 
 def poses_from_source(data: FrameSetData) -> torch.Tensor:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from depthgt.registration.frameset import FrameSetData, poses_from_source
 from depthgt.registration.result import RegistrationResult
-from depthgt.settings import RegistrationSettings
+from depthgt.registration.settings import RegistrationSettings
 from depthgt.status import Status
 
 __all__ = ["register_given"]

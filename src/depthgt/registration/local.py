@@ -18,13 +18,15 @@ import time
 
 import torch
 
+from depthgt.framecache import FrameCache
 from depthgt.registration.checks import check_neighbours, set_status
 from depthgt.registration.frameset import FrameSetData, poses_from_source
-from depthgt.registration.refine import refine_poses
+from depthgt.registration.refine import RefineResult, RefineSet, refine_poses, refine_poses_many
 from depthgt.registration.result import RegistrationResult
-from depthgt.settings import RegistrationSettings
+from depthgt.registration.settings import RegistrationSettings
+from depthgt.shapes import check_shape
 
-__all__ = ["register_refine", "refine_source_poses"]
+__all__ = ["register_refine", "refine_source_poses", "refine_source_poses_many"]
 
 
 def register_refine(
@@ -42,7 +44,16 @@ def register_refine(
     Raises:
         FrameError: the source has no finite poses for the members ("missing_pose").
     """
-    return refine_source_poses(data.rgb, data.depth_m, data.K, offsets, poses_from_source(data), settings)
+    return refine_source_poses(
+        data.rgb,
+        data.depth_m,
+        data.K,
+        offsets,
+        poses_from_source(data),
+        settings,
+        cache=data.cache,
+        positions=data.positions,
+    )
 
 
 def refine_source_poses(
@@ -52,32 +63,75 @@ def refine_source_poses(
     offsets: list[int],
     T_j_to_t: torch.Tensor,
     settings: RegistrationSettings = RegistrationSettings(method="refine"),
+    *,
+    cache: FrameCache | None = None,
+    positions: tuple[int, ...] | None = None,
 ) -> RegistrationResult:
     """Refine the source's poses of the neighbours of one frame set.
 
     Args:
         rgb: (F, 3, H, W) colour in [0, 1]; depth_m: (F, 1, H, W) metres, 0 = invalid;
-            K: (3, 3) intrinsics at (H, W) (the target first in each).
+            K: (3, 3) the frame set's one camera at (H, W) (the target first in each).
         offsets: frame offsets, ``offsets[0] == 0``.
         T_j_to_t: (F-1, 4, 4) the source's poses of the neighbours in the target camera.
         settings: its ``refine_settings`` and ``checks``.
+        cache, positions: the batch job's per-frame results and the frames' positions
+            (:func:`~depthgt.registration.refine.refine_poses`), or None.
 
     Returns:
         :class:`~depthgt.registration.result.RegistrationResult` (no correspondences,
         no loss curve); ``diagnostics`` holds the correction per neighbour.
     """
     t_start = time.perf_counter()
-    Fn = depth_m.shape[0]
-    if depth_m.ndim != 4 or depth_m.shape[1] != 1 or Fn < 2:
-        raise ValueError(f"depth_m must be (F >= 2, 1, H, W), got {tuple(depth_m.shape)}")
+    T_start = _start(depth_m, offsets, T_j_to_t)
+    refined = refine_poses(
+        rgb, depth_m, K.to(depth_m.dtype), T_start, settings.refine_settings, offsets, cache=cache, positions=positions
+    )
+    return _result(refined, T_start, offsets, settings, time.perf_counter() - t_start)
+
+
+def refine_source_poses_many(
+    datas: list[FrameSetData], offsets: list[int], settings: RegistrationSettings
+) -> list[RegistrationResult]:
+    """:func:`register_refine` of several frame sets of one camera (the same members'
+    shape and ``offsets``) refined together
+    (:func:`~depthgt.registration.refine.refine_poses_many`: one residual evaluation for
+    all of them, what keeps a GPU busy); each result as the set's own refinement gives.
+
+    Raises:
+        FrameError: a set's source has no finite poses for its members ("missing_pose").
+    """
+    t_start = time.perf_counter()
+    starts = [_start(d.depth_m, offsets, poses_from_source(d)) for d in datas]
+    sets = [RefineSet(d.rgb, d.depth_m, T, list(offsets), d.positions) for d, T in zip(datas, starts)]
+    first = datas[0]
+    refined = refine_poses_many(sets, first.K.to(first.depth_m.dtype), settings.refine_settings, first.cache)
+    seconds = (time.perf_counter() - t_start) / len(datas)
+    return [_result(r, T, offsets, settings, seconds) for r, T in zip(refined, starts)]
+
+
+def _start(depth_m: torch.Tensor, offsets: list[int], T_j_to_t: torch.Tensor) -> torch.Tensor:
+    """(F, 4, 4) float64 poses to start from (the target's the identity), inputs checked."""
+    Fn = check_shape(depth_m, "F 1 H W", "depth_m")["F"]
+    if Fn < 2:
+        raise ValueError(f"depth_m must be (F >= 2, 1, H, W): a target and a neighbour, got {tuple(depth_m.shape)}")
     if len(offsets) != Fn or offsets[0] != 0:
         raise ValueError(f"offsets must list {Fn} offsets with the target's 0 first, got {offsets}")
-    if T_j_to_t.shape != (Fn - 1, 4, 4) or not torch.isfinite(T_j_to_t).all():
-        raise ValueError(f"T_j_to_t must be finite ({Fn - 1}, 4, 4), got {tuple(T_j_to_t.shape)}")
+    check_shape(T_j_to_t, "J 4 4", "T_j_to_t", {"J": Fn - 1})
+    if not torch.isfinite(T_j_to_t).all():
+        raise ValueError("T_j_to_t must be finite")
     dev = depth_m.device
     eye = torch.eye(4, dtype=torch.float64, device=dev)[None]
     T_start = torch.cat([eye, T_j_to_t.to(dev, torch.float64)])
-    refined = refine_poses(rgb, depth_m, K.to(depth_m.dtype), T_start, settings.refine_settings, offsets)
+    return T_start
+
+
+def _result(
+    refined: RefineResult, T_start: torch.Tensor, offsets: list[int], settings: RegistrationSettings, seconds: float
+) -> RegistrationResult:
+    """The refinement's :class:`RegistrationResult`: the neighbour checks against the
+    start (a correction beyond the bounds diverged) and the diagnostics."""
+    Fn = T_start.shape[0]
     T = refined.T_f_to_t
     statuses, reasons = check_neighbours(T, None, refined, settings.checks, T_start=T_start)
     status, reason = set_status(statuses, [], settings.checks)
@@ -91,7 +145,7 @@ def refine_source_poses(
         status=status,
         reason=reason,
         n_correspondences=[0] * (Fn - 1),
-        timings={"refine": time.perf_counter() - t_start, "total": time.perf_counter() - t_start},
+        timings={"refine": seconds, "total": seconds},
         diagnostics=diagnostics,
         normals=refined.normals,
     )

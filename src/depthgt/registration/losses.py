@@ -19,6 +19,7 @@ from collections.abc import Callable
 import torch
 
 from depthgt.geometry import transform_points
+from depthgt.shapes import check_shape
 from depthgt.splatting import splat_soft
 
 __all__ = ["default_render_fn", "render_losses", "correspondence_loss"]
@@ -62,10 +63,8 @@ def render_losses(
         no overlapping pixel).
     """
     P, N, _ = points_src.shape
-    if depth_dst.ndim != 4 or depth_dst.shape[:2] != (P, 1):
-        raise ValueError(f"depth_dst must be ({P}, 1, H, W), got {tuple(depth_dst.shape)}")
-    if rgb_dst.shape != (P, 3, *depth_dst.shape[-2:]):
-        raise ValueError(f"rgb_dst must be ({P}, 3, H, W), got {tuple(rgb_dst.shape)}")
+    sizes = check_shape(depth_dst, "P 1 H W", "depth_dst", {"P": P})
+    check_shape(rgb_dst, "P 3 H W", "rgb_dst", sizes)
     pts = transform_points(T_src_to_dst.to(points_src.dtype), points_src)
     out = render_fn(pts, rgb_src, K, tuple(depth_dst.shape[-2:]), valid_src, radius_px=radius_px, max_points=max_points)
     rendered = out.weight > min_weight  # (P, 1, H, W)

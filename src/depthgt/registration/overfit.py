@@ -33,7 +33,8 @@ from depthgt.registration.losses import correspondence_loss, default_render_fn, 
 from depthgt.registration.procrustes import procrustes_random_subsets
 from depthgt.registration.refine import Level, LevelSettings, RefineResult, pair_mean_cost, refine_poses
 from depthgt.registration.result import RegistrationResult
-from depthgt.settings import RegistrationSettings
+from depthgt.registration.settings import RegistrationSettings
+from depthgt.shapes import check_shape
 
 __all__ = ["register_overfit", "register_frameset", "pretrain_encoder", "frameset_loss"]
 
@@ -47,7 +48,7 @@ log = logging.getLogger(__name__)
 class _Frameset:
     rgb: torch.Tensor  # (F, 3, H, W)
     depth: torch.Tensor  # (F, 1, H, W)
-    K: torch.Tensor  # (3, 3)
+    K: torch.Tensor  # (3, 3) the frame set's one camera
     cand_idx: torch.Tensor  # (F, n)
     cand_mask: torch.Tensor  # (F, n)
     pairs: torch.Tensor  # (P, 2) unordered (a, b), a < b
@@ -82,12 +83,8 @@ class _Frameset:
 
 
 def _check_inputs(rgb, depth_m, K, offsets):
-    if rgb.ndim != 4 or rgb.shape[1] != 3:
-        raise ValueError(f"rgb must be (F, 3, H, W), got {tuple(rgb.shape)}")
-    if depth_m.shape != (rgb.shape[0], 1, *rgb.shape[-2:]):
-        raise ValueError(f"depth_m must be {(rgb.shape[0], 1, *rgb.shape[-2:])}, got {tuple(depth_m.shape)}")
-    if K.shape != (3, 3):
-        raise ValueError(f"K must be (3, 3), got {tuple(K.shape)}")
+    check_shape(depth_m, "F 1 H W", "depth_m", check_shape(rgb, "F 3 H W", "rgb"))
+    check_shape(K, "3 3", "K (the frame set's one camera)")
     if len(offsets) != rgb.shape[0] or offsets[0] != 0:
         raise ValueError(f"offsets must have one entry per frame ({rgb.shape[0]}) with offsets[0] == 0, got {offsets}")
     if rgb.shape[0] < 2:
@@ -455,7 +452,7 @@ def register_frameset(
     Args:
         rgb: (F, 3, H, W) float colour in [0, 1] at the working resolution (256x256).
         depth_m: (F, 1, H, W) depth in metres, 0 = invalid.
-        K: (3, 3) intrinsics at (H, W).
+        K: (3, 3) the frame set's one camera (every frame's intrinsics) at (H, W).
         offsets: frame offsets, ``offsets[0] == 0`` (the target), e.g. [0, -6, -4, -2, 2, 4, 6].
         settings: :class:`~depthgt.settings.RegistrationSettings` (presets:
             :func:`depthgt.settings.registration_settings`).
@@ -473,8 +470,8 @@ def register_frameset(
     _check_inputs(rgb, depth_m, K, offsets)
     s = settings
     Fn = rgb.shape[0]
-    if init_T_j_to_t is not None and init_T_j_to_t.shape != (Fn - 1, 4, 4):
-        raise ValueError(f"init_T_j_to_t must be ({Fn - 1}, 4, 4), got {tuple(init_T_j_to_t.shape)}")
+    if init_T_j_to_t is not None:
+        check_shape(init_T_j_to_t, "J 4 4", "init_T_j_to_t", {"J": Fn - 1})
     dev = rgb.device
     fs, encoder, gen, render_fn = _setup(rgb, depth_m, K, s, encoder_state, seed, render_fn)
     timings: dict[str, float] = {}
@@ -536,7 +533,7 @@ def pretrain_encoder(
     """Stream-only unsupervised pretraining of the encoder (no poses used).
 
     Args:
-        framesets: (rgb (F, 3, H, W), depth_m (F, 1, H, W), K (3, 3), offsets) tuples
+        framesets: (rgb (F, 3, H, W), depth_m (F, 1, H, W), K (3, 3) the set's one camera, offsets) tuples
             from the training scenes; re-iterated once per epoch (pass a list when
             ``epochs > 1``).
         settings: the registration settings (same encoder size and losses).

@@ -10,16 +10,15 @@ from __future__ import annotations
 
 import torch
 
+from depthgt.shapes import check_shape
+
 __all__ = ["weighted_procrustes", "weighted_residual", "procrustes_random_subsets"]
 
 
 def _check(points_src: torch.Tensor, points_dst: torch.Tensor, weights: torch.Tensor) -> None:
-    if points_src.ndim != 3 or points_src.shape[-1] != 3:
-        raise ValueError(f"points_src must be (B, N, 3), got {tuple(points_src.shape)}")
-    if points_dst.shape != points_src.shape:
-        raise ValueError(f"points_dst must match points_src {tuple(points_src.shape)}, got {tuple(points_dst.shape)}")
-    if weights.shape != points_src.shape[:2]:
-        raise ValueError(f"weights must be {tuple(points_src.shape[:2])}, got {tuple(weights.shape)}")
+    sizes = check_shape(points_src, "B N 3", "points_src")
+    check_shape(points_dst, "B N 3", "points_dst", sizes)
+    check_shape(weights, "B N", "weights", sizes)
 
 
 def weighted_procrustes(

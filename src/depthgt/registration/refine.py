@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -28,9 +29,16 @@ from kornia.geometry.depth import depth_to_normals
 from kornia.geometry.liegroup import Se3
 
 from depthgt.device import plain_cpu_convolutions
+from depthgt.framecache import FrameCache
 from depthgt.geometry import backproject, resize_depth_nearest, resize_rgb, scale_intrinsics
-from depthgt.noise_law import estimate_noise_sigma_1m
-from depthgt.settings import RefineSettings
+from depthgt.noise_law import (
+    estimate_noise_sigma_1m,
+    noise_sigma_1m_of,
+    second_difference_residuals,
+    sorted_residuals,
+)
+from depthgt.registration.settings import RefineSettings
+from depthgt.shapes import check_shape
 
 __all__ = [
     "RefineResult",
@@ -145,13 +153,61 @@ class LevelSettings:
     geo_ref_depth_m: float = 0.0
 
 
+class _Maps(NamedTuple):
+    """One scale's images of J frames (:func:`_level_maps`): intrinsics K (3, 3) at (h,
+    w); gray (J, 1, h, w); valid (J, 1, h, w) float; X (J, 3, h, w) points, metres;
+    maps (J, 10, h, w): X, normals, gray, its gradients, normal validity; depth (J, 1,
+    h, w) metres."""
+
+    K: torch.Tensor
+    gray: torch.Tensor
+    valid: torch.Tensor
+    X: torch.Tensor
+    maps: torch.Tensor
+    depth: torch.Tensor
+
+    def take(self, k: int) -> _Maps:
+        return _Maps(self.K, *(t[k : k + 1] for t in self[1:]))
+
+    @staticmethod
+    def stack(parts: list[_Maps]) -> _Maps:
+        if len(parts) == 1:
+            return parts[0]
+        return _Maps(parts[0].K, *(torch.cat([p[i] for p in parts]) for i in range(1, 6)))
+
+
+def _level_maps(rgb: torch.Tensor, depth_m: torch.Tensor, K: torch.Tensor, scale: int) -> _Maps:
+    """The images of one scale (downscale factor ``scale``) of J frames (rgb (J, 3, H, W),
+    depth_m (J, 1, H, W), K (3, 3) at (H, W))."""
+    Fn, _, H, W = depth_m.shape
+    h, w = H // scale, W // scale
+    Ks = scale_intrinsics(K, (H, W), (h, w)) if scale != 1 else K
+    Kb = Ks.expand(Fn, 3, 3).contiguous()
+    d = resize_depth_nearest(depth_m, (h, w)) if scale != 1 else depth_m
+    c = resize_rgb(rgb, (h, w)) if scale != 1 else rgb
+    gray = c.mean(1, keepdim=True)
+    valid = (d > 0).to(d.dtype)
+    X = backproject(d, Kb).transpose(1, 2).reshape(Fn, 3, h, w)
+    with plain_cpu_convolutions():  # 3x3 filters: ~3x faster than oneDNN's on one thread
+        N = depth_to_normals(d, Kb, normalize_points=False)
+        g = spatial_gradient(gray, mode="sobel", order=1, normalized=True)[:, 0]  # (F, 2, h, w) per pixel
+    nvalid = _erode(valid)  # normals need all 3x3 neighbours valid
+    # channels: X(3) N(3) gray gx gy valid
+    return _Maps(Ks, gray, valid, X, torch.cat([X, N, gray, g, nvalid], 1), d)
+
+
 class Level:
     """Per-scale images of all frames of a set: sample maps and source points.
 
     Args:
         rgb: (F, 3, H, W) colour in [0, 1]; depth_m: (F, 1, H, W) metres, 0 = invalid;
-        K: (3, 3) intrinsics at (H, W); scale: downscale factor; stride: source pixel
-        stride.
+        K: (3, 3) the frames' one camera at (H, W); scale: downscale factor; stride:
+        source pixel stride.
+        maps_of: a dict shared by the levels of one frame set (the same rgb, depth_m
+            and K), in which each scale's maps, which do not depend on ``stride``, are
+            computed once (the chaining and the refinement both use scale 2).
+        cache, positions: the batch job's :class:`~depthgt.framecache.FrameCache` and
+            the frames' positions: each frame's maps are computed once per batch.
 
     Attributes:
         maps: (F, 10, h, w) points X (3, metres), normals (3), gray, gradients gx, gy and
@@ -160,38 +216,53 @@ class Level:
         K: (3, 3) intrinsics at (h, w); hw: (h, w); median_depth: metres.
     """
 
-    def __init__(self, rgb, depth_m, K, scale: int, stride: int, maps_of: dict | None = None):
-        """``maps_of``: a dict shared by the levels of one frame set (the same rgb,
-        depth_m and K), in which each scale's maps, which do not depend on ``stride``,
-        are computed once (the chaining and the refinement both use scale 2)."""
-        Fn, _, H, W = depth_m.shape
-        h, w = H // scale, W // scale
-        self.hw = (h, w)
+    def __init__(
+        self,
+        rgb,
+        depth_m,
+        K,
+        scale: int,
+        stride: int,
+        maps_of: dict | None = None,
+        cache: FrameCache | None = None,
+        positions: tuple[int, ...] | None = None,
+    ):
         if maps_of is not None and scale in maps_of:
-            self.K, gray, valid, X, self.maps, self.median_depth = maps_of[scale]
+            m = maps_of[scale]
+        elif cache is not None and positions is not None:
+            index = {p: i for i, p in enumerate(positions)}
+
+            def compute(todo: list[int]) -> list[_Maps]:
+                rows = [index[p] for p in todo]
+                maps = _level_maps(rgb[rows], depth_m[rows], K, scale)
+                return [maps.take(k) for k in range(len(rows))]
+
+            m = _Maps.stack(cache.get(f"refine.level{scale}", positions, compute))
         else:
-            self.K = scale_intrinsics(K, (H, W), (h, w)) if scale != 1 else K
-            Kb = self.K.expand(Fn, 3, 3).contiguous()
-            d = resize_depth_nearest(depth_m, (h, w)) if scale != 1 else depth_m
-            c = resize_rgb(rgb, (h, w)) if scale != 1 else rgb
-            gray = c.mean(1, keepdim=True)
-            valid = (d > 0).to(d.dtype)
-            X = backproject(d, Kb).transpose(1, 2).reshape(Fn, 3, h, w)
-            with plain_cpu_convolutions():  # 3x3 filters: ~3x faster than oneDNN's on one thread
-                N = depth_to_normals(d, Kb, normalize_points=False)
-                g = spatial_gradient(gray, mode="sobel", order=1, normalized=True)[:, 0]  # (F, 2, h, w) per pixel
-            nvalid = _erode(valid)  # normals need all 3x3 neighbours valid
-            # channels: X(3) N(3) gray gx gy valid
-            self.maps = torch.cat([X, N, gray, g, nvalid], 1)
-            self.median_depth = d[d > 0].median() if (d > 0).any() else torch.tensor(1.0)
-            if maps_of is not None:
-                maps_of[scale] = (self.K, gray, valid, X, self.maps, self.median_depth)
-        ys = torch.arange(0, h, stride, device=X.device)
-        xs = torch.arange(0, w, stride, device=X.device)
+            m = _level_maps(rgb, depth_m, K, scale)
+        if maps_of is not None:
+            maps_of[scale] = m
+        self.K, self.maps, self._depth = m.K, m.maps, m.depth
+        h, w = self.hw = tuple(m.depth.shape[-2:])
+        ys = torch.arange(0, h, stride, device=m.X.device)
+        xs = torch.arange(0, w, stride, device=m.X.device)
         idx = (ys[:, None] * w + xs[None, :]).reshape(-1)
-        self.points = X.flatten(2)[:, :, idx].contiguous()  # (F, 3, N) planar
-        self.gray = gray.flatten(2)[:, 0, idx]  # (F, N)
-        self.valid = valid.flatten(2)[:, 0, idx] > 0  # (F, N)
+        self.points = m.X.flatten(2)[:, :, idx].contiguous()  # (F, 3, N) planar
+        self.gray = m.gray.flatten(2)[:, 0, idx]  # (F, N)
+        self.valid = m.valid.flatten(2)[:, 0, idx] > 0  # (F, N)
+
+    @property
+    def median_depth(self) -> torch.Tensor:
+        """The median valid depth of the frames at this scale, metres (1 without any)."""
+        d = self._depth
+        return d[d > 0].median() if (d > 0).any() else torch.tensor(1.0)
+
+
+#: an LM trial step smaller than this (metres of translation, radians of rotation, the
+#: largest component) after a rejected one is not evaluated: the level has converged.
+#: Such steps, accepted, moved the poses by under 0.3 um (docs/decisions.md
+#: "Refinement: convergence").
+MIN_TRIAL_STEP = 1e-6
 
 
 def _cross(a, b):
@@ -240,9 +311,12 @@ def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: Le
     X = (smp[:, 0], smp[:, 1], smp[:, 2])
     n_inv = torch.rsqrt((smp[:, 3:6] * smp[:, 3:6]).sum(1).clamp(min=1e-12))
     Nrm = (smp[:, 3] * n_inv, smp[:, 4] * n_inv, smp[:, 5] * n_inv)
-    inb = (qz > 1e-3) & (u > -0.5) & (u < w - 0.5) & (v > -0.5) & (v < h - 0.5)
+    # in front of the camera and on a pixel whose 3x3 neighbourhood is valid (the sampled
+    # normal validity: a position off the image, u outside (-0.5, w - 0.5) or v likewise,
+    # samples the zero padding with a weight of at least a half, so the image bounds
+    # need no test of their own)
     src_valid = level.valid.index_select(0, b)
-    seen = src_valid & inb & (nvalid > 0.999)
+    seen = src_valid & (qz > 1e-3) & (nvalid > 0.999)
     d = (qx - X[0], qy - X[1], qz - X[2])
     r_geo = Nrm[0] * d[0] + Nrm[1] * d[1] + Nrm[2] * d[2]
     if s.geo_ref_depth_m > 0:
@@ -334,8 +408,11 @@ def _robust(r: torch.Tensor, kind: str) -> tuple[torch.Tensor, torch.Tensor]:
     """IRLS weights and costs rho(r) of scaled residuals."""
     a = r.abs()
     if kind == "huber":
-        w = torch.where(a <= 1, torch.ones_like(a), 1.0 / a.clamp(min=1e-12))
-        rho = torch.where(a <= 1, 0.5 * a * a, a - 0.5)
+        # 1 and a^2 / 2 within 1, 1 / a and a - 1/2 beyond; written without torch.where
+        # (a third of its time): m = min(a, 1) gives both exactly
+        w = 1.0 / a.clamp(min=1.0)
+        m = a.clamp(max=1.0)
+        rho = (a - 0.5 * m) * m
     else:
         w = 1.0 / (1.0 + a * a)
         rho = 0.5 * torch.log1p(a * a)
@@ -406,7 +483,9 @@ def _system(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings
     # out of the comparison of two poses (:func:`_accept`): charging it, as a mismatch,
     # would make the pose with the largest overlap -- the identity, the start -- a false
     # minimum that holds the refinement near where it began.
-    cost_pts = torch.where(valid, rho, torch.full_like(rho, _gate_cost(gate, s))) * vis
+    # (valid implies vis: rho where valid, the gate's cost where only visible, else 0;
+    # written without torch.where, a third of its time)
+    cost_pts = rho * valid + (vis & ~valid) * _gate_cost(gate, s)
     N_ = level.valid.shape[1]
     pair_cost = cost_pts.sum(1).to(torch.float64)
     inl = (valid[:, :N_] & level.valid.index_select(0, b)).sum(1)
@@ -487,19 +566,24 @@ def refine_poses(
     settings: RefineSettings = RefineSettings(),
     offsets: list[int] | None = None,
     maps_of: dict | None = None,
+    cache: FrameCache | None = None,
+    positions: tuple[int, ...] | None = None,
 ) -> RefineResult:
     """Jointly refine the poses of a frame set (frame 0 = target, kept at identity).
 
     Args:
         rgb: (F, 3, H, W) colour in [0, 1].
         depth_m: (F, 1, H, W) depth in metres, 0 = invalid.
-        K: (3, 3) intrinsics at (H, W).
+        K: (3, 3) the frame set's one camera (every frame's intrinsics) at (H, W).
         T_f_to_t: (F, 4, 4) initial poses of each frame in the target camera
             (``T_f_to_t[0]`` is replaced by the identity).
         settings: :class:`RefineSettings`.
         offsets: frame offsets (for ``pairs="adjacent"``).
         maps_of: the :class:`Level` maps already computed for this frame set, by scale
             (a dict shared with the caller's own levels of the same frames), or None.
+        cache, positions: the batch job's :class:`~depthgt.framecache.FrameCache` and
+            the frames' positions in their scene: what depends on a frame alone (its
+            pyramid, its noise residuals) is computed once per batch.
 
     Returns:
         :class:`RefineResult` with float64 poses on the input device.
@@ -508,11 +592,11 @@ def refine_poses(
     damping and the accepted system across scales and iterations; its parts
     (``_system``, ``_accept``, ``_assemble``, the per-frame statistics) are functions.
     """
-    Fn = depth_m.shape[0]
-    if rgb.shape != (Fn, 3, *depth_m.shape[-2:]):
-        raise ValueError(f"rgb must be ({Fn}, 3, H, W) like depth_m {tuple(depth_m.shape)}, got {tuple(rgb.shape)}")
-    if T_f_to_t.shape != (Fn, 4, 4):
-        raise ValueError(f"T_f_to_t must be ({Fn}, 4, 4), got {tuple(T_f_to_t.shape)}")
+    sizes = check_shape(depth_m, "F 1 H W", "depth_m")
+    check_shape(rgb, "F 3 H W", "rgb", sizes)
+    check_shape(T_f_to_t, "F 4 4", "T_f_to_t", sizes)
+    check_shape(K, "3 3", "K (the frame set's one camera)")
+    Fn = sizes["F"]
     dev = depth_m.device
     T = T_f_to_t.to(dev, torch.float64).clone()
     T[0] = torch.eye(4, dtype=torch.float64, device=dev)
@@ -525,7 +609,7 @@ def refine_poses(
     for li, (scale, n_it, stride, gate) in enumerate(
         zip(settings.scales, settings.iters, settings.point_stride, settings.max_dist_m)
     ):
-        level = Level(rgb, depth_m, K, scale, stride, maps_of)
+        level = Level(rgb, depth_m, K, scale, stride, maps_of, cache, positions)
         if scale == 1:
             out.normals = level.maps[:, 3:6]  # channels X(3) N(3) ...
         ls = LevelSettings(
@@ -547,6 +631,8 @@ def refine_poses(
             improved = False
             for _try in range(5):
                 delta = torch.linalg.solve(Hr + lam * torch.diag(diag) + 1e-9 * eye6, -gr).reshape(Fn - 1, 6)
+                if _try and float(delta.abs().max()) < MIN_TRIAL_STEP:
+                    break  # damped below a micrometre (microradian): the poses have settled
                 T_new = T.clone()
                 T_new[1:] = Se3.exp(delta).matrix().to(torch.float64) @ T[1:]
                 new = _system(level, T_new, pairs, ls, gate)
@@ -577,11 +663,25 @@ def refine_poses(
     out.condition = cond
     # the statistics of the high_residual check, calibrated with constant scale and gate:
     # in metres and in units of the sensor noise the frame set shows
-    out.noise_sigma_1m = estimate_noise_sigma_1m(depth_m.detach().cpu())
+    out.noise_sigma_1m = _noise_sigma_1m(depth_m, cache, positions)
     out.residual_m, out.residual_sigmas = target_residual_stats(
         level, T, pairs[sel], replace(ls, geo_ref_depth_m=0.0), settings.max_dist_m[-1], Fn, out.noise_sigma_1m
     )
     return out
+
+
+def _noise_sigma_1m(depth_m: torch.Tensor, cache: FrameCache | None, positions: tuple[int, ...] | None) -> float:
+    """The frame set's depth noise at 1 m (:func:`depthgt.noise_law.estimate_noise_sigma_1m`
+    of ``depth_m`` (F, 1, H, W) at the pixel centres), each frame's residuals sorted once
+    per batch job when there is a ``cache``."""
+    if cache is None or positions is None:
+        return estimate_noise_sigma_1m(depth_m.detach().cpu())
+    index = {p: i for i, p in enumerate(positions)}
+
+    def compute(todo: list[int]) -> list[torch.Tensor]:
+        return sorted_residuals(second_difference_residuals(depth_m[[index[p] for p in todo]].detach()))
+
+    return noise_sigma_1m_of(cache.get("noise.residuals", positions, compute))
 
 
 NOISE_GATE_SIGMAS = 4.0  # association gate of the noise-relative residual (sigmas; the renderer's gap_sigmas)
@@ -644,3 +744,153 @@ def _per_frame(pcost, tgt_pairs, other, Fn):
     c = torch.zeros(Fn, dtype=torch.float64, device=pcost.device)
     c.index_add_(0, other[tgt_pairs], pcost[tgt_pairs])
     return c
+
+
+class RefineSet(NamedTuple):
+    """One frame set for :func:`refine_poses_many`: its members' colour (F, 3, H, W) and
+    depth (F, 1, H, W), the poses ``T_f_to_t`` (F, 4, 4) to start from, the frame
+    ``offsets`` and the members' ``positions`` in their scene (None: no frame cache)."""
+
+    rgb: torch.Tensor
+    depth_m: torch.Tensor
+    T_f_to_t: torch.Tensor
+    offsets: list[int]
+    positions: tuple[int, ...] | None = None
+
+
+@torch.no_grad()
+def refine_poses_many(
+    sets: list[RefineSet],
+    K: torch.Tensor,
+    settings: RefineSettings = RefineSettings(),
+    cache: FrameCache | None = None,
+) -> list[RefineResult]:
+    """:func:`refine_poses` of several frame sets of one camera (its intrinsics ``K`` (3, 3),
+    the same number of members and offsets) at once: every set's pairs in the same
+    residual evaluations (what keeps a GPU busy), each set with its own Levenberg-
+    Marquardt damping, trials and stopping. The same poses as one set at a time up to
+    the rounding of the batched products; the linearisation is evaluated afresh after
+    an accepted step (one evaluation more per iteration than :func:`refine_poses`).
+
+    Long because the coarse-to-fine loop carries every set's poses, damping and state
+    across scales, iterations and trials side by side; its parts are the functions of
+    :func:`refine_poses`.
+    """
+    check_shape(K, "3 3", "K (the frame sets' one camera)")
+    n_sets, Fn = len(sets), sets[0].depth_m.shape[0]
+    if any(s.depth_m.shape != sets[0].depth_m.shape or list(s.offsets) != list(sets[0].offsets) for s in sets):
+        raise ValueError("refine_poses_many: every frame set needs the same members' shape and offsets")
+    dev = sets[0].depth_m.device
+    rgb = torch.cat([s.rgb for s in sets])
+    depth = torch.cat([s.depth_m for s in sets])
+    positions = None
+    if cache is not None and all(s.positions is not None for s in sets):
+        positions = tuple(p for s in sets for p in s.positions)
+    eye = torch.eye(4, dtype=torch.float64, device=dev)
+    T = torch.cat([s.T_f_to_t.to(dev, torch.float64) for s in sets]).clone()
+    T[::Fn] = eye
+    one = frame_pairs(Fn, settings.pairs, list(sets[0].offsets)).to(dev)
+    n_p = one.shape[0]
+    pairs = torch.cat([one + b * Fn for b in range(n_sets)])
+    tgt_pairs = (one[:, 0] == 0) | (one[:, 1] == 0)
+    other = torch.where(one[:, 0] == 0, one[:, 1], one[:, 0])
+    outs = [RefineResult(T_f_to_t=T[b * Fn : (b + 1) * Fn]) for b in range(n_sets)]
+    eye6 = torch.eye(6 * (Fn - 1), dtype=torch.float64, device=dev)
+    last = None
+    for li, (scale, n_it, stride, gate) in enumerate(
+        zip(settings.scales, settings.iters, settings.point_stride, settings.max_dist_m)
+    ):
+        level = Level(rgb, depth, K, scale, stride, None, cache, positions)
+        if scale == 1:
+            for b in range(n_sets):
+                outs[b].normals = level.maps[b * Fn : (b + 1) * Fn, 3:6]
+        ls = LevelSettings(
+            settings.geo_scale_m[li], settings.photo_scale, settings.photo_weight, settings.robust,
+            settings.geo_ref_depth_m,
+        )  # fmt: skip
+        lam = [settings.damping] * n_sets
+        active = [True] * n_sets
+        cur = _system(level, T, pairs, ls, gate)
+        if li == len(settings.scales) - 1:
+            for b in range(n_sets):
+                outs[b].initial_cost = _per_frame(cur.pair_cost[b * n_p : (b + 1) * n_p], tgt_pairs, other, Fn)
+        for _ in range(n_it):
+            if not any(active):
+                break
+            H, g = _assemble(cur.H_rel, cur.g_rel, cur.Tinv, pairs, n_sets * Fn)
+            Hr, gr = [], []
+            for b in range(n_sets):
+                f = slice(b * Fn + 1, (b + 1) * Fn)
+                Hr.append(H[f, f].permute(0, 2, 1, 3).reshape(6 * (Fn - 1), 6 * (Fn - 1)))
+                gr.append(g[f].reshape(-1))
+            step = [0.0] * n_sets
+            improved = [False] * n_sets
+            trying = [b for b in range(n_sets) if active[b]]
+            for _try in range(5):
+                if not trying:
+                    break
+                A = torch.stack(
+                    [Hr[b] + lam[b] * torch.diag(torch.diagonal(Hr[b]).clamp(min=1e-9)) + 1e-9 * eye6 for b in trying]
+                )
+                deltas = torch.linalg.solve(A, -torch.stack([gr[b] for b in trying])[..., None])[..., 0]
+                deltas = deltas.reshape(len(trying), Fn - 1, 6)
+                sizes = deltas.abs().flatten(1).max(1).values.tolist()
+                keep = [i for i, b in enumerate(trying) if not (_try and sizes[i] < MIN_TRIAL_STEP)]
+                trying, deltas = [trying[i] for i in keep], deltas[keep]
+                if not trying:
+                    break  # damped below a micrometre (microradian): those sets have settled
+                T_new = T.clone()
+                for i, b in enumerate(trying):
+                    f = slice(b * Fn + 1, (b + 1) * Fn)
+                    T_new[f] = Se3.exp(deltas[i]).matrix().to(torch.float64) @ T[f]
+                rows = torch.cat([torch.arange(b * n_p, (b + 1) * n_p, device=dev) for b in trying])
+                new = _system(level, T_new, pairs.index_select(0, rows), ls, gate)
+                both = cur.vis.index_select(0, rows) & new.vis
+                c_old = (cur.cost_pts.index_select(0, rows) * both).sum(1, dtype=torch.float64).view(len(trying), n_p)
+                c_new = (new.cost_pts * both).sum(1, dtype=torch.float64).view(len(trying), n_p)
+                accept = (c_new.sum(1) <= c_old.sum(1)).tolist()
+                still = []
+                for i, b in enumerate(trying):
+                    if accept[i]:
+                        f = slice(b * Fn, (b + 1) * Fn)
+                        T[f] = T_new[f]
+                        lam[b] = max(lam[b] / 3.0, 1e-7)
+                        improved[b] = True
+                        step[b] = float(deltas[i].abs().max())
+                    else:
+                        lam[b] *= 10.0
+                        still.append(b)
+                trying = still
+            if any(improved):
+                cur = _system(level, T, pairs, ls, gate)  # the linearisation at the accepted poses
+            for b in range(n_sets):
+                if active[b]:
+                    outs[b].cost_curve.append(float(cur.pair_cost[b * n_p : (b + 1) * n_p].sum()))
+                    active[b] = improved[b] and step[b] >= 1e-7
+        last = (level, cur)
+    level, cur = last
+    sel = one[:, 0] == 0  # neighbour b into the target
+    ls = replace(ls, geo_ref_depth_m=0.0)
+    for b in range(n_sets):
+        out = outs[b]
+        r = slice(b * n_p, (b + 1) * n_p)
+        H_rel, pcost, inl = cur.H_rel[r], cur.pair_cost[r], cur.inliers[r]
+        out.T_f_to_t = T[b * Fn : (b + 1) * Fn]
+        out.final_cost = _per_frame(pcost, tgt_pairs, other, Fn)
+        n_valid = level.valid[b * Fn : (b + 1) * Fn].sum(1).clamp(min=1)
+        frac = torch.ones(Fn, dtype=torch.float64, device=dev)
+        frac[one[sel, 1]] = inl[sel].to(torch.float64) / n_valid[one[sel, 1]].to(torch.float64)
+        out.inlier_fraction = frac
+        cond = torch.ones(Fn, dtype=torch.float64, device=dev)
+        H_tgt = torch.zeros(Fn, 6, 6, dtype=torch.float64, device=dev)
+        H_tgt.index_add_(0, other[tgt_pairs], H_rel[tgt_pairs])
+        d = level._depth[b * Fn : (b + 1) * Fn]
+        median = d[d > 0].median() if (d > 0).any() else torch.tensor(1.0)
+        cond[1:] = pair_information(H_tgt[1:], float(median))
+        out.condition = cond
+        out.noise_sigma_1m = _noise_sigma_1m(sets[b].depth_m, cache, sets[b].positions)
+        res_m, res_s = target_residual_stats(
+            level, T, one[sel] + b * Fn, ls, settings.max_dist_m[-1], n_sets * Fn, out.noise_sigma_1m
+        )
+        out.residual_m, out.residual_sigmas = res_m[b * Fn : (b + 1) * Fn], res_s[b * Fn : (b + 1) * Fn]
+    return outs

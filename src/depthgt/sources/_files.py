@@ -19,9 +19,11 @@ def require_root(root: str | Path | None, kind: str) -> Path:
     """The source's root folder; SourceError naming it when it is missing."""
     if root is None:
         raise SourceError(f"{kind} source needs a root folder (got None)")
-    path = Path(root)
+    path = Path(root).expanduser()
     if not path.is_dir():
-        raise SourceError(f"{path}: {kind} root folder not found")
+        rule = "" if path.is_absolute() else f" ({root} relative to the working directory {Path.cwd()})"
+        what = "is not a folder" if path.exists() else "not found"
+        raise SourceError(f"{path.absolute()}: {kind} root folder {what}{rule}")
     return path
 
 

@@ -342,6 +342,10 @@ class SourceKind:
             auto``); a source's ``colour_matches_depth: true|false`` in the config
             overrides it for data that says otherwise (e.g. synthetic data exported in
             ScanNet's layout).
+        has_truth: its scenes know the noise-free depth (``Scene.has_clean_depth``:
+            synthetic data), which the evaluation scores against; a kind without it is a
+            real recording: the workflow builds its scenes the independent references of
+            Table 2 (``depthgt.gt.references``) and their RDE GT whatever their split.
     """
 
     module: str
@@ -349,6 +353,7 @@ class SourceKind:
     poses_optional: bool = False
     single_file: bool = False
     colour_matches_depth: bool = False
+    has_truth: bool = False
 
     def __post_init__(self):
         if self.poses_optional and "require_pose" not in (self.options or {}):
@@ -356,9 +361,9 @@ class SourceKind:
 
 
 # The registry: kind -> its entry. Options mirror what each adapter accepts (tests keep
-# the names equal to the adapters' signatures, and the schema's enum of kinds equal to
-# this table's keys); image sizes are bounded so that one synthetic frame cannot exhaust
-# memory. Adding a kind = its module + its entry (docs/development.md).
+# the names equal to the adapters' signatures); image sizes are bounded so that one
+# synthetic frame cannot exhaust memory. Adding a kind = its module + its entry
+# (docs/development.md); a kind defined outside depthgt is added by register().
 KINDS: dict[str, SourceKind] = {
     "scannet": SourceKind(
         "depthgt.sources.scannet",
@@ -415,7 +420,8 @@ KINDS: dict[str, SourceKind] = {
             },
         },
         colour_matches_depth=True,
-    ),  # rendered from the depth's camera at its instant
+        has_truth=True,
+    ),  # rendered from the depth's camera at its instant, with its noise-free depth
 }
 
 

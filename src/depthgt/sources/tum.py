@@ -48,6 +48,7 @@ import numpy as np
 
 from depthgt.errors import FrameError, SourceError
 from depthgt.io import fit_rgb_to_depth, read_rgb
+from depthgt.shapes import check_shape
 from depthgt.sources._files import FileScene, list_sequences, probe_depth_size, require_root
 from depthgt.sources.base import Frame, check_frame, usable_pose
 
@@ -239,8 +240,7 @@ def poses_from_tum(rows: np.ndarray) -> np.ndarray:
     from kornia.geometry.conversions import quaternion_to_rotation_matrix
 
     rows = np.asarray(rows, dtype=np.float64)
-    if rows.ndim != 2 or rows.shape[1] != 7:
-        raise ValueError(f"TUM pose rows must be (N, 7), got {rows.shape}")
+    check_shape(rows, "N 7", "TUM pose rows")
     q_xyzw = rows[:, 3:7]
     bad = ~np.isfinite(q_xyzw).all(1) | (np.linalg.norm(np.nan_to_num(q_xyzw), axis=1) < 1e-9)
     q_wxyz = torch.from_numpy(np.nan_to_num(q_xyzw[:, [3, 0, 1, 2]]))  # kornia is real-part first

@@ -22,6 +22,8 @@ import cv2
 import numpy as np
 import pandas as pd
 
+from depthgt.shapes import check_shape
+
 __all__ = ["DEFAULT_BINS_M", "hole_fractions", "plane_residuals", "sensor_statistics", "compare_statistics"]
 
 DEFAULT_BINS_M: tuple[float, ...] = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5)
@@ -29,8 +31,7 @@ DEFAULT_BINS_M: tuple[float, ...] = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5)
 
 def _check_depth(depth_m: np.ndarray, name: str = "depth_m") -> np.ndarray:
     depth_m = np.asarray(depth_m)
-    if depth_m.ndim != 2:
-        raise ValueError(f"{name} must be (H, W), got shape {depth_m.shape}")
+    check_shape(depth_m, "H W", name)
     if not np.isfinite(depth_m).all():
         raise ValueError(f"{name} holds non-finite values")
     return depth_m.astype(np.float32, copy=False)

@@ -53,6 +53,8 @@ from dataclasses import dataclass, fields, replace
 import cv2
 import numpy as np
 
+from depthgt.shapes import check_shape
+
 __all__ = ["KinectNoise", "SENSOR_PROFILES", "sensor_profile", "infrared_return", "kinect_noise", "smooth_field"]
 
 
@@ -199,13 +201,12 @@ def kinect_noise(
     over functions.
     """
     depth_m = np.asarray(depth_m, np.float32)
-    if depth_m.ndim != 2:
-        raise ValueError(f"depth_m must be (H, W), got shape {depth_m.shape}")
+    sizes = check_shape(depth_m, "H W", "depth_m")
     h, w = depth_m.shape
-    if normals_cam is not None and normals_cam.shape != (h, w, 3):
-        raise ValueError(f"normals_cam must be {(h, w, 3)}, got {normals_cam.shape}")
-    if ir_reflectance is not None and ir_reflectance.shape != (h, w):
-        raise ValueError(f"ir_reflectance must be {(h, w)}, got {ir_reflectance.shape}")
+    if normals_cam is not None:
+        check_shape(normals_cam, "H W 3", "normals_cam", sizes)
+    if ir_reflectance is not None:
+        check_shape(ir_reflectance, "H W", "ir_reflectance", sizes)
     s = settings
     px = w / 640.0  # pixel-sized settings are given at the Kinect's 640-pixel width
     fx = float(K[0, 0])

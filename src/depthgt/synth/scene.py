@@ -24,6 +24,7 @@ from functools import cached_property
 import cv2
 import numpy as np
 
+from depthgt.shapes import check_shape
 from depthgt.synth.textures import make_texture
 
 __all__ = [
@@ -592,11 +593,9 @@ def _nearest_hits(
     z-depth (H, W) float32 and what was hit (H, W) int16 (0-5: the room's faces, 6 + k:
     primitive k). Arguments as :func:`raycast`."""
     T_world_cam = np.asarray(T_world_cam, np.float64)
-    if T_world_cam.shape != (4, 4):
-        raise ValueError(f"T_world_cam must be (4, 4), got {T_world_cam.shape}")
+    check_shape(T_world_cam, "4 4", "T_world_cam")
     K = np.asarray(K, np.float64)
-    if K.shape != (3, 3):
-        raise ValueError(f"K must be (3, 3), got {K.shape}")
+    check_shape(K, "3 3", "K")
     h, w = hw
     o = T_world_cam[:3, 3]
     if not ((o > 0) & (o < layout.size)).all():

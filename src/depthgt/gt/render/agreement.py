@@ -1,0 +1,151 @@
+"""Frame agreement: which frames, or regions of frames, disagree with the target's own depth."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from depthgt.gt.render.rasteriser import HIT_PX, RenderCandidates
+from depthgt.gt.render.settings import RenderSettings
+
+__all__ = ["frame_agreement", "agreement_slot"]
+
+#: frame agreement: samples within this of a target sample are compared with it (px);
+#: a frame is judged on at least this many comparisons
+_NEAR_PX = 0.5
+
+_MIN_COMPARED = 200
+
+#: per-region agreement (``agreement_tile_px``): a tile is judged on the comparisons of
+#: its 3x3 tile neighbourhood, when there are at least this many
+_MIN_TILE_COMPARED = 50
+
+
+def _tile_grid(hw: tuple[int, int], tile_px: int) -> tuple[int, int]:
+    """(rows, columns) of the agreement tiles; (1, 1) when ``tile_px`` is 0 (whole frames)."""
+    if tile_px <= 0:
+        return 1, 1
+    return -(-hw[0] // tile_px), -(-hw[1] // tile_px)
+
+
+def agreement_slot(
+    pixel: torch.Tensor, fr: torch.Tensor, *, size: tuple[int, int, int], n_frames: int, tile_px: int
+) -> torch.Tensor:
+    """Index of each sample's (image, frame, tile) in the flat decisions of
+    :func:`frame_agreement`: ((image * J + frame) * tiles + tile), from a per-pixel
+    table (one gather, no integer division per sample). ``pixel``, ``fr``: (C,) long;
+    ``size``: (B, H, W); ``n_frames``: J."""
+    b, h, w = size
+    hw, n_fr = (h, w), n_frames
+    ty, tx = _tile_grid(hw, tile_px)
+    n_t = ty * tx
+    img = torch.arange(b, device=pixel.device)[:, None, None]
+    if tile_px <= 0:
+        tile = torch.zeros(1, h, w, dtype=torch.long, device=pixel.device)
+    else:
+        tile = (torch.arange(h, device=pixel.device)[:, None] // tile_px) * tx + torch.arange(w, device=pixel.device)[
+            None
+        ] // tile_px
+    table = (img * (n_fr * n_t) + tile).reshape(-1)  # per pixel of the B images: image and tile part
+    return table.index_select(0, pixel) + fr * n_t
+
+
+def frame_agreement(blocks: list[RenderCandidates], st: RenderSettings, target_frame: int):
+    """Which frames, or regions of frames, disagree with the target's own depth (a
+    misregistered neighbour; a region that a rigid pose does not explain: lens
+    distortion at the border, a moving object).
+
+    Samples of the other frames within ``_NEAR_PX`` of a pixel where the target has its
+    own sample are compared with it in inverse depth, with the gap tolerance of
+    :func:`_choose_surfaces`, except within ``agreement_edge_px`` of a depth edge or a
+    hole of the target (max - min of its inverse depth there beyond the tolerance of
+    two samples plus the slope allowance). Whole frames (``agreement_tile_px`` 0): a frame whose share
+    of agreeing samples is below ``min_frame_agreement`` (with at least
+    ``_MIN_COMPARED`` samples compared) is bad. Tiles of ``agreement_tile_px``: each
+    tile of each frame is judged on the comparisons of its 3x3 tile neighbourhood (at
+    least ``_MIN_TILE_COMPARED``; fewer: the whole frame's decision), bad below
+    ``min_frame_agreement``; a frame whose whole share is below
+    ``min_whole_frame_agreement`` is bad everywhere (misregistered).
+
+    Args:
+        blocks: the rasteriser's candidates, in blocks of pixels (or one record).
+
+    Returns:
+        (B * J * tiles,) bool bad (frame, tile) slots (:func:`agreement_slot`), (B, J)
+        float share of agreeing samples per frame (NaN: fewer than ``_MIN_COMPARED``
+        comparisons, e.g. the target itself) and the (B, 3, H, W) diagnostic counts of
+        :class:`GTRender`.
+
+    Long for its docstring (the rule and its thresholds); its code is 66 lines.
+    """
+    c = blocks[0]
+    b, h, w = c.size
+    hw, n_fr = (h, w), c.n_frames
+    h_w = h * w
+    n_pix = b * h_w
+    dt, dev = c.iz_point.dtype, c.iz_point.device
+    iz_t = torch.full((n_pix,), float("nan"), dtype=dt, device=dev)
+    s_t = torch.zeros(n_pix, dtype=dt, device=dev)
+    for blk in blocks:  # the target's own samples at the pixels' positions
+        tgt = ((blk.frame == target_frame) & (blk.d2.detach() <= HIT_PX**2)).nonzero().squeeze(1)
+        pix_t = blk.pixel.index_select(0, tgt) + blk.first_pixel
+        iz_t[pix_t] = blk.iz.detach().index_select(0, tgt)
+        s_t[pix_t] = blk.s.index_select(0, tgt)
+    judge = torch.isfinite(iz_t)
+    if st.agreement_edge_px > 0:
+        # Not judged next to a depth edge or a hole of the target: a real sensor's edges
+        # are fattened and shift between frames by more than its noise law says, and
+        # they would outvote the flat surfaces on which a misregistration shows.
+        k, r = 2 * st.agreement_edge_px + 1, st.agreement_edge_px
+        img = iz_t.reshape(b, 1, h, w)
+        hi = F.max_pool2d(torch.nan_to_num(img, nan=float("inf")), k, stride=1, padding=r)
+        lo = -F.max_pool2d(-torch.nan_to_num(img, nan=-float("inf")), k, stride=1, padding=r)
+        tol = st.gap_sigmas * math.sqrt(2.0) * s_t.reshape(b, 1, h, w) + st.gap_slope_rel * img * (2 * r)
+        judge &= ((hi - lo) <= tol).reshape(-1)
+    near_p, near_f, near_agree = [], [], []
+    for blk in blocks:  # the other frames' samples near a judged target sample
+        fr, d2 = blk.frame, blk.d2.detach()
+        pixel = blk.pixel + blk.first_pixel if blk.first_pixel else blk.pixel
+        near = (fr != target_frame) & (d2 <= _NEAR_PX**2) & judge.index_select(0, pixel)
+        ni = near.nonzero().squeeze(1)
+        p, f, s_n, iz_n, d2_n = (x.index_select(0, ni) for x in (pixel, fr, blk.s, blk.iz.detach(), d2))
+        tol = st.gap_sigmas * torch.hypot(s_n, s_t.index_select(0, p)) + st.gap_slope_rel * iz_n * torch.sqrt(d2_n)
+        near_p.append(p)
+        near_f.append(f)
+        near_agree.append((iz_n - iz_t.index_select(0, p)).abs() <= tol)
+    p, f, agree = torch.cat(near_p), torch.cat(near_f), torch.cat(near_agree)
+    slot = torch.div(p, h_w, rounding_mode="floor") * n_fr + f
+    n_cmp = torch.bincount(slot, minlength=b * n_fr).reshape(b, n_fr)
+    n_ok = torch.bincount(slot[agree], minlength=b * n_fr).reshape(b, n_fr)
+    share = torch.where(
+        n_cmp >= _MIN_COMPARED, n_ok / n_cmp.clamp_min(1), torch.full_like(n_cmp, float("nan"), dtype=torch.float32)
+    )
+    bad = share < st.min_frame_agreement  # (NaN: not judged)
+    if st.agreement_tile_px > 0:
+        ty, tx = _tile_grid(hw, st.agreement_tile_px)
+        tslot = agreement_slot(p, f, size=c.size, n_frames=n_fr, tile_px=st.agreement_tile_px)
+        counts = torch.stack(
+            [
+                torch.bincount(tslot, minlength=b * n_fr * ty * tx),
+                torch.bincount(tslot[agree], minlength=b * n_fr * ty * tx),
+            ]
+        ).to(torch.float32)
+        # comparisons pooled over each tile's 3x3 neighbourhood (sums: average x 9)
+        pooled = (
+            F.avg_pool2d(counts.reshape(2 * b * n_fr, 1, ty, tx), 3, stride=1, padding=1, count_include_pad=True) * 9
+        )
+        n_cmp_t, n_ok_t = pooled.reshape(2, b, n_fr, ty, tx).round()
+        judged = n_cmp_t >= _MIN_TILE_COMPARED
+        bad_t = torch.where(judged, n_ok_t < st.min_frame_agreement * n_cmp_t, bad[..., None, None])
+        bad = bad_t | (share < st.min_whole_frame_agreement)[..., None, None]
+    kept = ~bad.reshape(-1)[agreement_slot(p, f, size=c.size, n_frames=n_fr, tile_px=st.agreement_tile_px)]
+    diag = torch.stack(
+        [
+            torch.bincount(p, minlength=n_pix),
+            torch.bincount(p[~agree], minlength=n_pix),
+            torch.bincount(p[kept], minlength=n_pix),
+        ]
+    ).to(torch.float32)
+    return bad.reshape(-1), share.to(torch.float32), diag.reshape(3, b, h, w).transpose(0, 1)

@@ -1,0 +1,424 @@
+"""The GT rasteriser: every (point, pixel) pair within the radius, sorted by pixel and,
+within a pixel, front first (the candidates, :class:`RenderCandidates`).
+
+It works in blocks of pixel rows (the images of a batch stacked): the points are sorted
+front to back once and grouped by the rows they reach (a point within ``radius_px`` of
+two blocks is in both), and each block's candidates are made in that order and sorted
+by pixel on their own. A block's arrays stay in the cache between the steps and the
+compositor takes them block by block (:func:`rasterise_blocks`); on a GPU the whole
+batch is one block. :func:`rasterise_gt` concatenates the blocks.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+
+from depthgt.geometry import project
+from depthgt.gt.render.settings import RenderSettings
+from depthgt.noise_law import KINECT_SIGMA_1M, depth_sigma_m
+from depthgt.rasterise import _cells_inside, check_points, front_to_back, resampled_positions
+from depthgt.shapes import check_shape
+
+__all__ = ["HIT_PX", "RenderCandidates", "rasterise_blocks", "rasterise_gt"]
+
+#: a surface with a sample this close to a pixel's sample position covers it (px)
+HIT_PX = 0.05
+
+
+class RenderCandidates(NamedTuple):
+    """The GT rasteriser's output (:func:`rasterise_gt`), the compositor's input
+    (:func:`composite_gt`): every (point, pixel) pair whose projection lies strictly
+    within ``radius_px`` of the pixel's sample position, sorted by pixel and, within a
+    pixel, front first (decreasing inverse depth; ties in point order).
+
+    Per candidate (C = their number):
+        pixel: (C,) long index into the flattened (B*H*W) output pixels, ascending.
+        point: (C,) long index into the flattened (B*N) points.
+        ox, oy: (C,) the projection minus the pixel's sample position, px
+            (differentiable w.r.t. the points).
+        d2: (C,) ox^2 + oy^2, px^2 (differentiable).
+        iz: (C,) the point's inverse depth 1/z, 1/m (differentiable).
+        s: (C,) the point's expected std in inverse depth, 1/m (detached).
+        frame: (C,) long frame index of the point, or None (no frame ids: each point
+            counts as its own frame).
+    Per point and per image:
+        grad: (B*N, 2) screen-space gradient (d(1/z)/du, d(1/z)/dv) of each point's
+            tangent plane (zero rows: no correction), or None (no normals).
+        iz_point: (B*N,) inverse depth of every point, detached (other sigmas for the
+            same candidates, :meth:`without_frame`).
+        size: (B, H, W) of the output.
+        n_frames: J = the largest frame id + 1 (0 without frame ids): the width of
+            :attr:`GTRender.agreement`.
+        first_pixel: the flat index of the block's first pixel (``pixel`` counts from
+            it); n_pixels: the block's pixels (None: every pixel, B*H*W).
+    """
+
+    pixel: torch.Tensor
+    point: torch.Tensor
+    ox: torch.Tensor
+    oy: torch.Tensor
+    d2: torch.Tensor
+    iz: torch.Tensor
+    s: torch.Tensor
+    frame: torch.Tensor | None
+    grad: torch.Tensor | None
+    iz_point: torch.Tensor
+    size: tuple[int, int, int]
+    n_frames: int
+    first_pixel: int = 0
+    n_pixels: int | None = None
+
+    @property
+    def pixels(self) -> int:
+        """The pixels of this record (a block's, or all B*H*W)."""
+        b, h, w = self.size
+        return b * h * w if self.n_pixels is None else self.n_pixels
+
+    def block(self, lo: int, hi: int, first_pixel: int, n_pixels: int) -> RenderCandidates:
+        """The candidates ``lo:hi`` (views, no copy) as the block of the ``n_pixels``
+        pixels from ``first_pixel`` on (their ``pixel`` counted from it)."""
+        names = ("point", "ox", "oy", "d2", "iz", "s")
+        picked = {k: getattr(self, k)[lo:hi] for k in names}
+        shift = first_pixel - self.first_pixel
+        pixel = self.pixel[lo:hi]
+        return self._replace(
+            **picked,
+            pixel=pixel - shift if shift else pixel,
+            frame=None if self.frame is None else self.frame[lo:hi],
+            first_pixel=first_pixel,
+            n_pixels=n_pixels,
+        )
+
+    def blocks(self, rows: int | None) -> list[RenderCandidates]:
+        """This record cut into blocks of ``rows`` pixel rows (None or a block: itself)."""
+        b, h, w = self.size
+        if rows is None or self.n_pixels is not None or rows * w >= b * h * w:
+            return [self]
+        n_all = b * h * w
+        edges = torch.arange(0, n_all + rows * w, rows * w, device=self.pixel.device).clamp_max(n_all)
+        cut = torch.searchsorted(self.pixel, edges).tolist()
+        p = edges.tolist()
+        return [self.block(cut[i], cut[i + 1], p[i], p[i + 1] - p[i]) for i in range(len(p) - 1)]
+
+    @staticmethod
+    def concat(blocks: list[RenderCandidates]) -> RenderCandidates:
+        """Blocks of consecutive pixels as one record of every pixel (pixels counted from 0)."""
+        first = blocks[0]
+        if len(blocks) == 1 and first.first_pixel == 0 and first.n_pixels is None:
+            return first
+        cat = {k: torch.cat([getattr(c, k) for c in blocks]) for k in ("point", "ox", "oy", "d2", "iz", "s")}
+        frame = None if first.frame is None else torch.cat([c.frame for c in blocks])
+        pixel = torch.cat([c.pixel + c.first_pixel for c in blocks])
+        return first._replace(**cat, pixel=pixel, frame=frame, first_pixel=0, n_pixels=None)
+
+    def select(self, index: torch.Tensor) -> RenderCandidates:
+        """The candidates at ``index`` (C',) long (ascending keeps the sort)."""
+        names = ("pixel", "point", "ox", "oy", "d2", "iz", "s")
+        picked = {k: getattr(self, k).index_select(0, index) for k in names}
+        return self._replace(**picked, frame=None if self.frame is None else self.frame.index_select(0, index))
+
+    def without_frame(self, frame: int, *, stride: int = 1, sigma_m: torch.Tensor | None = None) -> RenderCandidates:
+        """The candidates of every frame but ``frame`` (the leave-target-out render's).
+
+        Args:
+            frame: the frame id to leave out (the candidates need frame ids).
+            stride: keep only the pixels of every ``stride``-th row and column.
+            sigma_m: (B, N) the points' depth sigmas in metres for these candidates
+                (e.g. the noise law estimated without the left-out frame), or None
+                (keep their sigmas).
+        """
+        if self.frame is None:
+            raise ValueError("without_frame needs candidates with frame ids (render with frame=...)")
+        b, h, w = self.size
+        if sigma_m is not None and sigma_m.numel() != self.iz_point.numel():
+            raise ValueError(
+                f"sigma_m must hold one sigma per point ({self.iz_point.numel()}), got {tuple(sigma_m.shape)}"
+            )
+        with torch.no_grad():
+            keep = self.frame != frame
+            if stride > 1:
+                on_grid = torch.zeros(b, h, w, dtype=torch.bool, device=self.pixel.device)
+                on_grid[:, ::stride, ::stride] = True
+                on_grid = on_grid.reshape(-1)[self.first_pixel : self.first_pixel + self.pixels]
+                keep &= on_grid.index_select(0, self.pixel)
+            out = self.select(keep.nonzero().squeeze(1))
+            if sigma_m is not None:
+                s_point = _inverse_depth_std(sigma_m.detach().reshape(-1).to(self.iz_point.dtype), self.iz_point)
+                out = out._replace(s=s_point.index_select(0, out.point))
+        return out
+
+
+def _inverse_depth_std(sigma_m: torch.Tensor, iz: torch.Tensor) -> torch.Tensor:
+    """(N,) std in inverse depth s = sigma_z / z^2 = sigma_z iz^2 (floored at 1e-12) of
+    depth stds ``sigma_m`` (N,) metres at inverse depths ``iz`` (N,) 1/m."""
+    return (sigma_m * iz**2).clamp_min(1e-12)
+
+
+def _inverse_depth_planes(points_cam, normals_cam, K, st: RenderSettings) -> torch.Tensor:
+    """(B*N, 2) screen-space gradient (d(1/z)/du, d(1/z)/dv) of each point's tangent plane.
+
+    Plane n.X = n.p and X = z K^-1 [u, v, 1] give 1/z = (K^-T n) . [u, v, 1] / (n.p),
+    affine in (u, v). Rows are zero (no correction) where the normal is missing, the
+    plane is seen at a grazing angle, or the correction within R could exceed
+    ``max_correction_rel``.
+    """
+    nrm = torch.nan_to_num(normals_cam, nan=0.0, posinf=0.0, neginf=0.0)
+    # one plane per component ((B, N) each): a third of the time of the (B, N, 3) sums
+    nx, ny, nz = nrm.unbind(-1)
+    px, py, pz = points_cam.unbind(-1)
+    d0 = nx * px + ny * py + nz * pz  # n.p
+    ki = torch.linalg.inv(K.to(torch.float64)).to(points_cam.dtype)[..., None]  # (B, 3, 3, 1)
+    kn_u = ki[:, 0, 0] * nx + ki[:, 1, 0] * ny + ki[:, 2, 0] * nz  # K^-T n, its first two components
+    kn_v = ki[:, 0, 1] * nx + ki[:, 1, 1] * ny + ki[:, 2, 1] * nz
+    safe = torch.where(d0.abs() > 1e-12, d0, torch.ones_like(d0))
+    gu, gv = kn_u / safe, kn_v / safe
+    with torch.no_grad():
+        n_len = torch.sqrt(nx * nx + ny * ny + nz * nz)
+        p_len = torch.sqrt(px * px + py * py + pz * pz)
+        cos = d0.abs() / (n_len * p_len).clamp_min(1e-12)
+        # |delta(1/z)| <= |grad| R; relative depth change ~ z |grad| R
+        g_len = torch.sqrt(gu * gu + gv * gv)
+        ok = ((cos >= st.min_cos_incidence) & (pz * g_len * st.radius_px <= st.max_correction_rel)).to(gu.dtype)
+    return torch.stack([gu * ok, gv * ok], dim=-1).reshape(-1, 2)
+
+
+class _Projected(NamedTuple):
+    """The points as the rasteriser's blocks use them (:func:`_project`).
+
+    uv: (B*N, 2) projections, px (differentiable); iz: (B*N,) inverse depth
+    (differentiable); s: (B*N,) std in inverse depth (detached); frame: (B*N,) long or
+    None; grad: (B*N, 2) or None (:func:`_inverse_depth_planes`); entries: the visible
+    points' indices, block by block, front to back within a block; edges: the blocks'
+    offsets into ``entries``; grid: the sample positions (columns (W,), rows (H,)) and
+    their largest shift from the pixel centres; rows: pixel rows per block.
+    """
+
+    uv: torch.Tensor
+    iz: torch.Tensor
+    s: torch.Tensor
+    frame: torch.Tensor | None
+    grad: torch.Tensor | None
+    entries: torch.Tensor
+    edges: list[int]
+    grid: tuple[torch.Tensor, torch.Tensor, float]
+    rows: int
+    size: tuple[int, int, int]
+    n_frames: int
+
+
+def _sample_grid(size_hw, src_hw, device, dtype) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """The pixels' sample positions (columns (W,), rows (H,)): their centres, or with
+    ``src_hw`` the source pixels' (:func:`resampled_positions`), and the largest shift
+    between the two (< 0.5 px)."""
+    h, w = size_hw
+    if src_hw is None:
+        return torch.arange(w, device=device, dtype=dtype), torch.arange(h, device=device, dtype=dtype), 0.0
+    gu = resampled_positions(int(src_hw[1]), w, device, dtype)
+    gv = resampled_positions(int(src_hw[0]), h, device, dtype)
+    shift = float(
+        max(
+            (gu - torch.arange(w, dtype=dtype, device=device)).abs().max(),
+            (gv - torch.arange(h, dtype=dtype, device=device)).abs().max(),
+        )
+    )
+    if shift >= 0.5:
+        raise ValueError(f"sample positions must lie within 0.5 px of the pixel centres, got up to {shift:.3f}")
+    return gu, gv, shift
+
+
+def _project(
+    points_cam: torch.Tensor,
+    K: torch.Tensor,
+    size_hw: tuple[int, int],
+    st: RenderSettings,
+    valid: torch.Tensor,
+    normals_cam: torch.Tensor | None,
+    sigma_m: torch.Tensor | None,
+    frame: torch.Tensor | None,
+    src_hw: tuple[int, int] | None,
+    block_rows: int | None,
+) -> _Projected:
+    """Project the points, order the visible ones front to back and group them by the
+    blocks of ``block_rows`` pixel rows they reach (None: one block)."""
+    b, n = points_cam.shape[:2]
+    h, w = int(size_hw[0]), int(size_hw[1])
+    dev, dt = points_cam.device, points_cam.dtype
+    gu, gv, shift = _sample_grid((h, w), src_hw, dev, dt)
+    r = float(st.radius_px)
+    uv, z = project(points_cam, K, eps=st.min_depth_m)
+    uv_f, z_f = uv.reshape(-1, 2), z.reshape(-1)
+    iz_all = 1.0 / z_f.clamp_min(st.min_depth_m)
+    with torch.no_grad():
+        if sigma_m is None:
+            sig_1m = KINECT_SIGMA_1M if st.noise_sigma_1m is None else st.noise_sigma_1m
+            sz = depth_sigma_m(z_f.detach(), sig_1m, st.noise_sigma_abs_m)
+        else:
+            sz = sigma_m.detach().reshape(-1).to(dt)
+        s_all = _inverse_depth_std(sz, iz_all.detach())
+        u, v = uv_f[:, 0].detach(), uv_f[:, 1].detach()
+        ok = valid.reshape(-1) & (z_f.detach() > st.min_depth_m) & torch.isfinite(u) & torch.isfinite(v)
+        ok &= (u > float(gu[0]) - r) & (u < float(gu[-1]) + r) & (v > float(gv[0]) - r) & (v < float(gv[-1]) + r)
+        pid = ok.nonzero().squeeze(1)
+        pid = pid.index_select(0, front_to_back(iz_all.detach().index_select(0, pid)))  # front first
+        rows = b * h if block_rows is None else max(1, int(block_rows))
+        if rows >= b * h:
+            entries, edges = pid, [0, pid.numel()]
+        else:
+            # every point in the blocks of its first and last candidate row (a point
+            # reaches at most span rows: two blocks), front first within a block
+            span = int(math.floor(2 * (r + shift))) + 1
+            y0 = torch.ceil(v.index_select(0, pid) - r - shift).long()
+            img = torch.div(pid, n, rounding_mode="floor") * h if b > 1 else 0
+            k0 = torch.div(y0.clamp(0, h - 1) + img, rows, rounding_mode="floor")
+            k1 = torch.div((y0 + span - 1).clamp(0, h - 1) + img, rows, rounding_mode="floor")
+            twice = k1 != k0
+            reps = 1 + twice.to(torch.long)
+            entries = torch.repeat_interleave(pid, reps)
+            block = torch.repeat_interleave(k0, reps)
+            second = torch.cumsum(reps, 0) - 1  # the second entry of a point in two blocks
+            block[second[twice]] = k1[twice]
+            key = block.to(torch.int16 if block.numel() == 0 or int(block.max()) < 2**15 else torch.int32)
+            order = torch.sort(key, stable=True).indices
+            entries = entries.index_select(0, order)
+            n_blocks = -(-(b * h) // rows)
+            counts = torch.bincount(block, minlength=n_blocks)
+            edges = [0, *torch.cumsum(counts, 0).tolist()]
+    n_frames = 0 if frame is None or frame.numel() == 0 else int(frame.max()) + 1
+    grad = None if normals_cam is None else _inverse_depth_planes(points_cam, normals_cam, K, st)
+    fr = None if frame is None else frame.reshape(-1)
+    return _Projected(uv_f, iz_all, s_all, fr, grad, entries, edges, (gu, gv, shift), rows, (b, h, w), n_frames)
+
+
+def _rasterise_block(pr: _Projected, k: int, radius_px: float) -> RenderCandidates:
+    """The candidates of block ``k`` (its pixels counted from the block's first)."""
+    b, h, w = pr.size
+    gu, gv, shift = pr.grid
+    r = float(radius_px)
+    g_lo, g_hi = k * pr.rows, min((k + 1) * pr.rows, b * h)  # the block's rows of the stacked images
+    n_pix = (g_hi - g_lo) * w
+    n = pr.uv.shape[0] // b
+    with torch.no_grad():
+        ids = pr.entries[pr.edges[k] : pr.edges[k + 1]]
+        u = pr.uv[:, 0].detach().index_select(0, ids)
+        v = pr.uv[:, 1].detach().index_select(0, ids)
+        # sample positions within r of u lie in columns [ceil(u - r - shift), floor(u + r + shift)]
+        span = int(math.floor(2 * (r + shift))) + 1
+        off = torch.arange(span, device=u.device)
+        x0 = torch.ceil(u - r - shift).long()
+        y0 = torch.ceil(v - r - shift).long()
+        cols = x0[:, None] + off[None, :]
+        rows = y0[:, None] + off[None, :]
+        if b > 1:
+            y0 = y0 + (torch.div(ids, n, rounding_mode="floor") * h - g_lo)  # the first row within the block
+        else:
+            y0 = y0 - g_lo
+        # squared distances per axis; a column or row outside the image (or the block) gets
+        # a huge one, so that the (P, span, span) sum below needs a single comparison
+        far = 4.0 * r * r + 1.0
+        dx2 = (gu[cols.clamp(0, w - 1)] - u[:, None]) ** 2 + ((cols < 0) | (cols >= w)) * far
+        row_b = y0[:, None] + off[None, :]
+        dy2 = (gv[rows.clamp(0, h - 1)] - v[:, None]) ** 2
+        dy2 += ((rows < 0) | (rows >= h) | (row_b < 0) | (row_b >= g_hi - g_lo)) * far
+        inside = (dy2[:, :, None] + dx2[:, None, :]) < r * r
+        del dx2, dy2
+        slot, oy, ox = _cells_inside(inside)
+        del inside
+        col = x0.index_select(0, slot) + ox
+        pixel = (y0.index_select(0, slot) + oy) * w + col  # within the block
+        key = pixel.to(torch.int16) if n_pix < 2**15 else pixel.to(torch.int32)
+        pixel, order = torch.sort(key, stable=True)  # by pixel, front first (stable: the entries' order)
+        pixel = pixel.long()
+        slot = slot.index_select(0, order)
+        col = col.index_select(0, order)
+        row = torch.div(pixel, w, rounding_mode="floor") + g_lo  # the row of the stacked images
+        if b > 1:
+            row = row % h
+        point = ids.index_select(0, slot)
+    # projection minus sample position, px (differentiable): the block's projections, then
+    # each candidate's from them (small arrays, in the cache)
+    uv_b = pr.uv.index_select(0, ids)
+    ox = uv_b[:, 0].index_select(0, slot) - gu.index_select(0, col)
+    oy = uv_b[:, 1].index_select(0, slot) - gv.index_select(0, row)
+    return RenderCandidates(
+        pixel,
+        point,
+        ox,
+        oy,
+        ox * ox + oy * oy,
+        iz=pr.iz.index_select(0, ids).index_select(0, slot),
+        s=pr.s.index_select(0, ids).index_select(0, slot),
+        frame=None if pr.frame is None else pr.frame.index_select(0, ids).index_select(0, slot),
+        grad=pr.grad,
+        iz_point=pr.iz.detach(),
+        size=pr.size,
+        n_frames=pr.n_frames,
+        first_pixel=g_lo * w,
+        n_pixels=n_pix,
+    )
+
+
+def _check(points_cam, K, size_hw, valid, normals_cam, sigma_m, frame) -> torch.Tensor:
+    valid = check_points(points_cam, K, valid, size_hw)
+    sizes = {"B": points_cam.shape[0], "N": points_cam.shape[1]}
+    for name, t, spec in (("normals_cam", normals_cam, "B N 3"), ("sigma_m", sigma_m, "B N"), ("frame", frame, "B N")):
+        if t is not None:
+            check_shape(t, spec, name, sizes)
+    return valid
+
+
+def rasterise_blocks(
+    points_cam: torch.Tensor,
+    K: torch.Tensor,
+    size_hw: tuple[int, int],
+    settings: RenderSettings = RenderSettings(),
+    *,
+    valid: torch.Tensor | None = None,
+    normals_cam: torch.Tensor | None = None,
+    sigma_m: torch.Tensor | None = None,
+    frame: torch.Tensor | None = None,
+    src_hw: tuple[int, int] | None = None,
+    block_rows: int | None = None,
+) -> list[RenderCandidates]:
+    """Step 1 of :func:`~depthgt.gt.render.compositor.render_gt` in blocks of
+    ``block_rows`` pixel rows of the stacked images (None: one block): each block's
+    candidates with their inverse depths, sigmas and frames, sorted by pixel and front
+    first. Args: as :func:`rasterise_gt`."""
+    valid = _check(points_cam, K, size_hw, valid, normals_cam, sigma_m, frame)
+    pr = _project(points_cam, K, size_hw, settings, valid, normals_cam, sigma_m, frame, src_hw, block_rows)
+    return [_rasterise_block(pr, k, settings.radius_px) for k in range(len(pr.edges) - 1)]
+
+
+def rasterise_gt(
+    points_cam: torch.Tensor,
+    K: torch.Tensor,
+    size_hw: tuple[int, int],
+    settings: RenderSettings = RenderSettings(),
+    *,
+    valid: torch.Tensor | None = None,
+    normals_cam: torch.Tensor | None = None,
+    sigma_m: torch.Tensor | None = None,
+    frame: torch.Tensor | None = None,
+    src_hw: tuple[int, int] | None = None,
+) -> RenderCandidates:
+    """Step 1 of :func:`~depthgt.gt.render.compositor.render_gt`: the candidates of every
+    pixel, with their inverse depths, sigmas and frames, sorted by pixel and front first
+    (:func:`rasterise_blocks`, the blocks concatenated).
+
+    Args: as :func:`~depthgt.gt.render.compositor.render_gt`. Returns: :class:`RenderCandidates`.
+    """
+    blocks = rasterise_blocks(
+        points_cam,
+        K,
+        size_hw,
+        settings,
+        valid=valid,
+        normals_cam=normals_cam,
+        sigma_m=sigma_m,
+        frame=frame,
+        src_hw=src_hw,
+        block_rows=None,
+    )
+    return RenderCandidates.concat(blocks)

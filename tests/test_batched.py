@@ -1,0 +1,121 @@
+"""The paths that keep a GPU busy, checked on the CPU against the one-set-at-a-time paths:
+frame sets rendered together (one pass of the rasteriser and the compositor), refined
+together (one residual evaluation for every set), and a batch's per-frame cache; and
+the compositor in blocks of rows against one block."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from depthgt.framecache import FrameCache
+from depthgt.gt.render import fuse
+from depthgt.gt.render.cloud import cached_geometry, frame_geometry
+from depthgt.gt.render.compositor import composite_gt
+from depthgt.gt.render.fusion import SetGeometry, fuse_sets
+from depthgt.gt.render.rasteriser import rasterise_gt
+from depthgt.jobs.common import open_source_scene
+from depthgt.registration import load_frameset, poses_from_source
+from depthgt.registration.local import refine_source_poses, refine_source_poses_many
+from depthgt.settings import FrameSetSettings, RenderSettings, registration_settings
+
+SIZE = (96, 128)
+TARGETS = (6, 8, 9)
+
+
+@pytest.fixture(scope="module")
+def framesets():
+    """Three frame sets of a synthetic room (noisy depth, exact poses) at 96x128, read
+    through one frame cache as a batch job reads them."""
+    torch.set_num_threads(1)
+    scene = open_source_scene({"kind": "synthetic", "options": {"n_frames": 18, "seed": 1}}, "room_000")
+    offsets = FrameSetSettings().offsets
+    cache = FrameCache(keep=16)
+    return [
+        load_frameset(scene, [t + o for o in offsets], SIZE, True, torch.device("cpu"), cache=cache) for t in TARGETS
+    ], list(offsets)
+
+
+def _sets(datas, members_of=lambda k: tuple(range(7))):
+    out = []
+    for k, d in enumerate(datas):
+        members = members_of(k)
+        g = frame_geometry(d.depth_m, d.K[None].expand(7, 3, 3), src_hw=d.src_hw)
+        T = torch.cat([torch.eye(4, dtype=torch.float64)[None], poses_from_source(d)])
+        out.append(SetGeometry(g.take(list(members)), T[list(members)], members))
+    return out
+
+
+def test_frame_sets_rendered_together_are_the_sets_rendered_one_by_one(framesets):
+    datas, _ = framesets
+    # the second set fuses a subset (a neighbour left out): the batch pads it
+    sets = _sets(datas, lambda k: (0, 1, 3, 4, 6) if k == 1 else tuple(range(7)))
+    first = datas[0]
+    kw = dict(src_hw=first.src_hw, leave_target_out=True)
+    one = fuse_sets(sets, first.K, SIZE, RenderSettings(), together=False, **kw)
+    together = fuse_sets(sets, first.K, SIZE, RenderSettings(), together=True, **kw)
+    for a, b in zip(one, together):
+        assert a.members == b.members and a.frames_left_out == b.frames_left_out
+        for name in ("depth", "weight_sum", "count", "sigma"):
+            x, y = getattr(a.gt, name), getattr(b.gt, name)
+            assert torch.equal(x > 0, y > 0), name
+            assert torch.allclose(x.double(), y.double(), rtol=1e-5, atol=1e-6), name
+        assert torch.allclose(a.gt.agreement.nan_to_num(-1), b.gt.agreement.nan_to_num(-1))
+        assert torch.allclose(a.left_out.depth, b.left_out.depth, rtol=1e-5, atol=1e-6)
+        assert (a.gt.depth > 0).float().mean() > 0.5  # a real render, not two empty ones
+
+
+def test_a_render_in_blocks_of_rows_is_the_render_in_one_block(framesets):
+    datas, _ = framesets
+    one = _sets(datas[:1])[0]
+    d = datas[0]
+    from depthgt.gt.render.cloud import cloud_from_geometry
+
+    cloud = cloud_from_geometry(one.geometry, one.T_j_to_t)
+    kw = dict(valid=cloud.valid, normals_cam=cloud.normals, sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=d.src_hw)
+    cands = rasterise_gt(cloud.points, d.K[None].float(), SIZE, RenderSettings(), **kw)
+    whole = composite_gt(cands, RenderSettings(), target_frame=0, block_rows=None)
+    for rows in (5, 32):
+        blocks = composite_gt(cands, RenderSettings(), target_frame=0, block_rows=rows)
+        for name in ("depth", "weight_sum", "count", "sigma"):
+            x, y = getattr(whole, name), getattr(blocks, name)
+            assert torch.equal(x > 0, y > 0) and torch.allclose(x.double(), y.double(), rtol=1e-6, atol=1e-7), name
+
+
+def test_frame_sets_refined_together_are_the_sets_refined_one_by_one(framesets):
+    datas, offsets = framesets
+    settings = registration_settings({"method": "refine", "refine_settings": {"iters": [3, 2, 2]}})
+    one = [
+        refine_source_poses(d.rgb, d.depth_m, d.K, offsets, poses_from_source(d), settings, cache=d.cache,
+                            positions=d.positions)
+        for d in datas
+    ]  # fmt: skip
+    together = refine_source_poses_many(datas, offsets, settings)
+    for a, b in zip(one, together):
+        assert torch.allclose(a.T_j_to_t, b.T_j_to_t, atol=1e-9)
+        assert a.neighbour_status == b.neighbour_status
+        assert a.diagnostics["refine_cost_curve"] == pytest.approx(b.diagnostics["refine_cost_curve"], rel=1e-9)
+        for key in ("inlier_fraction", "condition", "residual_m", "residual_sigmas"):
+            assert a.diagnostics[key] == pytest.approx(b.diagnostics[key], rel=1e-6, abs=1e-12), key
+
+
+def test_the_batch_cache_gives_each_frames_geometry_once_and_the_same_render(framesets):
+    datas, _ = framesets
+    d = datas[0]
+    calls = []
+    cache = FrameCache(keep=16)
+    original = cache.get
+
+    def counting(kind, positions, compute):
+        return original(kind, positions, lambda todo: calls.append(list(todo)) or compute(todo))
+
+    cache.get = counting
+    for data in datas:
+        cached_geometry(cache, data.positions, data.depth_m, data.K, src_hw=data.src_hw)
+    assert sorted(p for c in calls for p in c) == sorted({p for data in datas for p in data.positions})
+    # the cached geometry renders the same GT as the frame set's own
+    own = fuse(d, poses_from_source(d), RenderSettings())
+    mine = fuse(d, poses_from_source(d), RenderSettings(), geometry=cached_geometry(cache, d.positions, d.depth_m,
+                                                                                     d.K, src_hw=d.src_hw))  # fmt: skip
+    assert torch.equal(own.gt.depth > 0, mine.gt.depth > 0)
+    assert torch.allclose(own.gt.depth, mine.gt.depth, rtol=1e-5, atol=1e-6)
