@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -94,6 +95,15 @@ def snakemake(workdir: Path, *args: str, check: bool = True, **kw) -> subprocess
     if check and proc.returncode != 0:
         raise _failed(proc)
     return proc
+
+
+def planned_jobs(workdir: Path, *args: str) -> dict[str, int]:
+    """rule -> number of jobs a dry run of ``args`` would run (Snakemake's job table)."""
+    text = snakemake(workdir, "-n", *args).stdout
+    if "Nothing to be done" in text:
+        return {}
+    table = text[text.index("Job stats:") :]
+    return {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\w+)\s+(\d+)$", table, re.M) if m.group(1) != "total"}
 
 
 def make_workdir(path: Path, config: dict) -> Path:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from conftest import digest_outputs, early, in_background, make_workdir, snakemake, synthetic_source
+from conftest import digest_outputs, early, in_background, make_workdir, planned_jobs, snakemake, synthetic_source
 
 SMALL = {
     "seed": 2,
@@ -19,15 +19,6 @@ SMALL = {
     "resize": 64,
     "patches": {"count": 2, "size": 32, "max_missing": 0.5, "filter_on": "gt"},
 }
-
-
-def planned_jobs(workdir, *args) -> dict[str, int]:
-    """rule -> number of jobs a dry run of ``args`` would run (Snakemake's job table)."""
-    text = snakemake(workdir, "-n", *args).stdout
-    if "Nothing to be done" in text:
-        return {}
-    table = text[text.index("Job stats:") :]
-    return {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\w+)\s+(\d+)$", table, re.M) if m.group(1) != "total"}
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
-from conftest import TINY_ENHANCE, make_workdir, snakemake
+from conftest import TINY_ENHANCE, make_workdir, planned_jobs, snakemake
 
 from depthgt.gt import store
 
@@ -193,17 +193,6 @@ def test_table2_from_7scenes_fixture(tiny_report, tmp_path):
     assert set(t3["dataset"]) == {"syntest"} and len(t3) == 4
     t1 = _table(wd, "table1")
     assert {"kitchen", "syntest"} <= set(t1["dataset"])
-
-
-def planned_jobs(workdir, *args) -> dict[str, int]:
-    """rule -> number of jobs a dry run of ``args`` would run (Snakemake's job table)."""
-    import re
-
-    text = snakemake(workdir, "-n", *args).stdout
-    if "Nothing to be done" in text:
-        return {}
-    table = text[text.index("Job stats:") :]
-    return {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\w+)\s+(\d+)$", table, re.M) if m.group(1) != "total"}
 
 
 def _plane_stream(n=7, hw=48):
