@@ -133,8 +133,8 @@ def full_disk_runs(folder: Path):
 
 @pytest.mark.slow
 def test_a_full_disk_is_announced_before_work_and_is_one_line_when_it_happens(full_disk_runs):
-    """results/ on a 64 kB file system: a plan of 8 frame sets (~188 kB estimated) is
-    refused before any job, with the figures; two frame sets (~47 kB estimated) pass the
+    """results/ on a 64 kB file system: a plan of 8 frame sets (~240 kB estimated) is
+    refused before any job, with the figures; two frame sets (~60 kB estimated) pass the
     check and fail writing their shards beside their work files, each job in one line,
     and the run ends with the folder, the bytes free and the bytes the rest needs."""
     wd, why, runs, shards = full_disk_runs
@@ -145,12 +145,12 @@ def test_a_full_disk_is_announced_before_work_and_is_one_line_when_it_happens(fu
     assert refused.returncode != 0
     assert (
         f"depthgt: error: not enough space for the planned frame sets: {results} has 65.5 kB (65536 bytes) free; "
-        "the rest of the build needs about 188.0 kB (188000 bytes) (8 frame sets still to build" in refused.stderr
+        "the rest of the build needs about 240.5 kB (240496 bytes) (8 frame sets still to build" in refused.stderr
     ), refused.stderr[-3000:]
     assert "Traceback" not in refused.stdout + refused.stderr
     said = failed.stdout + failed.stderr
     assert failed.returncode != 0 and "Traceback" not in said, said[-4000:]
-    # the estimate (~47 kB) fit the 64 kB: no warning; the shards and their work files did not
+    # the estimate (~60 kB) fit the 64 kB: no warning; the shards and their work files did not
     assert "not enough space for the planned frame sets" not in failed.stderr
     last = [line for line in failed.stderr.splitlines() if line.startswith("depthgt: error: no space left")][-1]
     assert last.startswith(f"depthgt: error: no space left on the device of {results}: {results} has ")

@@ -46,7 +46,7 @@ def frameset_bytes(resize: int, synthetic: bool) -> int:
     record, :data:`depthgt.gt.store.MEASURED_FRAMESET_FIXED_BYTES`, do not scale).
 
     >>> frameset_bytes(256, False), frameset_bytes(128, True)
-    (235000, 73000)
+    (235000, 78250)
     """
     measured = store.MEASURED_FRAMESET_BYTES["synthetic" if synthetic else "real"]
     fixed = store.MEASURED_FRAMESET_FIXED_BYTES
