@@ -129,13 +129,9 @@ def upward(edges) -> dict[tuple[str, str], list[str]]:
     return found
 
 
-def cycle(edges) -> list[str] | None:
-    """A cycle in the graph of units (self-loops and known violations left out), or None."""
-    graph: dict[str, set[str]] = {}
-    for src, dst, _ in edges:
-        a, b = unit_of(src), unit_of(dst)
-        if a != b and (src, dst) not in KNOWN_VIOLATIONS:
-            graph.setdefault(a, set()).add(b)
+def first_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """The first cycle a depth-first search of ``graph`` (node -> the nodes it imports)
+    meets, as the nodes along it with the first repeated at the end, or None."""
     state: dict[str, int] = {}  # 1: on the current path, 2: done
     path: list[str] = []
 
@@ -155,6 +151,16 @@ def cycle(edges) -> list[str] | None:
         if u not in state and (found := visit(u)):
             return found
     return None
+
+
+def cycle(edges) -> list[str] | None:
+    """A cycle in the graph of units (self-loops and known violations left out), or None."""
+    graph: dict[str, set[str]] = {}
+    for src, dst, _ in edges:
+        a, b = unit_of(src), unit_of(dst)
+        if a != b and (src, dst) not in KNOWN_VIOLATIONS:
+            graph.setdefault(a, set()).add(b)
+    return first_cycle(graph)
 
 
 def test_every_internal_import_names_a_module():
@@ -199,25 +205,7 @@ def module_cycle(edges) -> list[str] | None:
     for src, dst, _ in edges:
         if src != dst:
             graph.setdefault(src, set()).add(dst)
-    state: dict[str, int] = {}
-    path: list[str] = []
-
-    def visit(u: str) -> list[str] | None:
-        state[u] = 1
-        path.append(u)
-        for v in sorted(graph.get(u, ())):
-            if state.get(v) == 1:
-                return path[path.index(v) :] + [v]
-            if v not in state and (found := visit(v)):
-                return found
-        path.pop()
-        state[u] = 2
-        return None
-
-    for u in sorted(graph):
-        if u not in state and (found := visit(u)):
-            return found
-    return None
+    return first_cycle(graph)
 
 
 def test_no_cycle_between_modules():
