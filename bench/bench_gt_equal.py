@@ -35,24 +35,12 @@ if __name__ == "__main__" and "--src" in sys.argv:  # run another checkout's lib
 
 import numpy as np
 import pandas as pd
+from bench_pipeline import MODES  # the same pose modes and recordings as the pipeline bench
+from bench_pipeline import sources as _sources
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = next((p for p in (ROOT.parent / "shared", ROOT.parents[1] / "shared") if p.is_dir()), ROOT.parent / "shared")
-MODES = {"given": {"method": "given"}, "refine": {"method": "refine"}, "fast": {"method": "overfit", "preset": "fast"}}
 #: half the step of the shard's fixed-point depth (depthgt.gt.store.GT_UNITS["Z"] = 2^14 per metre)
 STORAGE_PRECISION_M = 0.5 / 2**14
-
-
-def _sources(config: dict) -> dict[str, tuple[dict, str]]:
-    default = config["sources"][0]
-    return {
-        "7scenes": (
-            {"name": "7scenes", "kind": "sevenscenes", "root": str(SHARED / "data/7scenes-kitchen")},
-            "7scenes-kitchen",
-        ),
-        "tum": ({"name": "tum", "kind": "tum", "root": str(SHARED / "data/tum-fr1-xyz-0-239")}, "."),
-        "synthetic": (default, default["scenes"][0]),
-    }
 
 
 def worker(out: Path, data: str, mode: str, n: int, selection: str, config_path: Path) -> None:
