@@ -205,11 +205,7 @@ def _candidates_on_grid(
     uv_p = uv_f.index_select(0, pid)  # (P, 2) the visited points' projections, in their order
     with torch.no_grad():
         u, v = uv_p[:, 0].detach(), uv_p[:, 1].detach()
-        # sample positions within r of u lie in columns [ceil(u - r - shift), floor(u + r + shift)]
-        span = int(math.floor(2 * (r + shift))) + 1
-        off = torch.arange(span, device=u.device)
-        x0 = torch.ceil(u - r - shift).long()
-        y0 = torch.ceil(v - r - shift).long()
+        x0, y0, off = _footprint(u, v, r, shift)
         cols = x0[:, None] + off[None, :]
         rows = y0[:, None] + off[None, :]
         inf = torch.tensor(float("inf"), dtype=u.dtype, device=u.device)
@@ -228,6 +224,17 @@ def _candidates_on_grid(
     dx = gu.index_select(0, col) - uv_p[:, 0].contiguous().index_select(0, slot)
     dy = gv.index_select(0, row) - uv_p[:, 1].contiguous().index_select(0, slot)
     return Candidates(point, pixel, dx * dx + dy * dy, dx, dy), z_f
+
+
+def _footprint(u: torch.Tensor, v: torch.Tensor, r: float, shift: float):
+    """The pixels a point's footprint of radius ``r`` at (``u``, ``v``) may reach, on a grid
+    whose sample positions lie within ``shift`` of the pixel centres: sample positions
+    within r of u lie in columns [ceil(u - r - shift), floor(u + r + shift)]. Returns the
+    first column and row of each point, (P,) long, and the offsets 0..span-1 of its
+    window."""
+    span = int(math.floor(2 * (r + shift))) + 1
+    off = torch.arange(span, device=u.device)
+    return torch.ceil(u - r - shift).long(), torch.ceil(v - r - shift).long(), off
 
 
 def resampled_positions(n_src: int, n_dst: int, device=None, dtype=torch.float32) -> torch.Tensor:

@@ -19,7 +19,7 @@ import torch
 from depthgt.geometry import project
 from depthgt.gt.render.settings import RenderSettings
 from depthgt.noise_law import KINECT_SIGMA_1M, depth_sigma_m
-from depthgt.rasterise import _cells_inside, check_points, front_to_back, resampled_positions
+from depthgt.rasterise import _cells_inside, _footprint, check_points, front_to_back, resampled_positions
 from depthgt.shapes import check_shape
 
 __all__ = ["HIT_PX", "RenderCandidates", "rasterise_blocks", "rasterise_gt"]
@@ -304,11 +304,7 @@ def _rasterise_block(pr: _Projected, k: int, radius_px: float) -> RenderCandidat
         ids = pr.entries[pr.edges[k] : pr.edges[k + 1]]
         u = pr.uv[:, 0].detach().index_select(0, ids)
         v = pr.uv[:, 1].detach().index_select(0, ids)
-        # sample positions within r of u lie in columns [ceil(u - r - shift), floor(u + r + shift)]
-        span = int(math.floor(2 * (r + shift))) + 1
-        off = torch.arange(span, device=u.device)
-        x0 = torch.ceil(u - r - shift).long()
-        y0 = torch.ceil(v - r - shift).long()
+        x0, y0, off = _footprint(u, v, r, shift)
         cols = x0[:, None] + off[None, :]
         rows = y0[:, None] + off[None, :]
         if b > 1:
