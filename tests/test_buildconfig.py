@@ -38,6 +38,11 @@ def test_merge_is_snakemakes():
     assert BASE["frameset"] == {"neighbours": 3, "stride": 2}  # not changed in place
 
 
+def test_changed_keys_takes_two_nans_for_the_same_value():
+    assert changed_keys({"thr": float("nan"), "a": 1}, {"thr": float("nan"), "a": 1}) == []
+    assert changed_keys({"thr": float("nan")}, {"thr": 0.5}) == ["thr: NaN -> 0.5"]
+
+
 def test_changed_keys_names_each_key_with_both_values():
     new = merge(BASE, {"frameset": {"stride": 1}, "dataset": {"allow_empty": True}})
     assert changed_keys(BASE, new) == ["dataset.allow_empty: (unset) -> true", "frameset.stride: 2 -> 1"]

@@ -205,3 +205,27 @@ def test_a_job_killed_for_its_memory_names_the_rule_and_mem_mb(killed_job_run):
 def test_end_of_run_lines_of_a_failed_run_without_a_plan_to_build(tmp_path):
     (tmp_path / "results").mkdir()
     assert end_of_run_lines(tmp_path, [], [], 64, None, {}, failed=True) == []
+
+
+def test_a_gpu_out_of_memory_is_not_a_mem_mb_to_raise():
+    log = (
+        "[Fri Nov 27 15:27:34 2026]\nError in rule train_model:\n    jobid: 3\n"
+        "torch.OutOfMemoryError: CUDA out of memory. Tried to allocate 2.00 GiB\n"
+    )
+    assert memory_failures(log, {"train_model": 16000}) == []
+
+
+def test_a_failed_run_on_a_tight_disk_is_not_called_a_full_disk(tmp_path, monkeypatch):
+    """The plan would not fit, but the job failed for another reason: no 'no space left'
+    line (the log shows no full disk); with the system's message in the log, the line."""
+    (tmp_path / "results").mkdir()
+    monkeypatch.setattr(space, "free_bytes", lambda path: 1_000)
+    log = tmp_path / "run.log"
+    log.write_text("Error in rule tables:\n    jobid: 4\nValueError: something else\n")
+    lines = end_of_run_lines(tmp_path, [], PLAN, 64, log, {}, failed=True)
+    assert not any("no space left" in line for line in lines), lines
+    log.write_text("Error in rule frameset_batch:\nOSError: [Errno 28] No space left on device\n")
+    lines = end_of_run_lines(tmp_path, [], PLAN, 64, log, {}, failed=True)
+    assert [line for line in lines if "no space left" in line][0].startswith(
+        f"depthgt: error: no space left on the device of {tmp_path / 'results'}"
+    ), lines

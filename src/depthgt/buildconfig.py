@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -103,7 +104,7 @@ def changed_keys(old: Mapping[str, Any], new: Mapping[str, Any], prefix: str = "
     for key in sorted(set(old) | set(new), key=str):
         a, b = old.get(key, _UNSET), new.get(key, _UNSET)
         name = f"{prefix}{key}"
-        if a == b:
+        if a == b or (isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b)):
             continue
         if isinstance(a, Mapping) or isinstance(b, Mapping):
             if (isinstance(a, Mapping) or a is _UNSET) and (isinstance(b, Mapping) or b is _UNSET):

@@ -331,12 +331,16 @@ def render_targets(datas: list[FrameSetData], alignments: list[Alignment], setti
         eye = torch.eye(4, dtype=alignment.T_j_to_t.dtype, device=alignment.T_j_to_t.device)[None]
         T = torch.cat([eye, alignment.T_j_to_t])[members]
         sets.append(SetGeometry(geometry.take(members), T, tuple(members)))
-    real = [d.truth_m is None for d in datas]
-    fused = fuse_sets(
-        sets, first.K, tuple(first.depth_m.shape[-2:]), settings, src_hw=first.src_hw, leave_target_out=True
+    # the leave-target-out render for real data only (as render_target does): the group's
+    # sets all have a clean truth or none (checked above)
+    return fuse_sets(
+        sets,
+        first.K,
+        tuple(first.depth_m.shape[-2:]),
+        settings,
+        src_hw=first.src_hw,
+        leave_target_out=first.truth_m is None,
     )
-    # the leave-target-out render is kept for real data only (as render_target does)
-    return [f if r else f._replace(left_out=None) for f, r in zip(fused, real)]
 
 
 def render_target(data: FrameSetData, alignment: Alignment, settings: RenderSettings) -> Fusion:

@@ -17,7 +17,7 @@ from pathlib import Path
 import pandas as pd
 
 from depthgt.gt.assemble import FRAME_COLUMNS, FRAMESET_COLUMNS, PATCH_COLUMNS, console_summary, summarise
-from depthgt.gt.space import PlannedShard, disk_full_line, space_need
+from depthgt.gt.space import PlannedShard, disk_full_line
 
 __all__ = ["summary_lines", "memory_failures", "end_of_run_lines"]
 
@@ -84,7 +84,8 @@ def memory_failures(snakemake_log: str, mem_mb: Mapping[str, int | None]) -> lis
     seen = set()
     for record in _failure_records(snakemake_log):
         m = re.search(r"^Error in rule (\w+):", record, re.M)
-        if not m or m.group(1) in seen or not _MEMORY.search(record):
+        # a GPU's memory is not the job's mem_mb: its out-of-memory error is not one of these
+        if not m or m.group(1) in seen or not _MEMORY.search(record) or "CUDA out of memory" in record:
             continue
         rule = m.group(1)
         seen.add(rule)
@@ -136,11 +137,9 @@ def end_of_run_lines(
     logs = [snakemake_log] if isinstance(snakemake_log, (str, Path)) else list(snakemake_log or [])
     text = "".join(Path(p).read_text(errors="replace") for p in logs if p and Path(p).is_file())
     plan = list(plan)
-    if (
-        "No space left on device" in text
-        or "no space left on the device" in text
-        or not space_need(workdir, plan, resize).fits
-    ):
+    # only a run the log shows meeting a full disk (a tight disk does not make every
+    # failure a full one; the next run's space check warns about it before any job)
+    if "No space left on device" in text or "no space left on the device" in text:
         lines.append(disk_full_line(workdir, plan, resize))
     lines += memory_failures(text, mem_mb or {})
     empty = re.search(r"the dataset is empty: .*", text)
