@@ -29,9 +29,9 @@ Size is configuration (:class:`LapDENConfig`), never a code fork:
   model's blocks). The paper's text does not pin the encoder; 10 convs at full and
   10 at half resolution bring the count to ~3.6 M parameters, the released size.
 * ``default``: 16 channels, 2/2/4 decoder convs, 2/0 encoder convs (~40 k
-  parameters): ~3 s per Adam step of 16 128x128 pairs on one core of the shared
-  2-core test machine (load ~7), i.e. ~6.5 min per epoch of 2000 pairs
-  (bench/bench_lapden.py); 32 channels with 2/4/6 convs costs ~3x more.
+  parameters): 0.50-0.77 s per Adam step of 8 128x128 pairs on one or two threads of a
+  2-core machine (docs/decisions.md "Threads per training on 2 cores";
+  bench/bench_train_steps.py); 32 channels with 2/4/6 convs costs ~3x more.
 """
 
 from __future__ import annotations
