@@ -82,12 +82,23 @@ def framesets_to_look_at(framesets: pd.DataFrame, per_criterion: int = 2) -> pd.
     return pd.DataFrame(list(rows.values()), columns=["dataset", "scene", "target", "frameset", "why"])
 
 
+def _read(path: Path, reader):
+    """``reader(path)``, a damaged or unreadable file named in one line (DepthGTError)."""
+    try:
+        return reader(path)
+    except (OSError, ValueError, KeyError) as err:  # pyarrow's and pandas' errors are ValueErrors
+        raise DepthGTError(
+            f"{path}: cannot be read for the report ({type(err).__name__}: {err}); "
+            "build it again (`depthgt build`) or remove it"
+        ) from err
+
+
 def _framesets_table(results: Path) -> pd.DataFrame | None:
     """framesets.parquet of the dataset, else the per-scene tables concatenated."""
     path = results / "dataset" / "framesets.parquet"
     if path.is_file():
-        return pd.read_parquet(path)
-    tables = [pd.read_parquet(p) for p in sorted(results.glob("scenes/*/*/framesets.parquet"))]
+        return _read(path, pd.read_parquet)
+    tables = [_read(p, pd.read_parquet) for p in sorted(results.glob("scenes/*/*/framesets.parquet"))]
     tables = [t for t in tables if len(t)]
     return pd.concat(tables, ignore_index=True) if tables else None
 
@@ -116,6 +127,20 @@ def _commands(wd: Path, dataset: str, scene: str, target: int) -> str:
     )
 
 
+def _summary_doc(doc: Any) -> dict:
+    """The dataset's summary.json, its keys the report reads checked (KeyError names one)."""
+    keys = (("framesets", dict), ("pairs", dict), ("framesets_skipped", list), ("frames_skipped", list))
+    keys += (("frames_read", int), ("patches_rejected", int))
+    for key, kind in keys:
+        if not isinstance(doc, dict) or not isinstance(doc.get(key), kind):
+            raise KeyError(f"{key!r} missing or not a {kind.__name__}")
+    for key in ("framesets", "pairs"):
+        for split in SPLITS:
+            if not isinstance(doc[key].get(split), int):
+                raise KeyError(f"{key}.{split} missing or not a count")
+    return doc
+
+
 def _summary_section(results: Path) -> str:
     summary_json = results / "dataset" / "summary.json"
     if not summary_json.is_file():
@@ -124,7 +149,7 @@ def _summary_section(results: Path) -> str:
             "<p>No dataset yet (results/dataset/summary.json is missing): <code>depthgt build dataset</code> "
             "assembles it from the frame sets.</p>",
         )
-    summary = json.loads(summary_json.read_text())
+    summary = _read(summary_json, lambda p: _summary_doc(json.loads(p.read_text())))
     counts = pd.DataFrame(
         [{"split": s, "frame sets": summary["framesets"][s], "patch pairs": summary["pairs"][s]} for s in SPLITS]
     )
@@ -157,7 +182,7 @@ def _quality_section(results: Path) -> str:
     path = results / "dataset" / "gt_quality.csv"
     if not path.is_file():
         return ""
-    q = pd.read_csv(path)
+    q = _read(path, pd.read_csv)
     if not len(q):
         return _section("GT quality", "<p>No GT-quality statistics (no frame set built).</p>")
     wide = q.pivot_table(index=["dataset", "estimate", "reference"], columns="metric", values="value", aggfunc="mean")
@@ -204,7 +229,7 @@ def _tables_section(results: Path) -> str:
         )
     body = []
     for path in tables:
-        body.append(f"<h3>{html.escape(path.stem)}</h3>" + _table(pd.read_csv(path)))
+        body.append(f"<h3>{html.escape(path.stem)}</h3>" + _table(_read(path, pd.read_csv)))
     return _section("Tables", "\n".join(body))
 
 
