@@ -119,3 +119,22 @@ def test_the_batch_cache_gives_each_frames_geometry_once_and_the_same_render(fra
                                                                                      d.K, src_hw=d.src_hw))  # fmt: skip
     assert torch.equal(own.gt.depth > 0, mine.gt.depth > 0)
     assert torch.allclose(own.gt.depth, mine.gt.depth, rtol=1e-5, atol=1e-6)
+
+
+def test_the_refinements_normals_enter_the_cache_as_the_renderers_own(framesets):
+    """With ``refine`` the registration has kornia's normals of the members' raw depth:
+    the batch cache takes them for frames not yet in it (no second normals pass), and
+    they are the normals the renderer computes itself."""
+    datas, offsets = framesets
+    d = datas[0]
+    settings = registration_settings({"method": "refine", "refine_settings": {"iters": [1, 1, 1]}})
+    res = refine_source_poses(d.rgb, d.depth_m, d.K, offsets, poses_from_source(d), settings)
+    own = frame_geometry(d.depth_m, d.K[None].expand(7, 3, 3), src_hw=d.src_hw)
+    assert torch.equal(res.normals.flatten(2).transpose(1, 2).nan_to_num(7.0), own.normals.nan_to_num(7.0))
+    marked = res.normals + 1.0  # distinguishable: the cache must keep what it is given
+    g = cached_geometry(FrameCache(keep=16), d.positions, d.depth_m, d.K, src_hw=d.src_hw, normals=marked)
+    assert torch.equal(g.normals, marked.flatten(2).transpose(1, 2))
+    data = type(d)(**{**d.__dict__, "cache": FrameCache(keep=16)})
+    fused = fuse(data, poses_from_source(d), RenderSettings(), normals=res.normals)
+    plain = fuse(d, poses_from_source(d), RenderSettings())
+    assert torch.equal(fused.gt.depth, plain.gt.depth)

@@ -452,3 +452,48 @@ def test_overfit_chain_stops_at_a_failing_link(tmp_path, monkeypatch):
     assert min(x["offset"] for x in chain["links"]) == -12
     assert all(v["offset"] > -12 for v in doc["coverage"]["added"])
     assert all(int(o) > -12 for o in poses["coverage_T_j_to_t"])
+
+
+def test_batch_cache_gives_the_same_coverage_as_none(tmp_path):
+    """With the batch job's frame cache the core's geometry comes from the window's
+    render and each candidate's mixed samples are found once: the same GT (to float32
+    rounding of the per-frame geometry) and the same record as without a cache."""
+    from depthgt.framecache import FrameCache
+
+    settings = _settings("coverage", coverage_max_angle_deg=20.0)
+    doc, gt, poses = _build(tmp_path, "none", settings)
+    scene = OccluderScene()
+    cache = FrameCache(keep=2 * settings.frameset.coverage_span + 2)
+    docs = {}
+    for target in (TARGET - 1, TARGET):  # the second set reuses the first's frames
+        members = [target + o for o in settings.frameset.offsets]
+        out = FrameSetOutputs.in_dir(tmp_path / f"cached{target}")
+        docs[target] = process_frameset(scene, "synthetic", target, members, "train", out, settings, cache=cache)
+    gt_c = io.read_exr(FrameSetOutputs.in_dir(tmp_path / f"cached{TARGET}").gt)
+    assert docs[TARGET]["coverage"] == doc["coverage"]
+    assert np.array_equal(gt_c["Z"] > 0, gt["Z"] > 0)
+    assert np.abs(gt_c["Z"] - gt["Z"]).max() < 1e-6
+    kinds = {k for frame in cache._frames.values() for k in frame}
+    assert any(k.startswith("coverage.without_mixed") for k in kinds) and any(
+        k.startswith("render.geometry") for k in kinds
+    )
+
+
+def test_mixed_samples_equal_max_pool_windows():
+    """mixed_samples' running-maximum windows give max_pool2d's values (the rule as first written)."""
+    import torch.nn.functional as F
+
+    from depthgt.gt.coverage import mixed_samples
+
+    g = torch.Generator().manual_seed(3)
+    d = torch.rand(3, 1, 40, 50, generator=g) + 0.5
+    d[torch.rand(d.shape, generator=g) < 0.1] = 0.0
+    d[:, :, 10:20, 5:30] += 1.0  # jumps
+    for margin, jump in ((1, 0.0), (2, 0.03), (3, 0.1)):
+        valid, k = d > 0, 2 * margin + 1
+        ref = F.max_pool2d((~valid).float(), k, stride=1, padding=margin) > 0
+        hi = F.max_pool2d(torch.where(valid, d, 0.0), k, stride=1, padding=margin)
+        lo = -F.max_pool2d(torch.where(valid, -d, -float("inf")), k, stride=1, padding=margin)
+        if jump > 0:
+            ref |= hi - lo > jump * d
+        assert torch.equal(mixed_samples(d, margin, jump), valid & ref)

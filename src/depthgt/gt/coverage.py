@@ -35,12 +35,13 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from kornia.geometry.liegroup import Se3
 
 from depthgt import geometry
+from depthgt.depth_ops import window_max
 from depthgt.errors import FrameError
 from depthgt.gt.render import Fusion, fuse, whole_frame_threshold
+from depthgt.gt.render.cloud import FrameGeometry, cached_geometry, frame_geometry
 from depthgt.gt.render.settings import RenderSettings
 from depthgt.gt.settings import FrameSetSettings
 from depthgt.metric_vocabulary import depth_errors
@@ -143,11 +144,11 @@ def mixed_samples(depth_m: torch.Tensor, margin_px: int, jump_rel: float) -> tor
     if margin_px <= 0:
         return torch.zeros_like(valid)
     k = 2 * margin_px + 1
-    # max_pool2d pads with -inf: the image border is neither a hole nor a jump
-    mixed = F.max_pool2d((~valid).to(depth_m.dtype), k, stride=1, padding=margin_px) > 0
+    # window_max (max_pool2d's values) pads with -inf: the image border is neither a hole nor a jump
+    mixed = window_max((~valid).to(depth_m.dtype), k) > 0
     if jump_rel > 0:
-        hi = F.max_pool2d(torch.where(valid, depth_m, 0.0), k, stride=1, padding=margin_px)
-        lo = -F.max_pool2d(torch.where(valid, -depth_m, -float("inf")), k, stride=1, padding=margin_px)
+        hi = window_max(torch.where(valid, depth_m, 0.0), k)
+        lo = -window_max(torch.where(valid, -depth_m, -float("inf")), k)
         mixed |= hi - lo > jump_rel * depth_m
     return valid & mixed
 
@@ -329,6 +330,36 @@ def _register(
     return T, list(res.neighbour_status), list(res.neighbour_reasons)
 
 
+def _without_mixed(
+    data: FrameSetData, positions: list[int], depth_m: torch.Tensor, fs: FrameSetSettings
+) -> torch.Tensor:
+    """``depth_m`` (C, 1, H, W) of the candidates at ``positions`` with their mixed samples
+    (:func:`mixed_samples`) set to 0, each frame's found once per batch job when the
+    frame set has the job's frame cache (a candidate serves the targets around it)."""
+    margin, jump = fs.coverage_mixed_margin_px, fs.coverage_mixed_jump_rel
+    if data.cache is None or not positions:
+        return depth_m.masked_fill(mixed_samples(depth_m, margin, jump), 0.0)
+    index = {p: i for i, p in enumerate(positions)}
+
+    def compute(todo: list[int]) -> list[torch.Tensor]:
+        rows = depth_m[[index[p] for p in todo]]
+        return list(rows.masked_fill(mixed_samples(rows, margin, jump), 0.0).unbind(0))
+
+    return torch.stack(data.cache.get(f"coverage.without_mixed:{margin}:{jump}", positions, compute))
+
+
+def _geometry(data: FrameSetData, added_depth: torch.Tensor) -> FrameGeometry | None:
+    """The :class:`~depthgt.gt.render.cloud.FrameGeometry` of the core's members and the
+    added views (``added_depth`` (V, 1, H, W), their mixed samples removed) in that
+    order: the core's from the batch job's frame cache (the window's render computed
+    them), the added views' here; None without a cache (:func:`fuse` computes all)."""
+    if data.cache is None or data.positions is None:
+        return None
+    core = cached_geometry(data.cache, data.positions, data.depth_m, data.K, src_hw=data.src_hw)
+    n = added_depth.shape[0]
+    return FrameGeometry.stack([core, frame_geometry(added_depth, data.K[None].expand(n, 3, 3), src_hw=data.src_hw)])
+
+
 def add_coverage_views(
     scene: Scene,
     target: int,
@@ -404,14 +435,15 @@ def add_coverage_views(
     if not need_pose:
         record["not_chained"] = int((~reached).sum())
     idx = torch.nonzero(within).flatten()
-    # what a candidate fills with: its samples away from its own holes and depth jumps
-    mixed = mixed_samples(cand.depth_m[1:], fs.coverage_mixed_margin_px, fs.coverage_mixed_jump_rel)
-    usable_depth = cand.depth_m[1:].masked_fill(mixed, 0.0)
-    fill = fill_maps(usable_depth[idx], data.K, T_c_to_t[idx], empty)
+    # what a candidate within the limits fills with: its samples away from its own holes
+    # and depth jumps
+    usable_depth = _without_mixed(data, [usable[i] for i in idx.tolist()], cand.depth_m[1:][idx], fs)
+    fill = fill_maps(usable_depth, data.K, T_c_to_t[idx], empty)
     picks = choose_views(fill, fs.coverage_views, fs.coverage_min_fill_px)
     if not picks:
         return CoverageResult(keep(), record)
-    chosen = [int(idx[i]) for i, _ in picks]  # positions in cand's neighbours
+    picked = [i for i, _ in picks]  # positions in idx
+    chosen = [int(idx[i]) for i in picked]  # positions in cand's neighbours
     offsets = [0, *(usable[c] - target for c in chosen)]
     sel = [0, *(c + 1 for c in chosen)]
     added = FrameSetData(
@@ -445,7 +477,7 @@ def add_coverage_views(
     n = data.depth_m.shape[0]
     both = FrameSetData(
         torch.cat([data.rgb, added.rgb[1:]]),
-        torch.cat([data.depth_m, usable_depth[chosen]]),
+        torch.cat([data.depth_m, usable_depth[picked]]),
         data.K,
         None,
         torch.cat([data.truth_m, added.truth_m[1:]])
@@ -457,7 +489,14 @@ def add_coverage_views(
     )
     T_both = torch.cat([alignment.T_j_to_t.to(torch.float64), T_added.to(alignment.T_j_to_t.device, torch.float64)])
     members = [*alignment.fused, *(n + k for k in ok)]
-    full = fuse(both, T_both, render, members=members, leave_target_out=data.truth_m is None)
+    full = fuse(
+        both,
+        T_both,
+        render,
+        members=members,
+        leave_target_out=data.truth_m is None,
+        geometry=_geometry(data, usable_depth[picked]),
+    )
     share = full.gt.agreement[0].cpu().numpy() if full.gt.agreement.numel() else np.full(len(members), np.nan)
     filled = empty & (full.gt.depth[0, 0] > 0)
     left_whole = set(full.frames_left_out)

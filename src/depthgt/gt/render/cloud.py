@@ -238,16 +238,23 @@ def cached_geometry(
     *,
     src_hw: tuple[int, int] | None = None,
     normal_max_jump_rel: float = 0.05,
+    normals: torch.Tensor | None = None,
 ) -> FrameGeometry:
     """:func:`frame_geometry` of the frames at ``positions`` (their depth ``depth_m`` (F,
     1, H, W), ``K`` (3, 3) their one camera), each frame's computed once per batch job
-    (``cache``: the job's :class:`~depthgt.framecache.FrameCache`), in that order."""
+    (``cache``: the job's :class:`~depthgt.framecache.FrameCache`), in that order;
+    ``normals`` (F, 3, H, W) as :func:`frame_geometry` takes them (the refinement's),
+    used for the frames not yet in the cache."""
     index = {p: i for i, p in enumerate(positions)}
 
     def compute(todo: list[int]) -> list[FrameGeometry]:
         rows = [index[p] for p in todo]
         g = frame_geometry(
-            depth_m[rows], K[None].expand(len(rows), 3, 3), src_hw=src_hw, normal_max_jump_rel=normal_max_jump_rel
+            depth_m[rows],
+            K[None].expand(len(rows), 3, 3),
+            src_hw=src_hw,
+            normal_max_jump_rel=normal_max_jump_rel,
+            normals=None if normals is None else normals[rows],
         )
         return [g.take([k]) for k in range(len(rows))]
 

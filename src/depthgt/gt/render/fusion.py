@@ -122,14 +122,16 @@ def fuse(
     """
     n_all = data.depth_m.shape[0]
     chosen = list(range(n_all))[members] if isinstance(members, slice) else list(members)
+    depth = data.depth_m if depth_m is None else depth_m
+    if normals is not None and (
+        depth_m is not None or normals.shape != (n_all, 3, *depth.shape[-2:]) or normals.dtype != depth.dtype
+    ):
+        normals = None
     if geometry is None and depth_m is None and data.cache is not None and data.positions is not None:
-        geometry = cached_geometry(data.cache, data.positions, data.depth_m, data.K, src_hw=data.src_hw)
+        geometry = cached_geometry(
+            data.cache, data.positions, data.depth_m, data.K, src_hw=data.src_hw, normals=normals
+        )
     if geometry is None or depth_m is not None:
-        depth = data.depth_m if depth_m is None else depth_m
-        if normals is not None and (
-            depth_m is not None or normals.shape != (n_all, 3, *depth.shape[-2:]) or normals.dtype != depth.dtype
-        ):
-            normals = None
         geometry = frame_geometry(depth, data.K[None].expand(n_all, 3, 3), src_hw=data.src_hw, normals=normals)
     eye = torch.eye(4, dtype=T_j_to_t.dtype, device=T_j_to_t.device)[None]
     T = torch.cat([eye, T_j_to_t], dim=0)
