@@ -142,3 +142,23 @@ def test_a_config_file_that_does_not_parse_is_named_with_its_line(wd, tmp_path):
         layered_config(wd, wd / "config/config.yaml", [tmp_path / "list.yaml"])
     (tmp_path / "tabs.json").write_text('{\n\t"seed": 1\n}')  # JSON as Snakemake reads it
     assert layered_config(wd, wd / "config/config.yaml", [tmp_path / "tabs.json"]).config["seed"] == 1
+
+
+def test_the_reports_refusal_says_what_works_for_the_report(wd, tmp_path, monkeypatch):
+    """depthgt report has no --reconfigure: its refusal does not offer one, but the
+    build command that applies the change (with this command's files) and leaving
+    --configfile out."""
+    remember(wd, layered_config(wd, wd / "config/config.yaml"))
+    other = write(tmp_path / "my configs" / "other.yaml", {"seed": 5})
+    monkeypatch.setenv("DEPTHGT_RECONFIGURE", "1")  # not read by the report: it cannot apply a change
+    with pytest.raises(ConfigError) as err:
+        layered_config(wd, wd / "config/config.yaml", [other], reconfigure=False, command="report")
+    message = str(err.value)
+    assert "\n" not in message and "seed: 3 -> 5" in message and str(wd / OVERRIDES) in message
+    assert "depthgt report shows the build as it was made and takes no --reconfigure" in message
+    assert f"depthgt build -d {wd} --reconfigure --configfile '{other}'" in message  # quoted: a space
+    assert "leave --configfile out" in message and "pass --reconfigure" not in message
+    assert "DEPTHGT_RECONFIGURE" not in message
+    # a build's refusal is as before
+    with pytest.raises(ConfigError, match="pass --reconfigure to apply the change"):
+        layered_config(wd, wd / "config/config.yaml", [other], reconfigure=False)

@@ -294,3 +294,33 @@ def test_bench_runs_a_benchmark():
 def test_bench_names_the_known_benchmarks():
     proc = depthgt("bench", "no_such_bench", check=False)
     assert proc.returncode == 2 and "bench_render" in proc.stderr
+
+
+def _remembered_workdir(path: Path) -> Path:
+    """A working directory on TINY whose config is remembered, with a results/framesets
+    folder (what `depthgt report` asks of a build); nothing built."""
+    from depthgt import buildconfig
+
+    wd = make_workdir(path, TINY)
+    (wd / "results" / "framesets").mkdir(parents=True)
+    buildconfig.remember(wd, buildconfig.layered_config(wd, wd / "config/config.yaml", check_sources=False))
+    return wd
+
+
+def test_the_reports_refusal_of_a_changed_config_names_what_the_report_takes(tmp_path):
+    """`depthgt report --configfile` changing a key of the build: refused in one line
+    that does not offer the --reconfigure the report lacks, but the build command that
+    applies the change, and leaving --configfile out."""
+    wd = _remembered_workdir(tmp_path / "wd")
+    seed = tmp_path / "seed.yaml"
+    seed.write_text("seed: 11\n")
+    proc = depthgt("report", "-d", str(wd), "--configfile", str(seed), "--out", str(tmp_path / "r.html"), check=False)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    (line,) = proc.stderr.splitlines()
+    assert line.startswith(f"depthgt: error: --configfile would change the config the build in {wd} was made with")
+    assert "seed: 3 -> 11" in line
+    assert "depthgt report shows the build as it was made and takes no --reconfigure" in line
+    assert f"(depthgt build -d {wd} --reconfigure --configfile {seed};" in line
+    assert "pass --reconfigure" not in line and not (tmp_path / "r.html").exists()
+    proc = depthgt("report", "--reconfigure", "-d", str(wd), check=False)  # the option the message no longer offers
+    assert proc.returncode == 2 and "unrecognized arguments: --reconfigure" in proc.stderr

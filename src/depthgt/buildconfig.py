@@ -21,6 +21,8 @@ value built and the value asked for, unless it is run with ``--reconfigure`` (or
 :data:`RECONFIGURE_ENV` ``=1`` for a plain Snakemake run): then the change is
 remembered and Snakemake's params rerun trigger rebuilds what the changed keys decide.
 An edit of the base file itself is applied and announced (:func:`Layers.notice`).
+``depthgt report`` shows the build as it was made: it refuses such a ``--configfile``
+too, and tells to apply it with ``depthgt build --reconfigure`` first.
 
 Standard library and PyYAML only: the Snakefile imports it while it parses.
 """
@@ -31,6 +33,7 @@ import copy
 import json
 import math
 import os
+import shlex
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -203,6 +206,7 @@ class Layers:
             ``config/config.yaml``, a new default).
         base: the base file.
         root_rules: source name -> how its root was resolved (for messages).
+        configfiles: this command's ``--configfile`` files, absolute, in order.
     """
 
     config: dict[str, Any]
@@ -211,16 +215,29 @@ class Layers:
     base_changes: list[str] = field(default_factory=list)
     base: Path | None = None
     root_rules: dict[str, str] = field(default_factory=dict)
+    configfiles: list[Path] = field(default_factory=list)
 
-    def refusal(self, workdir: str | Path) -> str:
-        """The message that refuses this command's changes (``changes``)."""
+    def refusal(self, workdir: str | Path, command: str = "build") -> str:
+        """The message that refuses this command's changes (``changes``); what to do
+        instead depends on the ``command``: ``build`` (``depthgt build`` or ``rebuild``,
+        a plain Snakemake run) or ``report`` (``depthgt report``, which has no
+        ``--reconfigure``: it shows the build as it was made)."""
         wd = Path(workdir).absolute()
-        return (
+        head = (
             f"--configfile would change the config the build in {wd} was made with ({self.base} with "
-            f"{wd / OVERRIDES}): "
-            + "; ".join(self.changes)
-            + ". Leave --configfile out to go on with the build's config, pass --reconfigure to apply the change "
-            f"(the outputs these keys decide are built again; plain snakemake: {RECONFIGURE_ENV}=1), "
+            f"{wd / OVERRIDES}): " + "; ".join(self.changes)
+        )
+        if command == "report":
+            files = " ".join(f"--configfile {shlex.quote(str(c))}" for c in self.configfiles)
+            return (
+                f"{head}. depthgt report shows the build as it was made and takes no --reconfigure: leave "
+                f"--configfile out to report on the build, or apply the change to the build first "
+                f"(depthgt build -d {shlex.quote(str(wd))} --reconfigure {files}; the outputs these keys decide "
+                "are built again), then run depthgt report without --configfile"
+            )
+        return (
+            f"{head}. Leave --configfile out to go on with the build's config, pass --reconfigure to apply the "
+            f"change (the outputs these keys decide are built again; plain snakemake: {RECONFIGURE_ENV}=1), "
             "or use another working directory (-d)"
         )
 
@@ -242,6 +259,7 @@ def layered_config(
     config_args: Mapping[str, Any] | None = None,
     reconfigure: bool | None = None,
     check_sources: bool = True,
+    command: str = "build",
 ) -> Layers:
     """The config of a command in ``workdir`` (module docstring).
 
@@ -253,6 +271,7 @@ def layered_config(
         reconfigure: apply changes to an existing build; None: read :data:`RECONFIGURE_ENV`.
         check_sources: check that every source's root exists (:func:`check_roots`;
             ``depthgt report`` reads the results only).
+        command: what runs, for the refusal's advice (:meth:`Layers.refusal`).
 
     Raises:
         ConfigError: a file that does not parse; a ``root`` that does not exist (naming
@@ -270,23 +289,29 @@ def layered_config(
         if isinstance(s, dict) and isinstance(s.get("root"), str) and not Path(s["root"]).expanduser().is_absolute()
     }
     stored = load_config_file(wd / OVERRIDES, "remembered config") if (wd / OVERRIDES).is_file() else None
-    command: dict[str, Any] = {}
+    layer: dict[str, Any] = {}  # this command's --configfile files and --config values
     for path in configfiles:
         doc, file_rules = _with_absolute_roots(load_config_file(path, "--configfile"), Path(path).absolute().parent)
         if "sources" in doc:
             rules = dict(file_rules)
-        command = merge(command, doc)
+        layer = merge(layer, doc)
     if config_args:
-        command = merge(command, dict(config_args))
+        layer = merge(layer, dict(config_args))
     built_with = merge(base, stored or {})
-    new = merge(built_with, command)
-    layers = Layers(config=new, overrides=merge(stored or {}, command), base=base_file, root_rules=rules)
+    new = merge(built_with, layer)
+    layers = Layers(
+        config=new,
+        overrides=merge(stored or {}, layer),
+        base=base_file,
+        root_rules=rules,
+        configfiles=[Path(p).absolute() for p in configfiles],
+    )
     if (wd / REMEMBERED).is_file():
         layers.changes = changed_keys(built_with, new)
         last = load_config_file(wd / REMEMBERED, "remembered config")
         layers.base_changes = changed_keys(last, built_with)
         if layers.changes and not reconfigure:
-            raise ConfigError(layers.refusal(wd))
+            raise ConfigError(layers.refusal(wd, command))
     if check_sources:
         check_roots(new, wd, rules)
     return layers

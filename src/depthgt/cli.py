@@ -77,13 +77,14 @@ def build_config(args: argparse.Namespace, check_sources: bool = True) -> buildc
     remembered --configfile layer, this command's --configfile files;
     :mod:`depthgt.buildconfig`), checked before Snakemake starts: a file that does not
     parse, a missing source root, or a --configfile that changes keys of an existing
-    build without --reconfigure are refused in one line."""
+    build without --reconfigure (``depthgt report``: at all) are refused in one line."""
     layers = buildconfig.layered_config(
         Path(args.directory).resolve(),
         _snakefile(args).parent / "config" / "config.yaml",
         [Path(c) for c in getattr(args, "configfile", None) or []],
         reconfigure=bool(getattr(args, "reconfigure", False)),
         check_sources=check_sources,
+        command="report" if getattr(args, "command", None) == "report" else "build",
     )
     if getattr(args, "reconfigure", False):
         os.environ[buildconfig.RECONFIGURE_ENV] = "1"  # the child Snakemake applies the change too
