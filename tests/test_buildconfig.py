@@ -11,6 +11,7 @@ import yaml
 
 from depthgt.buildconfig import OVERRIDES, REMEMBERED, changed_keys, layered_config, merge, remember
 from depthgt.errors import ConfigError
+from depthgt.settings import TOP_LEVEL_KEYS
 
 BASE = {"seed": 3, "frameset": {"neighbours": 3, "stride": 2}, "sources": [{"name": "syn", "kind": "synthetic"}]}
 
@@ -162,3 +163,31 @@ def test_the_reports_refusal_says_what_works_for_the_report(wd, tmp_path, monkey
     # a build's refusal is as before
     with pytest.raises(ConfigError, match="pass --reconfigure to apply the change"):
         layered_config(wd, wd / "config/config.yaml", [other], reconfigure=False)
+
+
+def test_a_configfile_with_unknown_keys_is_named_and_a_target_read_as_one_said_so(wd, tmp_path):
+    """`snakemake --configfile mine.yaml results/.../index.json`: Snakemake reads the
+    target, an existing JSON mapping, as a second config file; refused in one line naming
+    it, its keys and where targets go (the index has a key `dataset`, a config key too). A
+    file with a typo is named with the key, without the hint."""
+    index = wd / "results" / "scenes" / "syn" / "room_000" / "index.json"
+    index.parent.mkdir(parents=True)
+    index.write_text('{"dataset": "syn", "scene": "room_000", "frames": [0, 1], "n_frames": 2}')
+    mine = write(tmp_path / "mine.yaml", {"seed": 5})
+    with pytest.raises(ConfigError) as err:
+        layered_config(wd, wd / "config/config.yaml", [mine, index], config_keys=TOP_LEVEL_KEYS)
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(
+        f"--configfile {index}: unknown config key(s) scene, frames, n_frames (allowed: dataset, device, enhance,"
+    )
+    assert message.endswith(
+        "Is it a target? Snakemake reads every value after --configfile, up to the next option, as a config file: "
+        "write targets before --configfile (snakemake TARGET ... --configfile FILE)"
+    )
+    typo = write(tmp_path / "typo.yaml", {"seed": 5, "sed": 4})
+    with pytest.raises(ConfigError) as err:
+        layered_config(wd, wd / "config/config.yaml", [typo], config_keys=TOP_LEVEL_KEYS)
+    assert str(err.value).startswith(f"--configfile {typo}: unknown config key(s) sed (allowed: ")
+    assert "target" not in str(err.value)
+    assert layered_config(wd, wd / "config/config.yaml", [mine], config_keys=TOP_LEVEL_KEYS).config["seed"] == 5
+    assert layered_config(wd, wd / "config/config.yaml", [index]).config["frames"] == [0, 1]  # not checked

@@ -324,3 +324,56 @@ def test_the_reports_refusal_of_a_changed_config_names_what_the_report_takes(tmp
     assert "pass --reconfigure" not in line and not (tmp_path / "r.html").exists()
     proc = depthgt("report", "--reconfigure", "-d", str(wd), check=False)  # the option the message no longer offers
     assert proc.returncode == 2 and "unrecognized arguments: --reconfigure" in proc.stderr
+
+
+def test_build_refuses_a_config_file_given_as_a_target(tmp_path):
+    """`depthgt build --configfile a.yaml b.yaml`: depthgt's --configfile takes one file,
+    so b.yaml would be a target (no rule builds it) and left out of the config: refused
+    in one line, with the command line meant, before Snakemake starts."""
+    wd = make_workdir(tmp_path / "wd", TINY)
+    (tmp_path / "a.yaml").write_text("seed: 4\n")
+    (tmp_path / "b.yaml").write_text("resize: 96\n")
+    proc = depthgt("build", "-d", str(wd), "-n", "--configfile", "a.yaml", "b.yaml", check=False, cwd=tmp_path)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"depthgt: error: target b.yaml is a config file ({tmp_path / 'b.yaml'}), not an output of the workflow: "
+        "depthgt's --configfile takes one file, repeat it for several (--configfile a.yaml --configfile b.yaml); "
+        "targets are rules or files under results/"
+    ]
+
+
+def test_targets_that_are_not_config_files_are_left_to_snakemake(tmp_path):
+    """A rule, an output under results/ (a YAML the workflow writes), a YAML file that
+    does not exist or holds no mapping: no refusal (Snakemake builds or names them)."""
+    import argparse
+
+    from depthgt.cli import check_targets
+    from depthgt.errors import DepthGTError
+
+    wd = make_workdir(tmp_path / "wd", TINY)
+    (wd / "results" / "report").mkdir(parents=True)
+    (wd / "results" / "report" / "config.yaml").write_text("seed: 3\n")
+    (wd / "list.yaml").write_text("- 1\n")
+    targets = ["dataset", "results/report/config.yaml", "missing.yaml", "list.yaml"]
+    check_targets(argparse.Namespace(directory=str(wd), targets=targets, configfile=None))
+    with pytest.raises(DepthGTError, match="target config/config.yaml is a config file"):
+        check_targets(argparse.Namespace(directory=str(wd), targets=["config/config.yaml"], configfile=None))
+
+
+def test_plain_snakemake_names_a_target_it_read_as_a_config_file(tmp_path):
+    """`snakemake --configfile mine.yaml results/.../index.json`: Snakemake's --configfile
+    takes every value up to the next option, so the existing index (a JSON mapping) is
+    read as a second config file and the default target planned: stopped in one line
+    naming it and where targets go."""
+    from conftest import snakemake
+
+    wd = make_workdir(tmp_path / "wd", TINY)
+    index = wd / "results" / "scenes" / "syn" / "room_000" / "index.json"
+    index.parent.mkdir(parents=True)
+    index.write_text('{"dataset": "syn", "scene": "room_000", "n_frames": 14, "problems": []}')
+    (tmp_path / "mine.yaml").write_text("seed: 3\n")
+    proc = snakemake(wd, "-n", "--configfile", str(tmp_path / "mine.yaml"), str(index), check=False)
+    said = proc.stdout + proc.stderr
+    assert proc.returncode != 0 and "Job stats" not in said
+    assert f"--configfile {index}: unknown config key(s) scene, n_frames, problems (allowed: " in said
+    assert "Is it a target? Snakemake reads every value after --configfile" in said

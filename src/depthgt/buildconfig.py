@@ -24,6 +24,11 @@ An edit of the base file itself is applied and announced (:func:`Layers.notice`)
 ``depthgt report`` shows the build as it was made: it refuses such a ``--configfile``
 too, and tells to apply it with ``depthgt build --reconfigure`` first.
 
+A ``--configfile`` with top-level keys that are no config keys is refused, naming the
+file and the keys; when most of its keys are such, it is most likely a target (a JSON
+output of the build) that Snakemake read as a config file, since its ``--configfile``
+takes every value up to the next option, and the message says so.
+
 Standard library and PyYAML only: the Snakefile imports it while it parses.
 """
 
@@ -34,7 +39,7 @@ import json
 import math
 import os
 import shlex
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -259,6 +264,7 @@ def layered_config(
     config_args: Mapping[str, Any] | None = None,
     reconfigure: bool | None = None,
     check_sources: bool = True,
+    config_keys: Collection[str] | None = None,
     command: str = "build",
 ) -> Layers:
     """The config of a command in ``workdir`` (module docstring).
@@ -271,12 +277,15 @@ def layered_config(
         reconfigure: apply changes to an existing build; None: read :data:`RECONFIGURE_ENV`.
         check_sources: check that every source's root exists (:func:`check_roots`;
             ``depthgt report`` reads the results only).
+        config_keys: the top-level config keys (:data:`depthgt.settings.TOP_LEVEL_KEYS`):
+            a ``--configfile`` with other top-level keys is refused (:func:`unknown_keys`);
+            None: not checked.
         command: what runs, for the refusal's advice (:meth:`Layers.refusal`).
 
     Raises:
-        ConfigError: a file that does not parse; a ``root`` that does not exist (naming
-            the resolved path and the rule); changes to an existing build without
-            ``reconfigure`` (:meth:`Layers.refusal`).
+        ConfigError: a file that does not parse; a ``--configfile`` with unknown keys; a
+            ``root`` that does not exist (naming the resolved path and the rule); changes
+            to an existing build without ``reconfigure`` (:meth:`Layers.refusal`).
     """
     wd = Path(workdir).absolute()
     if reconfigure is None:
@@ -291,7 +300,10 @@ def layered_config(
     stored = load_config_file(wd / OVERRIDES, "remembered config") if (wd / OVERRIDES).is_file() else None
     layer: dict[str, Any] = {}  # this command's --configfile files and --config values
     for path in configfiles:
-        doc, file_rules = _with_absolute_roots(load_config_file(path, "--configfile"), Path(path).absolute().parent)
+        loaded = load_config_file(path, "--configfile")
+        if config_keys is not None and set(map(str, loaded)) - set(config_keys):
+            raise ConfigError(unknown_keys(path, loaded, config_keys))
+        doc, file_rules = _with_absolute_roots(loaded, Path(path).absolute().parent)
         if "sources" in doc:
             rules = dict(file_rules)
         layer = merge(layer, doc)
@@ -315,6 +327,33 @@ def layered_config(
     if check_sources:
         check_roots(new, wd, rules)
     return layers
+
+
+def unknown_keys(path: str | Path, doc: Mapping[str, Any], config_keys: Collection[str]) -> str:
+    """The message refusing a ``--configfile`` with top-level keys that are no config
+    keys, naming them. When they are most of its keys, the file is most likely a target
+    written after ``--configfile`` (``snakemake --configfile mine.yaml
+    results/scenes/syn/r0/index.json``) that Snakemake read as a second config file: the
+    message says where targets go.
+
+    >>> print(unknown_keys("/wd/results/scenes/syn/r0/index.json", {"dataset": "syn", "frames": 1, "poses": 2},
+    ...     ["dataset", "seed"]))
+    --configfile /wd/results/scenes/syn/r0/index.json: unknown config key(s) frames, poses (allowed: dataset, seed). Is it a target? Snakemake reads every value after --configfile, up to the next option, as a config file: write targets before --configfile (snakemake TARGET ... --configfile FILE)
+    >>> print(unknown_keys("/mine.yaml", {"seed": 1, "sed": 2}, ["seed"]))
+    --configfile /mine.yaml: unknown config key(s) sed (allowed: seed)
+    """
+    unknown = [str(k) for k in doc if str(k) not in config_keys]
+    shown = ", ".join(unknown[:8]) + (f", ... ({len(unknown)} keys)" if len(unknown) > 8 else "")
+    message = (
+        f"--configfile {Path(path).absolute()}: unknown config key(s) {shown} "
+        f"(allowed: {', '.join(sorted(config_keys))})"
+    )
+    if 2 * len(unknown) > len(doc):
+        message += (
+            ". Is it a target? Snakemake reads every value after --configfile, up to the next option, as a config "
+            "file: write targets before --configfile (snakemake TARGET ... --configfile FILE)"
+        )
+    return message
 
 
 def check_roots(config: Mapping[str, Any], workdir: str | Path, rules: Mapping[str, str] | None = None) -> None:
