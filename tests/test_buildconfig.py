@@ -4,13 +4,14 @@ announced changes and how relative source roots resolve. No workflow run here
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 
 import pytest
 import yaml
 
 from depthgt.buildconfig import OVERRIDES, REMEMBERED, changed_keys, layered_config, merge, remember
-from depthgt.errors import ConfigError
+from depthgt.errors import ConfigError, DepthGTError
 from depthgt.settings import TOP_LEVEL_KEYS
 
 BASE = {"seed": 3, "frameset": {"neighbours": 3, "stride": 2}, "sources": [{"name": "syn", "kind": "synthetic"}]}
@@ -191,3 +192,37 @@ def test_a_configfile_with_unknown_keys_is_named_and_a_target_read_as_one_said_s
     assert "target" not in str(err.value)
     assert layered_config(wd, wd / "config/config.yaml", [mine], config_keys=TOP_LEVEL_KEYS).config["seed"] == 5
     assert layered_config(wd, wd / "config/config.yaml", [index]).config["frames"] == [0, 1]  # not checked
+
+
+def test_a_full_disk_while_remembering_is_one_line_and_leaves_no_temporary_file(wd, tmp_path, monkeypatch):
+    remember(wd, layered_config(wd, wd / "config/config.yaml"))
+    before = {p.name: p.read_text() for p in (wd / "results/config").iterdir()}
+    changed = layered_config(wd, wd / "config/config.yaml", [write(tmp_path / "o.yaml", {"seed": 5})], reconfigure=True)
+
+    def half_then_enospc(self, text, *args, **kwargs):
+        with open(self, "w", encoding="utf-8") as fh:
+            fh.write(text[: len(text) // 2])
+        raise OSError(errno.ENOSPC, "No space left on device", str(self))
+
+    monkeypatch.setattr(Path, "write_text", half_then_enospc)
+    with pytest.raises(DepthGTError) as err:
+        remember(wd, changed)
+    monkeypatch.undo()
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(
+        f"cannot remember the run's config in {wd / OVERRIDES}: No space left on device ("
+    )
+    assert "MB free on its file system); free space and run again" in message
+    after = {p.name: p.read_text() for p in (wd / "results/config").iterdir()}
+    assert after == before  # no temporary file; the remembered config as it was
+
+
+def test_a_config_folder_that_cannot_be_made_is_named_in_one_line(wd):
+    (wd / "results").mkdir()
+    (wd / "results" / "config").write_text("")  # a file where the folder goes
+    with pytest.raises(DepthGTError) as err:
+        remember(wd, layered_config(wd, wd / "config/config.yaml"))
+    assert str(err.value).startswith(
+        f"cannot remember the run's config in {wd / OVERRIDES}: File exists: {wd / 'results/config'} ("
+    )
+    assert str(err.value).endswith("; fix that and run again")

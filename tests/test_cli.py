@@ -377,3 +377,22 @@ def test_plain_snakemake_names_a_target_it_read_as_a_config_file(tmp_path):
     assert proc.returncode != 0 and "Job stats" not in said
     assert f"--configfile {index}: unknown config key(s) scene, n_frames, problems (allowed: " in said
     assert "Is it a target? Snakemake reads every value after --configfile" in said
+
+
+def test_a_config_that_cannot_be_remembered_stops_the_run_before_its_jobs_in_one_line(tmp_path):
+    """The run's config cannot be written (here a file where results/config goes; a full
+    disk alike, test_buildconfig): the run stops in `onstart`, before any job, with one
+    line naming the file, and gives the working directory's lock back."""
+    wd = make_workdir(tmp_path / "wd", TINY)
+    (wd / "results").mkdir()
+    (wd / "results" / "config").write_text("")
+    index = "results/scenes/syn/room_000/index.json"
+    proc = depthgt("build", "-d", str(wd), "--cores", "1", index, check=False)
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("depthgt: error:")]
+    assert len(lines) == 1 and lines[0].startswith(
+        f"depthgt: error: cannot remember the run's config in {wd / 'results/config/overrides.yaml'}: File exists: "
+        f"{wd / 'results/config'} ("
+    )
+    assert lines[0].endswith("MB free on its file system); fix that and run again")
+    assert not (wd / index).exists() and not (wd / ".snakemake" / "depthgt-run.lock").exists()

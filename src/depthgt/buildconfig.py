@@ -35,10 +35,12 @@ Standard library and PyYAML only: the Snakefile imports it while it parses.
 from __future__ import annotations
 
 import copy
+import errno
 import json
 import math
 import os
 import shlex
+import shutil
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,7 +48,8 @@ from typing import Any
 
 import yaml
 
-from depthgt.errors import ConfigError
+from depthgt.atomic import write_atomic
+from depthgt.errors import ConfigError, DepthGTError
 
 __all__ = [
     "REMEMBERED",
@@ -381,18 +384,44 @@ def check_roots(config: Mapping[str, Any], workdir: str | Path, rules: Mapping[s
 
 
 def remember(workdir: str | Path, layers: Layers) -> list[Path]:
-    """Write the merged config and the overrides of a run into ``workdir`` (atomically;
-    unchanged files are not rewritten). Returns the files written."""
+    """Write the merged config and the overrides of a run into ``workdir`` (atomically,
+    :func:`depthgt.atomic.write_atomic`; unchanged files are not rewritten). Returns the
+    files written.
+
+    Raises:
+        DepthGTError: a file that cannot be written (a full disk, no permission), in one
+            line naming it, why and the space free there; no temporary file is left.
+    """
     wd = Path(workdir).absolute()
     written = []
     for rel, doc in ((OVERRIDES, layers.overrides), (REMEMBERED, layers.config)):
         path = wd / rel
         text = _HEADER[rel] + yaml.safe_dump(json.loads(json.dumps(doc, default=str)), sort_keys=False)
-        if path.is_file() and path.read_text(encoding="utf-8") == text:
-            continue
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp")
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
+        try:
+            if path.is_file() and path.read_text(encoding="utf-8") == text:
+                continue
+            write_atomic(path, _write_text, text)
+        except OSError as err:
+            raise DepthGTError(_unwritable(path, err)) from None
         written.append(path)
     return written
+
+
+def _write_text(path: Path, text: str) -> None:
+    path.write_text(text, encoding="utf-8")
+
+
+def _unwritable(path: Path, err: OSError) -> str:
+    """The line refusing a run whose config cannot be remembered in ``path``."""
+    reason = err.strerror or str(err)
+    if err.filename and Path(err.filename).name not in (path.name, f".{path.name}.tmp{path.suffix}"):
+        reason += f": {err.filename}"  # a folder on the way (a file where results/config should be)
+    where = path.parent
+    while not where.is_dir() and where != where.parent:
+        where = where.parent
+    try:
+        free = f"{shutil.disk_usage(where).free / 1e6:.1f} MB free on its file system"
+    except OSError:
+        free = "free space unknown"
+    advice = "free space and run again" if err.errno in (errno.ENOSPC, errno.EDQUOT) else "fix that and run again"
+    return f"cannot remember the run's config in {path}: {reason} ({free}); {advice}"
