@@ -15,10 +15,13 @@ min_version("9.21")
 # --configfile files the build ran with before (results/config/overrides.yaml, written
 # by the first real run) and this run's; a run whose --configfile changes keys of an
 # existing build stops, naming them, unless DEPTHGT_RECONFIGURE=1 (depthgt.buildconfig).
+# A --configfile none of whose keys is a config key stops the run too: most likely a
+# target written after --configfile, which takes every value up to the next option.
 configfile: "config/config.yaml" if os.path.isfile("config/config.yaml") else os.path.join(workflow.basedir, "config/config.yaml")
 
 
 from depthgt import buildconfig  # standard library and PyYAML only
+from depthgt.settings import TOP_LEVEL_KEYS  # torch-free
 
 CONFIG_LAYERS = buildconfig.layered_config(
     ".",
@@ -27,6 +30,7 @@ CONFIG_LAYERS = buildconfig.layered_config(
     dict(workflow.config_settings.config),
     # jobs Snakemake spawns run with the config their main run remembered
     reconfigure=None if workflow.is_main_process else True,
+    config_keys=TOP_LEVEL_KEYS,
 )
 config.clear()
 config.update(copy.deepcopy(CONFIG_LAYERS.config))  # validation fills in defaults: not into what is remembered

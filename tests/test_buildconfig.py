@@ -4,13 +4,15 @@ announced changes and how relative source roots resolve. No workflow run here
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 
 import pytest
 import yaml
 
 from depthgt.buildconfig import OVERRIDES, REMEMBERED, changed_keys, layered_config, merge, remember
-from depthgt.errors import ConfigError
+from depthgt.errors import ConfigError, DepthGTError
+from depthgt.settings import TOP_LEVEL_KEYS
 
 BASE = {"seed": 3, "frameset": {"neighbours": 3, "stride": 2}, "sources": [{"name": "syn", "kind": "synthetic"}]}
 
@@ -142,3 +144,85 @@ def test_a_config_file_that_does_not_parse_is_named_with_its_line(wd, tmp_path):
         layered_config(wd, wd / "config/config.yaml", [tmp_path / "list.yaml"])
     (tmp_path / "tabs.json").write_text('{\n\t"seed": 1\n}')  # JSON as Snakemake reads it
     assert layered_config(wd, wd / "config/config.yaml", [tmp_path / "tabs.json"]).config["seed"] == 1
+
+
+def test_the_reports_refusal_says_what_works_for_the_report(wd, tmp_path, monkeypatch):
+    """depthgt report has no --reconfigure: its refusal does not offer one, but the
+    build command that applies the change (with this command's files) and leaving
+    --configfile out."""
+    remember(wd, layered_config(wd, wd / "config/config.yaml"))
+    other = write(tmp_path / "my configs" / "other.yaml", {"seed": 5})
+    monkeypatch.setenv("DEPTHGT_RECONFIGURE", "1")  # not read by the report: it cannot apply a change
+    with pytest.raises(ConfigError) as err:
+        layered_config(wd, wd / "config/config.yaml", [other], reconfigure=False, command="report")
+    message = str(err.value)
+    assert "\n" not in message and "seed: 3 -> 5" in message and str(wd / OVERRIDES) in message
+    assert "depthgt report shows the build as it was made and takes no --reconfigure" in message
+    assert f"depthgt build -d {wd} --reconfigure --configfile '{other}'" in message  # quoted: a space
+    assert "leave --configfile out" in message and "pass --reconfigure" not in message
+    assert "DEPTHGT_RECONFIGURE" not in message
+    # a build's refusal is as before
+    with pytest.raises(ConfigError, match="pass --reconfigure to apply the change"):
+        layered_config(wd, wd / "config/config.yaml", [other], reconfigure=False)
+
+
+def test_a_configfile_with_unknown_keys_is_named_and_a_target_read_as_one_said_so(wd, tmp_path):
+    """`snakemake --configfile mine.yaml results/.../index.json`: Snakemake reads the
+    target, an existing JSON mapping, as a second config file; refused in one line naming
+    it, its keys and where targets go (the index has a key `dataset`, a config key too). A
+    file with a typo is named with the key, without the hint."""
+    index = wd / "results" / "scenes" / "syn" / "room_000" / "index.json"
+    index.parent.mkdir(parents=True)
+    index.write_text('{"dataset": "syn", "scene": "room_000", "frames": [0, 1], "n_frames": 2}')
+    mine = write(tmp_path / "mine.yaml", {"seed": 5})
+    with pytest.raises(ConfigError) as err:
+        layered_config(wd, wd / "config/config.yaml", [mine, index], config_keys=TOP_LEVEL_KEYS)
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(
+        f"--configfile {index}: unknown config key(s) scene, frames, n_frames (allowed: dataset, device, enhance,"
+    )
+    assert message.endswith(
+        "Is it a target? Snakemake reads every value after --configfile, up to the next option, as a config file: "
+        "write targets before --configfile (snakemake TARGET ... --configfile FILE)"
+    )
+    typo = write(tmp_path / "typo.yaml", {"seed": 5, "sed": 4})
+    with pytest.raises(ConfigError) as err:
+        layered_config(wd, wd / "config/config.yaml", [typo], config_keys=TOP_LEVEL_KEYS)
+    assert str(err.value).startswith(f"--configfile {typo}: unknown config key(s) sed (allowed: ")
+    assert "target" not in str(err.value)
+    assert layered_config(wd, wd / "config/config.yaml", [mine], config_keys=TOP_LEVEL_KEYS).config["seed"] == 5
+    assert layered_config(wd, wd / "config/config.yaml", [index]).config["frames"] == [0, 1]  # not checked
+
+
+def test_a_full_disk_while_remembering_is_one_line_and_leaves_no_temporary_file(wd, tmp_path, monkeypatch):
+    remember(wd, layered_config(wd, wd / "config/config.yaml"))
+    before = {p.name: p.read_text() for p in (wd / "results/config").iterdir()}
+    changed = layered_config(wd, wd / "config/config.yaml", [write(tmp_path / "o.yaml", {"seed": 5})], reconfigure=True)
+
+    def half_then_enospc(self, text, *args, **kwargs):
+        with open(self, "w", encoding="utf-8") as fh:
+            fh.write(text[: len(text) // 2])
+        raise OSError(errno.ENOSPC, "No space left on device", str(self))
+
+    monkeypatch.setattr(Path, "write_text", half_then_enospc)
+    with pytest.raises(DepthGTError) as err:
+        remember(wd, changed)
+    monkeypatch.undo()
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(
+        f"cannot remember the run's config in {wd / OVERRIDES}: No space left on device ("
+    )
+    assert "MB free on its file system); free space and run again" in message
+    after = {p.name: p.read_text() for p in (wd / "results/config").iterdir()}
+    assert after == before  # no temporary file; the remembered config as it was
+
+
+def test_a_config_folder_that_cannot_be_made_is_named_in_one_line(wd):
+    (wd / "results").mkdir()
+    (wd / "results" / "config").write_text("")  # a file where the folder goes
+    with pytest.raises(DepthGTError) as err:
+        remember(wd, layered_config(wd, wd / "config/config.yaml"))
+    assert str(err.value).startswith(
+        f"cannot remember the run's config in {wd / OVERRIDES}: File exists: {wd / 'results/config'} ("
+    )
+    assert str(err.value).endswith("; fix that and run again")

@@ -294,3 +294,105 @@ def test_bench_runs_a_benchmark():
 def test_bench_names_the_known_benchmarks():
     proc = depthgt("bench", "no_such_bench", check=False)
     assert proc.returncode == 2 and "bench_render" in proc.stderr
+
+
+def _remembered_workdir(path: Path) -> Path:
+    """A working directory on TINY whose config is remembered, with a results/framesets
+    folder (what `depthgt report` asks of a build); nothing built."""
+    from depthgt import buildconfig
+
+    wd = make_workdir(path, TINY)
+    (wd / "results" / "framesets").mkdir(parents=True)
+    buildconfig.remember(wd, buildconfig.layered_config(wd, wd / "config/config.yaml", check_sources=False))
+    return wd
+
+
+def test_the_reports_refusal_of_a_changed_config_names_what_the_report_takes(tmp_path):
+    """`depthgt report --configfile` changing a key of the build: refused in one line
+    that does not offer the --reconfigure the report lacks, but the build command that
+    applies the change, and leaving --configfile out."""
+    wd = _remembered_workdir(tmp_path / "wd")
+    seed = tmp_path / "seed.yaml"
+    seed.write_text("seed: 11\n")
+    proc = depthgt("report", "-d", str(wd), "--configfile", str(seed), "--out", str(tmp_path / "r.html"), check=False)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    (line,) = proc.stderr.splitlines()
+    assert line.startswith(f"depthgt: error: --configfile would change the config the build in {wd} was made with")
+    assert "seed: 3 -> 11" in line
+    assert "depthgt report shows the build as it was made and takes no --reconfigure" in line
+    assert f"(depthgt build -d {wd} --reconfigure --configfile {seed};" in line
+    assert "pass --reconfigure" not in line and not (tmp_path / "r.html").exists()
+    proc = depthgt("report", "--reconfigure", "-d", str(wd), check=False)  # the option the message no longer offers
+    assert proc.returncode == 2 and "unrecognized arguments: --reconfigure" in proc.stderr
+
+
+def test_build_refuses_a_config_file_given_as_a_target(tmp_path):
+    """`depthgt build --configfile a.yaml b.yaml`: depthgt's --configfile takes one file,
+    so b.yaml would be a target (no rule builds it) and left out of the config: refused
+    in one line, with the command line meant, before Snakemake starts."""
+    wd = make_workdir(tmp_path / "wd", TINY)
+    (tmp_path / "a.yaml").write_text("seed: 4\n")
+    (tmp_path / "b.yaml").write_text("resize: 96\n")
+    proc = depthgt("build", "-d", str(wd), "-n", "--configfile", "a.yaml", "b.yaml", check=False, cwd=tmp_path)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"depthgt: error: target b.yaml is a config file ({tmp_path / 'b.yaml'}), not an output of the workflow: "
+        "depthgt's --configfile takes one file, repeat it for several (--configfile a.yaml --configfile b.yaml); "
+        "targets are rules or files under results/"
+    ]
+
+
+def test_targets_that_are_not_config_files_are_left_to_snakemake(tmp_path):
+    """A rule, an output under results/ (a YAML the workflow writes), a YAML file that
+    does not exist or holds no mapping: no refusal (Snakemake builds or names them)."""
+    import argparse
+
+    from depthgt.cli import check_targets
+    from depthgt.errors import DepthGTError
+
+    wd = make_workdir(tmp_path / "wd", TINY)
+    (wd / "results" / "report").mkdir(parents=True)
+    (wd / "results" / "report" / "config.yaml").write_text("seed: 3\n")
+    (wd / "list.yaml").write_text("- 1\n")
+    targets = ["dataset", "results/report/config.yaml", "missing.yaml", "list.yaml"]
+    check_targets(argparse.Namespace(directory=str(wd), targets=targets, configfile=None))
+    with pytest.raises(DepthGTError, match="target config/config.yaml is a config file"):
+        check_targets(argparse.Namespace(directory=str(wd), targets=["config/config.yaml"], configfile=None))
+
+
+def test_plain_snakemake_names_a_target_it_read_as_a_config_file(tmp_path):
+    """`snakemake --configfile mine.yaml results/.../index.json`: Snakemake's --configfile
+    takes every value up to the next option, so the existing index (a JSON mapping) is
+    read as a second config file and the default target planned: stopped in one line
+    naming it and where targets go."""
+    from conftest import snakemake
+
+    wd = make_workdir(tmp_path / "wd", TINY)
+    index = wd / "results" / "scenes" / "syn" / "room_000" / "index.json"
+    index.parent.mkdir(parents=True)
+    index.write_text('{"dataset": "syn", "scene": "room_000", "n_frames": 14, "problems": []}')
+    (tmp_path / "mine.yaml").write_text("seed: 3\n")
+    proc = snakemake(wd, "-n", "--configfile", str(tmp_path / "mine.yaml"), str(index), check=False)
+    said = proc.stdout + proc.stderr
+    assert proc.returncode != 0 and "Job stats" not in said
+    assert f"--configfile {index}: unknown config key(s) scene, n_frames, problems (allowed: " in said
+    assert "Is it a target? Snakemake reads every value after --configfile" in said
+
+
+def test_a_config_that_cannot_be_remembered_stops_the_run_before_its_jobs_in_one_line(tmp_path):
+    """The run's config cannot be written (here a file where results/config goes; a full
+    disk alike, test_buildconfig): the run stops in `onstart`, before any job, with one
+    line naming the file, and gives the working directory's lock back."""
+    wd = make_workdir(tmp_path / "wd", TINY)
+    (wd / "results").mkdir()
+    (wd / "results" / "config").write_text("")
+    index = "results/scenes/syn/room_000/index.json"
+    proc = depthgt("build", "-d", str(wd), "--cores", "1", index, check=False)
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("depthgt: error:")]
+    assert len(lines) == 1 and lines[0].startswith(
+        f"depthgt: error: cannot remember the run's config in {wd / 'results/config/overrides.yaml'}: File exists: "
+        f"{wd / 'results/config'} ("
+    )
+    assert lines[0].endswith("MB free on its file system); fix that and run again")
+    assert not (wd / index).exists() and not (wd / ".snakemake" / "depthgt-run.lock").exists()

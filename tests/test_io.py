@@ -243,3 +243,32 @@ def test_save_npz_round_trip_at_exactly_the_path(tmp_path):
 
     with zipfile.ZipFile(path) as zf:  # no time of writing in the bytes
         assert {m.date_time for m in zf.infolist()} == {(1980, 1, 1, 0, 0, 0)}
+
+
+def test_write_atomic_leaves_no_temporary_file_when_the_write_or_the_rename_fails(tmp_path, monkeypatch):
+    """A full disk in the writer, or a rename that fails, leaves neither a temporary file
+    nor a changed target; the error comes through as it was."""
+    import errno
+    import os
+
+    from depthgt.atomic import write_atomic
+
+    target = tmp_path / "out" / "config.yaml"
+    write_atomic(target, Path.write_text, "old\n")
+
+    def enospc(path: Path, text: str) -> None:
+        path.write_text(text[:2])
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    with pytest.raises(OSError, match="No space left on device"):
+        write_atomic(target, enospc, "new\n")
+    assert [p.name for p in target.parent.iterdir()] == ["config.yaml"] and target.read_text() == "old\n"
+
+    def refused(src, dst):
+        raise OSError(errno.ENOSPC, "No space left on device", str(dst))
+
+    monkeypatch.setattr(os, "replace", refused)
+    with pytest.raises(OSError, match="No space left on device"):
+        write_atomic(target, Path.write_text, "new\n")
+    monkeypatch.undo()
+    assert [p.name for p in target.parent.iterdir()] == ["config.yaml"] and target.read_text() == "old\n"

@@ -14,9 +14,10 @@ import os
 import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+if TYPE_CHECKING:
+    import numpy as np
 
 __all__ = ["write_atomic", "work_dir", "save_npz"]
 
@@ -26,17 +27,20 @@ def write_atomic(path: str | Path, writer: Callable[..., Any], *args: Any) -> Pa
 
     The temporary file keeps the suffix of ``path`` (``.{name}.tmp{suffix}``), so that
     writers choosing the format by suffix (OpenEXR, OpenCV) work. Parent folders are
-    created. A writer that fails (a full disk) leaves no temporary file taking space.
+    created. A writer or a rename that fails (a full disk) leaves no temporary file
+    taking space; the error is raised as it came. Standard library only (numpy is
+    imported by :func:`save_npz` alone): :mod:`depthgt.buildconfig` writes with it while
+    the Snakefile parses.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
     try:
         writer(tmp, *args)
+        os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    os.replace(tmp, path)
     return path
 
 
@@ -78,6 +82,8 @@ def save_npz(path: str | Path, arrays: dict[str, np.ndarray], level: int = 1) ->
     """
     import io
     import zipfile
+
+    import numpy as np
 
     with open(path, "wb") as fh, zipfile.ZipFile(fh, "w") as zf:
         for name, value in arrays.items():

@@ -21,6 +21,13 @@ value built and the value asked for, unless it is run with ``--reconfigure`` (or
 :data:`RECONFIGURE_ENV` ``=1`` for a plain Snakemake run): then the change is
 remembered and Snakemake's params rerun trigger rebuilds what the changed keys decide.
 An edit of the base file itself is applied and announced (:func:`Layers.notice`).
+``depthgt report`` shows the build as it was made: it refuses such a ``--configfile``
+too, and tells to apply it with ``depthgt build --reconfigure`` first.
+
+A ``--configfile`` with top-level keys that are no config keys is refused, naming the
+file and the keys; when most of its keys are such, it is most likely a target (a JSON
+output of the build) that Snakemake read as a config file, since its ``--configfile``
+takes every value up to the next option, and the message says so.
 
 Standard library and PyYAML only: the Snakefile imports it while it parses.
 """
@@ -28,17 +35,21 @@ Standard library and PyYAML only: the Snakefile imports it while it parses.
 from __future__ import annotations
 
 import copy
+import errno
 import json
 import math
 import os
-from collections.abc import Mapping, Sequence
+import shlex
+import shutil
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from depthgt.errors import ConfigError
+from depthgt.atomic import write_atomic
+from depthgt.errors import ConfigError, DepthGTError
 
 __all__ = [
     "REMEMBERED",
@@ -203,6 +214,7 @@ class Layers:
             ``config/config.yaml``, a new default).
         base: the base file.
         root_rules: source name -> how its root was resolved (for messages).
+        configfiles: this command's ``--configfile`` files, absolute, in order.
     """
 
     config: dict[str, Any]
@@ -211,16 +223,29 @@ class Layers:
     base_changes: list[str] = field(default_factory=list)
     base: Path | None = None
     root_rules: dict[str, str] = field(default_factory=dict)
+    configfiles: list[Path] = field(default_factory=list)
 
-    def refusal(self, workdir: str | Path) -> str:
-        """The message that refuses this command's changes (``changes``)."""
+    def refusal(self, workdir: str | Path, command: str = "build") -> str:
+        """The message that refuses this command's changes (``changes``); what to do
+        instead depends on the ``command``: ``build`` (``depthgt build`` or ``rebuild``,
+        a plain Snakemake run) or ``report`` (``depthgt report``, which has no
+        ``--reconfigure``: it shows the build as it was made)."""
         wd = Path(workdir).absolute()
-        return (
+        head = (
             f"--configfile would change the config the build in {wd} was made with ({self.base} with "
-            f"{wd / OVERRIDES}): "
-            + "; ".join(self.changes)
-            + ". Leave --configfile out to go on with the build's config, pass --reconfigure to apply the change "
-            f"(the outputs these keys decide are built again; plain snakemake: {RECONFIGURE_ENV}=1), "
+            f"{wd / OVERRIDES}): " + "; ".join(self.changes)
+        )
+        if command == "report":
+            files = " ".join(f"--configfile {shlex.quote(str(c))}" for c in self.configfiles)
+            return (
+                f"{head}. depthgt report shows the build as it was made and takes no --reconfigure: leave "
+                f"--configfile out to report on the build, or apply the change to the build first "
+                f"(depthgt build -d {shlex.quote(str(wd))} --reconfigure {files}; the outputs these keys decide "
+                "are built again), then run depthgt report without --configfile"
+            )
+        return (
+            f"{head}. Leave --configfile out to go on with the build's config, pass --reconfigure to apply the "
+            f"change (the outputs these keys decide are built again; plain snakemake: {RECONFIGURE_ENV}=1), "
             "or use another working directory (-d)"
         )
 
@@ -242,6 +267,8 @@ def layered_config(
     config_args: Mapping[str, Any] | None = None,
     reconfigure: bool | None = None,
     check_sources: bool = True,
+    config_keys: Collection[str] | None = None,
+    command: str = "build",
 ) -> Layers:
     """The config of a command in ``workdir`` (module docstring).
 
@@ -253,11 +280,15 @@ def layered_config(
         reconfigure: apply changes to an existing build; None: read :data:`RECONFIGURE_ENV`.
         check_sources: check that every source's root exists (:func:`check_roots`;
             ``depthgt report`` reads the results only).
+        config_keys: the top-level config keys (:data:`depthgt.settings.TOP_LEVEL_KEYS`):
+            a ``--configfile`` with other top-level keys is refused (:func:`unknown_keys`);
+            None: not checked.
+        command: what runs, for the refusal's advice (:meth:`Layers.refusal`).
 
     Raises:
-        ConfigError: a file that does not parse; a ``root`` that does not exist (naming
-            the resolved path and the rule); changes to an existing build without
-            ``reconfigure`` (:meth:`Layers.refusal`).
+        ConfigError: a file that does not parse; a ``--configfile`` with unknown keys; a
+            ``root`` that does not exist (naming the resolved path and the rule); changes
+            to an existing build without ``reconfigure`` (:meth:`Layers.refusal`).
     """
     wd = Path(workdir).absolute()
     if reconfigure is None:
@@ -270,26 +301,62 @@ def layered_config(
         if isinstance(s, dict) and isinstance(s.get("root"), str) and not Path(s["root"]).expanduser().is_absolute()
     }
     stored = load_config_file(wd / OVERRIDES, "remembered config") if (wd / OVERRIDES).is_file() else None
-    command: dict[str, Any] = {}
+    layer: dict[str, Any] = {}  # this command's --configfile files and --config values
     for path in configfiles:
-        doc, file_rules = _with_absolute_roots(load_config_file(path, "--configfile"), Path(path).absolute().parent)
+        loaded = load_config_file(path, "--configfile")
+        if config_keys is not None and set(map(str, loaded)) - set(config_keys):
+            raise ConfigError(unknown_keys(path, loaded, config_keys))
+        doc, file_rules = _with_absolute_roots(loaded, Path(path).absolute().parent)
         if "sources" in doc:
             rules = dict(file_rules)
-        command = merge(command, doc)
+        layer = merge(layer, doc)
     if config_args:
-        command = merge(command, dict(config_args))
+        layer = merge(layer, dict(config_args))
     built_with = merge(base, stored or {})
-    new = merge(built_with, command)
-    layers = Layers(config=new, overrides=merge(stored or {}, command), base=base_file, root_rules=rules)
+    new = merge(built_with, layer)
+    layers = Layers(
+        config=new,
+        overrides=merge(stored or {}, layer),
+        base=base_file,
+        root_rules=rules,
+        configfiles=[Path(p).absolute() for p in configfiles],
+    )
     if (wd / REMEMBERED).is_file():
         layers.changes = changed_keys(built_with, new)
         last = load_config_file(wd / REMEMBERED, "remembered config")
         layers.base_changes = changed_keys(last, built_with)
         if layers.changes and not reconfigure:
-            raise ConfigError(layers.refusal(wd))
+            raise ConfigError(layers.refusal(wd, command))
     if check_sources:
         check_roots(new, wd, rules)
     return layers
+
+
+def unknown_keys(path: str | Path, doc: Mapping[str, Any], config_keys: Collection[str]) -> str:
+    """The message refusing a ``--configfile`` with top-level keys that are no config
+    keys, naming them. When they are most of its keys, the file is most likely a target
+    written after ``--configfile`` (``snakemake --configfile mine.yaml
+    results/scenes/syn/r0/index.json``) that Snakemake read as a second config file: the
+    message says where targets go.
+
+    >>> print(unknown_keys("/wd/results/scenes/syn/r0/index.json", {"dataset": "syn", "frames": 1, "poses": 2},
+    ...     ["dataset", "seed"]))
+    --configfile /wd/results/scenes/syn/r0/index.json: unknown config key(s) frames, poses (allowed: dataset, seed). Is it a target? Snakemake reads every value after --configfile, up to the next option, as a config file: write targets before --configfile (snakemake TARGET ... --configfile FILE)
+    >>> print(unknown_keys("/mine.yaml", {"seed": 1, "sed": 2}, ["seed"]))
+    --configfile /mine.yaml: unknown config key(s) sed (allowed: seed)
+    """
+    unknown = [str(k) for k in doc if str(k) not in config_keys]
+    shown = ", ".join(unknown[:8]) + (f", ... ({len(unknown)} keys)" if len(unknown) > 8 else "")
+    message = (
+        f"--configfile {Path(path).absolute()}: unknown config key(s) {shown} "
+        f"(allowed: {', '.join(sorted(config_keys))})"
+    )
+    if 2 * len(unknown) > len(doc):
+        message += (
+            ". Is it a target? Snakemake reads every value after --configfile, up to the next option, as a config "
+            "file: write targets before --configfile (snakemake TARGET ... --configfile FILE)"
+        )
+    return message
 
 
 def check_roots(config: Mapping[str, Any], workdir: str | Path, rules: Mapping[str, str] | None = None) -> None:
@@ -317,18 +384,44 @@ def check_roots(config: Mapping[str, Any], workdir: str | Path, rules: Mapping[s
 
 
 def remember(workdir: str | Path, layers: Layers) -> list[Path]:
-    """Write the merged config and the overrides of a run into ``workdir`` (atomically;
-    unchanged files are not rewritten). Returns the files written."""
+    """Write the merged config and the overrides of a run into ``workdir`` (atomically,
+    :func:`depthgt.atomic.write_atomic`; unchanged files are not rewritten). Returns the
+    files written.
+
+    Raises:
+        DepthGTError: a file that cannot be written (a full disk, no permission), in one
+            line naming it, why and the space free there; no temporary file is left.
+    """
     wd = Path(workdir).absolute()
     written = []
     for rel, doc in ((OVERRIDES, layers.overrides), (REMEMBERED, layers.config)):
         path = wd / rel
         text = _HEADER[rel] + yaml.safe_dump(json.loads(json.dumps(doc, default=str)), sort_keys=False)
-        if path.is_file() and path.read_text(encoding="utf-8") == text:
-            continue
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp")
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
+        try:
+            if path.is_file() and path.read_text(encoding="utf-8") == text:
+                continue
+            write_atomic(path, _write_text, text)
+        except OSError as err:
+            raise DepthGTError(_unwritable(path, err)) from None
         written.append(path)
     return written
+
+
+def _write_text(path: Path, text: str) -> None:
+    path.write_text(text, encoding="utf-8")
+
+
+def _unwritable(path: Path, err: OSError) -> str:
+    """The line refusing a run whose config cannot be remembered in ``path``."""
+    reason = err.strerror or str(err)
+    if err.filename and Path(err.filename).name not in (path.name, f".{path.name}.tmp{path.suffix}"):
+        reason += f": {err.filename}"  # a folder on the way (a file where results/config should be)
+    where = path.parent
+    while not where.is_dir() and where != where.parent:
+        where = where.parent
+    try:
+        free = f"{shutil.disk_usage(where).free / 1e6:.1f} MB free on its file system"
+    except OSError:
+        free = "free space unknown"
+    advice = "free space and run again" if err.errno in (errno.ENOSPC, errno.EDQUOT) else "fix that and run again"
+    return f"cannot remember the run's config in {path}: {reason} ({free}); {advice}"

@@ -76,14 +76,19 @@ def build_config(args: argparse.Namespace, check_sources: bool = True) -> buildc
     """The config the command runs with in its working directory (the base, the build's
     remembered --configfile layer, this command's --configfile files;
     :mod:`depthgt.buildconfig`), checked before Snakemake starts: a file that does not
-    parse, a missing source root, or a --configfile that changes keys of an existing
-    build without --reconfigure are refused in one line."""
+    parse or holds no config key, a missing source root, or a --configfile that changes
+    keys of an existing build without --reconfigure (``depthgt report``: at all) are
+    refused in one line."""
+    from depthgt.settings import TOP_LEVEL_KEYS  # torch-free
+
     layers = buildconfig.layered_config(
         Path(args.directory).resolve(),
         _snakefile(args).parent / "config" / "config.yaml",
         [Path(c) for c in getattr(args, "configfile", None) or []],
         reconfigure=bool(getattr(args, "reconfigure", False)),
         check_sources=check_sources,
+        config_keys=TOP_LEVEL_KEYS,
+        command="report" if getattr(args, "command", None) == "report" else "build",
     )
     if getattr(args, "reconfigure", False):
         os.environ[buildconfig.RECONFIGURE_ENV] = "1"  # the child Snakemake applies the change too
@@ -117,6 +122,36 @@ def scene_outputs(summary: str, dataset: str, scene: str) -> list[str]:
     return out
 
 
+def check_targets(args: argparse.Namespace) -> None:
+    """Refuse a target that is a config file: ``depthgt build --configfile a.yaml
+    b.yaml`` (depthgt's --configfile takes one file, Snakemake's several) would make
+    b.yaml a target, which no rule builds, and leave it out of the config. A target
+    ending in .yaml/.yml that names an existing file (from the current folder or the
+    working directory) outside the build's results/ and holds a mapping is one.
+
+    Raises:
+        DepthGTError: naming the target and the command line meant.
+    """
+    wd = Path(args.directory).resolve()
+    for target in getattr(args, "targets", None) or []:
+        if Path(target).suffix.lower() not in (".yaml", ".yml"):
+            continue
+        for path in dict.fromkeys((Path(target).expanduser().absolute(), wd / target)):
+            if not path.is_file() or path.resolve().is_relative_to(wd / "results"):
+                continue  # the workflow's outputs are all under results/
+            try:
+                buildconfig.load_config_file(path)
+            except DepthGTError:
+                continue  # not a config: Snakemake names a target no rule builds
+            files = [*(getattr(args, "configfile", None) or []), target]
+            raise DepthGTError(
+                f"target {target} is a config file ({path}), not an output of the workflow: depthgt's --configfile "
+                "takes one file, repeat it for several ("
+                + " ".join(f"--configfile {f}" for f in files)
+                + "); targets are rules or files under results/"
+            )
+
+
 def _check_not_running(args: argparse.Namespace) -> None:
     """Refuse at once when a live run holds the working directory (depthgt.runlock; the
     workflow itself takes the lock when its jobs start)."""
@@ -125,6 +160,7 @@ def _check_not_running(args: argparse.Namespace) -> None:
 
 
 def _cmd_build(args: argparse.Namespace) -> int:
+    check_targets(args)
     _check_not_running(args)
     layers = build_config(args)
     extra = list(args.targets)

@@ -180,7 +180,8 @@ def frameset_runtime_min(n_framesets=1):
 # (while this file is parsed a SLURM run still looks local); on a cluster the submitting
 # node may have no GPU, there each job checks before any work (depthgt.device).
 # The run's config is remembered once its jobs are about to start (depthgt.buildconfig):
-# later commands in this working directory run with it without --configfile.
+# later commands in this working directory run with it without --configfile; a config
+# that cannot be written (a full disk) stops the run there, in one line.
 # Before the first job the planned frame sets must fit on the results file system
 # (depthgt.gt.space: the format's measured bytes per frame set x the frame sets whose
 # shard is not built yet; config dataset.check_space: false warns only). At the end the
@@ -229,12 +230,12 @@ onstart:
         warning = check_space(".", _space_plan(), SETTINGS.resize, refuse=SETTINGS.dataset.check_space)
         if warning:
             print(warning, file=sys.stderr)
+        buildconfig.remember(".", CONFIG_LAYERS)  # a full disk: one line naming the file
     except Exception as err:
         # one line, before any job: Snakemake would add its traceback of this handler
         runlock.release()
         print(f"depthgt: error: {err}", file=sys.stderr)
         raise SystemExit(1) from None
-    buildconfig.remember(".", CONFIG_LAYERS)
 
 
 onsuccess:
