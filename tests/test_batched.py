@@ -138,3 +138,25 @@ def test_the_refinements_normals_enter_the_cache_as_the_renderers_own(framesets)
     fused = fuse(data, poses_from_source(d), RenderSettings(), normals=res.normals)
     plain = fuse(d, poses_from_source(d), RenderSettings())
     assert torch.equal(fused.gt.depth, plain.gt.depth)
+
+
+def test_refining_together_evaluates_no_more_pairs_than_one_by_one(framesets, monkeypatch):
+    """After an accepted step the sets' linearisation comes from the trial's evaluation:
+    together, the residual evaluations cover no more pairs than set by set."""
+    import depthgt.registration.refine as refine
+
+    datas, offsets = framesets
+    settings = registration_settings({"method": "refine", "refine_settings": {"iters": [3, 2, 2]}})
+    rows = []
+    original = refine._system
+
+    def counting(level, T, pairs, s, gate):
+        rows.append(int(pairs.shape[0]))
+        return original(level, T, pairs, s, gate)
+
+    monkeypatch.setattr(refine, "_system", counting)
+    for d in datas:
+        refine_source_poses(d.rgb, d.depth_m, d.K, offsets, poses_from_source(d), settings)
+    one_by_one, rows[:] = sum(rows), []
+    refine_source_poses_many(datas, offsets, settings)
+    assert 0 < sum(rows) <= one_by_one

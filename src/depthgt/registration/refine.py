@@ -758,6 +758,24 @@ class RefineSet(NamedTuple):
     positions: tuple[int, ...] | None = None
 
 
+def _merged(cur: _System, taken: list[tuple[_System, torch.Tensor, torch.Tensor]], T: torch.Tensor) -> _System:
+    """``cur`` with the rows of the sets whose trial was accepted taken from the trial's
+    system (``taken``: the system, its rows, the batch's rows they replace): the system
+    at the accepted poses ``T`` without evaluating the residuals again."""
+    H, g = cur.H_rel.clone(), cur.g_rel.clone()
+    pair_cost, inliers, cost_pts, vis = (
+        cur.pair_cost.clone(),
+        cur.inliers.clone(),
+        cur.cost_pts.clone(),
+        cur.vis.clone(),
+    )
+    for new, mine, rows in taken:
+        H[rows], g[rows] = new.H_rel.index_select(0, mine), new.g_rel.index_select(0, mine)
+        pair_cost[rows], inliers[rows] = new.pair_cost.index_select(0, mine), new.inliers.index_select(0, mine)
+        cost_pts[rows], vis[rows] = new.cost_pts.index_select(0, mine), new.vis.index_select(0, mine)
+    return _System(pair_cost, inliers, torch.linalg.inv(T), cost_pts, vis, lambda: (H, g))
+
+
 @torch.no_grad()
 def refine_poses_many(
     sets: list[RefineSet],
@@ -769,8 +787,8 @@ def refine_poses_many(
     the same number of members and offsets) at once: every set's pairs in the same
     residual evaluations (what keeps a GPU busy), each set with its own Levenberg-
     Marquardt damping, trials and stopping. The same poses as one set at a time up to
-    the rounding of the batched products; the linearisation is evaluated afresh after
-    an accepted step (one evaluation more per iteration than :func:`refine_poses`).
+    the rounding of the batched products; after a step the accepted sets' rows of the
+    trial's system replace theirs (no evaluation beyond :func:`refine_poses`' own).
 
     Long because the coarse-to-fine loop carries every set's poses, damping and state
     across scales, iterations and trials side by side; its parts are the functions of
@@ -825,6 +843,7 @@ def refine_poses_many(
                 gr.append(g[f].reshape(-1))
             step = [0.0] * n_sets
             improved = [False] * n_sets
+            taken = []  # (rows of the trial's system, rows of the batch) of each accepted set
             trying = [b for b in range(n_sets) if active[b]]
             for _try in range(5):
                 if not trying:
@@ -854,6 +873,9 @@ def refine_poses_many(
                     if accept[i]:
                         f = slice(b * Fn, (b + 1) * Fn)
                         T[f] = T_new[f]
+                        taken.append(
+                            (new, torch.arange(i * n_p, (i + 1) * n_p, device=dev), rows[i * n_p : (i + 1) * n_p])
+                        )
                         lam[b] = max(lam[b] / 3.0, 1e-7)
                         improved[b] = True
                         step[b] = float(deltas[i].abs().max())
@@ -861,8 +883,8 @@ def refine_poses_many(
                         lam[b] *= 10.0
                         still.append(b)
                 trying = still
-            if any(improved):
-                cur = _system(level, T, pairs, ls, gate)  # the linearisation at the accepted poses
+            if taken:
+                cur = _merged(cur, taken, T)  # the linearisation at the accepted poses
             for b in range(n_sets):
                 if active[b]:
                     outs[b].cost_curve.append(float(cur.pair_cost[b * n_p : (b + 1) * n_p].sum()))
