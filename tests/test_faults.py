@@ -10,13 +10,22 @@ import logging
 import os
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 import yaml
-from conftest import _snakemake_command, commands_in_background, depthgt_command, early, make_workdir, synthetic_source
+from conftest import (
+    REPO,
+    _snakemake_command,
+    commands_in_background,
+    depthgt_command,
+    early,
+    make_workdir,
+    synthetic_source,
+)
 
 from depthgt.errors import DepthGTError
 from depthgt.gt import space
@@ -79,6 +88,24 @@ def test_space_check_figures(tmp_path, monkeypatch):
     shard.parent.mkdir(parents=True)
     shard.write_bytes(b"")
     assert space.space_need(tmp_path, PLAN[:1], 64).framesets == 0
+
+
+def test_the_space_check_imports_neither_opencv_nor_torch():
+    """The workflow's onstart imports depthgt.gt.space before the first job: the
+    format's measured sizes come from depthgt.gt.sizes, not from the shard writer (which
+    imports OpenCV, ~0.2 s)."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO / "src"), os.environ.get("PYTHONPATH", "")]))
+    code = (
+        "import sys, depthgt.gt.space as s; "
+        "assert s.__file__.startswith(sys.argv[1]), s.__file__; "
+        "heavy = [m for m in ('cv2', 'torch', 'numpy', 'OpenEXR', 'depthgt.gt.store') if m in sys.modules]; "
+        "assert not heavy, heavy"
+    )
+    proc = subprocess.run([sys.executable, "-c", code, str(REPO / "src")], capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr
+    from depthgt.gt import sizes, store
+
+    assert store.MEASURED_FRAMESET_BYTES is sizes.MEASURED_FRAMESET_BYTES  # one definition, the writer's name kept
 
 
 def test_memory_failures_name_the_rule_and_the_memory_to_ask():

@@ -2,9 +2,13 @@
 full disk ends with.
 
 The planned output is estimated from the format's measured bytes per frame set
-(:data:`depthgt.gt.store.MEASURED_FRAMESET_BYTES`, scaled with the pixels of the
+(:data:`depthgt.gt.sizes.MEASURED_FRAMESET_BYTES`, scaled with the pixels of the
 working resolution) times the frame sets of the batches whose shard does not exist yet;
 everything else a build writes (manifests, models, tables) is small beside them.
+
+Torch-, NumPy- and OpenCV-free (the standard library, :mod:`depthgt.errors` and the
+constants of :mod:`depthgt.gt.sizes`): the workflow's ``onstart`` imports it before the
+first job.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from depthgt.errors import DepthGTError
-from depthgt.gt import store
+from depthgt.gt import sizes
 
 __all__ = [
     "PlannedShard",
@@ -43,14 +47,14 @@ class PlannedShard:
 def frameset_bytes(resize: int, synthetic: bool) -> int:
     """Bytes on disk of one frame set at working resolution ``resize``: the measured
     size, its images scaled with the pixel count (the JSON members and the patch
-    record, :data:`depthgt.gt.store.MEASURED_FRAMESET_FIXED_BYTES`, do not scale).
+    record, :data:`depthgt.gt.sizes.MEASURED_FRAMESET_FIXED_BYTES`, do not scale).
 
     >>> frameset_bytes(256, False), frameset_bytes(128, True)
     (235000, 78250)
     """
-    measured = store.MEASURED_FRAMESET_BYTES["synthetic" if synthetic else "real"]
-    fixed = store.MEASURED_FRAMESET_FIXED_BYTES
-    return int(round(fixed + (measured - fixed) * (resize / store.MEASURED_RESIZE) ** 2))
+    measured = sizes.MEASURED_FRAMESET_BYTES["synthetic" if synthetic else "real"]
+    fixed = sizes.MEASURED_FRAMESET_FIXED_BYTES
+    return int(round(fixed + (measured - fixed) * (resize / sizes.MEASURED_RESIZE) ** 2))
 
 
 def free_bytes(path: str | Path) -> int:
