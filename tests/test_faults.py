@@ -10,13 +10,22 @@ import logging
 import os
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 import yaml
-from conftest import _snakemake_command, commands_in_background, depthgt_command, early, make_workdir, synthetic_source
+from conftest import (
+    REPO,
+    _snakemake_command,
+    commands_in_background,
+    depthgt_command,
+    early,
+    make_workdir,
+    synthetic_source,
+)
 
 from depthgt.errors import DepthGTError
 from depthgt.gt import space
@@ -79,6 +88,71 @@ def test_space_check_figures(tmp_path, monkeypatch):
     shard.parent.mkdir(parents=True)
     shard.write_bytes(b"")
     assert space.space_need(tmp_path, PLAN[:1], 64).framesets == 0
+
+
+def test_the_space_check_lists_each_scene_folder_once_and_stats_no_shard(tmp_path, monkeypatch):
+    """The shards not built yet come from one listing per scene folder (ScanNet plans
+    ~9,000 shards in ~1,500 folders), not one stat per shard, with Path.is_file's answers:
+    a link to a shard counts as built, a folder or a dangling link does not; and a failed
+    run's full-disk line lists each folder once."""
+    plan = [
+        space.PlannedShard(f"results/framesets/syn/{scene}/{a:06d}-{a:06d}.zip", 1, True)
+        for scene in ("room_000", "room_001", "room_002")
+        for a in range(6, 12)
+    ]
+    room0 = tmp_path / "results/framesets/syn/room_000"
+    room0.mkdir(parents=True)
+    (room0 / "000006-000006.zip").write_bytes(b"")  # built
+    (tmp_path / "elsewhere.zip").write_bytes(b"")
+    (room0 / "000007-000007.zip").symlink_to(tmp_path / "elsewhere.zip")  # a link to a file: built
+    (room0 / "000008-000008.zip").mkdir()  # a folder of the shard's name: not built
+    (room0 / "000009-000009.zip").symlink_to(tmp_path / "gone.zip")  # dangling: not built
+    (room0 / "000010-000010.zip.tmp").write_bytes(b"")  # a half-written shard: not built
+    room1 = tmp_path / "results/framesets/syn/room_001"
+    room1.mkdir()
+    (room1 / "000011-000011.zip").write_bytes(b"")
+    # room_002 has no folder yet
+    expected = [s for s in plan if not (tmp_path / s.path).is_file()]  # what a stat per shard decides
+    assert len(expected) == len(plan) - 3
+
+    listed, stats = [], []
+    real_scandir, real_stat = os.scandir, os.stat
+    monkeypatch.setattr(os, "scandir", lambda path=".": listed.append(Path(path)) or real_scandir(path))
+
+    def stat(path, *args, **kwargs):
+        stats.append(str(path))
+        return real_stat(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "stat", stat)
+    assert space.missing_shards(tmp_path, plan) == expected
+    assert sorted(listed) == [tmp_path / "results/framesets/syn" / r for r in ("room_000", "room_001", "room_002")]
+    assert not [p for p in stats if ".zip" in p], stats  # the links are followed by the listing's entries
+
+    listed.clear()
+    monkeypatch.setattr(space, "free_bytes", lambda path: 1_000)
+    log = tmp_path / "run.log"
+    log.write_text("Error in rule frameset_batch:\nOSError: [Errno 28] No space left on device\n")
+    lines = end_of_run_lines(tmp_path, [], plan, 64, log, {}, failed=True)
+    assert f"({len(expected)} frame sets still to build" in lines[0], lines
+    assert len(listed) == 3, listed  # each scene folder listed once at the run's end
+
+
+def test_the_space_check_imports_neither_opencv_nor_torch():
+    """The workflow's onstart imports depthgt.gt.space before the first job: the
+    format's measured sizes come from depthgt.gt.sizes, not from the shard writer (which
+    imports OpenCV, ~0.2 s)."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO / "src"), os.environ.get("PYTHONPATH", "")]))
+    code = (
+        "import sys, depthgt.gt.space as s; "
+        "assert s.__file__.startswith(sys.argv[1]), s.__file__; "
+        "heavy = [m for m in ('cv2', 'torch', 'numpy', 'OpenEXR', 'depthgt.gt.store') if m in sys.modules]; "
+        "assert not heavy, heavy"
+    )
+    proc = subprocess.run([sys.executable, "-c", code, str(REPO / "src")], capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr
+    from depthgt.gt import sizes, store
+
+    assert store.MEASURED_FRAMESET_BYTES is sizes.MEASURED_FRAMESET_BYTES  # one definition, the writer's name kept
 
 
 def test_memory_failures_name_the_rule_and_the_memory_to_ask():

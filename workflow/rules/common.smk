@@ -6,6 +6,7 @@ from snakemake.exceptions import WorkflowError
 
 from depthgt import runlock  # standard library only
 from depthgt.device import check_device_available  # torch-free
+from depthgt.gt.resources import frameset_mem_mb  # torch-free (the settings only)
 from depthgt.settings import (  # torch-free
     check_scene_name,
     check_workflow,
@@ -156,10 +157,16 @@ def train_threads(wildcards):
 # declared with headroom). A job that handles several frame sets in turn needs the memory
 # of one and the time of all. frameset.selection coverage: the batch keeps the span's frames
 # and the candidates' clouds; measured 1.7 GB peak RSS (7-Scenes, given and refine,
-# bench_pipeline.py --selection coverage).
+# bench_pipeline.py --selection coverage): 4000 MB at least.
+# On a GPU a batch builds GPU_GROUP (16) frame sets together, and the host holds the
+# group's frames and outputs: with device cuda or auto (a GPU wherever the job's node has
+# one) the memory is one set's plus the other 15 sets' frames and outputs, a bound from the
+# data's sizes (depthgt.gt.resources.group_host_mb: 2 x neighbours + 2 frames at 48 bytes
+# a pixel and the outputs at 64, 441 MB at 256x256 with 3 neighbours each side; given
+# on cuda: 2441 MB). Not measured: a GPU batch job's peak RSS, and the CUDA runtime's own
+# host memory, which the one-set figure's headroom has to hold. device cpu: one set's.
 _JOB = SETTINGS.registration.job_cost
-_COVERAGE = SETTINGS.frameset.selection == "coverage"
-FRAMESET_MEM_MB = max(_JOB.mem_mb, 4000) if _COVERAGE else _JOB.mem_mb
+FRAMESET_MEM_MB = frameset_mem_mb(SETTINGS)
 FRAMESET_CPU_S = _JOB.cpu_s
 
 

@@ -520,23 +520,55 @@ def empty_dataset_message(summary: dict) -> str:
 def console_summary(summary: dict, summary_md: str | Path | None = None) -> list[str]:
     """The lines a build prints at its end: frame sets built and skipped with the top
     reasons (one example each, naming the file), frames unusable, patch pairs kept, and
-    where the full summary is."""
-    fs, pairs = summary["framesets"], summary["pairs"]
+    where the full summary is (:func:`console_lines` of the summary's counts)."""
     skipped = summary["framesets_skipped"]
+    return console_lines(
+        summary["framesets"],
+        len(skipped),
+        reason_counts(skipped),
+        len(summary["frames_skipped"]),
+        summary["frames_read"],
+        summary["pairs"],
+        summary["patches_rejected"],
+        summary.get("scenes_without_framesets", []),
+        summary_md,
+    )
+
+
+def console_lines(
+    framesets: dict[str, int],
+    n_skipped: int,
+    top_reasons: list[tuple[str, int, dict]],
+    frames_unusable: int,
+    frames_read: int,
+    pairs: dict[str, int],
+    patches_rejected: int,
+    scenes_without_framesets: list[dict],
+    summary_md: str | Path | None = None,
+) -> list[str]:
+    """The lines of :func:`console_summary` from the counts alone, for a caller that
+    counts the scenes' tables without building the summary's per-frame-set records.
+
+    Args:
+        framesets, pairs: built frame sets and kept patch pairs per split.
+        top_reasons: the top skip reasons as :func:`reason_counts` gives them.
+        scenes_without_framesets: the first of them at least (three are printed).
+    """
+    fs = framesets
     lines = [
         f"depthgt: {sum(fs.values())} frame sets built ("
         + ", ".join(f"{s} {fs[s]}" for s in SPLITS)
-        + f"), {len(skipped)} skipped; {len(summary['frames_skipped'])} of {summary['frames_read']} frames read "
+        + f"), {n_skipped} skipped; {frames_unusable} of {frames_read} frames read "
         f"unusable; {sum(pairs.values())} patch pairs kept ("
         + ", ".join(f"{s} {pairs[s]}" for s in SPLITS)
-        + f"), {summary['patches_rejected']} rejected by the missing filter"
+        + f"), {patches_rejected} rejected by the missing filter"
     ]
-    for tag, n, first in reason_counts(skipped):
+    for tag, n, first in top_reasons:
         example = f"{first['dataset']}/{first['scene']}/{int(first['target']):06d}: {first['reason']}"
         if len(example) > 300:
             example = example[:297] + "..."
         lines.append(f"depthgt:   {n} frame sets skipped for {tag}, e.g. {example}")
-    for r in summary.get("scenes_without_framesets", [])[:3]:
+    for r in scenes_without_framesets[:3]:
         lines.append(f"depthgt:   scene {r['dataset']}/{r['scene']} has no frame set: {r['reason']}")
     if summary_md is not None:
         lines.append(f"depthgt: every skipped frame and frame set with its reason: {Path(summary_md).absolute()}")

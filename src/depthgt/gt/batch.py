@@ -23,6 +23,7 @@ from depthgt.framecache import FrameCache
 from depthgt.gt.build import FrameSetId, FrameSetOutputs, process_framesets
 from depthgt.gt.cache import ResizedScene
 from depthgt.gt.planning import coverage_candidates, member_problems
+from depthgt.gt.resources import GPU_GROUP
 from depthgt.settings import Settings
 from depthgt.status import Status
 
@@ -30,8 +31,8 @@ __all__ = ["GPU_GROUP", "build_batch", "frames_kept"]
 
 log = logging.getLogger("depthgt")
 
-#: frame sets rendered together on a GPU (about 0.3 GB of device memory each at 256x256)
-GPU_GROUP = 16
+# GPU_GROUP, the frame sets built together on a GPU: defined in the torch-free
+# depthgt.gt.resources, where the workflow sizes the batch job's memory by it
 
 
 def frames_kept(settings: Settings) -> int:

@@ -65,6 +65,7 @@ from depthgt import io
 from depthgt.atomic import write_atomic
 from depthgt.errors import DepthGTError
 from depthgt.gt.patches import CUT_KEYS, cut_patches
+from depthgt.gt.sizes import MEASURED_FRAMESET_BYTES, MEASURED_FRAMESET_FIXED_BYTES, MEASURED_RESIZE
 from depthgt.status import Status
 
 __all__ = [
@@ -150,20 +151,9 @@ CHANNELS = {
     },
 }
 
-#: bytes on disk of one frame set in this format at the working resolution
-#: :data:`MEASURED_RESIZE` (its share of a shard), measured (bench/README.md "Bytes per
-#: frame set", format 3): 0.235 MB over the 33 frame sets of the two real recordings
-#: (7-Scenes 0.241, TUM 0.234), 0.271 MB on synthetic rooms with their clean truth; the
-#: run's space check (:mod:`depthgt.gt.space`) plans with them and the README's figures
-#: (0.59 TB for every frame of ScanNet) follow from them (tests/test_docs_facts.py)
-MEASURED_FRAMESET_BYTES = {"real": 235_000, "synthetic": 271_000}
-#: the working resolution (``resize``) of :data:`MEASURED_FRAMESET_BYTES`
-MEASURED_RESIZE = 256
-#: the part of :data:`MEASURED_FRAMESET_BYTES` that does not grow with the resolution:
-#: the JSON members (~5 kB), the patch record (~2 kB), and the images' headers and the
-#: zip's records (~7 kB); fitted to shards measured at ``resize: 64`` (28.0 kB per real,
-#: 29.5 kB per synthetic frame set) with the sizes at 256 above
-MEASURED_FRAMESET_FIXED_BYTES = 14_000
+# MEASURED_FRAMESET_BYTES, MEASURED_RESIZE, MEASURED_FRAMESET_FIXED_BYTES: the format's
+# measured size, defined in the import-free depthgt.gt.sizes (the space check's) and
+# exported here too
 
 FRAMESET_FILES = ("gt.exr", "input.exr", RGB_MEMBER, "poses.json", "patches.npz", "frameset.json")
 BATCH_MEMBER = "batch.json"
