@@ -219,7 +219,9 @@ def test_grouped_sampling_equals_one_map_per_pair():
                 for p in range(len(a))
             ]
         )
-        assert torch.equal(_sample_grouped(maps, gr, a), one_by_one)
+        out = _sample_grouped(maps, gr, a)  # (G, C, m, N), pair p = g m + i
+        assert out.shape[0] * out.shape[2] == len(a)
+        assert torch.equal(out.permute(0, 2, 1, 3).reshape(len(a), 7, -1), one_by_one)
 
 
 def test_levels_of_one_frame_set_share_their_maps():

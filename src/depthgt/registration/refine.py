@@ -288,26 +288,37 @@ def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: Le
     r, valid, vis, r_geo, jac. A trial pose that the LM step rejects (or a cost-only
     evaluation) never builds them. Without the photometric term (``photo_weight`` 0)
     r, valid, vis and J hold the N geometric columns only (the photometric ones would
-    be invalid and invisible: no weight, no cost)."""
+    be invalid and invisible: no weight, no cost).
+
+    The element-wise work runs in the samples' layout (G, m, N) (:func:`_sample_grouped`:
+    pair p = g m + i), so that the sampled maps are read where grid_sample wrote them
+    instead of being copied into pair order; the results are (P, ...) views."""
     a, b = pairs[:, 0], pairs[:, 1]
     p = level.points.index_select(0, b)  # (P, 3, N)
     R = T_ab[:, :3, :3].to(p.dtype)
     t = T_ab[:, :3, 3].to(p.dtype)
     q = torch.baddbmm(t[..., None], R, p)  # (P, 3, N)
-    qx, qy, qz = q[:, 0], q[:, 1], q[:, 2]
+    n_pairs, _, N = q.shape
     K = level.K.to(p.dtype)
     fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
-    zi = 1.0 / qz.clamp(min=1e-6)
-    u = fx * qx * zi + cx
-    v = fy * qy * zi + cy
+    zi = 1.0 / q[:, 2].clamp(min=1e-6)
+    u = fx * q[:, 0] * zi + cx
+    v = fy * q[:, 1] * zi + cy
     h, w = level.hw
     grid = torch.stack([(u + 0.5) * (2.0 / w) - 1, (v + 0.5) * (2.0 / h) - 1], -1)  # (P, N, 2)
     if s.photo_weight > 0:
-        smp = _sample_grouped(level.maps, grid, a)  # (P, 10, N)
+        smp = _sample_grouped(level.maps, grid, a)  # (G, 10, m, N)
         nvalid = smp[:, 9]
     else:  # X, N and normal validity only (each channel is sampled on its own: same values)
-        smp = _sample_grouped(_geometric_maps(level), grid, a)  # (P, 7, N)
+        smp = _sample_grouped(_geometric_maps(level), grid, a)  # (G, 7, m, N)
         nvalid = smp[:, 6]
+    G, m = smp.shape[0], smp.shape[2]
+
+    def grouped(x: torch.Tensor) -> torch.Tensor:  # (P, N) -> (G, m, N), a view
+        return x.view(G, m, N)
+
+    qx, qy, qz = grouped(q[:, 0]), grouped(q[:, 1]), grouped(q[:, 2])
+    zi = grouped(zi)
     X = (smp[:, 0], smp[:, 1], smp[:, 2])
     n_inv = torch.rsqrt((smp[:, 3:6] * smp[:, 3:6]).sum(1).clamp(min=1e-12))
     Nrm = (smp[:, 3] * n_inv, smp[:, 4] * n_inv, smp[:, 5] * n_inv)
@@ -315,7 +326,7 @@ def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: Le
     # normal validity: a position off the image, u outside (-0.5, w - 0.5) or v likewise,
     # samples the zero padding with a weight of at least a half, so the image bounds
     # need no test of their own)
-    src_valid = level.valid.index_select(0, b)
+    src_valid = grouped(level.valid.index_select(0, b))
     seen = src_valid & (qz > 1e-3) & (nvalid > 0.999)
     d = (qx - X[0], qy - X[1], qz - X[2])
     r_geo = Nrm[0] * d[0] + Nrm[1] * d[1] + Nrm[2] * d[2]
@@ -329,32 +340,34 @@ def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: Le
         gate_pt, inv_geo = gate, 1.0 / s.geo_scale_m
     ok = seen & ((qz - X[2]).abs() < gate_pt) & (r_geo.abs() < gate_pt)
     qv = (qx, qy, qz)
+    per_point = inv_geo[:, :, None] if torch.is_tensor(inv_geo) else inv_geo  # over (G, m, 6, N)
+
+    def pairwise(x: torch.Tensor, *cols: int) -> torch.Tensor:  # (G, m, [6,] C) -> (P, [6,] C), a view
+        return x.reshape(n_pairs, *cols)
+
     if not s.photo_weight > 0:
         # without the photometric term its half would be all invalid and invisible
         # (zero weight, zero cost): the geometric residuals alone, (P, N), (P, 6, N)
         def jac_geo() -> torch.Tensor:
-            J_geo = torch.stack([*Nrm, *_cross(qv, Nrm)], 1)  # (P, 6, N)
-            return J_geo * (inv_geo[:, None] if torch.is_tensor(inv_geo) else inv_geo)
+            return pairwise(torch.stack([*Nrm, *_cross(qv, Nrm)], 2) * per_point, 6, N)
 
-        return r_geo * inv_geo, ok, seen, r_geo, jac_geo
-    r_ph = smp[:, 6] - level.gray.index_select(0, b)
+        return pairwise(r_geo * inv_geo, N), pairwise(ok, N), pairwise(seen, N), pairwise(r_geo, N), jac_geo
+    r_ph = smp[:, 6] - grouped(level.gray.index_select(0, b))
     wp = math.sqrt(s.photo_weight)
     # geometric then photometric residuals side by side: (P, 2N), (P, 6, 2N)
-    r = torch.cat([r_geo * inv_geo, r_ph * (wp / s.photo_scale)], 1)
-    valid = torch.cat([ok, ok], 1)
-    vis = torch.cat([seen, seen], 1)
+    r = pairwise(torch.cat([r_geo * inv_geo, r_ph * (wp / s.photo_scale)], -1), 2 * N)
+    valid = pairwise(torch.cat([ok, ok], -1), 2 * N)
+    vis = pairwise(torch.cat([seen, seen], -1), 2 * N)
 
     def jac() -> torch.Tensor:
-        J_geo = torch.stack([*Nrm, *_cross(qv, Nrm)], 1)  # (P, 6, N)
+        J_geo = torch.stack([*Nrm, *_cross(qv, Nrm)], 2)  # (G, m, 6, N)
         # d(u, v)/dq of the pinhole projection chained with the image gradient (gx, gy).
         gx, gy = smp[:, 7] * fx * zi, smp[:, 8] * fy * zi
         ga = (gx, gy, -(gx * qx + gy * qy) * zi)
-        J_ph = torch.stack([*ga, *_cross(qv, ga)], 1)
-        return torch.cat(
-            [J_geo * (inv_geo[:, None] if torch.is_tensor(inv_geo) else inv_geo), J_ph * (wp / s.photo_scale)], 2
-        )
+        J_ph = torch.stack([*ga, *_cross(qv, ga)], 2)
+        return pairwise(torch.cat([J_geo * per_point, J_ph * (wp / s.photo_scale)], -1), 6, 2 * N)
 
-    return r, valid, vis, r_geo, jac
+    return r, valid, vis, pairwise(r_geo, N), jac
 
 
 def _geometric_maps(level: Level) -> torch.Tensor:
@@ -372,7 +385,10 @@ def _sample_grouped(maps: torch.Tensor, grid: torch.Tensor, a: torch.Tensor) -> 
     """Bilinear samples of ``maps[a[p]]`` at ``grid[p]`` without copying a map per pair:
     the pairs are grouped by destination frame and each frame's map is sampled once.
 
-    maps (F, C, h, w); grid (P, N, 2) normalised coordinates; a (P,) -> (P, C, N).
+    maps (F, C, h, w); grid (P, N, 2) normalised coordinates; a (P,) -> (G, C, m, N)
+    with G m = P, pair p at [p // m, :, p % m]: when every frame is the destination of
+    m pairs and the pairs come in frame order (a frame set's pairs, typically) it is
+    grid_sample's output as written (G frames); else m = 1 (G = P pairs).
     """
     Fn, C = maps.shape[:2]
     P, N, _ = grid.shape
@@ -386,13 +402,12 @@ def _sample_grouped(maps: torch.Tensor, grid: torch.Tensor, a: torch.Tensor) -> 
     counts = torch.bincount(a, minlength=Fn)
     m = int(counts.max())
     if P == Fn * m and bool((a[1:] >= a[:-1]).all()):
-        # every frame the destination of m pairs, the pairs in frame order (a frame set's
-        # pairs, typically): the grid is already in the frames' layout (the same samples,
-        # no padding slots to fill and no gather back)
+        # the grid is already in the frames' layout (the same samples, no padding slots to
+        # fill, and no copy into pair order: the caller works in this layout)
         out = F.grid_sample(
             maps, grid.reshape(Fn, m * N, 1, 2), mode="bilinear", padding_mode="zeros", align_corners=False
         )
-        return out.reshape(Fn, C, m, N).transpose(1, 2).reshape(P, C, N)
+        return out.view(Fn, C, m, N)
     order = torch.argsort(a, stable=True)
     start = torch.cumsum(counts, 0) - counts
     slot = torch.empty_like(a)
@@ -401,7 +416,7 @@ def _sample_grouped(maps: torch.Tensor, grid: torch.Tensor, a: torch.Tensor) -> 
     G[a, slot] = grid
     out = F.grid_sample(maps, G.reshape(Fn, m * N, 1, 2), mode="bilinear", padding_mode="zeros", align_corners=False)
     out = out.reshape(Fn, C, m, N)
-    return out.permute(0, 2, 1, 3)[a, slot]
+    return out.permute(0, 2, 1, 3)[a, slot][:, :, None]
 
 
 def _robust(r: torch.Tensor, kind: str) -> tuple[torch.Tensor, torch.Tensor]:
