@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import zipfile
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -454,13 +455,16 @@ def test_overfit_chain_stops_at_a_failing_link(tmp_path, monkeypatch):
     assert all(int(o) > -12 for o in poses["coverage_T_j_to_t"])
 
 
-def test_batch_cache_gives_the_same_coverage_as_none(tmp_path):
+@pytest.mark.parametrize("method", ["given", "refine"])
+def test_batch_cache_gives_the_same_coverage_as_none(tmp_path, method):
     """With the batch job's frame cache the core's geometry comes from the window's
-    render and each candidate's mixed samples are found once: the same GT (to float32
-    rounding of the per-frame geometry) and the same record as without a cache."""
+    render, each candidate's mixed samples are found once, and the added views'
+    refinement pyramids come from (and stay in) the cache: the same GT (to float32
+    rounding of the per-frame results) and the same record as without a cache."""
     from depthgt.framecache import FrameCache
 
     settings = _settings("coverage", coverage_max_angle_deg=20.0)
+    settings = replace(settings, registration=replace(settings.registration, method=method))
     doc, gt, poses = _build(tmp_path, "none", settings)
     scene = OccluderScene()
     cache = FrameCache(keep=2 * settings.frameset.coverage_span + 2)
@@ -477,6 +481,8 @@ def test_batch_cache_gives_the_same_coverage_as_none(tmp_path):
     assert any(k.startswith("coverage.without_mixed") for k in kinds) and any(
         k.startswith("render.geometry") for k in kinds
     )
+    added = [TARGET + v["offset"] for v in doc["coverage"]["added"]]
+    assert added and all(("refine.level1" in cache._frames[p]) == (method == "refine") for p in added)
 
 
 def test_mixed_samples_equal_max_pool_windows():

@@ -325,7 +325,9 @@ def _register(
     else:
         if T_start is None:
             raise ValueError(f"coverage views of registration.method {reg.method!r} need their chain's poses")
-        res = refine_source_poses(data.rgb, data.depth_m, data.K, offsets, T_start, settings)
+        res = refine_source_poses(
+            data.rgb, data.depth_m, data.K, offsets, T_start, settings, cache=data.cache, positions=data.positions
+        )
     T = torch.as_tensor(res.T_j_to_t, dtype=torch.float64, device=data.depth_m.device)
     return T, list(res.neighbour_status), list(res.neighbour_reasons)
 
@@ -455,6 +457,10 @@ def add_coverage_views(
         [cand.frame_ids[i] for i in sel],
         cand.src_hw,
         cand.colour_matches_depth,
+        # the raw frames at the frame set's size: their refinement pyramids and noise
+        # residuals come from (and stay in) the batch job's frame cache
+        positions=(target, *(usable[c] for c in chosen)) if data.cache is not None else None,
+        cache=data.cache,
     )
     T_added, status, reasons = _register(added, offsets, reg, T_c_to_t[chosen])
     views = [
