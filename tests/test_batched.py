@@ -160,3 +160,26 @@ def test_refining_together_evaluates_no_more_pairs_than_one_by_one(framesets, mo
     one_by_one, rows[:] = sum(rows), []
     refine_source_poses_many(datas, offsets, settings)
     assert 0 < sum(rows) <= one_by_one
+
+
+def test_the_build_renders_a_group_as_it_renders_each_set(framesets):
+    """render_targets' group path (a GPU's) run on the CPU, with the sets' fused members,
+    the refinement's normals and the frame cache as the build passes them: the same GT
+    as one set at a time."""
+    from depthgt.gt.build import render_targets
+    from depthgt.registration import Alignment
+
+    datas, offsets = framesets
+    settings = registration_settings({"method": "refine", "refine_settings": {"iters": [1, 1, 1]}})
+    alignments = []
+    for k, d in enumerate(datas):
+        res = refine_source_poses(d.rgb, d.depth_m, d.K, offsets, poses_from_source(d), settings)
+        fused = [0, 1, 2, 4, 5, 6] if k == 1 else list(range(7))  # a neighbour left out
+        alignments.append(Alignment(res.T_j_to_t, fused, normals=res.normals))
+    one = render_targets(datas, alignments, RenderSettings(), together=False)
+    group = render_targets(datas, alignments, RenderSettings(), together=True)
+    for a, b in zip(one, group):
+        assert a.members == b.members and a.frames_left_out == b.frames_left_out
+        assert torch.equal(a.gt.depth > 0, b.gt.depth > 0)
+        assert torch.allclose(a.gt.depth.double(), b.gt.depth.double(), rtol=1e-5, atol=1e-6)
+    assert one[1].members == (0, 1, 2, 4, 5, 6)

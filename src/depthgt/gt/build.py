@@ -27,8 +27,7 @@ from depthgt.gt.coverage import CoverageResult, add_coverage_views
 from depthgt.gt.patches import make_patches, patch_record
 from depthgt.gt.planning import coverage_candidates, stable_seed
 from depthgt.gt.render import Fusion, fuse
-from depthgt.gt.render.cloud import cached_geometry, frame_geometry
-from depthgt.gt.render.fusion import SetGeometry, fuse_sets
+from depthgt.gt.render.fusion import fuse_sets, set_geometry
 from depthgt.gt.render.settings import RenderSettings
 from depthgt.metric_vocabulary import METRIC_UNITS, depth_errors
 from depthgt.registration import Alignment, FrameSetData, align, align_many, load_frameset, poses_from_source
@@ -304,11 +303,19 @@ def _finish_frameset(
     return doc
 
 
-def render_targets(datas: list[FrameSetData], alignments: list[Alignment], settings: RenderSettings) -> list[Fusion]:
+def render_targets(
+    datas: list[FrameSetData],
+    alignments: list[Alignment],
+    settings: RenderSettings,
+    together: bool | None = None,
+) -> list[Fusion]:
     """:func:`render_target` of each frame set; the sets with their target fused rendered
-    together (:func:`depthgt.gt.render.fusion.fuse_sets`: one pass on a GPU, set by set
-    on the CPU) when they come from one camera at one size."""
-    if len(datas) == 1 or datas[0].depth_m.device.type == "cpu":
+    together (:func:`depthgt.gt.render.fusion.fuse_sets`, one pass) when they come from
+    one camera at one size and ``together`` (default: on a GPU; the CPU renders set by
+    set)."""
+    if together is None:
+        together = datas[0].depth_m.device.type != "cpu"
+    if len(datas) == 1 or not together:
         return [render_target(d, a, settings) for d, a in zip(datas, alignments)]
     first = datas[0]
     same = all(
@@ -317,20 +324,7 @@ def render_targets(datas: list[FrameSetData], alignments: list[Alignment], setti
     )
     if not same or any(a.fused[0] != 0 for a in alignments) or len({d.truth_m is None for d in datas}) > 1:
         return [render_target(d, a, settings) for d, a in zip(datas, alignments)]
-    sets = []
-    for data, alignment in zip(datas, alignments):
-        members = (
-            alignment.fused if len(alignment.fused) < data.depth_m.shape[0] else list(range(data.depth_m.shape[0]))
-        )
-        if data.cache is not None and data.positions is not None:
-            geometry = cached_geometry(data.cache, data.positions, data.depth_m, data.K, src_hw=data.src_hw)
-        else:
-            geometry = frame_geometry(
-                data.depth_m, data.K[None].expand(data.depth_m.shape[0], 3, 3), src_hw=data.src_hw
-            )
-        eye = torch.eye(4, dtype=alignment.T_j_to_t.dtype, device=alignment.T_j_to_t.device)[None]
-        T = torch.cat([eye, alignment.T_j_to_t])[members]
-        sets.append(SetGeometry(geometry.take(members), T, tuple(members)))
+    sets = [set_geometry(d, a.T_j_to_t, _members(d, a), normals=a.normals) for d, a in zip(datas, alignments)]
     # the leave-target-out render for real data only (as render_target does): the group's
     # sets all have a clean truth or none (checked above)
     return fuse_sets(
@@ -340,6 +334,7 @@ def render_targets(datas: list[FrameSetData], alignments: list[Alignment], setti
         settings,
         src_hw=first.src_hw,
         leave_target_out=first.truth_m is None,
+        together=True,
     )
 
 
@@ -347,15 +342,20 @@ def render_target(data: FrameSetData, alignment: Alignment, settings: RenderSett
     """The GT of the target from the members the alignment fused
     (:func:`depthgt.gt.render.fuse`); without a clean truth also the leave-target-out
     render that :func:`quality_statistics` checks the GT with (real data)."""
-    fused = alignment.fused
     return fuse(
         data,
         alignment.T_j_to_t,
         settings,
-        members=fused if len(fused) < data.depth_m.shape[0] else slice(None),
+        members=_members(data, alignment),
         leave_target_out=data.truth_m is None,
         normals=alignment.normals,
     )
+
+
+def _members(data: FrameSetData, alignment: Alignment) -> list[int] | slice:
+    """The members the alignment fused (every one: all of them)."""
+    fused = alignment.fused
+    return fused if len(fused) < data.depth_m.shape[0] else slice(None)
 
 
 def cover(

@@ -36,6 +36,7 @@ __all__ = [
     "fuse",
     "fuse_geometry",
     "fuse_sets",
+    "set_geometry",
     "frames_left_out_whole",
     "whole_frame_threshold",
 ]
@@ -120,6 +121,40 @@ def fuse(
             raw depth when the caller has it, for the raw depth (no ``depth_m``); else
             taken from the batch job's frame cache (``data.cache``) or computed here.
     """
+    one = set_geometry(data, T_j_to_t, members, depth_m=depth_m, normals=normals, geometry=geometry)
+    return fuse_sets(
+        [one],
+        data.K,
+        tuple(data.depth_m.shape[-2:]),
+        settings,
+        src_hw=data.src_hw,
+        leave_target_out=leave_target_out,
+    )[0]
+
+
+class SetGeometry(NamedTuple):
+    """One frame set as the fusion takes it: the fused members' ``geometry`` (J frames,
+    the target first when it is fused), their poses ``T_j_to_t`` (J, 4, 4) in the target
+    camera and their positions ``members`` in the frame set (0 = the target)."""
+
+    geometry: FrameGeometry
+    T_j_to_t: torch.Tensor
+    members: tuple[int, ...]
+
+
+def set_geometry(
+    data: FrameSetData,
+    T_j_to_t: torch.Tensor,
+    members: slice | list[int] = slice(None),
+    *,
+    depth_m: torch.Tensor | None = None,
+    normals: torch.Tensor | None = None,
+    geometry: FrameGeometry | None = None,
+) -> SetGeometry:
+    """The :class:`SetGeometry` of the ``members`` of a frame set (arguments as
+    :func:`fuse`): the raw depth's geometry from ``geometry``, else the batch job's frame
+    cache (``data.cache``), else computed (with ``normals`` when they match the depth);
+    ``depth_m`` computed as given."""
     n_all = data.depth_m.shape[0]
     chosen = list(range(n_all))[members] if isinstance(members, slice) else list(members)
     depth = data.depth_m if depth_m is None else depth_m
@@ -135,26 +170,7 @@ def fuse(
         geometry = frame_geometry(depth, data.K[None].expand(n_all, 3, 3), src_hw=data.src_hw, normals=normals)
     eye = torch.eye(4, dtype=T_j_to_t.dtype, device=T_j_to_t.device)[None]
     T = torch.cat([eye, T_j_to_t], dim=0)
-    return fuse_geometry(
-        geometry.take(chosen),
-        T[chosen],
-        data.K,
-        tuple(data.depth_m.shape[-2:]),
-        settings,
-        members=tuple(chosen),
-        src_hw=data.src_hw,
-        leave_target_out=leave_target_out,
-    )
-
-
-class SetGeometry(NamedTuple):
-    """One frame set as the fusion takes it: the fused members' ``geometry`` (J frames,
-    the target first when it is fused), their poses ``T_j_to_t`` (J, 4, 4) in the target
-    camera and their positions ``members`` in the frame set (0 = the target)."""
-
-    geometry: FrameGeometry
-    T_j_to_t: torch.Tensor
-    members: tuple[int, ...]
+    return SetGeometry(geometry.take(chosen), T[chosen], tuple(chosen))
 
 
 def fuse_geometry(
