@@ -497,33 +497,37 @@ def test_cells_inside_unravels_as_nonzero():
         assert torch.equal(got, inside.nonzero())
 
 
-def test_candidates_in_point_order_are_the_same_candidates():
-    """``point_order`` changes the order the candidates come in, not which they are; sorted
-    by pixel, points made front first give every pixel's candidates front first."""
-    from depthgt.rasterise import candidates, front_to_back, sort_by_pixel
+def test_candidates_are_every_point_pixel_pair_within_the_radius():
+    """The soft splat's rasteriser against a plain enumeration: every valid point in front
+    of the camera paired with each pixel centre strictly within the radius (two images:
+    the pixel index counts the first image's pixels), point by point in their order."""
+    from depthgt.rasterise import candidates
 
     g = torch.Generator().manual_seed(4)
-    pts = torch.rand(1, 3000, 3, generator=g, dtype=torch.float64) * torch.tensor(
+    pts = torch.rand(2, 800, 3, generator=g, dtype=torch.float64) * torch.tensor(
         [2.0, 2.0, 3.0], dtype=torch.float64
-    ) - torch.tensor([1.0, 1.0, -0.5], dtype=torch.float64)
-    K = _K(1, 20.0, 15.5, 11.5)
-    valid = torch.rand(1, 3000, generator=g) > 0.1
-    grid = (resampled_positions(64, 32, dtype=torch.float64), resampled_positions(48, 24, dtype=torch.float64))
-    iz = 1.0 / pts[0, :, 2]
-    for grid_uv in (None, grid):
-        plain, _ = candidates(pts, K, valid, (24, 32), radius_px=1.25, min_depth=0.1, grid_uv=grid_uv)
-        order = front_to_back(iz)
-        made, _ = candidates(pts, K, valid, (24, 32), radius_px=1.25, min_depth=0.1, grid_uv=grid_uv, point_order=order)
-        pairs = lambda c: sorted(zip(c.point.tolist(), c.pixel.tolist(), c.d2.tolist()))  # noqa: E731
-        assert pairs(made) == pairs(plain) and len(plain.point) > 3000
-        rank = torch.empty_like(order)
-        rank[order] = torch.arange(len(order))
-        assert (rank.index_select(0, made.point).diff() >= 0).all()  # point by point, in that order
-        pixel, perm = sort_by_pixel(made.pixel)
-        assert torch.equal(pixel, made.pixel[perm]) and (pixel.diff() >= 0).all()
-        point = made.point[perm]
-        same = pixel[1:] == pixel[:-1]
-        assert (iz[point[1:]][same] <= iz[point[:-1]][same]).all()  # front first within a pixel
+    ) - torch.tensor([1.0, 1.0, -0.05], dtype=torch.float64)
+    K = _K(2, 20.0, 15.5, 11.5)
+    valid = torch.rand(2, 800, generator=g) > 0.1
+    h, w, r = 24, 32, 1.25
+    made, z = candidates(pts, K, valid, (h, w), radius_px=r, min_depth=0.1)
+    expected = []
+    for b in range(2):
+        for i in range(800):
+            x, y, d = (float(c) for c in pts[b, i])
+            if not valid[b, i] or d <= 0.1:
+                continue
+            u, v = 20.0 * x / d + 15.5, 20.0 * y / d + 11.5
+            for py in range(h):
+                for px in range(w):
+                    d2 = (px - u) ** 2 + (py - v) ** 2
+                    if d2 < r * r:
+                        expected.append((b * 800 + i, (b * h + py) * w + px, d2))
+    got = list(zip(made.point.tolist(), made.pixel.tolist(), made.d2.tolist()))
+    assert len(got) == len(expected) > 1000
+    assert [(p, q) for p, q, _ in got] == [(p, q) for p, q, _ in sorted(expected, key=lambda e: e[0])]
+    np.testing.assert_allclose([d for *_, d in got], [d for *_, d in sorted(expected, key=lambda e: e[0])], atol=1e-9)
+    assert torch.equal(z, pts[..., 2].reshape(-1))
 
 
 def test_resampled_positions_match_nearest_resize():

@@ -29,7 +29,6 @@ __all__ = [
     "check_points",
     "resampled_positions",
     "front_to_back",
-    "sort_by_pixel",
     "segment_rank_keep",
     "rank_in_pixel",
 ]
@@ -75,17 +74,12 @@ def candidates(
     *,
     radius_px: float,
     min_depth: float,
-    grid_uv: tuple[torch.Tensor, torch.Tensor] | None = None,
-    point_order: torch.Tensor | None = None,
 ) -> tuple[Candidates, torch.Tensor]:
-    """Pair every valid point with the pixel sample positions strictly inside ``radius_px``.
-
-    The sample position of pixel (u, v) is its centre, or with ``grid_uv`` = (gu (W,),
-    gv (H,)) the position (gu[u], gv[v]) (each within 0.5 px of the centre, see
-    :func:`resampled_positions`). The candidates come point by point, in the order of the
-    flattened points or, with ``point_order`` (a permutation of the B*N flattened
-    points, e.g. :func:`front_to_back`), in that order. Returns the candidates and the
-    (B*N,) depth of every point (differentiable).
+    """Pair every valid point with the pixel centres strictly inside ``radius_px`` (the
+    soft splat's rasteriser; the GT renderer's, which samples the pixels off their
+    centres and works in row blocks, is :mod:`depthgt.gt.render.rasteriser`). The
+    candidates come point by point, in the order of the flattened points. Returns the
+    candidates and the (B*N,) depth of every point (differentiable).
     """
     b, n, _ = points_cam.shape
     h, w = int(size_hw[0]), int(size_hw[1])
@@ -93,22 +87,11 @@ def candidates(
     uv_f = uv.reshape(-1, 2)
     z_f = z.reshape(-1)
     r = float(radius_px)
-    if grid_uv is not None:
-        return _candidates_on_grid(
-            uv_f,
-            z_f,
-            valid,
-            bnhw=(b, n, h, w),
-            radius_px=r,
-            min_depth=min_depth,
-            grid_uv=grid_uv,
-            point_order=point_order,
-        )
     with torch.no_grad():
         u, v = uv_f[:, 0], uv_f[:, 1]
         ok = valid.reshape(-1) & (z_f > min_depth) & torch.isfinite(u) & torch.isfinite(v)
         ok &= (u > -r) & (u < w - 1 + r) & (v > -r) & (v < h - 1 + r)
-        pid = _visited(ok, point_order)
+        pid = ok.nonzero().squeeze(1)
         u, v = u.index_select(0, pid), v.index_select(0, pid)
         # Every pixel centre within r of (u, v) lies in [ceil(u - r), floor(u + r)]:
         # at most floor(2r) + 1 columns (and rows) starting at ceil(u - r).
@@ -163,69 +146,6 @@ def _cells_inside(inside: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, tor
     )
 
 
-def _visited(ok: torch.Tensor, point_order: torch.Tensor | None) -> torch.Tensor:
-    """Indices of the points where ``ok``, ascending or in the order of ``point_order``."""
-    if point_order is None:
-        return ok.nonzero().squeeze(1)
-    return point_order.index_select(0, ok.index_select(0, point_order).nonzero().squeeze(1))
-
-
-def _candidates_on_grid(
-    uv_f: torch.Tensor,
-    z_f: torch.Tensor,
-    valid: torch.Tensor,
-    *,
-    bnhw: tuple[int, int, int, int],
-    radius_px: float,
-    min_depth: float,
-    grid_uv: tuple[torch.Tensor, torch.Tensor],
-    point_order: torch.Tensor | None = None,
-) -> tuple[Candidates, torch.Tensor]:
-    """:func:`candidates` for sample positions ``grid_uv`` off the pixel centres, from the
-    flattened projections ``uv_f`` (B*N, 2) px and depths ``z_f`` (B*N,) m; ``bnhw``:
-    (B, N, H, W)."""
-    b, n, h, w = bnhw
-    r = radius_px
-    gu, gv = (g.to(uv_f.dtype) for g in grid_uv)
-    check_shape(gu, "W", "grid_uv[0] (the columns' sample positions)", {"W": w})
-    check_shape(gv, "H", "grid_uv[1] (the rows' sample positions)", {"H": h})
-    with torch.no_grad():
-        shift = float(
-            max(
-                (gu - torch.arange(w, dtype=gu.dtype, device=gu.device)).abs().max(),
-                (gv - torch.arange(h, dtype=gv.dtype, device=gv.device)).abs().max(),
-            )
-        )
-        if shift >= 0.5:
-            raise ValueError(f"grid_uv positions must lie within 0.5 px of the pixel centres, got up to {shift:.3f}")
-        u, v = uv_f[:, 0], uv_f[:, 1]
-        ok = valid.reshape(-1) & (z_f > min_depth) & torch.isfinite(u) & torch.isfinite(v)
-        ok &= (u > float(gu[0]) - r) & (u < float(gu[-1]) + r) & (v > float(gv[0]) - r) & (v < float(gv[-1]) + r)
-        pid = _visited(ok, point_order)
-    uv_p = uv_f.index_select(0, pid)  # (P, 2) the visited points' projections, in their order
-    with torch.no_grad():
-        u, v = uv_p[:, 0].detach(), uv_p[:, 1].detach()
-        x0, y0, off = _footprint(u, v, r, shift)
-        cols = x0[:, None] + off[None, :]
-        rows = y0[:, None] + off[None, :]
-        inf = torch.tensor(float("inf"), dtype=u.dtype, device=u.device)
-        dx2 = torch.where((cols >= 0) & (cols < w), (gu[cols.clamp(0, w - 1)] - u[:, None]) ** 2, inf)
-        dy2 = torch.where((rows >= 0) & (rows < h), (gv[rows.clamp(0, h - 1)] - v[:, None]) ** 2, inf)
-        inside = (dy2[:, :, None] + dx2[:, None, :]) < r * r
-        del dx2, dy2
-        slot, oy, ox = _cells_inside(inside)
-        del inside
-        point = pid.index_select(0, slot)
-        col = x0.index_select(0, slot) + ox
-        row = y0.index_select(0, slot) + oy
-        pixel = row * w + col
-        if b > 1:  # plus the first pixel of each point's batch element
-            pixel += (torch.div(pid, n, rounding_mode="floor") * (h * w)).index_select(0, slot)
-    dx = gu.index_select(0, col) - uv_p[:, 0].contiguous().index_select(0, slot)
-    dy = gv.index_select(0, row) - uv_p[:, 1].contiguous().index_select(0, slot)
-    return Candidates(point, pixel, dx * dx + dy * dy, dx, dy), z_f
-
-
 def _footprint(u: torch.Tensor, v: torch.Tensor, r: float, shift: float):
     """The pixels a point's footprint of radius ``r`` at (``u``, ``v``) may reach, on a grid
     whose sample positions lie within ``shift`` of the pixel centres: sample positions
@@ -263,20 +183,6 @@ def front_to_back(iz: torch.Tensor) -> torch.Tensor:
     }
     bits = iz.detach().contiguous().view(ints[iz.dtype])
     return torch.sort(-bits, stable=True).indices
-
-
-def sort_by_pixel(pixel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(sorted pixel, permutation): candidates grouped by pixel, in their order within a
-    pixel (a stable sort; int32 keys when the pixel indices fit, a two-pass radix sort).
-
-    With the candidates made in :func:`front_to_back` order of their points
-    (``candidates(point_order=...)``), this sorts by pixel and front first within a
-    pixel.
-    """
-    if pixel.numel() and int(pixel.max()) < 2**31:
-        values, order = torch.sort(pixel.to(torch.int32), stable=True)
-        return values.to(pixel.dtype), order
-    return torch.sort(pixel, stable=True)
 
 
 def segment_rank_keep(
