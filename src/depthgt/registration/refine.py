@@ -292,7 +292,11 @@ def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: Le
 
     The element-wise work runs in the samples' layout (G, m, N) (:func:`_sample_grouped`:
     pair p = g m + i), so that the sampled maps are read where grid_sample wrote them
-    instead of being copied into pair order; the results are (P, ...) views."""
+    instead of being copied into pair order; the results are (P, ...) views.
+
+    Long because the residuals, their validity and the deferred Jacobians share the
+    warped points and the sampled maps (a dozen (G, m, N) planes); split, they would
+    travel between functions as long argument lists."""
     a, b = pairs[:, 0], pairs[:, 1]
     p = level.points.index_select(0, b)  # (P, 3, N)
     R = T_ab[:, :3, :3].to(p.dtype)
