@@ -173,10 +173,16 @@ def test_lapden_in_place_activations_change_no_bit(monkeypatch):
 
 def test_window_max_is_max_pool_to_the_bit_and_keeps_its_gradient():
     g = torch.Generator().manual_seed(0)
-    for shape in ((2, 1, 17, 12), (1, 3, 5, 9), (3, 1, 2, 2)):
-        x = torch.rand(shape, generator=g) * (torch.rand(shape, generator=g) > 0.3)
+    for shape, dtype in (
+        ((2, 1, 17, 12), torch.float32),
+        ((1, 3, 5, 9), torch.float32),
+        ((3, 1, 2, 2), torch.float32),
+        ((2, 1, 17, 12), torch.float64),
+    ):
+        x = torch.rand(shape, generator=g, dtype=dtype) * (torch.rand(shape, generator=g) > 0.3)
         x[0, 0, 0, 0] = float("nan")  # propagated by both
-        for window in (1, 3, 5):
+        x[-1, 0, -1, 0], x[-1, 0, 0, -1] = float("inf"), -float("inf")  # the renderer's edge scores
+        for window in (1, 3, 5, 9):
             expected = F.max_pool2d(x, window, stride=1, padding=window // 2)
             assert torch.equal(window_max(x, window).nan_to_num(-1.0), expected.nan_to_num(-1.0))
     # with autograd: max_pool2d's gradient, one element per window max

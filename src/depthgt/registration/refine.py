@@ -28,6 +28,7 @@ from kornia.filters import spatial_gradient
 from kornia.geometry.depth import depth_to_normals
 from kornia.geometry.liegroup import Se3
 
+from depthgt.depth_ops import window_max
 from depthgt.device import plain_cpu_convolutions
 from depthgt.framecache import FrameCache
 from depthgt.geometry import backproject, resize_depth_nearest, resize_rgb, scale_intrinsics
@@ -136,7 +137,7 @@ def adjoint(T: torch.Tensor) -> torch.Tensor:
 
 
 def _erode(mask: torch.Tensor) -> torch.Tensor:
-    return -F.max_pool2d(-mask, 3, stride=1, padding=1)
+    return -window_max(-mask, 3)  # max_pool2d's values
 
 
 @dataclass(frozen=True)

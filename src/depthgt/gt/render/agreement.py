@@ -7,6 +7,7 @@ import math
 import torch
 import torch.nn.functional as F
 
+from depthgt.depth_ops import window_max
 from depthgt.gt.render.rasteriser import HIT_PX, RenderCandidates
 from depthgt.gt.render.settings import RenderSettings
 
@@ -100,8 +101,8 @@ def frame_agreement(blocks: list[RenderCandidates], st: RenderSettings, target_f
         # they would outvote the flat surfaces on which a misregistration shows.
         k, r = 2 * st.agreement_edge_px + 1, st.agreement_edge_px
         img = iz_t.reshape(b, 1, h, w)
-        hi = F.max_pool2d(torch.nan_to_num(img, nan=float("inf")), k, stride=1, padding=r)
-        lo = -F.max_pool2d(-torch.nan_to_num(img, nan=-float("inf")), k, stride=1, padding=r)
+        hi = window_max(torch.nan_to_num(img, nan=float("inf")), k)  # max_pool2d's values
+        lo = -window_max(-torch.nan_to_num(img, nan=-float("inf")), k)
         tol = st.gap_sigmas * math.sqrt(2.0) * s_t.reshape(b, 1, h, w) + st.gap_slope_rel * img * (2 * r)
         judge &= ((hi - lo) <= tol).reshape(-1)
     near_p, near_f, near_agree = [], [], []

@@ -14,10 +14,10 @@ from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
-import torch.nn.functional as F
 from kornia.geometry.depth import depth_to_normals
 from kornia.geometry.linalg import transform_points
 
+from depthgt.depth_ops import window_max
 from depthgt.device import plain_cpu_convolutions
 from depthgt.framecache import FrameCache
 from depthgt.geometry import backproject
@@ -73,7 +73,7 @@ def _edge_scores(res: Residuals, max_rel: float) -> torch.Tensor:
     score = torch.where(res.ok, -torch.inf, torch.inf).to(torch.float64)
     for r, both in zip(res.r, res.both):
         score = torch.maximum(score, torch.where(both, r.abs() - max_rel * res.iz, -torch.inf))
-    return F.max_pool2d(score, 3, stride=1, padding=1).flatten(1)  # pads with -inf: the border is no edge
+    return window_max(score, 3).flatten(1)  # max_pool2d's values; pads with -inf: the border is no edge
 
 
 class FrameGeometry(NamedTuple):
