@@ -345,7 +345,8 @@ def _without_mixed(
 
     def compute(todo: list[int]) -> list[torch.Tensor]:
         rows = depth_m[[index[p] for p in todo]]
-        return list(rows.masked_fill(mixed_samples(rows, margin, jump), 0.0).unbind(0))
+        # each frame's own copy: a view would keep the whole batch of rows alive in the cache
+        return [r.clone() for r in rows.masked_fill(mixed_samples(rows, margin, jump), 0.0).unbind(0)]
 
     return torch.stack(data.cache.get(f"coverage.without_mixed:{margin}:{jump}", positions, compute))
 
