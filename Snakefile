@@ -15,8 +15,9 @@ min_version("9.21")
 # --configfile files the build ran with before (results/config/overrides.yaml, written
 # by the first real run) and this run's; a run whose --configfile changes keys of an
 # existing build stops, naming them, unless DEPTHGT_RECONFIGURE=1 (depthgt.buildconfig).
-# A --configfile none of whose keys is a config key stops the run too: most likely a
-# target written after --configfile, which takes every value up to the next option.
+# A --configfile with a top-level key that is no config key stops the run too, naming
+# the keys (when most are such: most likely a target written after --configfile, which
+# takes every value up to the next option).
 configfile: "config/config.yaml" if os.path.isfile("config/config.yaml") else os.path.join(workflow.basedir, "config/config.yaml")
 
 
