@@ -255,8 +255,12 @@ class Level:
     @property
     def median_depth(self) -> torch.Tensor:
         """The median valid depth of the frames at this scale, metres (1 without any)."""
-        d = self._depth
-        return d[d > 0].median() if (d > 0).any() else torch.tensor(1.0)
+        return _median_depth(self._depth)
+
+
+def _median_depth(d: torch.Tensor) -> torch.Tensor:
+    """The median valid depth of the depth maps ``d``, metres (1 without any)."""
+    return d[d > 0].median() if (d > 0).any() else torch.tensor(1.0)
 
 
 #: an LM trial step smaller than this (metres of translation, radians of rotation, the
@@ -538,14 +542,19 @@ def pair_mean_cost(
     return sys_.pair_cost / n_vis.clamp(min=1), n_vis
 
 
-def _accept(old: _System, new: _System) -> tuple[float, float]:
-    """Costs of two linearisations over the points visible in both (old, new): a fair
-    comparison whatever the change of overlap."""
-    both = old.vis & new.vis
-    return (
-        float((old.cost_pts * both).sum(dtype=torch.float64)),
-        float((new.cost_pts * both).sum(dtype=torch.float64)),
-    )
+def _accept(old: _System, new: _System, rows: torch.Tensor, n_sets: int) -> list[bool]:
+    """Whether each of ``n_sets`` frame sets takes its trial: ``new`` holds the sets'
+    rows ``rows`` of ``old`` (each set's pairs in turn), and a set's trial is taken when
+    its cost over the points visible in both linearisations is no larger (a fair
+    comparison whatever the change of overlap). Each set's cost is one float64 sum
+    over all its points (not per pair, then over pairs: those round otherwise)."""
+    whole = rows.numel() == len(old.vis)  # every row (one set): no copy
+    old_vis = old.vis if whole else old.vis.index_select(0, rows)
+    old_cost = old.cost_pts if whole else old.cost_pts.index_select(0, rows)
+    both = old_vis & new.vis
+    c_old = (old_cost * both).reshape(n_sets, -1).sum(1, dtype=torch.float64)
+    c_new = (new.cost_pts * both).reshape(n_sets, -1).sum(1, dtype=torch.float64)
+    return (c_new <= c_old).tolist()
 
 
 def _assemble(H_rel, g_rel, Tinv, pairs, n_frames):
@@ -589,7 +598,10 @@ def refine_poses(
     cache: FrameCache | None = None,
     positions: tuple[int, ...] | None = None,
 ) -> RefineResult:
-    """Jointly refine the poses of a frame set (frame 0 = target, kept at identity).
+    """Jointly refine the poses of a frame set (frame 0 = target, kept at identity):
+    :func:`refine_poses_many` of this one set (the coarse-to-fine Levenberg-Marquardt
+    loop has that one home; with one set it is this set's own refinement, no evaluation
+    or rounding added).
 
     Args:
         rgb: (F, 3, H, W) colour in [0, 1].
@@ -607,87 +619,12 @@ def refine_poses(
 
     Returns:
         :class:`RefineResult` with float64 poses on the input device.
-
-    Long because the coarse-to-fine Levenberg-Marquardt loop carries the poses, the
-    damping and the accepted system across scales and iterations; its parts
-    (``_system``, ``_accept``, ``_assemble``, the per-frame statistics) are functions.
     """
     sizes = check_shape(depth_m, "F 1 H W", "depth_m")
     check_shape(rgb, "F 3 H W", "rgb", sizes)
     check_shape(T_f_to_t, "F 4 4", "T_f_to_t", sizes)
     check_shape(K, "3 3", "K (the frame set's one camera)")
-    Fn = sizes["F"]
-    dev = depth_m.device
-    T = T_f_to_t.to(dev, torch.float64).clone()
-    T[0] = torch.eye(4, dtype=torch.float64, device=dev)
-    pairs = frame_pairs(Fn, settings.pairs, offsets).to(dev)
-    tgt_pairs = (pairs[:, 0] == 0) | (pairs[:, 1] == 0)
-    other = torch.where(pairs[:, 0] == 0, pairs[:, 1], pairs[:, 0])
-    out = RefineResult(T_f_to_t=T)
-    eye6 = torch.eye(6 * (Fn - 1), dtype=torch.float64, device=dev)
-    last = None
-    for li, (scale, n_it, stride, gate) in enumerate(
-        zip(settings.scales, settings.iters, settings.point_stride, settings.max_dist_m)
-    ):
-        level = Level(rgb, depth_m, K, scale, stride, maps_of, cache, positions)
-        if scale == 1:
-            out.normals = level.maps[:, 3:6]  # channels X(3) N(3) ...
-        ls = LevelSettings(
-            settings.geo_scale_m[li],
-            settings.photo_scale,
-            settings.photo_weight,
-            settings.robust,
-            settings.geo_ref_depth_m,
-        )
-        lam = settings.damping
-        cur = _system(level, T, pairs, ls, gate)
-        if li == len(settings.scales) - 1:
-            out.initial_cost = _per_frame(cur.pair_cost, tgt_pairs, other, Fn)
-        for _ in range(n_it):
-            H, g = _assemble(cur.H_rel, cur.g_rel, cur.Tinv, pairs, Fn)
-            Hr = H[1:, 1:].permute(0, 2, 1, 3).reshape(6 * (Fn - 1), 6 * (Fn - 1))
-            gr = g[1:].reshape(-1)
-            diag = torch.diagonal(Hr).clamp(min=1e-9)
-            improved = False
-            for _try in range(5):
-                delta = torch.linalg.solve(Hr + lam * torch.diag(diag) + 1e-9 * eye6, -gr).reshape(Fn - 1, 6)
-                if _try and float(delta.abs().max()) < MIN_TRIAL_STEP:
-                    break  # damped below a micrometre (microradian): the poses have settled
-                T_new = T.clone()
-                T_new[1:] = Se3.exp(delta).matrix().to(torch.float64) @ T[1:]
-                new = _system(level, T_new, pairs, ls, gate)
-                c_old, c_new = _accept(cur, new)
-                if c_new <= c_old:
-                    T, cur = T_new, new
-                    lam = max(lam / 3.0, 1e-7)
-                    improved = True
-                    break
-                lam *= 10.0
-            out.cost_curve.append(float(cur.pair_cost.sum()))
-            if not improved or float(delta.abs().max()) < 1e-7:
-                break
-        last = (level, cur)
-    level, cur = last
-    H_rel, pcost, inl = cur.H_rel, cur.pair_cost, cur.inliers  # the finest scale's only
-    out.T_f_to_t = T
-    out.final_cost = _per_frame(pcost, tgt_pairs, other, Fn)
-    n_valid = level.valid.sum(1).clamp(min=1)
-    frac = torch.ones(Fn, dtype=torch.float64, device=dev)
-    sel = pairs[:, 0] == 0  # neighbour b into the target
-    frac[pairs[sel, 1]] = inl[sel].to(torch.float64) / n_valid[pairs[sel, 1]].to(torch.float64)
-    out.inlier_fraction = frac
-    cond = torch.ones(Fn, dtype=torch.float64, device=dev)
-    H_tgt = torch.zeros(Fn, 6, 6, dtype=torch.float64, device=dev)
-    H_tgt.index_add_(0, other[tgt_pairs], H_rel[tgt_pairs])
-    cond[1:] = pair_information(H_tgt[1:], float(level.median_depth))
-    out.condition = cond
-    # the statistics of the high_residual check, calibrated with constant scale and gate:
-    # in metres and in units of the sensor noise the frame set shows
-    out.noise_sigma_1m = _noise_sigma_1m(depth_m, cache, positions)
-    out.residual_m, out.residual_sigmas = target_residual_stats(
-        level, T, pairs[sel], replace(ls, geo_ref_depth_m=0.0), settings.max_dist_m[-1], Fn, out.noise_sigma_1m
-    )
-    return out
+    return refine_poses_many([RefineSet(rgb, depth_m, T_f_to_t, offsets, positions)], K, settings, cache, maps_of)[0]
 
 
 def _noise_sigma_1m(depth_m: torch.Tensor, cache: FrameCache | None, positions: tuple[int, ...] | None) -> float:
@@ -769,19 +706,25 @@ def _per_frame(pcost, tgt_pairs, other, Fn):
 class RefineSet(NamedTuple):
     """One frame set for :func:`refine_poses_many`: its members' colour (F, 3, H, W) and
     depth (F, 1, H, W), the poses ``T_f_to_t`` (F, 4, 4) to start from, the frame
-    ``offsets`` and the members' ``positions`` in their scene (None: no frame cache)."""
+    ``offsets`` (None: 0 .. F-1, as :func:`frame_pairs` takes them) and the members'
+    ``positions`` in their scene (None: no frame cache)."""
 
     rgb: torch.Tensor
     depth_m: torch.Tensor
     T_f_to_t: torch.Tensor
-    offsets: list[int]
+    offsets: list[int] | None
     positions: tuple[int, ...] | None = None
 
 
 def _merged(cur: _System, taken: list[tuple[_System, torch.Tensor, torch.Tensor]], T: torch.Tensor) -> _System:
     """``cur`` with the rows of the sets whose trial was accepted taken from the trial's
     system (``taken``: the system, its rows, the batch's rows they replace): the system
-    at the accepted poses ``T`` without evaluating the residuals again."""
+    at the accepted poses ``T`` without evaluating the residuals again. When one trial's
+    system holds every row (one set, or every set accepted in the same trial), it is that
+    system itself (the same values, nothing copied)."""
+    first = taken[0][0]
+    if all(new is first for new, _, _ in taken) and sum(int(rows.numel()) for _, _, rows in taken) == len(cur.vis):
+        return first
     H, g = cur.H_rel.clone(), cur.g_rel.clone()
     pair_cost, inliers, cost_pts, vis = (
         cur.pair_cost.clone(),
@@ -802,34 +745,42 @@ def refine_poses_many(
     K: torch.Tensor,
     settings: RefineSettings = RefineSettings(),
     cache: FrameCache | None = None,
+    maps_of: dict | None = None,
 ) -> list[RefineResult]:
     """:func:`refine_poses` of several frame sets of one camera (its intrinsics ``K`` (3, 3),
     the same number of members and offsets) at once: every set's pairs in the same
     residual evaluations (what keeps a GPU busy), each set with its own Levenberg-
     Marquardt damping, trials and stopping. The same poses as one set at a time up to
     the rounding of the batched products; after a step the accepted sets' rows of the
-    trial's system replace theirs (no evaluation beyond :func:`refine_poses`' own).
+    trial's system replace theirs (no evaluation beyond one set at a time's). With one
+    set this is :func:`refine_poses` itself (the CPU build's path), the same numbers.
+
+    ``maps_of``: the :class:`Level` maps of the sets' frames (in the sets' order) by
+    scale, read and filled (refine_poses' argument, one set's), or None.
 
     Long because the coarse-to-fine loop carries every set's poses, damping and state
-    across scales, iterations and trials side by side; its parts are the functions of
-    :func:`refine_poses`.
+    across scales, iterations and trials side by side; its parts (``_system``,
+    ``_accept``, ``_assemble``, ``_merged``, the per-frame statistics) are functions.
     """
     check_shape(K, "3 3", "K (the frame sets' one camera)")
     n_sets, Fn = len(sets), sets[0].depth_m.shape[0]
-    if any(s.depth_m.shape != sets[0].depth_m.shape or list(s.offsets) != list(sets[0].offsets) for s in sets):
+    offsets = [list(s.offsets) if s.offsets is not None else list(range(Fn)) for s in sets]
+    if any(s.depth_m.shape != sets[0].depth_m.shape or o != offsets[0] for s, o in zip(sets, offsets)):
         raise ValueError("refine_poses_many: every frame set needs the same members' shape and offsets")
     dev = sets[0].depth_m.device
-    rgb = torch.cat([s.rgb for s in sets])
-    depth = torch.cat([s.depth_m for s in sets])
+    if n_sets == 1:
+        rgb, depth = sets[0].rgb, sets[0].depth_m
+    else:
+        rgb, depth = torch.cat([s.rgb for s in sets]), torch.cat([s.depth_m for s in sets])
     positions = None
     if cache is not None and all(s.positions is not None for s in sets):
         positions = tuple(p for s in sets for p in s.positions)
     eye = torch.eye(4, dtype=torch.float64, device=dev)
     T = torch.cat([s.T_f_to_t.to(dev, torch.float64) for s in sets]).clone()
     T[::Fn] = eye
-    one = frame_pairs(Fn, settings.pairs, list(sets[0].offsets)).to(dev)
+    one = frame_pairs(Fn, settings.pairs, offsets[0]).to(dev)
     n_p = one.shape[0]
-    pairs = torch.cat([one + b * Fn for b in range(n_sets)])
+    pairs = torch.cat([one + b * Fn for b in range(n_sets)]) if n_sets > 1 else one
     tgt_pairs = (one[:, 0] == 0) | (one[:, 1] == 0)
     other = torch.where(one[:, 0] == 0, one[:, 1], one[:, 0])
     outs = [RefineResult(T_f_to_t=T[b * Fn : (b + 1) * Fn]) for b in range(n_sets)]
@@ -838,10 +789,10 @@ def refine_poses_many(
     for li, (scale, n_it, stride, gate) in enumerate(
         zip(settings.scales, settings.iters, settings.point_stride, settings.max_dist_m)
     ):
-        level = Level(rgb, depth, K, scale, stride, None, cache, positions)
+        level = Level(rgb, depth, K, scale, stride, maps_of, cache, positions)
         if scale == 1:
             for b in range(n_sets):
-                outs[b].normals = level.maps[b * Fn : (b + 1) * Fn, 3:6]
+                outs[b].normals = level.maps[b * Fn : (b + 1) * Fn, 3:6]  # channels X(3) N(3) ...
         ls = LevelSettings(
             settings.geo_scale_m[li], settings.photo_scale, settings.photo_weight, settings.robust,
             settings.geo_ref_depth_m,
@@ -863,7 +814,7 @@ def refine_poses_many(
                 gr.append(g[f].reshape(-1))
             step = [0.0] * n_sets
             improved = [False] * n_sets
-            taken = []  # (rows of the trial's system, rows of the batch) of each accepted set
+            taken = []  # (the trial's system, its rows, the batch's rows) of each accepted set
             trying = [b for b in range(n_sets) if active[b]]
             for _try in range(5):
                 if not trying:
@@ -884,10 +835,7 @@ def refine_poses_many(
                     T_new[f] = Se3.exp(deltas[i]).matrix().to(torch.float64) @ T[f]
                 rows = torch.cat([torch.arange(b * n_p, (b + 1) * n_p, device=dev) for b in trying])
                 new = _system(level, T_new, pairs.index_select(0, rows), ls, gate)
-                both = cur.vis.index_select(0, rows) & new.vis
-                c_old = (cur.cost_pts.index_select(0, rows) * both).sum(1, dtype=torch.float64).view(len(trying), n_p)
-                c_new = (new.cost_pts * both).sum(1, dtype=torch.float64).view(len(trying), n_p)
-                accept = (c_new.sum(1) <= c_old.sum(1)).tolist()
+                accept = _accept(cur, new, rows, len(trying))
                 still = []
                 for i, b in enumerate(trying):
                     if accept[i]:
@@ -908,7 +856,7 @@ def refine_poses_many(
             for b in range(n_sets):
                 if active[b]:
                     outs[b].cost_curve.append(float(cur.pair_cost[b * n_p : (b + 1) * n_p].sum()))
-                    active[b] = improved[b] and step[b] >= 1e-7
+                    active[b] = improved[b] and not step[b] < 1e-7  # refine_poses' test (NaN: not settled)
         last = (level, cur)
     level, cur = last
     sel = one[:, 0] == 0  # neighbour b into the target
@@ -916,7 +864,7 @@ def refine_poses_many(
     for b in range(n_sets):
         out = outs[b]
         r = slice(b * n_p, (b + 1) * n_p)
-        H_rel, pcost, inl = cur.H_rel[r], cur.pair_cost[r], cur.inliers[r]
+        H_rel, pcost, inl = cur.H_rel[r], cur.pair_cost[r], cur.inliers[r]  # the finest scale's only
         out.T_f_to_t = T[b * Fn : (b + 1) * Fn]
         out.final_cost = _per_frame(pcost, tgt_pairs, other, Fn)
         n_valid = level.valid[b * Fn : (b + 1) * Fn].sum(1).clamp(min=1)
@@ -926,10 +874,10 @@ def refine_poses_many(
         cond = torch.ones(Fn, dtype=torch.float64, device=dev)
         H_tgt = torch.zeros(Fn, 6, 6, dtype=torch.float64, device=dev)
         H_tgt.index_add_(0, other[tgt_pairs], H_rel[tgt_pairs])
-        d = level._depth[b * Fn : (b + 1) * Fn]
-        median = d[d > 0].median() if (d > 0).any() else torch.tensor(1.0)
-        cond[1:] = pair_information(H_tgt[1:], float(median))
+        cond[1:] = pair_information(H_tgt[1:], float(_median_depth(level._depth[b * Fn : (b + 1) * Fn])))
         out.condition = cond
+        # the statistics of the high_residual check, calibrated with constant scale and
+        # gate: in metres and in units of the sensor noise the frame set shows
         out.noise_sigma_1m = _noise_sigma_1m(sets[b].depth_m, cache, sets[b].positions)
         res_m, res_s = target_residual_stats(
             level, T, one[sel] + b * Fn, ls, settings.max_dist_m[-1], n_sets * Fn, out.noise_sigma_1m
