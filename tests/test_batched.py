@@ -183,3 +183,38 @@ def test_the_build_renders_a_group_as_it_renders_each_set(framesets):
         assert torch.equal(a.gt.depth > 0, b.gt.depth > 0)
         assert torch.allclose(a.gt.depth.double(), b.gt.depth.double(), rtol=1e-5, atol=1e-6)
     assert one[1].members == (0, 1, 2, 4, 5, 6)
+
+
+def test_a_trial_within_a_micrometre_of_a_rejected_one_is_not_evaluated(framesets, monkeypatch):
+    """After a rejected LM trial the damping grows, but its first steps barely move the
+    trial: a trial within ``SAME_TRIAL`` of the set's rejected one is damped further
+    without a residual evaluation. The poses stay those of evaluating every trial, set by
+    set and together, with fewer evaluations."""
+    import depthgt.registration.refine as refine
+
+    datas, offsets = framesets
+    settings = registration_settings({"method": "refine"})
+    calls = []
+    original = refine._system
+
+    def counting(level, T, pairs, s, gate):
+        calls.append(int(pairs.shape[0]))
+        return original(level, T, pairs, s, gate)
+
+    monkeypatch.setattr(refine, "_system", counting)
+
+    def run():
+        calls.clear()
+        one = [refine_source_poses(d.rgb, d.depth_m, d.K, offsets, poses_from_source(d), settings) for d in datas]
+        n_one = len(calls)
+        calls.clear()
+        group = refine_source_poses_many(datas, offsets, settings)
+        return one, n_one, group, sum(calls)
+
+    skipping = run()
+    monkeypatch.setattr(refine, "SAME_TRIAL", 0.0)  # every trial evaluated
+    every = run()
+    for a, b in zip(skipping[0] + skipping[2], every[0] + every[2]):
+        assert torch.equal(a.T_j_to_t, b.T_j_to_t)
+    assert skipping[1] < every[1], (skipping[1], every[1])  # evaluations, set by set
+    assert skipping[3] < every[3], (skipping[3], every[3])  # pairs evaluated, together

@@ -269,6 +269,14 @@ def _median_depth(d: torch.Tensor) -> torch.Tensor:
 #: "Refinement: convergence").
 MIN_TRIAL_STEP = 1e-6
 
+#: an LM trial whose step differs from the set's last rejected trial's by less than this
+#: (the largest component; metres, radians) is not evaluated: it would land within a
+#: micrometre of a pose just rejected. The damping grows as after a rejection. The damping
+#: is relative to the diagonal, so its first increases barely change the step: 5 of 30
+#: evaluations per 7-Scenes set were such repeats (docs/decisions.md "Refinement:
+#: convergence": the refined poses of 36 real and synthetic sets bit-identical).
+SAME_TRIAL = 1e-6
+
 
 def _cross(a, b):
     """Cross product of planar 3-vectors a, b: tuples of three (P, N) planes."""
@@ -816,6 +824,7 @@ def refine_poses_many(
             improved = [False] * n_sets
             taken = []  # (the trial's system, its rows, the batch's rows) of each accepted set
             trying = [b for b in range(n_sets) if active[b]]
+            rejected: dict[int, torch.Tensor] = {}  # each set's last evaluated, rejected step
             for _try in range(5):
                 if not trying:
                     break
@@ -829,6 +838,18 @@ def refine_poses_many(
                 trying, deltas = [trying[i] for i in keep], deltas[keep]
                 if not trying:
                     break  # damped below a micrometre (microradian): those sets have settled
+                repeat = [
+                    b in rejected and float((deltas[i] - rejected[b]).abs().max()) < SAME_TRIAL
+                    for i, b in enumerate(trying)
+                ]
+                waiting = [b for b, r in zip(trying, repeat) if r]  # damped further, not evaluated
+                for b in waiting:
+                    lam[b] *= 10.0
+                fresh = [i for i, r in enumerate(repeat) if not r]
+                if not fresh:
+                    trying = waiting
+                    continue
+                trying, deltas = [trying[i] for i in fresh], deltas[fresh]
                 T_new = T.clone()
                 for i, b in enumerate(trying):
                     f = slice(b * Fn + 1, (b + 1) * Fn)
@@ -849,8 +870,9 @@ def refine_poses_many(
                         step[b] = float(deltas[i].abs().max())
                     else:
                         lam[b] *= 10.0
+                        rejected[b] = deltas[i]
                         still.append(b)
-                trying = still
+                trying = sorted(still + waiting)
             if taken:
                 cur = _merged(cur, taken, T)  # the linearisation at the accepted poses
             for b in range(n_sets):
