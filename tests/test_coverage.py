@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import zipfile
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -503,3 +504,93 @@ def test_mixed_samples_equal_max_pool_windows():
         if jump > 0:
             ref |= hi - lo > jump * d
         assert torch.equal(mixed_samples(d, margin, jump), valid & ref)
+
+
+def test_no_candidate_gives_empty_fill_maps():
+    """No candidate left (none within the limits, none the chain reached): empty maps and
+    no view chosen, not a failed reshape of 0 elements."""
+    from depthgt import geometry
+
+    K = torch.tensor([[8.0, 0, 3.5], [0, 8.0, 3.5], [0, 0, 1]])
+    none = torch.zeros(0, 1, 6, 8)
+    assert geometry.backproject(none, K[None].expand(0, 3, 3)).shape == (0, 48, 3)
+    fill = fill_maps(none, K, torch.zeros(0, 4, 4), torch.ones(6, 8, dtype=torch.bool))
+    assert fill.shape == (0, 48) and fill.dtype == torch.bool
+    assert choose_views(fill, 4, 1) == []
+
+
+def _failing_links(monkeypatch):
+    """Every link of the overfit chain fails its checks (the core registered as the scene's poses)."""
+    from depthgt.gt import coverage
+    from depthgt.registration import overfit
+
+    monkeypatch.setattr(overfit, "register_overfit", _true_overfit)
+    real = coverage.refine_source_poses
+
+    def refine(rgb, depth_m, K, offsets, T_start, settings):
+        res = real(rgb, depth_m, K, offsets, T_start, settings)
+        res.neighbour_status, res.neighbour_reasons = ["failed"], ["large_correction(9.00cm,1.00deg)"]
+        return res
+
+    monkeypatch.setattr(coverage, "refine_source_poses", refine)
+
+
+@pytest.mark.parametrize("why", ["beyond_limits", "not_chained"])
+def test_no_candidate_left_keeps_the_core(window, tmp_path, monkeypatch, why):
+    """Candidates there are, but none is left to add (all beyond the baseline limit, or,
+    with ``overfit``, the chain stopped at its first link on both sides): the frame set
+    is built with no view added, its GT the window's bit for bit, and the record says why."""
+    if why == "beyond_limits":
+        settings = _settings("coverage", coverage_max_baseline_m=0.001)  # every candidate is >= 1 cm away
+    else:
+        _failing_links(monkeypatch)
+        settings = _overfit_settings(coverage_max_angle_deg=20.0)
+    doc, gt, poses = _build(tmp_path, why, settings)
+    cov = doc["coverage"]
+    assert cov["candidates"] == 40 - 6 and cov["unusable"] == {}
+    assert cov[why] == cov["candidates"] and cov["added"] == [] and "filled_px" not in cov
+    if why == "not_chained":
+        assert cov["chain"]["stopped"] == {
+            "-": "link -6 -> -8: large_correction(9.00cm,1.00deg)",
+            "+": "link +6 -> +8: large_correction(9.00cm,1.00deg)",
+        }
+    assert poses["coverage_T_j_to_t"] == {}
+    _, gt_w, poses_w = window
+    for ch in ("Z", "S"):
+        assert np.array_equal(gt[ch], gt_w[ch]), ch
+    assert poses["T_j_to_t"] == poses_w["T_j_to_t"]
+
+
+def test_default_synthetic_scene_overfit_fast_coverage_builds(tmp_path):
+    """The frame set that crashed (``RuntimeError: cannot reshape tensor of 0 elements``):
+    the default config's first synthetic room, target 7, ``overfit`` with the ``fast``
+    preset and ``selection: coverage``. When this test was written its chain failed its
+    first link on the + side (a large correction) and had no grid frame to walk to on the
+    - side, so no candidate was reached (test_no_candidate_left_keeps_the_core holds that
+    case whatever the refinement does); it must build either way."""
+    import yaml
+
+    from depthgt.gt.cache import ResizedScene
+    from depthgt.jobs.common import open_source_scene
+
+    config = yaml.safe_load((Path(__file__).resolve().parents[1] / "config/config.yaml").read_text())
+    source = config["sources"][0]
+    config.update(
+        device="cpu",
+        sources=[source],
+        frameset={**config.get("frameset", {}), "selection": "coverage"},
+        registration={"method": "overfit", "preset": "fast"},
+    )
+    settings = settings_from_config(config)
+    fs = settings.frameset
+    keep = 2 * max(fs.reach, fs.coverage_span) + 2  # as the batch job keeps the frames
+    scene = ResizedScene(open_source_scene(source, source["scenes"][0], need_poses=False), settings.size_hw, keep=keep)
+    target = 7
+    out = FrameSetOutputs.in_dir(tmp_path / "fs")
+    members = [target + o for o in settings.frameset.offsets]
+    doc = process_frameset(scene, source["name"], target, members, "train", out, settings)
+    cov = doc["coverage"]
+    chained = {x["offset"] for x in cov["chain"]["links"] if x["status"] == "ok"}
+    assert doc["status"] == "ok" and out.gt.exists()
+    assert {v["offset"] for v in cov["added"]} <= chained
+    assert ("filled_px" in cov) == any(v["status"] == "ok" for v in cov["added"])

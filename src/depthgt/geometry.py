@@ -98,11 +98,12 @@ def backproject(depth_m: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
         K: (B, 3, 3) intrinsics.
 
     Returns:
-        (B, H*W, 3) points in metres, row-major pixel order.
+        (B, H*W, 3) points in metres, row-major pixel order; B = 0 gives (0, H*W, 3).
     """
-    check_shape(K, "B 3 3", "K", check_shape(depth_m, "B 1 H W", "depth_m"))
+    sizes = check_shape(K, "B 3 3", "K", check_shape(depth_m, "B 1 H W", "depth_m"))
     pts = depth_to_3d_v2(depth_m[:, 0], K.to(depth_m.dtype), normalize_points=False)  # (B, H, W, 3)
-    return pts.reshape(depth_m.shape[0], -1, 3)
+    # the sizes spelled out: -1 is ambiguous for a batch of none (0 elements)
+    return pts.reshape(sizes["B"], sizes["H"] * sizes["W"], 3)
 
 
 def project(points_cam: torch.Tensor, K: torch.Tensor, eps: float = 1e-6) -> tuple[torch.Tensor, torch.Tensor]:

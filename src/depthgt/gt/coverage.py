@@ -85,7 +85,8 @@ def fill_maps(depth_m: torch.Tensor, K: torch.Tensor, T_c_to_t: torch.Tensor, em
     """Which of the target's empty pixels each candidate's valid depth lands on.
 
     Args:
-        depth_m: (C, 1, H, W) candidates' depth in metres, 0 = invalid.
+        depth_m: (C, 1, H, W) candidates' depth in metres, 0 = invalid (C = 0: no
+            candidate, an empty (0, H*W) map).
         K: (3, 3) the frame set's one camera (every frame's intrinsics) at (H, W).
         T_c_to_t: (C, 4, 4) poses of the candidates in the target camera.
         empty: (H, W) bool, the target's pixels without GT.
@@ -106,7 +107,7 @@ def fill_maps(depth_m: torch.Tensor, K: torch.Tensor, T_c_to_t: torch.Tensor, em
     pts_t = pts @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
     uv, z = geometry.project(pts_t, Kb)
     u, v = torch.floor(uv[..., 0] + 0.5), torch.floor(uv[..., 1] + 0.5)
-    ok = (depth_m.reshape(c, -1) > 0) & (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    ok = (depth_m.reshape(c, h * w) > 0) & (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
     pix = torch.where(ok, v * w + u, torch.zeros_like(u)).long()
     slot = torch.arange(c, device=depth_m.device)[:, None] * (h * w) + pix
     hit = torch.zeros(c * h * w, dtype=torch.bool, device=depth_m.device)
@@ -438,6 +439,8 @@ def add_coverage_views(
     if not need_pose:
         record["not_chained"] = int((~reached).sum())
     idx = torch.nonzero(within).flatten()
+    if idx.numel() == 0:  # none reached (overfit: the chain stopped before them) or within the limits
+        return CoverageResult(keep(), record)
     # what a candidate within the limits fills with: its samples away from its own holes
     # and depth jumps
     usable_depth = _without_mixed(data, [usable[i] for i in idx.tolist()], cand.depth_m[1:][idx], fs)

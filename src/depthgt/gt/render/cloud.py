@@ -61,7 +61,7 @@ def _backproject_resampled(depth_m: torch.Tensor, K: torch.Tensor, src_hw: tuple
     cx, cy, s = K[:, 0, 2, None, None], K[:, 1, 2, None, None], K[:, 0, 1, None, None]
     y = (v - cy) / fy
     x = (u - cx - s * y) / fx
-    return torch.stack([x * z, y * z, z], dim=-1).reshape(depth_m.shape[0], -1, 3)
+    return torch.stack([x * z, y * z, z], dim=-1).reshape(depth_m.shape[0], h * w, 3)  # -1: ambiguous for J = 0
 
 
 def _edge_scores(res: Residuals, max_rel: float) -> torch.Tensor:
