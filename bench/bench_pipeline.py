@@ -137,6 +137,10 @@ def main(argv=None) -> None:
     ap.add_argument("--src", help=argparse.SUPPRESS)  # internal: the library this process runs (see --against)
     ap.add_argument("--csv", help=argparse.SUPPRESS)  # internal: write the per-set rows here
     a = ap.parse_args(argv)
+    if a.against and a.selection:
+        # the other checkout's process runs the window; the side by side would compare
+        # coverage with the window
+        ap.error("--selection does not go with --against: run each checkout with --src, one after the other")
     torch.set_num_threads(a.threads)
     config = yaml.safe_load(Path(a.config).read_text())
     config["device"] = "cpu"
