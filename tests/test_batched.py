@@ -140,14 +140,11 @@ def test_the_refinements_normals_enter_the_cache_as_the_renderers_own(framesets)
     assert torch.equal(fused.gt.depth, plain.gt.depth)
 
 
-def test_refining_together_evaluates_no_more_pairs_than_one_by_one(framesets, monkeypatch):
-    """After an accepted step the sets' linearisation comes from the trial's evaluation:
-    together, the residual evaluations cover no more pairs than set by set."""
+def _count_evaluations(monkeypatch) -> list[int]:
+    """The pairs of every residual evaluation of the refinement from now on (a list filled in place)."""
     import depthgt.registration.refine as refine
 
-    datas, offsets = framesets
-    settings = registration_settings({"method": "refine", "refine_settings": {"iters": [3, 2, 2]}})
-    rows = []
+    rows: list[int] = []
     original = refine._system
 
     def counting(level, T, pairs, s, gate):
@@ -155,6 +152,16 @@ def test_refining_together_evaluates_no_more_pairs_than_one_by_one(framesets, mo
         return original(level, T, pairs, s, gate)
 
     monkeypatch.setattr(refine, "_system", counting)
+    return rows
+
+
+def test_refining_together_evaluates_no_more_pairs_than_one_by_one(framesets, monkeypatch):
+    """After an accepted step the sets' linearisation comes from the trial's evaluation:
+    together, the residual evaluations cover no more pairs than set by set."""
+
+    datas, offsets = framesets
+    settings = registration_settings({"method": "refine", "refine_settings": {"iters": [3, 2, 2]}})
+    rows = _count_evaluations(monkeypatch)
     for d in datas:
         refine_source_poses(d.rgb, d.depth_m, d.K, offsets, poses_from_source(d), settings)
     one_by_one, rows[:] = sum(rows), []
@@ -194,14 +201,7 @@ def test_a_trial_within_a_micrometre_of_a_rejected_one_is_not_evaluated(frameset
 
     datas, offsets = framesets
     settings = registration_settings({"method": "refine"})
-    calls = []
-    original = refine._system
-
-    def counting(level, T, pairs, s, gate):
-        calls.append(int(pairs.shape[0]))
-        return original(level, T, pairs, s, gate)
-
-    monkeypatch.setattr(refine, "_system", counting)
+    calls = _count_evaluations(monkeypatch)
 
     def run():
         calls.clear()
