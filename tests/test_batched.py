@@ -218,3 +218,9 @@ def test_a_trial_within_a_micrometre_of_a_rejected_one_is_not_evaluated(frameset
         assert torch.equal(a.T_j_to_t, b.T_j_to_t)
     assert skipping[1] < every[1], (skipping[1], every[1])  # evaluations, set by set
     assert skipping[3] < every[3], (skipping[3], every[3])  # pairs evaluated, together
+
+
+def test_refining_no_set_together_gives_no_result():
+    from depthgt.registration.refine import refine_poses_many
+
+    assert refine_poses_many([], torch.eye(3)) == []

@@ -771,6 +771,8 @@ def refine_poses_many(
     ``_accept``, ``_assemble``, ``_merged``, the per-frame statistics) are functions.
     """
     check_shape(K, "3 3", "K (the frame sets' one camera)")
+    if not sets:  # a group with no set left (every one skipped): nothing to refine
+        return []
     n_sets, Fn = len(sets), sets[0].depth_m.shape[0]
     offsets = [list(s.offsets) if s.offsets is not None else list(range(Fn)) for s in sets]
     if any(s.depth_m.shape != sets[0].depth_m.shape or o != offsets[0] for s, o in zip(sets, offsets)):
