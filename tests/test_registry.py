@@ -129,8 +129,10 @@ def test_a_loss_without_its_total_term_is_named():
 
 def test_model_entries_are_checked():
     with pytest.raises(ValueError, match="build must be 'module:function'"):
-        registry.Model("x", build="depthgt.enhance.learned.SDDUNet", loss="a:b", log_terms=())
+        registry.Model("x", build="depthgt.enhance.learned.SDDUNet", loss="a:b", log_terms=(), pair_cpu_ms=1.0)
     with pytest.raises(ValueError, match="without 'total'"):
-        registry.Model("x", build="a:b", loss="a:b", log_terms=("total",))
+        registry.Model("x", build="a:b", loss="a:b", log_terms=("total",), pair_cpu_ms=1.0)
+    with pytest.raises(ValueError, match="pair_cpu_ms must be > 0"):
+        registry.Model("x", build="a:b", loss="a:b", log_terms=(), pair_cpu_ms=0.0)
     with pytest.raises(ValueError, match="builder must be one of"):
         registry.Method("x", "X", "learned", baseline="learned", trains_on="depthgt", builder="unet")

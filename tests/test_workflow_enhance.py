@@ -126,6 +126,40 @@ def test_rde_synthetic_test_adds_the_test_rooms_rde_gt(tmp_path):
     assert set(re.findall(r"results/rde/(\w+)/room_\d+/framesets.parquet", text)) == {"syn", "synval", "syntest"}
 
 
+def test_trainings_start_longest_first(tmp_path):
+    """Rule train_model's priority is the training's estimated length (epochs x the model's
+    pair_cpu_ms): on 2 cores the longest training (SDD in the default config) starts first
+    and every training comes before the evaluations (priority 0); the epochs in the config
+    move it (LapDEN at 90 epochs goes first)."""
+    import re
+
+    from depthgt import registry
+
+    def priorities(cfg):
+        wd = make_workdir(tmp_path / str(len(list(tmp_path.iterdir()))), cfg)
+        text = snakemake(wd, "-n", "--cores", "2", "tables").stdout
+        jobs = {}
+        for block in text.split("\nrule ")[1:]:
+            rule = block.split(":", 1)[0]
+            name = re.search(r"wildcards: (?:model|method)=(\w+)", block)
+            prio = re.search(r"^    priority: (\d+)$", block, re.M)
+            jobs[rule, name and name.group(1)] = int(prio.group(1)) if prio else 0
+        return jobs
+
+    cfg = yaml.safe_load((Path(__file__).resolve().parents[1] / "config/config.yaml").read_text())
+    jobs = priorities(cfg)
+    train = {m: p for (r, m), p in jobs.items() if r == "train_model"}
+    assert set(train) == {"lapden", "rde", "ddrnet", "sdd"}
+    assert train["sdd"] > train["lapden"] == train["rde"] > train["ddrnet"] > 0
+    assert train["sdd"] == registry.training_priority("sdd", 45)
+    assert all(p == 0 for (r, _), p in jobs.items() if r != "train_model")
+    assert sum(r == "evaluate_method" for r, _ in jobs) == 7
+
+    cfg["enhance"]["models"]["lapden"]["epochs"] = 90
+    train = {m: p for (r, m), p in priorities(cfg).items() if r == "train_model"}
+    assert train["lapden"] == train["rde"] > train["sdd"]
+
+
 def test_html_report(synthetic_only):
     wd = synthetic_only
     snakemake(wd, "--report", str(wd / "report.html"))

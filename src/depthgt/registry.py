@@ -28,7 +28,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-__all__ = ["Model", "MODELS", "Method", "METHODS", "KINDS", "TRAINS_ON", "learned", "builders", "label", "log_columns"]
+__all__ = [
+    "Model",
+    "MODELS",
+    "Method",
+    "METHODS",
+    "KINDS",
+    "TRAINS_ON",
+    "learned",
+    "builders",
+    "label",
+    "log_columns",
+    "training_priority",
+]
 
 KINDS = ("input", "filter", "learned")
 TRAINS_ON = ("depthgt", "rde")
@@ -47,12 +59,18 @@ class Model:
         log_terms: the loss terms the loss log records besides ``total`` (its columns,
             :func:`log_columns`); a loss that reports another term, or not one of these,
             stops the training with an error (:mod:`depthgt.enhance.train`).
+        pair_cpu_ms: CPU milliseconds that one epoch costs per training patch pair on one
+            thread (its steps, and its share of the validation), with the default config's
+            ``model_params``. The workflow's estimate of a training's length, so that the
+            longest trainings start first (rule ``train_model``'s priority,
+            :func:`training_priority`); it schedules, it decides no result.
     """
 
     name: str
     build: str
     loss: str
     log_terms: tuple[str, ...]
+    pair_cpu_ms: float
 
     def __post_init__(self):
         for what in ("build", "loss"):
@@ -60,12 +78,18 @@ class Model:
                 raise ValueError(
                     f"registry model {self.name!r}: {what} must be 'module:function', got {getattr(self, what)!r}"
                 )
+        if not self.pair_cpu_ms > 0:
+            raise ValueError(f"registry model {self.name!r}: pair_cpu_ms must be > 0, got {self.pair_cpu_ms}")
         if "total" in self.log_terms or len(set(self.log_terms)) != len(self.log_terms):
             raise ValueError(
                 f"registry model {self.name!r}: log_terms must be distinct and without 'total', got {self.log_terms}"
             )
 
 
+# pair_cpu_ms: the default build of bfd25c9 on a 2-core AVX-512 machine (one thread per
+# training, two side by side), its benchmarks/train/*.tsv seconds over epochs x 490 training
+# pairs (62 steps of 8, and 180 validation pairs): LapDEN 557 s and RDE 518 s over 30 epochs
+# (their mean), SDD 899 s and DDRNet 520 s over 45.
 MODELS: dict[str, Model] = {
     m.name: m
     for m in (
@@ -74,21 +98,38 @@ MODELS: dict[str, Model] = {
             build="depthgt.enhance.lapden:build_lapden",
             loss="depthgt.enhance.losses:lapden_loss_from_params",
             log_terms=("depth", "grad", "normal", "structure"),
+            pair_cpu_ms=36.6,
         ),
         Model(
             "ddrnet",
             build="depthgt.enhance.learned:DDRNetDenoise",
             loss="depthgt.enhance.learned:ddrnet_loss",
             log_terms=("depth", "normal"),
+            pair_cpu_ms=23.6,
         ),
         Model(
             "sdd",
             build="depthgt.enhance.learned:SDDUNet",
             loss="depthgt.enhance.learned:sdd_loss",
             log_terms=("depth", "smooth"),
+            pair_cpu_ms=40.8,
         ),
     )
 }
+
+
+def training_priority(builder: str, epochs: int) -> int:
+    """The scheduling priority of a training (rule ``train_model``): its estimated CPU
+    milliseconds per training pair, ``epochs`` x the builder's ``pair_cpu_ms``. Where fewer
+    cores than trainings run them, the longest starts first: the four default trainings on
+    2 cores end with the longest one's lane, not behind the evaluations.
+
+    >>> training_priority("sdd", 45) > training_priority("lapden", 30) > training_priority("ddrnet", 45)
+    True
+    """
+    if builder not in MODELS:
+        raise KeyError(f"unknown model {builder!r}; known: {', '.join(MODELS)}")
+    return max(1, round(epochs * MODELS[builder].pair_cpu_ms))
 
 
 def log_columns(model: str) -> tuple[str, ...]:

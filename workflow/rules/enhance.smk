@@ -93,6 +93,7 @@ rule train_model:
     benchmark:
         "benchmarks/train/{model}.tsv"
     threads: train_threads
+    priority: train_priority
     resources:
         gpu=GPUS,
     script:

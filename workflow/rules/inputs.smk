@@ -47,6 +47,15 @@ def train_config(wildcards):
     return stage_config(config, "train", model=registry.METHODS[wildcards.model].settings_key)
 
 
+def train_priority(wildcards):
+    """Rule train_model's priority: the training's estimated length (depthgt.registry.
+    training_priority), so that the longest trainings start first and every training
+    before the evaluations; on 2 cores the default build's four trainings end near the
+    longest one's lane (bench/README.md "The default build: time and memory")."""
+    spec = registry.METHODS[wildcards.model]
+    return registry.training_priority(spec.builder, SETTINGS.enhance.models[wildcards.model].epochs)
+
+
 def train_manifests(wildcards):
     d = MANIFESTS[registry.METHODS[wildcards.model].trains_on]
     return {"train": f"{d}/train.parquet", "val": f"{d}/val.parquet"}
