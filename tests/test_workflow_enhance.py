@@ -129,8 +129,8 @@ def test_rde_synthetic_test_adds_the_test_rooms_rde_gt(tmp_path):
 def test_trainings_start_longest_first(tmp_path):
     """Rule train_model's priority is the training's estimated length (epochs x the model's
     pair_cpu_ms): on 2 cores the longest training (SDD in the default config) starts first
-    and every training comes before the evaluations (priority 0); the epochs in the config
-    move it (LapDEN at 90 epochs goes first)."""
+    and every training comes before the evaluations (priority 0), the rules writing its
+    manifests with it; the epochs in the config move it (LapDEN at 90 epochs goes first)."""
     import re
 
     from depthgt import registry
@@ -152,7 +152,11 @@ def test_trainings_start_longest_first(tmp_path):
     assert set(train) == {"lapden", "rde", "ddrnet", "sdd"}
     assert train["sdd"] > train["lapden"] == train["rde"] > train["ddrnet"] > 0
     assert train["sdd"] == registry.training_priority("sdd", 45)
-    assert all(p == 0 for (r, _), p in jobs.items() if r != "train_model")
+    # a training's manifests carry its priority (Snakemake does not pass it on)
+    assert jobs["training_manifests", None] == train["sdd"]
+    assert jobs["rde_training_manifests", None] == train["rde"]
+    manifests = ("train_model", "training_manifests", "rde_training_manifests")
+    assert all(p == 0 for (r, _), p in jobs.items() if r not in manifests)
     assert sum(r == "evaluate_method" for r, _ in jobs) == 7
 
     cfg["enhance"]["models"]["lapden"]["epochs"] = 90

@@ -30,6 +30,7 @@ rule rde_training_manifests:
     output:
         train="results/rde/train.parquet",
         val="results/rde/val.parquet",
+    priority: manifests_priority("rde")
     conda:
         ENV
     log:

@@ -47,13 +47,25 @@ def train_config(wildcards):
     return stage_config(config, "train", model=registry.METHODS[wildcards.model].settings_key)
 
 
+def model_priority(model):
+    """A training's estimated length (depthgt.registry.training_priority), its job's
+    priority: the longest trainings start first and every training before the
+    evaluations; on 2 cores the default build's four trainings end near the longest one's
+    lane (bench/README.md "The default build: time and memory")."""
+    spec = registry.METHODS[model]
+    return registry.training_priority(spec.builder, SETTINGS.enhance.models[model].epochs)
+
+
 def train_priority(wildcards):
-    """Rule train_model's priority: the training's estimated length (depthgt.registry.
-    training_priority), so that the longest trainings start first and every training
-    before the evaluations; on 2 cores the default build's four trainings end near the
-    longest one's lane (bench/README.md "The default build: time and memory")."""
-    spec = registry.METHODS[wildcards.model]
-    return registry.training_priority(spec.builder, SETTINGS.enhance.models[wildcards.model].epochs)
+    """Rule train_model's priority (model_priority)."""
+    return model_priority(wildcards.model)
+
+
+def manifests_priority(trains_on):
+    """The priority of the rule writing the training manifests of one GT (MANIFESTS): that
+    of the longest training on them. Snakemake does not hand a job's priority on to the jobs
+    it waits for: without this a training's manifests wait behind every other training."""
+    return max((model_priority(m) for m, spec in registry.learned().items() if spec.trains_on == trains_on), default=0)
 
 
 def train_manifests(wildcards):
