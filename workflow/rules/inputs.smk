@@ -62,7 +62,7 @@ def train_priority(wildcards):
 
 
 def manifests_priority(trains_on):
-    """The priority of the rule writing the training manifests of one GT (MANIFESTS): that
+    """The priority of the job writing the training manifests of one GT (MANIFESTS): that
     of the longest training on them. Snakemake does not hand a job's priority on to the jobs
     it waits for: without this a training's manifests wait behind every other training."""
     return max((model_priority(m) for m, spec in registry.learned().items() if spec.trains_on == trains_on), default=0)
