@@ -129,8 +129,9 @@ def test_rde_synthetic_test_adds_the_test_rooms_rde_gt(tmp_path):
 def test_trainings_start_longest_first(tmp_path):
     """Rule train_model's priority is the training's estimated length (epochs x the model's
     pair_cpu_ms): on 2 cores the longest training (SDD in the default config) starts first
-    and every training comes before the evaluations (priority 0), the rules writing its
-    manifests with it; the epochs in the config move it (LapDEN at 90 epochs goes first)."""
+    and every training comes before the evaluations (priority 0), the jobs only its GT's
+    trainings wait for one above; the epochs in the config move it (LapDEN at 90 epochs goes
+    first)."""
     import re
 
     from depthgt import registry
@@ -141,26 +142,29 @@ def test_trainings_start_longest_first(tmp_path):
         jobs = {}
         for block in text.split("\nrule ")[1:]:
             rule = block.split(":", 1)[0]
-            name = re.search(r"wildcards: (?:model|method)=(\w+)", block)
+            wildcards = re.search(r"^    wildcards: (.*)$", block, re.M)
             prio = re.search(r"^    priority: (\d+)$", block, re.M)
-            jobs[rule, name and name.group(1)] = int(prio.group(1)) if prio else 0
+            jobs[rule, wildcards and wildcards.group(1)] = int(prio.group(1)) if prio else 0
         return jobs
 
     cfg = yaml.safe_load((Path(__file__).resolve().parents[1] / "config/config.yaml").read_text())
     jobs = priorities(cfg)
-    train = {m: p for (r, m), p in jobs.items() if r == "train_model"}
+    train = {w.removeprefix("model="): p for (r, w), p in jobs.items() if r == "train_model"}
     assert set(train) == {"lapden", "rde", "ddrnet", "sdd"}
     assert train["sdd"] > train["lapden"] == train["rde"] > train["ddrnet"] > 0
     assert train["sdd"] == registry.training_priority("sdd", 45)
-    # a training's manifests carry its priority (Snakemake does not pass it on)
-    assert jobs["training_manifests", None] == train["sdd"]
-    assert jobs["rde_training_manifests", None] == train["rde"]
-    manifests = ("train_model", "training_manifests", "rde_training_manifests")
-    assert all(p == 0 for (r, _), p in jobs.items() if r not in manifests)
+    # what only the trainings on one GT wait for carries their priority, one above
+    # (Snakemake does not pass it on): their manifests, and RDE's scenes
+    assert jobs["training_manifests", None] == train["sdd"] + 1
+    assert jobs["rde_training_manifests", None] == train["rde"] + 1
+    rde_scenes = [p for (r, _), p in jobs.items() if r == "rde_scene"]
+    assert len(rde_scenes) == 8 and set(rde_scenes) == {train["rde"] + 1}
+    upstream = ("train_model", "training_manifests", "rde_training_manifests", "rde_scene")
+    assert all(p == 0 for (r, _), p in jobs.items() if r not in upstream)
     assert sum(r == "evaluate_method" for r, _ in jobs) == 7
 
     cfg["enhance"]["models"]["lapden"]["epochs"] = 90
-    train = {m: p for (r, m), p in priorities(cfg).items() if r == "train_model"}
+    train = {w.removeprefix("model="): p for (r, w), p in priorities(cfg).items() if r == "train_model"}
     assert train["lapden"] == train["rde"] > train["sdd"]
 
 

@@ -9,7 +9,7 @@ rule training_manifests:
     output:
         train="results/dataset/train.parquet",
         val="results/dataset/val.parquet",
-    priority: manifests_priority("depthgt")
+    priority: upstream_priority("depthgt")
     conda:
         ENV
     log:

@@ -8,6 +8,7 @@ rule rde_scene:
         frames="results/rde/{dataset}/{scene}/frames.zip",
         framesets="results/rde/{dataset}/{scene}/framesets.parquet",
         patches="results/rde/{dataset}/{scene}/patches.parquet",
+    priority: upstream_priority("rde")
     params:
         source=source_of,
         config=RDE_CONFIG,
@@ -30,7 +31,7 @@ rule rde_training_manifests:
     output:
         train="results/rde/train.parquet",
         val="results/rde/val.parquet",
-    priority: manifests_priority("rde")
+    priority: upstream_priority("rde")
     conda:
         ENV
     log:

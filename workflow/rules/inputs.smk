@@ -61,11 +61,14 @@ def train_priority(wildcards):
     return model_priority(wildcards.model)
 
 
-def manifests_priority(trains_on):
-    """The priority of the job writing the training manifests of one GT (MANIFESTS): that
-    of the longest training on them. Snakemake does not hand a job's priority on to the jobs
-    it waits for: without this a training's manifests wait behind every other training."""
-    return max((model_priority(m) for m, spec in registry.learned().items() if spec.trains_on == trains_on), default=0)
+def upstream_priority(trains_on):
+    """The priority of the jobs that only the trainings on one GT (MANIFESTS) wait for:
+    its training manifests, and for RDE's GT its scenes (rule rde_scene). Snakemake does not
+    hand a job's priority on to the jobs it waits for: without this RDE's last scene and
+    manifests waited behind the DDRNet training. One above the longest training on that GT,
+    so that these short jobs go first when a training of equal priority is ready too."""
+    trainings = [model_priority(m) for m, spec in registry.learned().items() if spec.trains_on == trains_on]
+    return max(trainings) + 1 if trainings else 0
 
 
 def train_manifests(wildcards):
