@@ -274,6 +274,34 @@ def test_refinement_recovers_poses_from_a_perturbed_start():
     assert res.final_cost.sum() < res.initial_cost.sum()
 
 
+def test_coarse_scales_stop_at_their_own_step():
+    # A scale before the finest ends after an accepted step under coarse_converged_step;
+    # the finest still runs until no trial is accepted. With a bound of 1 m every coarse
+    # scale takes one iteration (fewer in all than run to convergence at each scale, 0),
+    # and the finest scale still brings the poses to the truth.
+    offsets = [0, -2, 2, 4]
+    rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64))
+    gen = torch.Generator().manual_seed(5)
+    T0 = torch.eye(4, dtype=torch.float64).repeat(4, 1, 1)
+    T0[1:] = torch.from_numpy(T_true)
+    for j in range(1, 4):
+        T0[j] = _random_T(gen, 1.5, 0.015) @ T0[j]
+    levels = dict(
+        scales=(4, 2, 1), iters=(10, 10, 10), point_stride=(1, 1, 1), max_dist_m=(0.1, 0.05, 0.03),
+        geo_scale_m=(0.02, 0.01, 0.005),
+    )  # fmt: skip
+    full = refine_poses(rgb, depth, K, T0, RefineSettings(**levels, coarse_converged_step=0.0), offsets)
+    early = refine_poses(rgb, depth, K, T0, RefineSettings(**levels, coarse_converged_step=1.0), offsets)
+    assert len(early.cost_curve) < len(full.cost_curve), (early.cost_curve, full.cost_curve)
+    for res in (full, early):
+        r, t = pose_errors(res.T_f_to_t[1:], T_true)
+        assert np.median(r) < 0.05 and np.median(t) < 0.15, (r, t)
+    with pytest.raises(ConfigError, match="refine_settings.coarse_converged_step"):
+        RefineSettings(coarse_converged_step=-1.0)
+    with pytest.raises(ConfigError, match="refine_settings.coarse_converged_step"):
+        RefineSettings(coarse_converged_step=float("nan"))
+
+
 def test_refinement_leaves_the_identity_start_with_sensor_holes():
     # Depth with holes (as every sensor's): at the identity start every warped point sits
     # on a pixel centre, and any motion lets some points fall off the view or next to a

@@ -269,6 +269,10 @@ def _median_depth(d: torch.Tensor) -> torch.Tensor:
 #: "Refinement: convergence").
 MIN_TRIAL_STEP = 1e-6
 
+#: an accepted LM step whose largest component (metres, radians) is under this ends the
+#: finest scale (the others: ``RefineSettings.coarse_converged_step``, if larger)
+FINEST_SETTLED = 1e-7
+
 #: an LM trial whose step differs from the set's last rejected trial's by less than this
 #: (the largest component; metres, radians) is not evaluated: it would land within a
 #: micrometre of a pose just rejected. The damping grows as after a rejection. The damping
@@ -799,6 +803,9 @@ def refine_poses_many(
     for li, (scale, n_it, stride, gate) in enumerate(
         zip(settings.scales, settings.iters, settings.point_stride, settings.max_dist_m)
     ):
+        # a scale before the finest stops at a coarser step: the next one moves further
+        finest = li == len(settings.scales) - 1
+        settled = FINEST_SETTLED if finest else max(FINEST_SETTLED, settings.coarse_converged_step)
         level = Level(rgb, depth, K, scale, stride, maps_of, cache, positions)
         if scale == 1:
             for b in range(n_sets):
@@ -880,7 +887,7 @@ def refine_poses_many(
             for b in range(n_sets):
                 if active[b]:
                     outs[b].cost_curve.append(float(cur.pair_cost[b * n_p : (b + 1) * n_p].sum()))
-                    active[b] = improved[b] and not step[b] < 1e-7  # refine_poses' test (NaN: not settled)
+                    active[b] = improved[b] and not step[b] < settled  # (NaN: not settled)
         last = (level, cur)
     level, cur = last
     sel = one[:, 0] == 0  # neighbour b into the target

@@ -7,6 +7,7 @@ what each needs: :data:`depthgt.registration.methods.METHODS`."""
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping
 from dataclasses import asdict
 from typing import Any, Literal
@@ -54,6 +55,11 @@ class RefineSettings:
         geo_ref_depth_m: beyond this depth (metres) the robust scale and the gate of
             the point-to-plane residuals grow as (z / geo_ref_depth_m)^2, like the depth
             noise and quantisation of disparity sensors; 0 keeps them constant.
+        coarse_converged_step: a scale before the finest ends after an accepted LM
+            step whose largest component (metres of translation, radians of rotation)
+            is under this: the next scale's first steps move the poses by more. Every
+            scale also ends after ``iters`` or an iteration with no accepted trial; the
+            finest ends only so (or on a step under 1e-7). 0: every scale like the finest.
     """
 
     scales: tuple[int, ...] = (4, 2, 1)
@@ -67,10 +73,16 @@ class RefineSettings:
     max_dist_m: tuple[float, ...] = (0.10, 0.05, 0.03)
     damping: float = 1e-4
     geo_ref_depth_m: float = 0.0
+    coarse_converged_step: float = 1e-4
 
     def __post_init__(self):
         where = "registration.refine_settings"
         require(self.geo_ref_depth_m >= 0, f"{where}.geo_ref_depth_m", f"must be >= 0, got {self.geo_ref_depth_m}")
+        require(
+            math.isfinite(self.coarse_converged_step) and self.coarse_converged_step >= 0,
+            f"{where}.coarse_converged_step",
+            f"must be finite and >= 0, got {self.coarse_converged_step}",
+        )
         n = len(self.scales)
         require(
             len(self.iters) == len(self.point_stride) == len(self.max_dist_m) == len(self.geo_scale_m) == n,
