@@ -192,11 +192,12 @@ def test_the_build_renders_a_group_as_it_renders_each_set(framesets):
     assert one[1].members == (0, 1, 2, 4, 5, 6)
 
 
-def test_a_trial_within_a_micrometre_of_a_rejected_one_is_not_evaluated(framesets, monkeypatch):
+def test_a_trial_next_to_a_rejected_one_is_not_evaluated(framesets, monkeypatch):
     """After a rejected LM trial the damping grows, but its first steps barely move the
-    trial: a trial within ``SAME_TRIAL`` of the set's rejected one is damped further
-    without a residual evaluation. The poses stay those of evaluating every trial, set by
-    set and together, with fewer evaluations."""
+    trial: a trial within ``SAME_TRIAL`` (a micrometre) of the set's rejected one, or
+    within ``SAME_TRIAL_SHARE`` of that step, is damped further without a residual
+    evaluation. The poses stay those of evaluating every trial, set by set and together,
+    with fewer evaluations; each rule saves some on these sets."""
     import depthgt.registration.refine as refine
 
     datas, offsets = framesets
@@ -212,12 +213,14 @@ def test_a_trial_within_a_micrometre_of_a_rejected_one_is_not_evaluated(frameset
         return one, n_one, group, sum(calls)
 
     skipping = run()
+    monkeypatch.setattr(refine, "SAME_TRIAL_SHARE", 0.0)  # within a micrometre only
+    absolute = run()
     monkeypatch.setattr(refine, "SAME_TRIAL", 0.0)  # every trial evaluated
     every = run()
-    for a, b in zip(skipping[0] + skipping[2], every[0] + every[2]):
-        assert torch.equal(a.T_j_to_t, b.T_j_to_t)
-    assert skipping[1] < every[1], (skipping[1], every[1])  # evaluations, set by set
-    assert skipping[3] < every[3], (skipping[3], every[3])  # pairs evaluated, together
+    for a, b, c in zip(skipping[0] + skipping[2], absolute[0] + absolute[2], every[0] + every[2]):
+        assert torch.equal(a.T_j_to_t, c.T_j_to_t) and torch.equal(b.T_j_to_t, c.T_j_to_t)
+    assert skipping[1] < absolute[1] < every[1], (skipping[1], absolute[1], every[1])  # evaluations, set by set
+    assert skipping[3] < absolute[3] < every[3], (skipping[3], absolute[3], every[3])  # pairs evaluated, together
 
 
 def test_refining_no_set_together_gives_no_result():

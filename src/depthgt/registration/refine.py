@@ -281,6 +281,12 @@ FINEST_SETTLED = 1e-7
 #: convergence": the refined poses of 36 real and synthetic sets bit-identical).
 SAME_TRIAL = 1e-6
 
+#: likewise a trial whose step differs from the last rejected one's by less than this share
+#: of that step (the largest components): the first damping increases shrink a rejected
+#: step by a few per cent, and no such trial was accepted where they were evaluated
+#: (docs/decisions.md "Refinement: near repeats"). A skipped trial counts as rejected.
+SAME_TRIAL_SHARE = 0.1
+
 
 def _cross(a, b):
     """Cross product of planar 3-vectors a, b: tuples of three (P, N) planes."""
@@ -848,12 +854,16 @@ def refine_poses_many(
                 if not trying:
                     break  # damped below a micrometre (microradian): those sets have settled
                 repeat = [
-                    b in rejected and float((deltas[i] - rejected[b]).abs().max()) < SAME_TRIAL
+                    b in rejected
+                    and float((deltas[i] - rejected[b]).abs().max())
+                    < max(SAME_TRIAL, SAME_TRIAL_SHARE * float(rejected[b].abs().max()))
                     for i, b in enumerate(trying)
                 ]
                 waiting = [b for b, r in zip(trying, repeat) if r]  # damped further, not evaluated
-                for b in waiting:
-                    lam[b] *= 10.0
+                for i, b in enumerate(trying):
+                    if repeat[i]:
+                        lam[b] *= 10.0
+                        rejected[b] = deltas[i]
                 fresh = [i for i, r in enumerate(repeat) if not r]
                 if not fresh:
                     trying = waiting
