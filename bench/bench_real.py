@@ -107,6 +107,17 @@ def _digest(*parts) -> str:
     return hashlib.sha1(repr(parts).encode()).hexdigest()[:12]
 
 
+def _library_digest() -> str:
+    """A digest of the depthgt sources this process imports: part of a cached registration's
+    key, so that a run of other code (another checkout, a change) never reads it back."""
+    import depthgt
+
+    h = hashlib.sha1()
+    for path in sorted(Path(depthgt.__file__).resolve().parent.rglob("*.py")):
+        h.update(path.read_bytes())
+    return h.hexdigest()[:12]
+
+
 def _band_masks(hw: tuple[int, int]) -> list[torch.Tensor]:
     h, w = hw
     y, x = torch.meshgrid(torch.arange(h) + 0.5 - h / 2, torch.arange(w) + 0.5 - w / 2, indexing="ij")
@@ -136,6 +147,7 @@ def run(
     splits = np.full(len(scene), "train", dtype=object)
     targets = list(range(fs.reach, len(scene) - fs.reach, step))[:limit]
     bands = _band_masks(SIZE)
+    library = _library_digest()
     rows = []
     for t in targets:
         try:
@@ -143,7 +155,7 @@ def run(
         except FrameError as err:
             print(f"{data} target {t}: skipped: {err}")
             continue
-        key = cache / f"{data}-{mode}-{t}-{_digest(options, reg_over, step)}.pt"
+        key = cache / f"{data}-{mode}-{t}-{_digest(options, reg_over, step, library)}.pt"
         cached = None
         if key.is_file():
             try:
@@ -392,7 +404,7 @@ def main(argv=None) -> None:
         "--cache",
         type=Path,
         default=Path("/tmp/depthgt_real"),
-        help="registrations are cached here (by recording, mode, target, options); delete it after code changes",
+        help="registrations are cached here (by recording, mode, target, options and the library's source digest)",
     )
     ap.add_argument("--out", type=Path, default=Path("/tmp/bench_real.csv"))
     a = ap.parse_args(argv)
