@@ -244,14 +244,21 @@ def test_levels_of_one_frame_set_share_their_maps():
     assert shared.hw == fresh.hw and first.points.shape[-1] == 4 * fresh.points.shape[-1]
 
 
-def test_refinement_recovers_poses_from_a_perturbed_start():
-    offsets = [0, -2, 2, 4]
+def _perturbed_start(offsets):
+    """A 64x64 frame set (:func:`_frameset`) with each neighbour's true pose moved by a
+    random 1.5 deg and 1.5 cm: rgb, depth, K, the true poses, the moved start (F, 4, 4)."""
     rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64))
     gen = torch.Generator().manual_seed(5)
-    T0 = torch.eye(4, dtype=torch.float64).repeat(4, 1, 1)
+    T0 = torch.eye(4, dtype=torch.float64).repeat(len(offsets), 1, 1)
     T0[1:] = torch.from_numpy(T_true)
-    for j in range(1, 4):
+    for j in range(1, len(offsets)):
         T0[j] = _random_T(gen, 1.5, 0.015) @ T0[j]
+    return rgb, depth, K, T_true, T0
+
+
+def test_refinement_recovers_poses_from_a_perturbed_start():
+    offsets = [0, -2, 2, 4]
+    rgb, depth, K, T_true, T0 = _perturbed_start(offsets)
     r0, t0 = pose_errors(T0[1:], T_true)
     res = refine_poses(
         rgb,
@@ -280,12 +287,7 @@ def test_coarse_scales_stop_at_their_own_step():
     # scale takes one iteration (fewer in all than run to convergence at each scale, 0),
     # and the finest scale still brings the poses to the truth.
     offsets = [0, -2, 2, 4]
-    rgb, depth, K, T_true = _frameset(offsets, hw=(64, 64))
-    gen = torch.Generator().manual_seed(5)
-    T0 = torch.eye(4, dtype=torch.float64).repeat(4, 1, 1)
-    T0[1:] = torch.from_numpy(T_true)
-    for j in range(1, 4):
-        T0[j] = _random_T(gen, 1.5, 0.015) @ T0[j]
+    rgb, depth, K, T_true, T0 = _perturbed_start(offsets)
     levels = dict(
         scales=(4, 2, 1), iters=(10, 10, 10), point_stride=(1, 1, 1), max_dist_m=(0.1, 0.05, 0.03),
         geo_scale_m=(0.02, 0.01, 0.005),
