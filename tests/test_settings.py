@@ -228,6 +228,21 @@ def test_nested_sections_and_lists_of_the_wrong_type_are_named():
     assert ok.registration.refine_settings.max_dist_m == (1, 0.5, 0.2)
 
 
+def test_a_number_yaml_read_as_text_is_named_with_how_to_write_it():
+    # YAML 1.1 (PyYAML, Snakemake's --configfile) reads 1e-4, without a dot, as a string
+    config = yaml.safe_load(
+        "registration: {method: refine, refine_settings: {damping: 1e-4, max_dist_m: [1e-1, 0.05, 0.03]}}"
+    )
+    assert config["registration"]["refine_settings"]["damping"] == "1e-4"  # the trap itself
+    with pytest.raises(ConfigError, match=r"refine_settings.damping: must be float, got str '1e-4' .*write 0\.0001"):
+        settings_from_config(config)
+    config["registration"]["refine_settings"]["damping"] = 1e-4
+    with pytest.raises(ConfigError, match=r"max_dist_m\[0\]: must be float, got str '1e-1' .*write 0\.1"):
+        settings_from_config(config)
+    with pytest.raises(ConfigError, match=r"must be float, got str 'abc'$"):
+        settings_from_config({"registration": {"method": "refine", "refine_settings": {"damping": "abc"}}})
+
+
 def test_shared_training_settings_are_checked_where_every_model_overrides_them():
     models = {m: {"epochs": 3} for m in ("lapden", "ddrnet", "sdd")}
     for value, what in (("ten", "must be int, got str 'ten'"), (2.5, "must be int, got float 2.5")):

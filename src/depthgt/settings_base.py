@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import types
 import typing
 from collections.abc import Callable, Mapping
@@ -192,7 +193,7 @@ def _coerce(hint, value, where: str):
         kinds = " or ".join("a mapping" if dataclasses.is_dataclass(o) else "a list" for o in structured)
         fail(where, f"must be {kinds}, got {type(value).__name__} {value!r}")
     if scalars and not any(_is(value, o) for o in scalars):
-        fail(where, f"must be {' or '.join(o.__name__ for o in scalars)}, got {type(value).__name__} {value!r}")
+        fail(where, _wrong_type(scalars, value))
     if float in scalars and not isinstance(value, float) and _is(value, float) and int not in scalars:
         return float(value)
     return value
@@ -205,8 +206,22 @@ def _tuple_of(hint, value, where: str) -> tuple:
     if len(set(args)) == 1 and args[0] in (int, float, bool, str):
         for i, item in enumerate(value):
             if not _is(item, args[0]):
-                fail(f"{where}[{i}]", f"must be {args[0].__name__}, got {type(item).__name__} {item!r}")
+                fail(f"{where}[{i}]", _wrong_type([args[0]], item))
     return tuple(value)
+
+
+def _wrong_type(kinds, value) -> str:
+    """The message for ``value`` of none of ``kinds``; for a number that YAML read as text
+    (YAML 1.1 takes ``1e-4``, without a dot, for a string) it says how to write it."""
+    msg = f"must be {' or '.join(k.__name__ for k in kinds)}, got {type(value).__name__} {value!r}"
+    if float in kinds and isinstance(value, str):
+        try:
+            number = float(value)
+        except ValueError:
+            return msg
+        if math.isfinite(number):
+            msg += f" (YAML reads a number such as 1e-4 without a dot as text: write {number!r})"
+    return msg
 
 
 def _is(value, kind) -> bool:
