@@ -172,10 +172,16 @@ def registration_section(preset: str, overrides: list[str]) -> dict:
 def registered_poses(
     cache: Path, item: dict, key: str, preset: str, overrides: list[str] = (), tag: str = ""
 ) -> tuple[torch.Tensor, list[int]]:
-    """T_j_to_t (F-1, 4, 4) of the overfit registration (cached per preset, overrides
-    and ``tag``) and the fused member positions."""
+    """T_j_to_t (F-1, 4, 4) of the overfit registration (cached per preset, overrides,
+    ``tag`` and the library's source digest: another checkout's or an older code's poses
+    are not read back) and the fused member positions."""
+    from bench_real import _library_digest
+
     name = (
-        preset + "".join(f"__{o}" for o in overrides).replace("/", "_").replace(" ", "") + (f"__{tag}" if tag else "")
+        preset
+        + "".join(f"__{o}" for o in overrides).replace("/", "_").replace(" ", "")
+        + (f"__{tag}" if tag else "")
+        + f"__{_library_digest()}"
     )
     path = cache / "registration" / name / f"{key}.json"
     if not path.exists():
@@ -570,7 +576,7 @@ def main(argv=None) -> None:
         action="store_true",
         help="diagnostic: fuse every neighbour, also those the registration's checks failed",
     )
-    ap.add_argument("--reg-tag", default="", help="extra name of the registration cache (e.g. a code version)")
+    ap.add_argument("--reg-tag", default="", help="extra name of the registration cache (the code is in it already)")
     ap.add_argument("--no-clean", action="store_true", help="skip the clean-neighbours (renderer's own error) case")
     ap.add_argument(
         "--fixture",

@@ -61,6 +61,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import functools
 import hashlib
 import sys
 import time
@@ -107,6 +108,7 @@ def _digest(*parts) -> str:
     return hashlib.sha1(repr(parts).encode()).hexdigest()[:12]
 
 
+@functools.cache
 def _library_digest() -> str:
     """A digest of the depthgt sources this process imports: part of a cached registration's
     key, so that a run of other code (another checkout, a change) never reads it back."""
