@@ -332,7 +332,11 @@ def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: Le
     u = fx * q[:, 0] * zi + cx
     v = fy * q[:, 1] * zi + cy
     h, w = level.hw
-    grid = torch.stack([(u + 0.5) * (2.0 / w) - 1, (v + 0.5) * (2.0 / h) - 1], -1)  # (P, N, 2)
+    # (P, N, 2), each coordinate's last step written in place (a stack of the two planes
+    # costs more than computing them: the same values)
+    grid = torch.empty(*u.shape, 2, dtype=u.dtype, device=u.device)
+    torch.sub((u + 0.5) * (2.0 / w), 1, out=grid[..., 0])
+    torch.sub((v + 0.5) * (2.0 / h), 1, out=grid[..., 1])
     if s.photo_weight > 0:
         smp = _sample_grouped(level.maps, grid, a)  # (G, 10, m, N)
         nvalid = smp[:, 9]
@@ -367,7 +371,15 @@ def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: Le
         gate_pt, inv_geo = gate, 1.0 / s.geo_scale_m
     ok = seen & ((qz - X[2]).abs() < gate_pt) & (r_geo.abs() < gate_pt)
     qv = (qx, qy, qz)
-    per_point = inv_geo[:, :, None] if torch.is_tensor(inv_geo) else inv_geo  # over (G, m, 6, N)
+
+    def scaled(planes, factor, cols: int, at: int = 0, out: torch.Tensor | None = None) -> torch.Tensor:
+        # planes (each (G, m, N)) times factor written side by side into out (G, m, len, cols)
+        # at column ``at``: a stack, a product and a cat in one pass (the same values)
+        if out is None:
+            out = torch.empty(G, m, len(planes), cols, dtype=qx.dtype, device=qx.device)
+        for j, plane in enumerate(planes):
+            torch.mul(plane, factor, out=out[:, :, j, at : at + N])
+        return out
 
     def pairwise(x: torch.Tensor, *cols: int) -> torch.Tensor:  # (G, m, [6,] C) -> (P, [6,] C), a view
         return x.reshape(n_pairs, *cols)
@@ -376,23 +388,22 @@ def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: Le
         # without the photometric term its half would be all invalid and invisible
         # (zero weight, zero cost): the geometric residuals alone, (P, N), (P, 6, N)
         def jac_geo() -> torch.Tensor:
-            return pairwise(torch.stack([*Nrm, *_cross(qv, Nrm)], 2) * per_point, 6, N)
+            return pairwise(scaled((*Nrm, *_cross(qv, Nrm)), inv_geo, N), 6, N)
 
         return pairwise(r_geo * inv_geo, N), pairwise(ok, N), pairwise(seen, N), pairwise(r_geo, N), jac_geo
     r_ph = smp[:, 6] - grouped(level.gray.index_select(0, b))
     wp = math.sqrt(s.photo_weight)
     # geometric then photometric residuals side by side: (P, 2N), (P, 6, 2N)
-    r = pairwise(torch.cat([r_geo * inv_geo, r_ph * (wp / s.photo_scale)], -1), 2 * N)
+    r = pairwise(scaled((r_geo,), inv_geo, 2 * N, out=scaled((r_ph,), wp / s.photo_scale, 2 * N, N)), 2 * N)
     valid = pairwise(torch.cat([ok, ok], -1), 2 * N)
     vis = pairwise(torch.cat([seen, seen], -1), 2 * N)
 
     def jac() -> torch.Tensor:
-        J_geo = torch.stack([*Nrm, *_cross(qv, Nrm)], 2)  # (G, m, 6, N)
+        J = scaled((*Nrm, *_cross(qv, Nrm)), inv_geo, 2 * N)  # (G, m, 6, 2N), geometric half
         # d(u, v)/dq of the pinhole projection chained with the image gradient (gx, gy).
         gx, gy = smp[:, 7] * fx * zi, smp[:, 8] * fy * zi
         ga = (gx, gy, -(gx * qx + gy * qy) * zi)
-        J_ph = torch.stack([*ga, *_cross(qv, ga)], 2)
-        return pairwise(torch.cat([J_geo * per_point, J_ph * (wp / s.photo_scale)], -1), 6, 2 * N)
+        return pairwise(scaled((*ga, *_cross(qv, ga)), wp / s.photo_scale, 2 * N, N, out=J), 6, 2 * N)
 
     return r, valid, vis, pairwise(r_geo, N), jac
 
