@@ -175,13 +175,13 @@ def registered_poses(
     """T_j_to_t (F-1, 4, 4) of the overfit registration (cached per preset, overrides,
     ``tag`` and the library's source digest: another checkout's or an older code's poses
     are not read back) and the fused member positions."""
-    from bench_real import _library_digest
+    from bench_real import library_digest
 
     name = (
         preset
         + "".join(f"__{o}" for o in overrides).replace("/", "_").replace(" ", "")
         + (f"__{tag}" if tag else "")
-        + f"__{_library_digest()}"
+        + f"__{library_digest()}"
     )
     path = cache / "registration" / name / f"{key}.json"
     if not path.exists():

@@ -109,7 +109,7 @@ def _digest(*parts) -> str:
 
 
 @functools.cache
-def _library_digest() -> str:
+def library_digest() -> str:
     """A digest of the depthgt sources this process imports: part of a cached registration's
     key, so that a run of other code (another checkout, a change) never reads it back."""
     import depthgt
@@ -149,7 +149,7 @@ def run(
     splits = np.full(len(scene), "train", dtype=object)
     targets = list(range(fs.reach, len(scene) - fs.reach, step))[:limit]
     bands = _band_masks(SIZE)
-    library = _library_digest()
+    library = library_digest()
     rows = []
     for t in targets:
         try:
