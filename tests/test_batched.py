@@ -5,15 +5,17 @@ the compositor in blocks of rows against one block."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 import torch
 
 from depthgt.framecache import FrameCache
 from depthgt.gt.render import fuse
-from depthgt.gt.render.cloud import cached_geometry, frame_geometry
+from depthgt.gt.render.cloud import cached_geometry, cloud_from_geometry, frame_geometry
 from depthgt.gt.render.compositor import composite_gt
 from depthgt.gt.render.fusion import SetGeometry, fuse_sets
-from depthgt.gt.render.rasteriser import rasterise_gt
+from depthgt.gt.render.rasteriser import rasterise_blocks, rasterise_gt
 from depthgt.jobs.common import open_source_scene
 from depthgt.registration import load_frameset, poses_from_source
 from depthgt.registration.local import refine_source_poses, refine_source_poses_many
@@ -227,3 +229,27 @@ def test_refining_no_set_together_gives_no_result():
     from depthgt.registration.refine import refine_poses_many
 
     assert refine_poses_many([], torch.eye(3)) == []
+
+
+KITCHEN = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
+
+
+@pytest.mark.skipif(not KITCHEN.is_dir(), reason="../shared/data/7scenes-kitchen is absent")
+def test_the_compiled_rasteriser_is_the_tensor_path_on_a_real_frame_set():
+    """On a real Kinect frame set (7-Scenes, 640x480 to 256x256, KinectFusion poses) the
+    CPU's compiled cells give the tensor path's candidates bit for bit, block by block."""
+    torch.set_num_threads(1)
+    scene = open_source_scene({"kind": "sevenscenes", "root": str(KITCHEN)}, "7scenes-kitchen")
+    d = load_frameset(scene, [30 + o for o in FrameSetSettings().offsets], (256, 256), True, torch.device("cpu"))
+    g = frame_geometry(d.depth_m, d.K[None].expand(7, 3, 3), src_hw=d.src_hw)
+    T = torch.cat([torch.eye(4, dtype=torch.float64)[None], poses_from_source(d)])
+    cloud = cloud_from_geometry(g, T)
+    kw = dict(valid=cloud.valid, normals_cam=cloud.normals, sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=d.src_hw)
+    K = d.K[None].float()
+    got = rasterise_blocks(cloud.points, K, (256, 256), RenderSettings(), block_rows=32, compiled=True, **kw)
+    want = rasterise_blocks(cloud.points, K, (256, 256), RenderSettings(), block_rows=32, compiled=False, **kw)
+    assert len(got) == len(want) == 8 and sum(c.pixel.numel() for c in got) > 1_000_000
+    for a, b in zip(got, want):
+        for name in ("pixel", "point", "ox", "oy", "d2", "iz", "s", "frame"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), name
+        assert (a.first_pixel, a.pixels) == (b.first_pixel, b.pixels)

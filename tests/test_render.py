@@ -22,6 +22,7 @@ from depthgt.gt.render import (
     resampled_positions,
     splat_soft,
 )
+from depthgt.gt.render.rasteriser import rasterise_blocks
 from depthgt.settings import RenderSettings
 
 TORCH_THREADS = (
@@ -427,6 +428,53 @@ def test_rasterised_candidates_are_sorted_by_pixel_front_first():
     assert torch.equal(c.iz, 1.0 / p[0, c.point, 2]) and torch.equal(c.frame, frame[0, c.point])
     assert valid[0, c.point].all() and (c.d2 < st.radius_px**2).all() and torch.equal(c.d2, c.ox**2 + c.oy**2)
     assert torch.allclose(c.s, sigma[0, c.point] / p[0, c.point, 2] ** 2)
+
+
+def _same_candidates(a, b) -> None:
+    for name in ("pixel", "point", "ox", "oy", "d2", "iz", "s", "frame", "grad", "iz_point"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert (x is None) == (y is None) and (x is None or (x.dtype == y.dtype and torch.equal(x, y))), name
+    assert (a.size, a.n_frames, a.first_pixel, a.pixels) == (b.size, b.n_frames, b.first_pixel, b.pixels)
+
+
+def test_the_compiled_rasteriser_finds_the_tensor_paths_candidates():
+    """The CPU's compiled cells (a counting sort by pixel) against the tensor path a GPU
+    runs, bit for bit: float32 and float64 points, pixel centres and resampled sample
+    positions, two radii, two images stacked, points off the image and behind the
+    camera, in blocks of rows and in one; with gradients wanted, the same values and the
+    gradients reach the points."""
+    p64, nrm, valid, K, frame, sigma = _two_layer_cloud(7)
+    p64 = p64.clone()
+    p64[0, :40, 2] = -1.0  # behind the camera
+    for dtype in (torch.float32, torch.float64):
+        p = p64.to(dtype)
+        for radius, src_hw in ((1.3, (32, 32)), (2.0, None), (1.25, (37, 29))):
+            st = RenderSettings(radius_px=radius)
+            kw = dict(valid=valid, normals_cam=nrm.to(dtype), sigma_m=sigma.to(dtype), frame=frame, src_hw=src_hw)
+            for rows in (None, 5):
+                got = rasterise_blocks(p, K.to(dtype), (16, 16), st, block_rows=rows, compiled=True, **kw)
+                want = rasterise_blocks(p, K.to(dtype), (16, 16), st, block_rows=rows, compiled=False, **kw)
+                assert len(got) == len(want) and sum(c.pixel.numel() for c in got) > p.shape[1]
+                for a, b in zip(got, want):
+                    _same_candidates(a, b)
+    # two images stacked (the batched layout), and an empty cloud
+    p2 = torch.cat([p64, p64.flip(1)]).float()
+    kw2 = dict(valid=valid.expand(2, -1), frame=frame.expand(2, -1), src_hw=(32, 32))
+    K2 = K.expand(2, 3, 3).float()
+    for rows in (None, 7):
+        got = rasterise_blocks(p2, K2, (16, 16), RenderSettings(), block_rows=rows, compiled=True, **kw2)
+        want = rasterise_blocks(p2, K2, (16, 16), RenderSettings(), block_rows=rows, compiled=False, **kw2)
+        for a, b in zip(got, want, strict=True):
+            _same_candidates(a, b)
+    empty = rasterise_gt(p2[:, :0], K2, (16, 16), compiled=True)
+    assert empty.pixel.numel() == 0 and empty.ox.dtype == torch.float32
+    # with gradients: the same candidates, and d(sum of ox, oy, iz)/d(points) reaches them
+    pg = p64.float().requires_grad_(True)
+    got = rasterise_gt(pg, K.float(), (16, 16), compiled=True, valid=valid)
+    want = rasterise_gt(pg.detach(), K.float(), (16, 16), compiled=False, valid=valid)
+    _same_candidates(got._replace(ox=got.ox.detach(), oy=got.oy.detach(), d2=got.d2.detach(), iz=got.iz.detach()), want)
+    (got.ox.sum() + got.oy.sum() + got.iz.sum()).backward()
+    assert pg.grad is not None and pg.grad[0, got.point].abs().sum(1).gt(0).all()
 
 
 def test_leave_one_frame_out_is_the_compositor_over_fewer_candidates():

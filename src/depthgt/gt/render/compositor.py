@@ -86,6 +86,11 @@ class _Surfaces(NamedTuple):
     step_iz: torch.Tensor
 
 
+def _value(v: torch.Tensor | tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+    """A value of :meth:`_Runs.sums`: a tensor, or the product of a pair."""
+    return v[0] * v[1] if isinstance(v, tuple) else v
+
+
 class _Runs:
     """Sums and minima of per-candidate values over consecutive runs (clusters, or a
     pixel's kept samples): ``index`` (C,) the run of each element, sorted, ``lengths``
@@ -112,12 +117,27 @@ class _Runs:
             self._csr[dtype] = m
         return m
 
-    def sums(self, values: list[torch.Tensor]) -> list[torch.Tensor]:
-        """(K,) sums of each (C,) tensor of ``values``."""
+    def sums(self, values: list[torch.Tensor | tuple[torch.Tensor, torch.Tensor]]) -> list[torch.Tensor]:
+        """(K,) sums of each (C,) tensor of ``values``; a pair ``(a, b)`` stands for the
+        product ``a * b``."""
         if self.index.device.type != "cpu" or self.index.numel() == 0:
             n = self.lengths.numel()
-            return [torch.zeros(n, dtype=v.dtype, device=v.device).index_add(0, self.index, v) for v in values]
-        stacked = torch.stack(values)  # (k, C), rows contiguous
+            return [
+                torch.zeros(n, dtype=v.dtype, device=v.device).index_add(0, self.index, v) for v in map(_value, values)
+            ]
+        parts = [t for v in values for t in (v if isinstance(v, tuple) else (v,))]
+        first = parts[0]
+        if torch.is_grad_enabled() and any(t.requires_grad for t in parts):
+            stacked = torch.stack([_value(v) for v in values])  # (k, C), rows contiguous
+        else:
+            # each product written into its row: no temporary per value and no stack copy
+            # (the same values; out= takes no tensors that need gradients)
+            stacked = torch.empty(len(values), first.numel(), dtype=first.dtype, device=first.device)
+            for row, v in zip(stacked, values):
+                if isinstance(v, tuple):
+                    torch.mul(v[0], v[1], out=row)
+                else:
+                    row.copy_(v)
         return list((stacked @ self._matrix(stacked.dtype).t()).unbind(0))
 
     def minimum(self, v: torch.Tensor) -> torch.Tensor:
@@ -381,7 +401,7 @@ def _estimate(
         g = c.grad.index_select(0, c.point)
         gx, gy = g[:, 0], g[:, 1]
     runs = _Runs(seg, lengths)
-    sw, s_iz, s_x, s_y, s_gx, s_gy, wsum = runs.sums([wt, wt * iz, wt * ox, wt * oy, wt * gx, wt * gy, w_sp])
+    sw, s_iz, s_x, s_y, s_gx, s_gy, wsum = runs.sums([wt, (wt, iz), (wt, ox), (wt, oy), (wt, gx), (wt, gy), w_sp])
     has = sw > 0
     sw_safe = torch.where(has, sw, torch.ones_like(sw))
     mean_iz, mean_x, mean_y, mean_gx, mean_gy = (v / sw_safe for v in (s_iz, s_x, s_y, s_gx, s_gy))
@@ -390,7 +410,9 @@ def _estimate(
     wx, wy = wt * cxo, wt * cyo
     if st.plane == "fit":
         diz = iz - mean_iz.index_select(0, seg)
-        cxx, cyy, cxy, cxz, cyz = (v / sw_safe for v in runs.sums([wx * cxo, wy * cyo, wx * cyo, wx * diz, wy * diz]))
+        cxx, cyy, cxy, cxz, cyz = (
+            v / sw_safe for v in runs.sums([(wx, cxo), (wy, cyo), (wx, cyo), (wx, diz), (wy, diz)])
+        )
         lam = st.slope_prior
         a11, a22, a12 = cxx + lam, cyy + lam, cxy
         v1, v2 = cxz + lam * mean_gx, cyz + lam * mean_gy
@@ -404,10 +426,10 @@ def _estimate(
             iz_hat.index_select(0, seg) + slope_x.index_select(0, seg) * ox + slope_y.index_select(0, seg) * oy
         )
     else:
-        cxx, cyy, cxy = (v / sw_safe for v in runs.sums([wx * cxo, wy * cyo, wx * cyo]))
+        cxx, cyy, cxy = (v / sw_safe for v in runs.sums([(wx, cxo), (wy, cyo), (wx, cyo)]))
         if st.plane == "normals":
             iz_c = iz - gx * ox - gy * oy  # each sample moved along its tangent plane to the position
-            iz_hat = runs.sums([wt * iz_c])[0] / sw_safe
+            iz_hat = runs.sums([(wt, iz_c)])[0] / sw_safe
             resid = iz_c - iz_hat.index_select(0, seg)
         else:
             iz_hat = mean_iz
@@ -418,7 +440,7 @@ def _estimate(
     if with_sigma or st.max_sigma_m is not None:
         with torch.no_grad():
             wt_d, resid_d = wt.detach(), resid.detach()
-            model, res2 = (v / sw_safe.detach() for v in runs.sums([wt_d * s * s, wt_d * resid_d * resid_d]))
+            model, res2 = (v / sw_safe.detach() for v in runs.sums([(wt_d * s, s), (wt_d * resid_d, resid_d)]))
             lam = st.slope_prior + 1e-6
             mx, my = mean_x.detach(), mean_y.detach()
             a11, a22, a12 = cxx.detach() + lam, cyy.detach() + lam, cxy.detach()
