@@ -235,9 +235,10 @@ KITCHEN = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
 
 
 @pytest.mark.skipif(not KITCHEN.is_dir(), reason="../shared/data/7scenes-kitchen is absent")
-def test_the_compiled_rasteriser_is_the_tensor_path_on_a_real_frame_set():
+def test_the_compiled_renderer_is_the_tensor_path_on_a_real_frame_set():
     """On a real Kinect frame set (7-Scenes, 640x480 to 256x256, KinectFusion poses) the
-    CPU's compiled cells give the tensor path's candidates bit for bit, block by block."""
+    CPU's compiled cells give the tensor path's candidates bit for bit, block by block,
+    and the compiled plane fit the tensors' GT to float32 rounding (under 5 um)."""
     torch.set_num_threads(1)
     scene = open_source_scene({"kind": "sevenscenes", "root": str(KITCHEN)}, "7scenes-kitchen")
     d = load_frameset(scene, [30 + o for o in FrameSetSettings().offsets], (256, 256), True, torch.device("cpu"))
@@ -253,3 +254,9 @@ def test_the_compiled_rasteriser_is_the_tensor_path_on_a_real_frame_set():
         for name in ("pixel", "point", "ox", "oy", "d2", "iz", "s", "frame"):
             assert torch.equal(getattr(a, name), getattr(b, name)), name
         assert (a.first_pixel, a.pixels) == (b.first_pixel, b.pixels)
+    # and the compiled plane fit gives the tensors' GT to float32 rounding
+    fit = composite_gt(got, RenderSettings(), target_frame=0, compiled=True)
+    tensors = composite_gt(got, RenderSettings(), target_frame=0, compiled=False)
+    assert torch.equal(fit.depth > 0, tensors.depth > 0) and torch.equal(fit.count, tensors.count)
+    assert (fit.depth - tensors.depth).abs().max() < 5e-6 and (fit.depth > 0).float().mean() > 0.5
+    assert torch.allclose(fit.sigma, tensors.sigma, rtol=1e-4, atol=1e-9)

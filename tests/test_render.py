@@ -477,6 +477,31 @@ def test_the_compiled_rasteriser_finds_the_tensor_paths_candidates():
     assert pg.grad is not None and pg.grad[0, got.point].abs().sum(1).gt(0).all()
 
 
+def test_the_compiled_plane_fit_is_the_tensor_one_to_rounding():
+    """The CPU's compiled plane fit of each pixel's chosen surface against the tensors'
+    (the path of a GPU and of gradients): the same valid pixels and counts, depth, weight
+    sum and confidence to float32 rounding; with the agreement, without a confidence,
+    with ``max_sigma_m`` and without normals; other planes are refused."""
+    p, nrm, valid, K, frame, sigma = _two_layer_cloud(11)
+    for st, normals in (
+        (RenderSettings(radius_px=1.3, min_points=2), nrm),
+        (RenderSettings(radius_px=1.6, max_sigma_m=0.004), nrm),
+        (RenderSettings(radius_px=1.3), None),
+    ):
+        kw = dict(valid=valid, normals_cam=normals, sigma_m=sigma, frame=frame, src_hw=(32, 32))
+        cands = rasterise_gt(p, K, (16, 16), st, **kw)
+        for target, with_sigma in ((0, True), (None, False)):
+            got = composite_gt(cands, st, target_frame=target, with_sigma=with_sigma, compiled=True)
+            want = composite_gt(cands, st, target_frame=target, with_sigma=with_sigma, compiled=False)
+            assert torch.equal(got.depth > 0, want.depth > 0) and torch.equal(got.count, want.count)
+            assert (got.depth > 0).sum() > 100
+            for name in ("depth", "weight_sum", "sigma"):
+                assert torch.allclose(getattr(got, name), getattr(want, name), rtol=1e-5, atol=1e-12), name
+            assert torch.equal(got.agreement.nan_to_num(-1), want.agreement.nan_to_num(-1))
+    with pytest.raises(ValueError, match="plane='fit'"):
+        composite_gt(cands, RenderSettings(plane="none"), compiled=True)
+
+
 def test_leave_one_frame_out_is_the_compositor_over_fewer_candidates():
     """The leave-target-out render (compositor over the candidates without frame 0, with
     their own sigmas) equals rendering the cloud without frame 0's points bit for bit;

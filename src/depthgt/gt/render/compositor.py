@@ -17,9 +17,12 @@ block. The blocks are independent: every step is per pixel or per cluster.
 
 from __future__ import annotations
 
+import math
 import warnings
 from typing import NamedTuple
 
+import numba
+import numpy as np
 import torch
 
 from depthgt.gt.render.agreement import agreement_slot, frame_agreement
@@ -458,11 +461,115 @@ def _estimate(
     return _Estimate(depth, wsum, lengths, sigma)
 
 
+@numba.njit(cache=True, nogil=True)
+def _plane_fit_chosen(
+    chosen, cl_start, lengths, support, step_iz, ambiguous, d2, iz, s, ox, oy, point, grad, consts
+):  # pragma: no cover (compiled)
+    """:func:`_estimate` with ``plane="fit"`` for each pixel's chosen cluster only, in
+    one compiled pass per cluster (its candidates in the cache), without gradients:
+    depth, weight sum, count and sigma per pixel (0 where ``chosen`` is -1).
+
+    chosen (P,) int64 the cluster of each pixel or -1; cl_start, lengths, support (K,)
+    each cluster's first candidate, size and frames; step_iz, ambiguous (P,); the
+    candidates' d2, iz, s, ox, oy (C,) and point (C,) int64; grad (N, 2) the points'
+    tangent-plane gradients (zero rows: none); consts: r2, s_ref, slope_prior,
+    min_points, sigma_scale, need_sigma, max_sigma_m (< 0: none).
+
+    The same estimate as the tensors' (the weighted plane in inverse depth with the
+    normals' slope prior, the confidence) with the sums taken in float64 one cluster at
+    a time: the results agree to float32 rounding (tests/test_render.py). Written by hand
+    because the tensor form materialises a dozen per-candidate products and takes every
+    cluster's sums, where a pixel keeps one cluster: no library fuses a segmented
+    weighted least-squares fit.
+    """
+    r2_f, s_ref_f, lam, min_points, sigma_scale, need_sigma, max_sigma = consts
+    r2, s_ref = d2.dtype.type(r2_f), d2.dtype.type(s_ref_f)
+    n_pix = chosen.shape[0]
+    depth = np.zeros(n_pix, iz.dtype)
+    weight_sum = np.zeros(n_pix, iz.dtype)
+    count = np.zeros(n_pix, np.int64)
+    sigma = np.zeros(n_pix, iz.dtype)
+    wts = np.empty(lengths.max() if lengths.shape[0] else 0, np.float64)  # a cluster's weights
+    for px in range(n_pix):
+        k = chosen[px]
+        if k < 0:
+            continue
+        lo = cl_start[k]
+        n = lengths[k]
+        sw = s_iz = s_x = s_y = s_gx = s_gy = wsum = 0.0
+        for i in range(lo, lo + n):
+            w_sp = math.exp(-d2[i] / r2)  # in the candidates' precision, as the tensors'
+            q = s_ref / s[i]
+            wt = np.float64(w_sp * (q * q))
+            wts[i - lo] = wt
+            sw += wt
+            s_iz += wt * iz[i]
+            s_x += wt * ox[i]
+            s_y += wt * oy[i]
+            s_gx += wt * grad[point[i], 0]
+            s_gy += wt * grad[point[i], 1]
+            wsum += w_sp
+        has = sw > 0
+        sw_safe = sw if has else 1.0
+        mean_iz, mean_x, mean_y = s_iz / sw_safe, s_x / sw_safe, s_y / sw_safe
+        cxx = cyy = cxy = cxz = cyz = 0.0
+        for i in range(lo, lo + n):
+            wt = wts[i - lo]
+            cxo, cyo, diz = ox[i] - mean_x, oy[i] - mean_y, iz[i] - mean_iz
+            cxx += wt * cxo * cxo
+            cyy += wt * cyo * cyo
+            cxy += wt * cxo * cyo
+            cxz += wt * cxo * diz
+            cyz += wt * cyo * diz
+        cxx, cyy, cxy, cxz, cyz = cxx / sw_safe, cyy / sw_safe, cxy / sw_safe, cxz / sw_safe, cyz / sw_safe
+        a11, a22 = cxx + lam, cyy + lam
+        v1, v2 = cxz + lam * (s_gx / sw_safe), cyz + lam * (s_gy / sw_safe)
+        det = a11 * a22 - cxy * cxy
+        slope_x = slope_y = 0.0
+        if det > 1e-12:
+            slope_x, slope_y = (a22 * v1 - cxy * v2) / det, (a11 * v2 - cxy * v1) / det
+        iz_hat = mean_iz - slope_x * mean_x - slope_y * mean_y  # the plane at the sample position
+        good = has and n >= min_points and iz_hat > 0
+        d = 1.0 / iz_hat if good else 0.0
+        sg = 0.0
+        if need_sigma:
+            model = res2 = 0.0
+            for i in range(lo, lo + n):
+                wt = wts[i - lo]
+                resid = iz[i] - (iz_hat + slope_x * ox[i] + slope_y * oy[i])
+                model += wt * s[i] * s[i]
+                res2 += wt * resid * resid
+            model, res2 = model / sw_safe, res2 / sw_safe
+            b11, b22 = cxx + lam + 1e-6, cyy + lam + 1e-6
+            det = max(b11 * b22 - cxy * cxy, 1e-12)
+            extrap = (b22 * mean_x * mean_x - 2 * cxy * mean_x * mean_y + b11 * mean_y * mean_y) / det
+            var_iz = (model + res2) / max(np.float64(support[k]), 1.0) * (1.0 + extrap)
+            z2 = d * d
+            sigma2 = sigma_scale * sigma_scale * z2 * z2 * var_iz
+            if ambiguous[px]:
+                sigma2 += (0.5 * z2 * step_iz[px]) ** 2
+            sg = math.sqrt(sigma2) if good else 0.0
+            if max_sigma >= 0 and not sg <= max_sigma:
+                d = 0.0
+        depth[px] = d
+        weight_sum[px] = wsum
+        count[px] = n
+        sigma[px] = sg
+    return depth, weight_sum, count, sigma
+
+
 def _composite_block(
-    c: RenderCandidates, st: RenderSettings, *, n_pix: int, target_frame: int | None, with_sigma: bool
+    c: RenderCandidates,
+    st: RenderSettings,
+    *,
+    n_pix: int,
+    target_frame: int | None,
+    with_sigma: bool,
+    compiled: bool | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Depth, weight sum, count and sigma (each (n_pix,)) of the pixels of one block:
-    ``c.pixel`` local to the block (0 .. n_pix - 1), sorted, front first."""
+    ``c.pixel`` local to the block (0 .. n_pix - 1), sorted, front first; ``compiled``:
+    as :func:`composite_gt`."""
     dev, dt = c.iz.device, c.iz.dtype
     zeros = torch.zeros(n_pix, dtype=dt, device=dev)
     if c.pixel.numel() == 0:
@@ -474,6 +581,34 @@ def _composite_block(
         ch = chosen.clamp_min(0)
         kept_count = torch.where(use, surf.lengths.index_select(0, ch), torch.zeros_like(ch))
         capped = int(kept_count.max()) > st.m
+    if compiled is None:
+        grads = torch.is_grad_enabled() and any(
+            t is not None and t.requires_grad for t in (c.ox, c.oy, c.d2, c.iz, c.s, c.grad)
+        )
+        compiled = st.plane == "fit" and dev.type == "cpu" and not grads
+    elif compiled and (st.plane != "fit" or dev.type != "cpu"):
+        raise ValueError(f"the compiled plane fit takes plane='fit' on the CPU, got {st.plane!r} on {dev.type}")
+    if compiled and not capped:
+        # compiled: each pixel's chosen cluster alone (:func:`_plane_fit_chosen`)
+        need_sigma = with_sigma or st.max_sigma_m is not None
+        consts = (
+            float(st.radius_px) ** 2,
+            _S_REF,
+            float(st.slope_prior),
+            int(st.min_points),
+            _SIGMA_SCALE,
+            need_sigma,
+            -1.0 if st.max_sigma_m is None else float(st.max_sigma_m),
+        )
+        grad = c.grad if c.grad is not None else torch.zeros(c.iz_point.numel(), 2, dtype=dt)
+        cl_start = torch.cumsum(surf.lengths, 0) - surf.lengths
+        out = _plane_fit_chosen(
+            *(t.numpy() for t in (surf.chosen, cl_start, surf.lengths, surf.support, surf.step_iz, surf.ambiguous)),
+            *(t.numpy() for t in (c.d2, c.iz, c.s, c.ox, c.oy, c.point, grad.to(dt).contiguous())),
+            consts,
+        )
+        depth, weight_sum, count, sigma = (torch.from_numpy(a) for a in out)
+        return depth, weight_sum, count, sigma if need_sigma else zeros
     if not capped:
         # the kept samples of a pixel are its chosen cluster's run: estimate every cluster
         est = _estimate(
@@ -527,6 +662,7 @@ def composite_gt(
     target_frame: int | None = None,
     with_sigma: bool = True,
     block_rows: int | None = BLOCK_ROWS,
+    compiled: bool | None = None,
 ) -> GTRender:
     """Steps 2-5 of :func:`render_gt` on the rasteriser's candidates (one record, or the
     blocks of :func:`~depthgt.gt.render.rasteriser.rasterise_blocks` covering every
@@ -535,7 +671,9 @@ def composite_gt(
     surfaces, visibility, the ``m`` nearest samples, the plane fit and the confidence
     (with ``with_sigma`` or ``max_sigma_m``, else ``sigma`` is zero). One record is
     composited in blocks of ``block_rows`` pixel rows on the CPU (None: all at once,
-    as on a GPU).
+    as on a GPU). ``compiled``: the plane fit of the chosen surfaces compiled
+    (:func:`_plane_fit_chosen`; default: on the CPU, ``plane="fit"``, no gradients
+    wanted) or as tensors; the same GT to float32 rounding.
 
     The leave-target-out render is this compositor over the same candidates without the
     target's (:meth:`RenderCandidates.without_frame`), no ``target_frame``.
@@ -561,7 +699,11 @@ def composite_gt(
                     pixel, blk.frame, size=blk.size, n_frames=blk.n_frames, tile_px=st.agreement_tile_px
                 )
                 blk = blk.select((~bad[slot]).nonzero().squeeze(1))
-        parts.append(_composite_block(blk, st, n_pix=blk.pixels, target_frame=target_frame, with_sigma=with_sigma))
+        parts.append(
+            _composite_block(
+                blk, st, n_pix=blk.pixels, target_frame=target_frame, with_sigma=with_sigma, compiled=compiled
+            )
+        )
     depth, wsum, count, sigma = (parts[0][i] if len(parts) == 1 else torch.cat([p[i] for p in parts]) for i in range(4))
     return GTRender(
         depth.reshape(b, 1, h, w).to(dt),
