@@ -254,9 +254,20 @@ def test_the_compiled_renderer_is_the_tensor_path_on_a_real_frame_set():
         for name in ("pixel", "point", "ox", "oy", "d2", "iz", "s", "frame"):
             assert torch.equal(getattr(a, name), getattr(b, name)), name
         assert (a.first_pixel, a.pixels) == (b.first_pixel, b.pixels)
+    # the compiled surfaces are the tensors' (the same clusters, frames and choices)
+    from depthgt.gt.render.compositor import _choose_surfaces
+
+    with torch.no_grad():
+        for blk in got:
+            a = _choose_surfaces(blk, RenderSettings(), 0, blk.pixels, compiled=True)
+            b = _choose_surfaces(blk, RenderSettings(), 0, blk.pixels, compiled=False)
+            for name in a._fields:
+                assert torch.equal(getattr(a, name), getattr(b, name)), name
     # and the compiled plane fit gives the tensors' GT to float32 rounding
     fit = composite_gt(got, RenderSettings(), target_frame=0, compiled=True)
     tensors = composite_gt(got, RenderSettings(), target_frame=0, compiled=False)
     assert torch.equal(fit.depth > 0, tensors.depth > 0) and torch.equal(fit.count, tensors.count)
+    assert torch.equal(fit.agreement.nan_to_num(-1), tensors.agreement.nan_to_num(-1))
+    assert torch.equal(fit.disagreement, tensors.disagreement)  # the agreement's scans: the same
     assert (fit.depth - tensors.depth).abs().max() < 5e-6 and (fit.depth > 0).float().mean() > 0.5
     assert torch.allclose(fit.sigma, tensors.sigma, rtol=1e-4, atol=1e-9)

@@ -22,6 +22,7 @@ from depthgt.gt.render import (
     resampled_positions,
     splat_soft,
 )
+from depthgt.gt.render.compositor import _choose_surfaces
 from depthgt.gt.render.rasteriser import rasterise_blocks
 from depthgt.settings import RenderSettings
 
@@ -498,6 +499,14 @@ def test_the_compiled_plane_fit_is_the_tensor_one_to_rounding():
             for name in ("depth", "weight_sum", "sigma"):
                 assert torch.allclose(getattr(got, name), getattr(want, name), rtol=1e-5, atol=1e-12), name
             assert torch.equal(got.agreement.nan_to_num(-1), want.agreement.nan_to_num(-1))
+            assert (got.disagreement is None) == (want.disagreement is None)
+            assert got.disagreement is None or torch.equal(got.disagreement, want.disagreement)
+        with torch.no_grad():  # the compiled surfaces: the tensors' clusters, frames and choices
+            for frames in (cands.frame, None):
+                c = cands._replace(frame=frames, n_frames=cands.n_frames if frames is not None else 0)
+                a = _choose_surfaces(c, st, 0 if frames is not None else None, 256, compiled=True)
+                b = _choose_surfaces(c, st, 0 if frames is not None else None, 256, compiled=False)
+                assert all(torch.equal(getattr(a, k), getattr(b, k)) for k in a._fields)
     with pytest.raises(ValueError, match="plane='fit'"):
         composite_gt(cands, RenderSettings(plane="none"), compiled=True)
 

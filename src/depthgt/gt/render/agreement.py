@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+import numba
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -53,7 +55,107 @@ def agreement_slot(
     return table.index_select(0, pixel) + fr * n_t
 
 
-def frame_agreement(blocks: list[RenderCandidates], st: RenderSettings, target_frame: int):
+@numba.njit(cache=True, nogil=True)
+def _target_samples(pixel, frame, d2, iz, s, target, hit2, iz_t, s_t):  # pragma: no cover (compiled)
+    """The target's own samples at the pixels' positions (frame ``target``, d2 <= hit2)
+    written into ``iz_t``, ``s_t`` (the block's pixels, counted from its first)."""
+    for i in range(pixel.shape[0]):
+        if frame[i] == target and d2[i] <= hit2:
+            iz_t[pixel[i]] = iz[i]
+            s_t[pixel[i]] = s[i]
+
+
+@numba.njit(cache=True, nogil=True)
+def _near_samples(
+    pixel, frame, d2, iz, s, judge, iz_t, s_t, target, near2, gap_sigmas, gap_slope_rel
+):  # pragma: no cover
+    """The other frames' samples within ``near2`` (px^2) of a judged target sample:
+    their pixels (of the block), frames and whether each agrees with the target's
+    sample (the tensors' float arithmetic: the same decisions)."""
+    n = pixel.shape[0]
+    p_out = np.empty(n, np.int64)
+    f_out = np.empty(n, np.int64)
+    agree = np.empty(n, np.bool_)
+    m = 0
+    for i in range(n):
+        p = pixel[i]
+        if frame[i] != target and d2[i] <= near2 and judge[p]:
+            tol = gap_sigmas * math.hypot(s[i], s_t[p]) + gap_slope_rel * iz[i] * math.sqrt(d2[i])
+            p_out[m] = p
+            f_out[m] = frame[i]
+            agree[m] = abs(iz[i] - iz_t[p]) <= tol
+            m += 1
+    return p_out[:m].copy(), f_out[:m].copy(), agree[:m].copy()
+
+
+def _target_depth(
+    blocks: list[RenderCandidates], target_frame: int, n_pix: int, *, compiled: bool
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(n_pix,) the target's own sample at each pixel's position (inverse depth, NaN
+    where none, and its std): its candidates within ``HIT_PX``."""
+    c = blocks[0]
+    dt, dev = c.iz_point.dtype, c.iz_point.device
+    iz_t = torch.full((n_pix,), float("nan"), dtype=dt, device=dev)
+    s_t = torch.zeros(n_pix, dtype=dt, device=dev)
+    for blk in blocks:
+        if compiled:
+            p0, p1 = blk.first_pixel, blk.first_pixel + blk.pixels
+            cols = (blk.pixel, blk.frame, blk.d2.detach(), blk.iz.detach(), blk.s)
+            hit2 = iz_t.numpy().dtype.type(HIT_PX**2)  # a Python number meets a tensor in its dtype
+            _target_samples(*(t.numpy() for t in cols), target_frame, hit2, *(t[p0:p1].numpy() for t in (iz_t, s_t)))
+            continue
+        tgt = ((blk.frame == target_frame) & (blk.d2.detach() <= HIT_PX**2)).nonzero().squeeze(1)
+        pix_t = blk.pixel.index_select(0, tgt) + blk.first_pixel
+        iz_t[pix_t] = blk.iz.detach().index_select(0, tgt)
+        s_t[pix_t] = blk.s.index_select(0, tgt)
+    return iz_t, s_t
+
+
+def _near_comparisons(
+    blocks: list[RenderCandidates],
+    st: RenderSettings,
+    target_frame: int,
+    judge: torch.Tensor,
+    iz_t: torch.Tensor,
+    s_t: torch.Tensor,
+    *,
+    compiled: bool,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The other frames' samples within ``_NEAR_PX`` of a judged target sample: their
+    pixels, frames and whether each agrees with the target's sample (C',)."""
+    near_p, near_f, near_agree = [], [], []
+    for blk in blocks:
+        if compiled:
+            p0, p1 = blk.first_pixel, blk.first_pixel + blk.pixels
+            real = iz_t.numpy().dtype.type  # a Python number meets a tensor in its dtype
+            p, f, ok = (
+                torch.from_numpy(a)
+                for a in _near_samples(
+                    *(t.numpy() for t in (blk.pixel, blk.frame, blk.d2.detach(), blk.iz.detach(), blk.s)),
+                    *(t[p0:p1].numpy() for t in (judge, iz_t, s_t)),
+                    target_frame,
+                    *(real(x) for x in (_NEAR_PX**2, st.gap_sigmas, st.gap_slope_rel)),
+                )
+            )
+            near_p.append(p + p0 if p0 else p)
+            near_f.append(f)
+            near_agree.append(ok)
+            continue
+        fr, d2 = blk.frame, blk.d2.detach()
+        pixel = blk.pixel + blk.first_pixel if blk.first_pixel else blk.pixel
+        near = (fr != target_frame) & (d2 <= _NEAR_PX**2) & judge.index_select(0, pixel)
+        ni = near.nonzero().squeeze(1)
+        p, f, s_n, iz_n, d2_n = (x.index_select(0, ni) for x in (pixel, fr, blk.s, blk.iz.detach(), d2))
+        tol = st.gap_sigmas * torch.hypot(s_n, s_t.index_select(0, p)) + st.gap_slope_rel * iz_n * torch.sqrt(d2_n)
+        near_p.append(p)
+        near_f.append(f)
+        near_agree.append((iz_n - iz_t.index_select(0, p)).abs() <= tol)
+    return torch.cat(near_p), torch.cat(near_f), torch.cat(near_agree)
+
+
+def frame_agreement(
+    blocks: list[RenderCandidates], st: RenderSettings, target_frame: int, *, compiled: bool | None = None
+):
     """Which frames, or regions of frames, disagree with the target's own depth (a
     misregistered neighbour; a region that a rigid pose does not explain: lens
     distortion at the border, a moving object).
@@ -72,6 +174,8 @@ def frame_agreement(blocks: list[RenderCandidates], st: RenderSettings, target_f
 
     Args:
         blocks: the rasteriser's candidates, in blocks of pixels (or one record).
+        compiled: scan the candidates compiled (:func:`_target_samples`,
+            :func:`_near_samples`; default: on the CPU) or as tensors; the same result.
 
     Returns:
         (B * J * tiles,) bool bad (frame, tile) slots (:func:`agreement_slot`), (B, J)
@@ -79,21 +183,16 @@ def frame_agreement(blocks: list[RenderCandidates], st: RenderSettings, target_f
         comparisons, e.g. the target itself) and the (B, 3, H, W) diagnostic counts of
         :class:`GTRender`.
 
-    Long for its docstring (the rule and its thresholds); its code is 66 lines.
+    Long for its docstring (the rule and its thresholds).
     """
     c = blocks[0]
     b, h, w = c.size
     hw, n_fr = (h, w), c.n_frames
     h_w = h * w
     n_pix = b * h_w
-    dt, dev = c.iz_point.dtype, c.iz_point.device
-    iz_t = torch.full((n_pix,), float("nan"), dtype=dt, device=dev)
-    s_t = torch.zeros(n_pix, dtype=dt, device=dev)
-    for blk in blocks:  # the target's own samples at the pixels' positions
-        tgt = ((blk.frame == target_frame) & (blk.d2.detach() <= HIT_PX**2)).nonzero().squeeze(1)
-        pix_t = blk.pixel.index_select(0, tgt) + blk.first_pixel
-        iz_t[pix_t] = blk.iz.detach().index_select(0, tgt)
-        s_t[pix_t] = blk.s.index_select(0, tgt)
+    # on the CPU the two scans over the candidates are compiled (the same values)
+    compiled = c.iz_point.device.type == "cpu" if compiled is None else compiled
+    iz_t, s_t = _target_depth(blocks, target_frame, n_pix, compiled=compiled)
     judge = torch.isfinite(iz_t)
     if st.agreement_edge_px > 0:
         # Not judged next to a depth edge or a hole of the target: a real sensor's edges
@@ -105,18 +204,7 @@ def frame_agreement(blocks: list[RenderCandidates], st: RenderSettings, target_f
         lo = -window_max(-torch.nan_to_num(img, nan=-float("inf")), k)
         tol = st.gap_sigmas * math.sqrt(2.0) * s_t.reshape(b, 1, h, w) + st.gap_slope_rel * img * (2 * r)
         judge &= ((hi - lo) <= tol).reshape(-1)
-    near_p, near_f, near_agree = [], [], []
-    for blk in blocks:  # the other frames' samples near a judged target sample
-        fr, d2 = blk.frame, blk.d2.detach()
-        pixel = blk.pixel + blk.first_pixel if blk.first_pixel else blk.pixel
-        near = (fr != target_frame) & (d2 <= _NEAR_PX**2) & judge.index_select(0, pixel)
-        ni = near.nonzero().squeeze(1)
-        p, f, s_n, iz_n, d2_n = (x.index_select(0, ni) for x in (pixel, fr, blk.s, blk.iz.detach(), d2))
-        tol = st.gap_sigmas * torch.hypot(s_n, s_t.index_select(0, p)) + st.gap_slope_rel * iz_n * torch.sqrt(d2_n)
-        near_p.append(p)
-        near_f.append(f)
-        near_agree.append((iz_n - iz_t.index_select(0, p)).abs() <= tol)
-    p, f, agree = torch.cat(near_p), torch.cat(near_f), torch.cat(near_agree)
+    p, f, agree = _near_comparisons(blocks, st, target_frame, judge, iz_t, s_t, compiled=compiled)
     slot = torch.div(p, h_w, rounding_mode="floor") * n_fr + f
     n_cmp = torch.bincount(slot, minlength=b * n_fr).reshape(b, n_fr)
     n_ok = torch.bincount(slot[agree], minlength=b * n_fr).reshape(b, n_fr)

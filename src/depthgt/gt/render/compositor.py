@@ -168,8 +168,67 @@ def _clusters(c: RenderCandidates, st: RenderSettings) -> tuple[torch.Tensor, to
     return cluster, starts, lengths
 
 
+@numba.njit(cache=True, nogil=True)
+def _cluster_runs(pixel, iz, s, ox, oy, frame, gap_sigmas, gap_slope_rel):  # pragma: no cover (compiled)
+    """:func:`_clusters` in one compiled pass, with each cluster's distinct frames: the
+    cluster of every candidate (C,), each cluster's first candidate, size and frames (K,)
+    (``frame`` (C,) int64 below 64, or empty: each candidate counts as a frame). The same
+    float arithmetic as the tensors' (hypot included: the same clusters)."""
+    n = pixel.shape[0]
+    cluster = np.empty(n, np.int64)
+    starts = np.empty(n, np.int64)
+    k = -1
+    for i in range(n):
+        new = i == 0 or pixel[i] != pixel[i - 1]
+        if not new:
+            apart = math.hypot(ox[i] - ox[i - 1], oy[i] - oy[i - 1])
+            tol = gap_sigmas * math.hypot(s[i - 1], s[i]) + gap_slope_rel * iz[i - 1] * apart
+            new = (iz[i - 1] - iz[i]) > tol
+        if new:
+            k += 1
+            starts[k] = i
+        cluster[i] = k
+    n_cl = k + 1
+    lengths = np.empty(n_cl, np.int64)
+    support = np.empty(n_cl, np.int64)
+    for j in range(n_cl):
+        end = starts[j + 1] if j + 1 < n_cl else n
+        lengths[j] = end - starts[j]
+        if frame.shape[0] == 0:
+            support[j] = lengths[j]
+            continue
+        seen = np.uint64(0)
+        for i in range(starts[j], end):
+            seen |= np.uint64(1) << np.uint64(frame[i])
+        m = 0
+        while seen:
+            seen &= seen - np.uint64(1)
+            m += 1
+        support[j] = m
+    return cluster, starts[:n_cl].copy(), lengths, support
+
+
+def _clusters_compiled(c: RenderCandidates, st: RenderSettings) -> tuple[torch.Tensor, ...]:
+    """:func:`_clusters` and each cluster's distinct frames (its candidates without frame
+    ids), compiled (:func:`_cluster_runs`; frame ids below 64)."""
+    frame = torch.zeros(0, dtype=torch.long) if c.frame is None else c.frame
+    out = _cluster_runs(
+        *(t.detach().numpy() for t in (c.pixel, c.iz, c.s, c.ox, c.oy)),
+        frame.numpy(),
+        # the tensors' precision: a Python number times a tensor is taken in its dtype
+        *(c.iz.detach().numpy().dtype.type(x) for x in (st.gap_sigmas, st.gap_slope_rel)),
+    )
+    return tuple(torch.from_numpy(a) for a in out)
+
+
 def _choose_surfaces(
-    c: RenderCandidates, st: RenderSettings, target_frame: int | None, n_pix: int, *, need_support: bool = True
+    c: RenderCandidates,
+    st: RenderSettings,
+    target_frame: int | None,
+    n_pix: int,
+    *,
+    need_support: bool = True,
+    compiled: bool = False,
 ) -> _Surfaces:
     """Group each pixel's candidates into surfaces by gaps in inverse depth and pick the
     visible one (the rule: :func:`render_gt`, steps 2-3), on the candidates ``c`` of a
@@ -179,24 +238,29 @@ def _choose_surfaces(
 
     A pixel with one surface takes it (with ``extend_uncovered``, whatever its reach):
     only the pixels with several (5 % of them on the shared recordings) go through the
-    surfaces' support, reach and the edge vote (:func:`_choose_among`)."""
-    cluster, starts, lengths = _clusters(c, st)
+    surfaces' support, reach and the edge vote (:func:`_choose_among`). ``compiled``: the
+    clusters and their frames in one compiled pass (:func:`_cluster_runs`; CPU, frame
+    ids below 64), the same values."""
+    frame = c.frame
+    n_frames = c.n_frames or (int(frame.max()) + 1 if frame is not None and frame.numel() else 0)
+    present = None
+    cluster, starts, lengths, support = (
+        _clusters_compiled(c, st) if compiled and n_frames <= 64 else (*_clusters(c, st), None)
+    )
     n_cl = starts.numel()
     dev = cluster.device
     cl_pixel = c.pixel.index_select(0, starts)
     per_pixel = torch.bincount(cl_pixel, minlength=n_pix)
     first = torch.cumsum(per_pixel, 0) - per_pixel  # each pixel's first cluster (its only one, mostly)
     multi = per_pixel > 1
-    frame = c.frame
-    support = lengths
-    present = None
-    n_frames = c.n_frames or (int(frame.max()) + 1 if frame is not None else 0)
     several = bool(multi.any()) or not st.extend_uncovered
-    if frame is not None and (need_support or several):
-        present = torch.zeros(n_cl * n_frames, dtype=torch.bool, device=dev)
-        present[cluster * n_frames + frame] = True
-        present = present.view(n_cl, n_frames)
-        support = present.sum(1)
+    if support is None:
+        support = lengths
+        if frame is not None and (need_support or several):
+            present = torch.zeros(n_cl * n_frames, dtype=torch.bool, device=dev)
+            present[cluster * n_frames + frame] = True
+            present = present.view(n_cl, n_frames)
+            support = present.sum(1)
     has = per_pixel > 0
     chosen = torch.where(has, first, -1)
     ambiguous = torch.zeros(n_pix, dtype=torch.bool, device=dev)
@@ -210,6 +274,11 @@ def _choose_surfaces(
         idx = sub_cl.index_select(0, cluster).nonzero().squeeze(1)
         sub = c.select(idx)
         local = (torch.cumsum(sub_cl, 0) - 1).index_select(0, cluster.index_select(0, idx))
+        sub_present = None if present is None else present.index_select(0, cl_ids)
+        if present is None and frame is not None:  # compiled: the frames of these clusters only
+            sub_present = torch.zeros(cl_ids.numel() * n_frames, dtype=torch.bool, device=dev)
+            sub_present[local * n_frames + sub.frame] = True
+            sub_present = sub_present.view(cl_ids.numel(), n_frames)
         ch, amb, stp = _choose_among(
             sub,
             st,
@@ -219,7 +288,7 @@ def _choose_surfaces(
             lengths=lengths.index_select(0, cl_ids),
             cl_pixel=cl_pixel.index_select(0, cl_ids),
             support=support.index_select(0, cl_ids),
-            present=None if present is None else present.index_select(0, cl_ids),
+            present=sub_present,
             n_frames=n_frames,
         )
         px = pick.nonzero().squeeze(1)
@@ -481,6 +550,9 @@ def _plane_fit_chosen(
     because the tensor form materialises a dozen per-candidate products and takes every
     cluster's sums, where a pixel keeps one cluster: no library fuses a segmented
     weighted least-squares fit.
+
+    Long because a cluster's three passes (the sums, the plane, the confidence) share a
+    dozen scalars; split, they would travel as long argument lists.
     """
     r2_f, s_ref_f, lam, min_points, sigma_scale, need_sigma, max_sigma = consts
     r2, s_ref = d2.dtype.type(r2_f), d2.dtype.type(s_ref_f)
@@ -558,6 +630,34 @@ def _plane_fit_chosen(
     return depth, weight_sum, count, sigma
 
 
+def _fit_chosen(
+    c: RenderCandidates, surf: _Surfaces, st: RenderSettings, *, with_sigma: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_composite_block`'s result from each pixel's chosen cluster, compiled
+    (:func:`_plane_fit_chosen`): depth, weight sum, count and sigma (zeros without
+    ``with_sigma`` or ``max_sigma_m``)."""
+    dt = c.iz.dtype
+    need_sigma = with_sigma or st.max_sigma_m is not None
+    consts = (
+        float(st.radius_px) ** 2,
+        _S_REF,
+        float(st.slope_prior),
+        int(st.min_points),
+        _SIGMA_SCALE,
+        need_sigma,
+        -1.0 if st.max_sigma_m is None else float(st.max_sigma_m),
+    )
+    grad = c.grad if c.grad is not None else torch.zeros(c.iz_point.numel(), 2, dtype=dt)
+    cl_start = torch.cumsum(surf.lengths, 0) - surf.lengths
+    out = _plane_fit_chosen(
+        *(t.numpy() for t in (surf.chosen, cl_start, surf.lengths, surf.support, surf.step_iz, surf.ambiguous)),
+        *(t.detach().numpy() for t in (c.d2, c.iz, c.s, c.ox, c.oy, c.point, grad.to(dt).contiguous())),
+        consts,
+    )
+    depth, weight_sum, count, sigma = (torch.from_numpy(a) for a in out)
+    return depth, weight_sum, count, sigma if need_sigma else torch.zeros_like(sigma)
+
+
 def _composite_block(
     c: RenderCandidates,
     st: RenderSettings,
@@ -574,13 +674,6 @@ def _composite_block(
     zeros = torch.zeros(n_pix, dtype=dt, device=dev)
     if c.pixel.numel() == 0:
         return zeros, zeros.clone(), torch.zeros(n_pix, dtype=torch.long, device=dev), zeros.clone()
-    with torch.no_grad():
-        surf = _choose_surfaces(c, st, target_frame, n_pix, need_support=with_sigma or st.max_sigma_m is not None)
-        chosen = surf.chosen
-        use = chosen >= 0
-        ch = chosen.clamp_min(0)
-        kept_count = torch.where(use, surf.lengths.index_select(0, ch), torch.zeros_like(ch))
-        capped = int(kept_count.max()) > st.m
     if compiled is None:
         grads = torch.is_grad_enabled() and any(
             t is not None and t.requires_grad for t in (c.ox, c.oy, c.d2, c.iz, c.s, c.grad)
@@ -588,27 +681,17 @@ def _composite_block(
         compiled = st.plane == "fit" and dev.type == "cpu" and not grads
     elif compiled and (st.plane != "fit" or dev.type != "cpu"):
         raise ValueError(f"the compiled plane fit takes plane='fit' on the CPU, got {st.plane!r} on {dev.type}")
+    with torch.no_grad():
+        surf = _choose_surfaces(
+            c, st, target_frame, n_pix, need_support=with_sigma or st.max_sigma_m is not None, compiled=compiled
+        )
+        chosen = surf.chosen
+        use = chosen >= 0
+        ch = chosen.clamp_min(0)
+        kept_count = torch.where(use, surf.lengths.index_select(0, ch), torch.zeros_like(ch))
+        capped = int(kept_count.max()) > st.m
     if compiled and not capped:
-        # compiled: each pixel's chosen cluster alone (:func:`_plane_fit_chosen`)
-        need_sigma = with_sigma or st.max_sigma_m is not None
-        consts = (
-            float(st.radius_px) ** 2,
-            _S_REF,
-            float(st.slope_prior),
-            int(st.min_points),
-            _SIGMA_SCALE,
-            need_sigma,
-            -1.0 if st.max_sigma_m is None else float(st.max_sigma_m),
-        )
-        grad = c.grad if c.grad is not None else torch.zeros(c.iz_point.numel(), 2, dtype=dt)
-        cl_start = torch.cumsum(surf.lengths, 0) - surf.lengths
-        out = _plane_fit_chosen(
-            *(t.numpy() for t in (surf.chosen, cl_start, surf.lengths, surf.support, surf.step_iz, surf.ambiguous)),
-            *(t.numpy() for t in (c.d2, c.iz, c.s, c.ox, c.oy, c.point, grad.to(dt).contiguous())),
-            consts,
-        )
-        depth, weight_sum, count, sigma = (torch.from_numpy(a) for a in out)
-        return depth, weight_sum, count, sigma if need_sigma else zeros
+        return _fit_chosen(c, surf, st, with_sigma=with_sigma)
     if not capped:
         # the kept samples of a pixel are its chosen cluster's run: estimate every cluster
         est = _estimate(
@@ -671,9 +754,11 @@ def composite_gt(
     surfaces, visibility, the ``m`` nearest samples, the plane fit and the confidence
     (with ``with_sigma`` or ``max_sigma_m``, else ``sigma`` is zero). One record is
     composited in blocks of ``block_rows`` pixel rows on the CPU (None: all at once,
-    as on a GPU). ``compiled``: the plane fit of the chosen surfaces compiled
-    (:func:`_plane_fit_chosen`; default: on the CPU, ``plane="fit"``, no gradients
-    wanted) or as tensors; the same GT to float32 rounding.
+    as on a GPU). ``compiled``: the frame agreement's scans, the surfaces
+    (:func:`_cluster_runs`) and the plane fit of the chosen ones
+    (:func:`_plane_fit_chosen`) compiled (default: on the CPU, the last two with
+    ``plane="fit"`` and no gradients wanted) or as tensors; the same GT to float32
+    rounding.
 
     The leave-target-out render is this compositor over the same candidates without the
     target's (:meth:`RenderCandidates.without_frame`), no ``target_frame``.
@@ -688,7 +773,7 @@ def composite_gt(
     disagreement = bad = None
     if first.frame is not None and target_frame is not None and any(c.pixel.numel() for c in cands):
         with torch.no_grad():
-            bad, agreement, disagreement = frame_agreement(cands, st, target_frame)
+            bad, agreement, disagreement = frame_agreement(cands, st, target_frame, compiled=compiled)
             bad = bad if bool(bad.any()) else None
     parts = []
     for blk in cands:
