@@ -187,6 +187,75 @@ def _inverse_depth_planes(points_cam, normals_cam, K, st: RenderSettings) -> tor
     return torch.stack([gu * ok, gv * ok], dim=-1).reshape(-1, 2)
 
 
+@numba.njit(cache=True, nogil=True)
+def _at_least(x, lo):  # pragma: no cover (compiled)
+    """torch's clamp_min: NaN stays NaN."""
+    return lo if x < lo else x
+
+
+@numba.njit(cache=True, nogil=True)
+def _points_in_view(points, normals, K, K_inv, valid, sigma, consts):  # pragma: no cover (compiled)
+    """What the rasteriser needs of every point, in one compiled pass: uv (B*N, 2)
+    projections (-inf behind the camera), inverse depth iz and its std s (B*N,), whether
+    each is visible within the radius of the image (B*N,) bool, and its tangent plane's
+    screen-space gradient (B*N, 2) (:func:`_inverse_depth_planes`; zeros without
+    ``normals``, an empty array). The tensors' float arithmetic, operation by operation:
+    the same values."""
+    eps, u_lo, u_hi, v_lo, v_hi, min_cos, radius, max_corr, s_min, d_min, cl_min = consts
+    b, n = points.shape[0], points.shape[1]
+    uv = np.empty((b * n, 2), points.dtype)
+    iz = np.empty(b * n, points.dtype)
+    s = np.empty(b * n, points.dtype)
+    ok = np.empty(b * n, np.bool_)
+    grad = np.zeros((b * n, 2), points.dtype)
+    with_planes = normals.shape[1] == n
+    zero = points.dtype.type(0.0)
+    one = points.dtype.type(1.0)
+    for bi in range(b):
+        k00, k01, k02, k11, k12 = K[bi, 0, 0], K[bi, 0, 1], K[bi, 0, 2], K[bi, 1, 1], K[bi, 1, 2]
+        for j in range(n):
+            i = bi * n + j
+            px, py, pz = points[bi, j, 0], points[bi, j, 1], points[bi, j, 2]
+            zs = _at_least(pz, eps)
+            if pz > eps:
+                u = k00 * px / zs + k01 * py / zs + k02
+                v = k11 * py / zs + k12
+            else:
+                u = v = -np.inf
+            uv[i, 0], uv[i, 1] = u, v
+            q = one / _at_least(pz, eps)
+            iz[i] = q
+            s[i] = _at_least(sigma[bi, j] * (q * q), s_min)
+            ok[i] = (
+                valid[bi, j]
+                and pz > eps
+                and math.isfinite(u)
+                and math.isfinite(v)
+                and u > u_lo
+                and u < u_hi
+                and v > v_lo
+                and v < v_hi
+            )
+            if not with_planes:
+                continue
+            nx, ny, nz = normals[bi, j, 0], normals[bi, j, 1], normals[bi, j, 2]
+            nx = nx if math.isfinite(nx) else zero
+            ny = ny if math.isfinite(ny) else zero
+            nz = nz if math.isfinite(nz) else zero
+            d0 = nx * px + ny * py + nz * pz
+            kn_u = K_inv[bi, 0, 0] * nx + K_inv[bi, 1, 0] * ny + K_inv[bi, 2, 0] * nz
+            kn_v = K_inv[bi, 0, 1] * nx + K_inv[bi, 1, 1] * ny + K_inv[bi, 2, 1] * nz
+            safe = d0 if abs(d0) > d_min else one
+            gu, gv = kn_u / safe, kn_v / safe
+            n_len = math.sqrt(nx * nx + ny * ny + nz * nz)
+            p_len = math.sqrt(px * px + py * py + pz * pz)
+            cos = abs(d0) / _at_least(n_len * p_len, cl_min)
+            g_len = math.sqrt(gu * gu + gv * gv)
+            keep = one if (cos >= min_cos and pz * g_len * radius <= max_corr) else zero
+            grad[i, 0], grad[i, 1] = gu * keep, gv * keep
+    return uv, iz, s, ok, grad
+
+
 class _Projected(NamedTuple):
     """The points as the rasteriser's blocks use them (:func:`_project`).
 
@@ -231,6 +300,29 @@ def _sample_grid(size_hw, src_hw, device, dtype) -> tuple[torch.Tensor, torch.Te
     return gu, gv, shift
 
 
+def _project_compiled(points_cam, K, st: RenderSettings, valid, normals_cam, sigma_m, gu, gv):
+    """:func:`_points_in_view` of the points (B, N, 3), their intrinsics (B, 3, 3),
+    validity, normals (or None) and depth sigmas (B, N), on the sample grid (gu, gv):
+    uv (B*N, 2), iz, s (B*N,), ok (B*N,) bool, planes (B*N, 2) (zeros without normals)."""
+    dt = points_cam.dtype
+    real = points_cam.detach().numpy().dtype.type  # a Python number meets a tensor in its dtype
+    r = float(st.radius_px)
+    # K^-1 as :func:`_inverse_depth_planes` takes it: in float64, then the points' dtype
+    k_inv = torch.linalg.inv(K.to(torch.float64)).to(dt)
+    normals = torch.zeros(points_cam.shape[0], 0, 3, dtype=dt) if normals_cam is None else normals_cam
+    consts = (
+        *(real(x) for x in (st.min_depth_m, float(gu[0]) - r, float(gu[-1]) + r, float(gv[0]) - r)),
+        *(real(x) for x in (float(gv[-1]) + r, st.min_cos_incidence, st.radius_px, st.max_correction_rel)),
+        *(real(x) for x in (1e-12, 1e-12, 1e-12)),
+    )
+    out = _points_in_view(
+        *(t.detach().contiguous().numpy() for t in (points_cam, normals.to(dt), K.to(dt), k_inv, valid)),
+        sigma_m.detach().to(dt).contiguous().numpy(),
+        consts,
+    )
+    return tuple(torch.from_numpy(a) for a in out)
+
+
 def _project(
     points_cam: torch.Tensor,
     K: torch.Tensor,
@@ -242,27 +334,42 @@ def _project(
     frame: torch.Tensor | None,
     src_hw: tuple[int, int] | None,
     block_rows: int | None,
+    compiled: bool = False,
 ) -> _Projected:
     """Project the points, order the visible ones front to back and group them by the
-    blocks of ``block_rows`` pixel rows they reach (None: one block)."""
+    blocks of ``block_rows`` pixel rows they reach (None: one block). ``compiled``: the
+    projection, sigmas, visibility and planes in one compiled pass
+    (:func:`_points_in_view`; CPU tensors with sigmas and no gradients), the same values."""
     b, n = points_cam.shape[:2]
     h, w = int(size_hw[0]), int(size_hw[1])
     dev, dt = points_cam.device, points_cam.dtype
     gu, gv, shift = _sample_grid((h, w), src_hw, dev, dt)
     r = float(st.radius_px)
-    uv, z = project(points_cam, K, eps=st.min_depth_m)
-    uv_f, z_f = uv.reshape(-1, 2), z.reshape(-1)
-    iz_all = 1.0 / z_f.clamp_min(st.min_depth_m)
+    grads = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (points_cam, normals_cam, K))
+    grad = None
+    if compiled and sigma_m is not None and not grads:
+        # compiled: the projection, the sigmas, the visibility and the tangent planes in
+        # one pass over the points (:func:`_points_in_view`; the same values)
+        uv_f, iz_all, s_all, ok, planes = _project_compiled(points_cam, K, st, valid, normals_cam, sigma_m, gu, gv)
+        grad = None if normals_cam is None else planes
+    else:
+        uv, z = project(points_cam, K, eps=st.min_depth_m)
+        uv_f, z_f = uv.reshape(-1, 2), z.reshape(-1)
+        iz_all = 1.0 / z_f.clamp_min(st.min_depth_m)
+        with torch.no_grad():
+            if sigma_m is None:
+                sig_1m = KINECT_SIGMA_1M if st.noise_sigma_1m is None else st.noise_sigma_1m
+                sz = depth_sigma_m(z_f.detach(), sig_1m, st.noise_sigma_abs_m)
+            else:
+                sz = sigma_m.detach().reshape(-1).to(dt)
+            s_all = _inverse_depth_std(sz, iz_all.detach())
+            u, v = uv_f[:, 0].detach(), uv_f[:, 1].detach()
+            ok = valid.reshape(-1) & (z_f.detach() > st.min_depth_m) & torch.isfinite(u) & torch.isfinite(v)
+            ok &= (u > float(gu[0]) - r) & (u < float(gu[-1]) + r) & (v > float(gv[0]) - r) & (v < float(gv[-1]) + r)
+        if normals_cam is not None:
+            grad = _inverse_depth_planes(points_cam, normals_cam, K, st)
     with torch.no_grad():
-        if sigma_m is None:
-            sig_1m = KINECT_SIGMA_1M if st.noise_sigma_1m is None else st.noise_sigma_1m
-            sz = depth_sigma_m(z_f.detach(), sig_1m, st.noise_sigma_abs_m)
-        else:
-            sz = sigma_m.detach().reshape(-1).to(dt)
-        s_all = _inverse_depth_std(sz, iz_all.detach())
-        u, v = uv_f[:, 0].detach(), uv_f[:, 1].detach()
-        ok = valid.reshape(-1) & (z_f.detach() > st.min_depth_m) & torch.isfinite(u) & torch.isfinite(v)
-        ok &= (u > float(gu[0]) - r) & (u < float(gu[-1]) + r) & (v > float(gv[0]) - r) & (v < float(gv[-1]) + r)
+        v = uv_f[:, 1].detach()
         pid = ok.nonzero().squeeze(1)
         pid = pid.index_select(0, front_to_back(iz_all.detach().index_select(0, pid)))  # front first
         rows = b * h if block_rows is None else max(1, int(block_rows))
@@ -289,7 +396,6 @@ def _project(
             counts = torch.bincount(block, minlength=n_blocks)
             edges = [0, *torch.cumsum(counts, 0).tolist()]
     n_frames = 0 if frame is None or frame.numel() == 0 else int(frame.max()) + 1
-    grad = None if normals_cam is None else _inverse_depth_planes(points_cam, normals_cam, K, st)
     fr = None if frame is None else frame.reshape(-1)
     return _Projected(uv_f, iz_all, s_all, fr, grad, entries, edges, (gu, gv, shift), rows, (b, h, w), n_frames)
 
@@ -540,7 +646,7 @@ def rasterise_blocks(
     if compiled:
         # every pixel at once (:func:`_block_cells`' counting sort needs no blocks: 12 %
         # faster on 7-Scenes than block by block), then cut into blocks (views)
-        pr = _project(points_cam, K, size_hw, settings, valid, normals_cam, sigma_m, frame, src_hw, None)
+        pr = _project(points_cam, K, size_hw, settings, valid, normals_cam, sigma_m, frame, src_hw, None, True)
         return _rasterise_block(pr, 0, settings.radius_px, compiled=True)._replace(n_pixels=None).blocks(block_rows)
     pr = _project(points_cam, K, size_hw, settings, valid, normals_cam, sigma_m, frame, src_hw, block_rows)
     return [_rasterise_block(pr, k, settings.radius_px, compiled=False) for k in range(len(pr.edges) - 1)]
