@@ -443,6 +443,13 @@ class _Estimate(NamedTuple):
     sigma: torch.Tensor | None
 
 
+def _weights(d2: torch.Tensor, s: torch.Tensor, st: RenderSettings) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each candidate's spatial weight exp(-d2 / R^2) and its inverse-variance weight (the
+    spatial one times (s_ref / s)^2: scaled, only ratios matter), (C,) each."""
+    w_sp = torch.exp(-d2 / st.radius_px**2)
+    return w_sp, w_sp * (_S_REF / s) ** 2
+
+
 def _estimate(
     c: RenderCandidates,
     seg: torch.Tensor,
@@ -463,10 +470,8 @@ def _estimate(
     samples (a dozen per-segment tensors); split, they would travel between functions
     as long argument lists.
     """
-    r2 = st.radius_px**2
-    d2, iz, s, ox, oy = c.d2, c.iz, c.s, c.ox, c.oy
-    w_sp = torch.exp(-d2 / r2)
-    wt = w_sp * (_S_REF / s) ** 2  # inverse-variance weights (scaled: only ratios matter)
+    iz, s, ox, oy = c.iz, c.s, c.ox, c.oy
+    w_sp, wt = _weights(c.d2, s, st)
     if c.grad is None or st.plane == "none":
         gx = gy = torch.zeros_like(iz)
     else:
@@ -532,7 +537,7 @@ def _estimate(
 
 @numba.njit(cache=True, nogil=True)
 def _plane_fit_chosen(
-    chosen, cl_start, lengths, support, step_iz, ambiguous, d2, iz, s, ox, oy, point, grad, consts
+    chosen, cl_start, lengths, support, step_iz, ambiguous, w_spatial, w, iz, s, ox, oy, point, grad, consts
 ):  # pragma: no cover (compiled)
     """:func:`_estimate` with ``plane="fit"`` for each pixel's chosen cluster only, in
     one compiled pass per cluster (its candidates in the cache), without gradients:
@@ -540,8 +545,9 @@ def _plane_fit_chosen(
 
     chosen (P,) int64 the cluster of each pixel or -1; cl_start, lengths, support (K,)
     each cluster's first candidate, size and frames; step_iz, ambiguous (P,); the
-    candidates' d2, iz, s, ox, oy (C,) and point (C,) int64; grad (N, 2) the points'
-    tangent-plane gradients (zero rows: none); consts: r2, s_ref, slope_prior,
+    candidates' spatial weights exp(-d2 / R^2) and inverse-variance weights (as the
+    tensors compute them, vectorised), iz, s, ox, oy (C,) and point (C,) int64; grad (N,
+    2) the points' tangent-plane gradients (zero rows: none); consts: slope_prior,
     min_points, sigma_scale, need_sigma, max_sigma_m (< 0: none).
 
     The same estimate as the tensors' (the weighted plane in inverse depth with the
@@ -554,8 +560,7 @@ def _plane_fit_chosen(
     Long because a cluster's three passes (the sums, the plane, the confidence) share a
     dozen scalars; split, they would travel as long argument lists.
     """
-    r2_f, s_ref_f, lam, min_points, sigma_scale, need_sigma, max_sigma = consts
-    r2, s_ref = d2.dtype.type(r2_f), d2.dtype.type(s_ref_f)
+    lam, min_points, sigma_scale, need_sigma, max_sigma = consts
     n_pix = chosen.shape[0]
     depth = np.zeros(n_pix, iz.dtype)
     weight_sum = np.zeros(n_pix, iz.dtype)
@@ -570,9 +575,8 @@ def _plane_fit_chosen(
         n = lengths[k]
         sw = s_iz = s_x = s_y = s_gx = s_gy = wsum = 0.0
         for i in range(lo, lo + n):
-            w_sp = math.exp(-d2[i] / r2)  # in the candidates' precision, as the tensors'
-            q = s_ref / s[i]
-            wt = np.float64(w_sp * (q * q))
+            w_sp = np.float64(w_spatial[i])
+            wt = np.float64(w[i])
             wts[i - lo] = wt
             sw += wt
             s_iz += wt * iz[i]
@@ -639,8 +643,6 @@ def _fit_chosen(
     dt = c.iz.dtype
     need_sigma = with_sigma or st.max_sigma_m is not None
     consts = (
-        float(st.radius_px) ** 2,
-        _S_REF,
         float(st.slope_prior),
         int(st.min_points),
         _SIGMA_SCALE,
@@ -649,9 +651,10 @@ def _fit_chosen(
     )
     grad = c.grad if c.grad is not None else torch.zeros(c.iz_point.numel(), 2, dtype=dt)
     cl_start = torch.cumsum(surf.lengths, 0) - surf.lengths
+    w_sp, wt = _weights(c.d2.detach(), c.s, st)
     out = _plane_fit_chosen(
         *(t.numpy() for t in (surf.chosen, cl_start, surf.lengths, surf.support, surf.step_iz, surf.ambiguous)),
-        *(t.detach().numpy() for t in (c.d2, c.iz, c.s, c.ox, c.oy, c.point, grad.to(dt).contiguous())),
+        *(t.detach().numpy() for t in (w_sp, wt, c.iz, c.s, c.ox, c.oy, c.point, grad.to(dt).contiguous())),
         consts,
     )
     depth, weight_sum, count, sigma = (torch.from_numpy(a) for a in out)

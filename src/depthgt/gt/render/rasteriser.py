@@ -436,29 +436,38 @@ def _block_cells(u, v, x_first, y_first, yb_first, gu, gv, r2, far, span, h, w, 
     candidates per frame set took two thirds of the rasteriser.
     """
     n_pix = n_rows * w
+    n_entries = u.shape[0]
     starts = np.zeros(n_pix + 1, np.int64)
     dx2 = np.empty(span, u.dtype)
     dy2 = np.empty(span, u.dtype)
-    for k in range(u.shape[0]):  # pass 1: candidates per pixel
+    # pass 1: each entry's cells (their pixels, in order; pages never written are never
+    # touched) and the candidates per pixel
+    cells = np.empty(n_entries * span * span, np.int32)
+    n_cells = np.empty(n_entries, np.int32)
+    m = 0
+    for k in range(n_entries):
         x0, yb = x_first[k], yb_first[k]
         _cell_distances(k, u, v, x0, y_first[k], yb, gu, gv, far, h, w, n_rows, dx2, dy2)
-        for jy in range(span):
-            for jx in range(span):
-                if dy2[jy] + dx2[jx] < r2:
-                    starts[(yb + jy) * w + x0 + jx + 1] += 1
-    for i in range(n_pix):
-        starts[i + 1] += starts[i]
-    entry = np.empty(starts[n_pix], np.int32)
-    at = starts[:-1].copy()  # the next free slot of each pixel
-    for k in range(u.shape[0]):  # pass 2: each entry into its pixels' next slots
-        x0, yb = x_first[k], yb_first[k]
-        _cell_distances(k, u, v, x0, y_first[k], yb, gu, gv, far, h, w, n_rows, dx2, dy2)
+        first = m
         for jy in range(span):
             for jx in range(span):
                 if dy2[jy] + dx2[jx] < r2:
                     p = (yb + jy) * w + x0 + jx
-                    entry[at[p]] = k
-                    at[p] += 1
+                    cells[m] = p
+                    m += 1
+                    starts[p + 1] += 1
+        n_cells[k] = m - first
+    for i in range(n_pix):
+        starts[i + 1] += starts[i]
+    entry = np.empty(starts[n_pix], np.int32)
+    at = starts[:-1].copy()  # the next free slot of each pixel
+    m = 0
+    for k in range(n_entries):  # pass 2: each entry into its pixels' next slots
+        for _ in range(n_cells[k]):
+            p = cells[m]
+            m += 1
+            entry[at[p]] = k
+            at[p] += 1
     return starts, entry
 
 
@@ -550,6 +559,8 @@ def _rasterise_block(pr: _Projected, k: int, radius_px: float, *, compiled: bool
         v = pr.uv[:, 1].detach().index_select(0, ids)
         x0, y0, off = _footprint(u, v, r, shift)
         if compiled:
+            if n_pix >= 2**31:  # the kernel's pixel indices are int32
+                raise ValueError(f"too many pixels for one rasterisation: {n_pix}")
             yb = y0 + (torch.div(ids, n, rounding_mode="floor") * h - g_lo) if b > 1 else y0 - g_lo
             real = u.numpy().dtype.type  # the constants in the points' precision, as the tensors compare them
             starts, entry = _block_cells(
