@@ -192,6 +192,8 @@ def frame_agreement(
     n_pix = b * h_w
     # on the CPU the two scans over the candidates are compiled (the same values)
     compiled = c.iz_point.device.type == "cpu" if compiled is None else compiled
+    if compiled and c.iz_point.device.type != "cpu":
+        raise ValueError(f"the compiled frame agreement takes CPU tensors, got {c.iz_point.device.type}")
     iz_t, s_t = _target_depth(blocks, target_frame, n_pix, compiled=compiled)
     judge = torch.isfinite(iz_t)
     if st.agreement_edge_px > 0:

@@ -654,6 +654,8 @@ def rasterise_blocks(
     valid = _check(points_cam, K, size_hw, valid, normals_cam, sigma_m, frame)
     if compiled is None:
         compiled = points_cam.device.type == "cpu"
+    elif compiled and points_cam.device.type != "cpu":
+        raise ValueError(f"the compiled rasteriser takes CPU tensors, got {points_cam.device.type}")
     if compiled:
         # every pixel at once (:func:`_block_cells`' counting sort needs no blocks: 12 %
         # faster on 7-Scenes than block by block), then cut into blocks (views)
