@@ -149,9 +149,9 @@ def _count_evaluations(monkeypatch) -> list[int]:
     rows: list[int] = []
     original = refine._system
 
-    def counting(level, T, pairs, s, gate):
+    def counting(level, T, pairs, s, gate, compiled=None):
         rows.append(int(pairs.shape[0]))
-        return original(level, T, pairs, s, gate)
+        return original(level, T, pairs, s, gate, compiled)
 
     monkeypatch.setattr(refine, "_system", counting)
     return rows

@@ -38,6 +38,7 @@ from depthgt.noise_law import (
     second_difference_residuals,
     sorted_residuals,
 )
+from depthgt.registration.pair_terms import channels_last, costs_seen_by_both, pair_terms
 from depthgt.registration.settings import RefineSettings
 from depthgt.shapes import check_shape
 
@@ -516,10 +517,23 @@ class _System:
         return self.H_rel, self.g_rel, self.pair_cost, self.inliers, self.Tinv
 
 
-def _system(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings, gate: float) -> _System:
+def _system(
+    level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings, gate: float, compiled: bool | None = None
+) -> _System:
+    """The :class:`_System` of every pair at the poses ``T``; ``compiled``: its terms
+    from :func:`~depthgt.registration.pair_terms.pair_terms`, in float32 (default: float32
+    frames on the CPU) rather than from the tensors of :func:`_residuals_lazy` (a GPU's
+    path, and float64 frames')."""
     a, b = pairs[:, 0], pairs[:, 1]
     Tinv = torch.linalg.inv(T)
     T_ab = Tinv[a] @ T[b]
+    on_cpu = level.points.device.type == "cpu"
+    if compiled is None:
+        compiled = on_cpu and level.points.dtype == torch.float32
+    elif compiled and not on_cpu:
+        raise ValueError(f"the compiled refinement terms run on the CPU; the frames are on {level.points.device.type}")
+    if compiled:
+        return _system_compiled(level, T_ab, Tinv, pairs, s, gate)
     r, valid, vis, _, jac = _residuals_lazy(level, T_ab, pairs, s, gate)
     wgt, rho = _robust(r, s.robust)
 
@@ -543,6 +557,31 @@ def _system(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings
     pair_cost = cost_pts.sum(1).to(torch.float64)
     inl = (valid[:, :N_] & level.valid.index_select(0, b)).sum(1)
     return _System(pair_cost, inl, Tinv, cost_pts, vis, linearise)
+
+
+def _maps_hwc(level: Level):
+    """``level.maps`` channels last, as the compiled terms read them (kept while
+    ``level.maps`` is the same tensor)."""
+    cached = getattr(level, "_hwc", None)
+    if cached is None or cached[0] is not level.maps:
+        cached = (level.maps, channels_last(level.maps))
+        level._hwc = cached
+    return cached[1]
+
+
+def _system_compiled(
+    level: Level, T_ab: torch.Tensor, Tinv: torch.Tensor, pairs: torch.Tensor, s: LevelSettings, gate: float
+) -> _System:
+    """:func:`_system` from the compiled terms. The normal equations come with the costs:
+    in the compiled pass they add a fifth to its time, where a second pass for an
+    accepted trial (about half of them) would add all of it."""
+    t = pair_terms(
+        level.points, level.gray, level.valid, _maps_hwc(level), level.K, T_ab, pairs,
+        geo_scale_m=s.geo_scale_m, geo_ref_depth_m=s.geo_ref_depth_m, gate=gate,
+        photo_weight=s.photo_weight, photo_scale=s.photo_scale, huber=s.robust == "huber",
+        gate_cost=_gate_cost(gate, s), linearise=True,
+    )  # fmt: skip
+    return _System(t.pair_cost, t.inliers, Tinv, t.cost_pts, t.vis, lambda: (t.H_rel, t.g_rel))
 
 
 def normal_system(level: Level, T: torch.Tensor, pairs: torch.Tensor, s: LevelSettings, gate: float):
@@ -576,7 +615,11 @@ def _accept(old: _System, new: _System, rows: torch.Tensor, n_sets: int) -> list
     rows ``rows`` of ``old`` (each set's pairs in turn), and a set's trial is taken when
     its cost over the points visible in both linearisations is no larger (a fair
     comparison whatever the change of overlap). Each set's cost is one float64 sum
-    over all its points (not per pair, then over pairs: those round otherwise)."""
+    over all its points (not per pair, then over pairs: those round otherwise); on the
+    CPU in one compiled pass."""
+    if old.vis.device.type == "cpu":
+        c_old, c_new = costs_seen_by_both(old.cost_pts, old.vis, rows, new.cost_pts, new.vis, n_sets)
+        return (c_new <= c_old).tolist()
     whole = rows.numel() == len(old.vis)  # every row (one set): no copy
     old_vis = old.vis if whole else old.vis.index_select(0, rows)
     old_cost = old.cost_pts if whole else old.cost_pts.index_select(0, rows)
@@ -775,6 +818,7 @@ def refine_poses_many(
     settings: RefineSettings = RefineSettings(),
     cache: FrameCache | None = None,
     maps_of: dict | None = None,
+    compiled: bool | None = None,
 ) -> list[RefineResult]:
     """:func:`refine_poses` of several frame sets of one camera (its intrinsics ``K`` (3, 3),
     the same number of members and offsets) at once: every set's pairs in the same
@@ -785,7 +829,8 @@ def refine_poses_many(
     set this is :func:`refine_poses` itself (the CPU build's path), the same numbers.
 
     ``maps_of``: the :class:`Level` maps of the sets' frames (in the sets' order) by
-    scale, read and filled (refine_poses' argument, one set's), or None.
+    scale, read and filled (refine_poses' argument, one set's), or None. ``compiled``:
+    the residuals' terms compiled (:func:`_system`; default: on the CPU).
 
     Long because the coarse-to-fine loop carries every set's poses, damping and state
     across scales, iterations and trials side by side; its parts (``_system``,
@@ -833,7 +878,7 @@ def refine_poses_many(
         )  # fmt: skip
         lam = [settings.damping] * n_sets
         active = [True] * n_sets
-        cur = _system(level, T, pairs, ls, gate)
+        cur = _system(level, T, pairs, ls, gate, compiled)
         if li == len(settings.scales) - 1:
             for b in range(n_sets):
                 outs[b].initial_cost = _per_frame(cur.pair_cost[b * n_p : (b + 1) * n_p], tgt_pairs, other, Fn)
@@ -885,7 +930,7 @@ def refine_poses_many(
                     f = slice(b * Fn + 1, (b + 1) * Fn)
                     T_new[f] = Se3.exp(deltas[i]).matrix().to(torch.float64) @ T[f]
                 rows = torch.cat([torch.arange(b * n_p, (b + 1) * n_p, device=dev) for b in trying])
-                new = _system(level, T_new, pairs.index_select(0, rows), ls, gate)
+                new = _system(level, T_new, pairs.index_select(0, rows), ls, gate, compiled)
                 accept = _accept(cur, new, rows, len(trying))
                 still = []
                 for i, b in enumerate(trying):

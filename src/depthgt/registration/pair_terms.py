@@ -1,0 +1,390 @@
+"""The refinement's residuals on the CPU, compiled: every pair's robust cost and normal
+equations in one pass over its points.
+
+:func:`depthgt.registration.refine._residuals_lazy` computes the same terms as tensors:
+a dozen (pairs, points) planes, each written to memory and read back by the next step,
+then the Jacobians (6 planes more) and their products. On one CPU thread that traffic,
+not the arithmetic, sets its speed. Here each point is warped, sampled, scored and
+added to its pair's 6x6 system while it sits in registers (numba; no library fuses a
+warp, a bilinear sample and a robust Gauss-Newton accumulation). The tensor path stays
+for GPUs and is the reference the tests compare against: the same points associate,
+the costs agree to float32 rounding, and the sums, which accumulate in float64 here,
+to ~1e-6 relative.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numba
+import numpy as np
+import torch
+
+__all__ = ["PairTerms", "pair_terms", "costs_seen_by_both"]
+
+#: the channels of the sampled maps (:class:`depthgt.registration.refine.Level`):
+#: X (3), normals (3), gray, its gradients (2), normal validity
+_CHANNELS = 10
+
+
+class PairTerms(NamedTuple):
+    """Every pair's terms at one set of poses (:func:`pair_terms`).
+
+    Attributes:
+        cost_pts: (P, C N) float32 robust cost of every point that lands on a surface of
+            the destination (the gate's cost beyond the gate), 0 elsewhere; C = 2 with
+            the photometric term (geometric columns, then photometric), else 1.
+        vis: (P, C N) bool, the points that land on a surface (likewise).
+        pair_cost: (P,) float64 sums of ``cost_pts``; inliers: (P,) long, associated points.
+        H_rel: (P, 6, 6), g_rel: (P, 6) float64 normal equations, or None (not asked).
+    """
+
+    cost_pts: torch.Tensor
+    vis: torch.Tensor
+    pair_cost: torch.Tensor
+    inliers: torch.Tensor
+    H_rel: torch.Tensor | None
+    g_rel: torch.Tensor | None
+
+
+#: points per chunk: a chunk's planes (~40 x 4 bytes a point) stay in L1
+_CHUNK = 256
+
+# Rows of the chunk's planes. Each loop below writes one array (LLVM vectorises a loop
+# only when it can rule out, in a few run-time checks, that its stores overlap its loads):
+# pq: the warped points (qx, qy, qz, 1 / qz), their pixel (u, v), and ON: 1.0 where a
+# valid source point in front of the camera lands within a pixel of the image
+_ON = 6
+# res: a term's scaled residuals (R), IRLS weights (W), costs (RHO); K: the geometric
+# Jacobian's scale (1 / robust scale / |sampled normal|); SEEN (on a surface) and OK
+# (associated), 1.0 or 0.0
+_R, _W, _RHO, _K, _SEEN, _OK = 0, 1, 2, 3, 4, 5
+# jw: the Jacobian rows d r / d (v, w) of the geometric (0-5) and photometric (6-11)
+# terms, then each term's weight and weight x residual (0 unless associated)
+_WG, _WRG, _WP, _WRP = 12, 13, 14, 15
+
+
+@numba.njit(inline="always")
+def _warp(points, src_valid, b, start, m, pose, cam, h, w, pq):  # pragma: no cover (compiled)
+    """b's points ``start`` .. ``start + m`` moved by ``pose`` (the 12 values of T_ab's
+    rows) and projected (vectorised) into pq."""
+    fx, fy, cx, cy = cam
+    for i in range(m):
+        n = start + i
+        x, y, z = points[b, 0, n], points[b, 1, n], points[b, 2, n]
+        qx = pose[0] * x + pose[1] * y + pose[2] * z + pose[3]
+        qy = pose[4] * x + pose[5] * y + pose[6] * z + pose[7]
+        qz = pose[8] * x + pose[9] * y + pose[10] * z + pose[11]
+        zi = np.float32(1.0) / max(qz, np.float32(1e-6))
+        u, v = fx * qx * zi + cx, fy * qy * zi + cy
+        pq[0, i], pq[1, i], pq[2, i], pq[3, i], pq[4, i], pq[5, i] = qx, qy, qz, zi, u, v
+        # beyond a pixel off the image grid_sample's taps are all padding (zeros)
+        on = src_valid[b, n] & (qz > 1e-3) & (u > -1.0) & (u < w) & (v > -1.0) & (v < h)
+        pq[_ON, i] = 1.0 if on else 0.0
+
+
+@numba.njit(inline="always")
+def _sample(maps, base, h, w, m, pq, smp):  # pragma: no cover (compiled)
+    """The maps' channels, bilinearly at (u, v) where ON, as grid_sample samples them
+    (align_corners=False: pixel centres at integers; zero padding), into smp (10, m);
+    elsewhere only the normal validity, 0. A gather: not vectorised."""
+    for i in range(m):
+        if not pq[_ON, i] > 0:
+            smp[9, i] = 0.0
+            continue
+        u, v = pq[4, i], pq[5, i]
+        x0, y0 = int(u + 1.0) - 1, int(v + 1.0) - 1  # floor (u, v > -1)
+        ax, ay = u - x0, v - y0
+        w00, w01, w10, w11 = (1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay
+        # a tap off the image weighs 0: the 2x2 window moves inside, with its weights
+        if x0 < 0:
+            x0, w00, w10, w01, w11 = 0, w01, w11, 0.0, 0.0
+        elif x0 >= w - 1:
+            x0, w01, w11, w00, w10 = w - 2, w00, w10, 0.0, 0.0
+        if y0 < 0:
+            y0, w00, w01, w10, w11 = 0, w10, w11, 0.0, 0.0
+        elif y0 >= h - 1:
+            y0, w10, w11, w00, w01 = h - 2, w00, w01, 0.0, 0.0
+        o00 = base + (y0 * w + x0) * _CHANNELS  # the top-left tap; the others follow
+        o10 = o00 + w * _CHANNELS
+        for c in range(_CHANNELS):
+            smp[c, i] = (
+                w00 * maps[o00 + c]
+                + w01 * maps[o00 + _CHANNELS + c]
+                + w10 * maps[o10 + c]
+                + w11 * maps[o10 + _CHANNELS + c]
+            )
+
+
+@numba.njit(inline="always")
+def _geometric(pq, smp, m, ref_inv, gate, geo_scale, res):  # pragma: no cover (compiled)
+    """The point-to-plane residuals (vectorised) into res: R, K, SEEN, OK."""
+    f32 = np.float32
+    for i in range(m):
+        qx, qy, qz = pq[0, i], pq[1, i], pq[2, i]
+        seen = (pq[_ON, i] > 0) & (smp[9, i] > 0.999)  # a pixel whose 3x3 neighbourhood is valid
+        X2 = smp[2, i]
+        n0, n1, n2 = smp[3, i], smp[4, i], smp[5, i]
+        n_inv = f32(1.0) / np.sqrt(max(n0 * n0 + n1 * n1 + n2 * n2, f32(1e-12)))
+        r_geo = (n0 * (qx - smp[0, i]) + n1 * (qy - smp[1, i]) + n2 * (qz - X2)) * n_inv
+        # a disparity sensor's noise grows as z^2 beyond the reference depth: so do the
+        # robust scale and the gate (ref_inv 0: constant)
+        t = X2 * ref_inv
+        sz = max(t * t, f32(1.0))
+        gate_pt = gate * sz
+        inv_geo = f32(1.0) / (geo_scale * sz)
+        ok = seen & (abs(qz - X2) < gate_pt) & (abs(r_geo) < gate_pt)
+        res[_R, i] = r_geo * inv_geo
+        res[_K, i] = inv_geo * n_inv
+        res[_SEEN, i] = 1.0 if seen else 0.0
+        res[_OK, i] = 1.0 if ok else 0.0
+
+
+@numba.njit(inline="always")
+def _robust(res, m, huber):  # pragma: no cover (compiled)
+    """IRLS weights W and costs RHO of the scaled residuals R (refine._robust's), one
+    loop per kernel (Cauchy's log1p is a library call the other must not wait on)."""
+    f32 = np.float32
+    if huber:
+        for i in range(m):
+            a = abs(res[_R, i])
+            k = min(a, f32(1.0))
+            res[_W, i], res[_RHO, i] = f32(1.0) / max(a, f32(1.0)), (a - f32(0.5) * k) * k
+    else:
+        for i in range(m):
+            a = abs(res[_R, i])
+            res[_W, i], res[_RHO, i] = f32(1.0) / (f32(1.0) + a * a), f32(0.5) * np.log1p(a * a)
+
+
+@numba.njit(inline="always")
+def _costs(res, m, gate_cost, cost_out, vis_out, jw, w_row):  # pragma: no cover (compiled)
+    """A term's costs (an associated point its robust cost, one seen beyond the gate the
+    gate's cost, else 0) into cost_out and the points seen into vis_out (each m long);
+    its weights and weight x residual into jw's rows ``w_row``, ``w_row + 1``. Returns
+    the costs' sum (float64)."""
+    f32 = np.float32
+    total = 0.0
+    for i in range(m):
+        c = res[_RHO, i] if res[_OK, i] > 0 else (gate_cost if res[_SEEN, i] > 0 else f32(0.0))
+        cost_out[i] = c
+        total += c
+    for i in range(m):
+        vis_out[i] = res[_SEEN, i] > 0
+    for i in range(m):
+        ok = res[_OK, i] > 0
+        jw[w_row, i] = res[_W, i] if ok else f32(0.0)
+        jw[w_row + 1, i] = res[_W, i] * res[_R, i] if ok else f32(0.0)
+    return total
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
+def _pair_terms_kernel(
+    points, src_gray, src_valid, maps, h, w, pairs, T_ab, cam, scales, photo, huber, linearise,
+    cost_pts, vis, pair_cost, inliers, H, g,
+):  # fmt: skip  # pragma: no cover (compiled)
+    """Long because a chunk's phases share its planes; each phase is a function or a
+    short loop.
+
+    points (F, 3, N) float32; src_gray (F, N); src_valid (F, N) bool; maps: the flat
+    (F, h, w, 10) float32 maps (channels last: a tap's channels are one read); pairs
+    (P, 2) int64 (a, b): b's points into a's maps; T_ab (P, 12) float32, the rows of
+    each relative pose; cam (fx, fy, cx, cy); scales (geo_scale_m, 1 / geo_ref_depth_m
+    or 0, gate, sqrt(photo_weight) / photo_scale, gate cost). Writes cost_pts, vis
+    (P, C N), pair_cost, inliers (P,) and, when ``linearise``, H (P, 6, 6) and g (P, 6).
+
+    Each chunk of points runs in phases over small planes (warp, sample, residuals,
+    costs, Jacobians, sums) rather than point by point: the element-wise phases
+    vectorise, and a point's long chain of dependent steps no longer stalls the next.
+    The sums reassociate (float64 over float32 terms): they round differently from the
+    tensors' float32 products."""
+    f32 = np.float32
+    cam32 = (f32(cam[0]), f32(cam[1]), f32(cam[2]), f32(cam[3]))
+    fx, fy = cam32[0], cam32[1]
+    geo_scale, ref_inv, gate, wps = f32(scales[0]), f32(scales[1]), f32(scales[2]), f32(scales[3])
+    gate_cost = f32(scales[4])
+    n_pairs, N = pairs.shape[0], points.shape[2]
+    pq = np.empty((7, _CHUNK), np.float32)
+    smp = np.empty((_CHANNELS, _CHUNK), np.float32)
+    res = np.empty((6, _CHUNK), np.float32)
+    jw = np.zeros((16, _CHUNK), np.float32)  # the photometric rows stay 0 without the term
+    for p in range(n_pairs):
+        a, b = pairs[p, 0], pairs[p, 1]
+        base = a * h * w * _CHANNELS
+        acc = np.zeros(27)  # H's upper triangle row by row (21), then g (6)
+        cost = 0.0
+        n_in = 0
+        for start in range(0, N, _CHUNK):
+            m = min(_CHUNK, N - start)
+            stop = start + m
+            _warp(points, src_valid, b, start, m, T_ab[p], cam32, h, w, pq)
+            _sample(maps, base, h, w, m, pq, smp)
+            _geometric(pq, smp, m, ref_inv, gate, geo_scale, res)
+            _robust(res, m, huber)
+            cost += _costs(res, m, gate_cost, cost_pts[p, start:stop], vis[p, start:stop], jw, _WG)
+            for i in range(m):
+                n_in += 1 if res[_OK, i] > 0 else 0
+            if linearise:
+                for i in range(m):  # (n, q x n) / scale: d r / d (v, w), a left twist of T_ab
+                    qx, qy, qz, k, ok = pq[0, i], pq[1, i], pq[2, i], res[_K, i], res[_OK, i] > 0
+                    n0, n1, n2 = smp[3, i] * k, smp[4, i] * k, smp[5, i] * k
+                    jw[0, i] = n0 if ok else f32(0.0)
+                    jw[1, i] = n1 if ok else f32(0.0)
+                    jw[2, i] = n2 if ok else f32(0.0)
+                    jw[3, i] = qy * n2 - qz * n1 if ok else f32(0.0)
+                    jw[4, i] = qz * n0 - qx * n2 if ok else f32(0.0)
+                    jw[5, i] = qx * n1 - qy * n0 if ok else f32(0.0)
+            if photo:
+                for i in range(m):  # the intensity residuals (SEEN and OK are the geometric term's)
+                    res[_R, i] = (smp[6, i] - src_gray[b, start + i]) * wps
+                _robust(res, m, huber)
+                photo_cols = slice(N + start, N + stop)
+                cost += _costs(res, m, gate_cost, cost_pts[p, photo_cols], vis[p, photo_cols], jw, _WP)
+                if linearise:
+                    for i in range(m):  # the image gradient chained with d(u, v)/dq of the projection
+                        qx, qy, qz, zi, ok = pq[0, i], pq[1, i], pq[2, i], pq[3, i], res[_OK, i] > 0
+                        gx, gy = smp[7, i] * fx * zi, smp[8, i] * fy * zi
+                        gz = -(gx * qx + gy * qy) * zi
+                        jw[6, i] = gx * wps if ok else f32(0.0)
+                        jw[7, i] = gy * wps if ok else f32(0.0)
+                        jw[8, i] = gz * wps if ok else f32(0.0)
+                        jw[9, i] = (qy * gz - qz * gy) * wps if ok else f32(0.0)
+                        jw[10, i] = (qz * gx - qx * gz) * wps if ok else f32(0.0)
+                        jw[11, i] = (qx * gy - qy * gx) * wps if ok else f32(0.0)
+            if linearise:  # the chunk's w J J^T and w J r (vectorised sums)
+                k = 0
+                for r in range(6):
+                    for c in range(r, 6):
+                        s = 0.0
+                        for i in range(m):
+                            s += jw[_WG, i] * jw[r, i] * jw[c, i] + jw[_WP, i] * jw[6 + r, i] * jw[6 + c, i]
+                        acc[k] += s
+                        k += 1
+                for r in range(6):
+                    s = 0.0
+                    for i in range(m):
+                        s += jw[_WRG, i] * jw[r, i] + jw[_WRP, i] * jw[6 + r, i]
+                    acc[21 + r] += s
+        pair_cost[p] = cost
+        inliers[p] = n_in
+        if linearise:
+            k = 0
+            for r in range(6):
+                for c in range(r, 6):
+                    H[p, r, c] = acc[k]
+                    H[p, c, r] = acc[k]
+                    k += 1
+                g[p, r] = acc[21 + r]
+
+
+def channels_last(maps: torch.Tensor) -> np.ndarray:
+    """A level's maps (F, 10, h, w) as the kernel reads them: (F, h, w, 10) float32."""
+    if maps.shape[1] != _CHANNELS:
+        raise ValueError(f"pair_terms: the level's maps need {_CHANNELS} channels, got {maps.shape[1]}")
+    return maps.permute(0, 2, 3, 1).to(torch.float32).contiguous().numpy()
+
+
+def pair_terms(
+    points: torch.Tensor,
+    gray: torch.Tensor,
+    valid: torch.Tensor,
+    maps_hwc: np.ndarray,
+    K: torch.Tensor,
+    T_ab: torch.Tensor,
+    pairs: torch.Tensor,
+    *,
+    geo_scale_m: float,
+    geo_ref_depth_m: float,
+    gate: float,
+    photo_weight: float,
+    photo_scale: float,
+    huber: bool,
+    gate_cost: float,
+    linearise: bool,
+) -> PairTerms:
+    """Every pair's terms (:class:`PairTerms`) at the relative poses ``T_ab`` (P, 4, 4):
+    pair (a, b) = ``pairs[p]`` takes b's ``points`` (F, 3, N) (with their ``gray`` and
+    ``valid`` (F, N)) into a's maps (``maps_hwc``, :func:`channels_last`) through the
+    camera ``K`` (3, 3) of the maps' scale. The settings are
+    :class:`~depthgt.registration.refine.LevelSettings`' with the association ``gate``
+    (metres) and its cost; ``linearise``: also the normal equations (a trial pose that
+    is rejected needs only the costs). CPU tensors."""
+    if points.device.type != "cpu":
+        raise ValueError(f"pair_terms runs on the CPU; the points are on {points.device.type}")
+    n_pairs, N = pairs.shape[0], points.shape[2]
+    photo = photo_weight > 0
+    cols = 2 * N if photo else N
+    cost_pts = np.empty((n_pairs, cols), np.float32)
+    vis = np.empty((n_pairs, cols), np.bool_)
+    pair_cost = np.empty(n_pairs, np.float64)
+    inliers = np.empty(n_pairs, np.int64)
+    H = np.empty((n_pairs, 6, 6), np.float64) if linearise else np.empty((0, 6, 6), np.float64)
+    g = np.empty((n_pairs, 6), np.float64) if linearise else np.empty((0, 6), np.float64)
+    Kd = K.to(torch.float64)
+    cam = np.array([Kd[0, 0], Kd[1, 1], Kd[0, 2], Kd[1, 2]], np.float64)
+    scales = np.array(
+        [
+            geo_scale_m,
+            1.0 / geo_ref_depth_m if geo_ref_depth_m > 0 else 0.0,
+            gate,
+            math.sqrt(photo_weight) / photo_scale if photo else 0.0,
+            gate_cost,
+        ],
+        np.float64,
+    )
+    _pair_terms_kernel(
+        points.to(torch.float32).contiguous().numpy(),
+        gray.to(torch.float32).contiguous().numpy(),
+        valid.contiguous().numpy(),
+        maps_hwc.reshape(-1),
+        maps_hwc.shape[1],
+        maps_hwc.shape[2],
+        pairs.to(torch.int64).contiguous().numpy(),
+        T_ab[:, :3, :4].to(torch.float32).reshape(-1, 12).contiguous().numpy(),
+        cam, scales, photo, huber, linearise,
+        cost_pts, vis, pair_cost, inliers, H, g,
+    )  # fmt: skip
+    return PairTerms(
+        torch.from_numpy(cost_pts),
+        torch.from_numpy(vis),
+        torch.from_numpy(pair_cost),
+        torch.from_numpy(inliers),
+        torch.from_numpy(H) if linearise else None,
+        torch.from_numpy(g) if linearise else None,
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _costs_seen_by_both(old_cost, old_vis, rows, new_cost, new_vis, n_sets, c_old, c_new):  # pragma: no cover
+    """Per set (its rows in turn, ``len(rows) / n_sets`` each): the float64 sums of the old
+    and the new costs over the points visible in both (old's row ``rows[i]`` beside new's
+    row i)."""
+    per_set = rows.shape[0] // n_sets
+    for k in range(n_sets):
+        a = 0.0
+        b = 0.0
+        for i in range(k * per_set, (k + 1) * per_set):
+            o = rows[i]
+            for j in range(new_cost.shape[1]):
+                if old_vis[o, j] and new_vis[i, j]:
+                    a += old_cost[o, j]
+                    b += new_cost[i, j]
+        c_old[k] = a
+        c_new[k] = b
+
+
+def costs_seen_by_both(
+    old_cost: torch.Tensor, old_vis: torch.Tensor, rows: torch.Tensor, new_cost: torch.Tensor, new_vis: torch.Tensor,
+    n_sets: int,
+) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """The Levenberg-Marquardt acceptance test's sums in one pass (CPU; the tensor path
+    would make three (P, C N) temporaries): per set, the float64 sums (n_sets,) of the old
+    costs ``old_cost[rows]`` and the new ``new_cost`` over the points that both ``old_vis[rows]``
+    and ``new_vis`` see (:class:`PairTerms`' costs and visibility)."""
+    c_old = np.empty(n_sets, np.float64)
+    c_new = np.empty(n_sets, np.float64)
+    _costs_seen_by_both(
+        old_cost.contiguous().numpy(), old_vis.contiguous().numpy(), rows.to(torch.int64).contiguous().numpy(),
+        new_cost.contiguous().numpy(), new_vis.contiguous().numpy(), n_sets, c_old, c_new,
+    )  # fmt: skip
+    return torch.from_numpy(c_old), torch.from_numpy(c_new)

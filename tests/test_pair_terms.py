@@ -1,0 +1,126 @@
+"""The refinement's compiled residual terms (CPU) against the tensor path they replace
+there (a GPU's path): the same points seen and associated, the same costs and normal
+equations to float32 rounding, and the same refined poses on a real frame set."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+from kornia.geometry.liegroup import Se3
+
+from depthgt.jobs.common import open_source_scene
+from depthgt.registration import load_frameset, poses_from_source
+from depthgt.registration.pair_terms import channels_last, pair_terms
+from depthgt.registration.refine import Level, LevelSettings, RefineSet, _system, frame_pairs, refine_poses_many
+from depthgt.settings import FrameSetSettings, RefineSettings
+
+KITCHEN = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
+
+
+def _moved(T: torch.Tensor, seed: int, size: float) -> torch.Tensor:
+    """T (F, 4, 4) with every frame but the target moved by a random twist of ``size``."""
+    xi = (torch.rand(len(T), 6, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) - 0.5) * size
+    xi[0] = 0
+    with torch.no_grad():  # kornia's Se3 holds its values as parameters
+        return Se3.exp(xi).matrix() @ T
+
+
+@pytest.fixture(scope="module")
+def frameset():
+    """A synthetic room's frame set (noisy depth, exact poses) at 96x128, float32 as the
+    build loads it, with its poses in the target camera."""
+    torch.set_num_threads(1)
+    scene = open_source_scene({"kind": "synthetic", "options": {"n_frames": 13, "seed": 3}}, "room_000")
+    d = load_frameset(scene, [6 + o for o in FrameSetSettings().offsets], (96, 128), True, torch.device("cpu"))
+    return d, torch.cat([torch.eye(4, dtype=torch.float64)[None], poses_from_source(d)])
+
+
+@pytest.mark.parametrize(
+    "settings",
+    [
+        LevelSettings(geo_scale_m=0.01, photo_scale=0.03, photo_weight=0.3, robust="huber"),
+        LevelSettings(geo_scale_m=0.005, photo_scale=0.03, photo_weight=0.0, robust="huber"),
+        LevelSettings(geo_scale_m=0.01, photo_scale=0.05, photo_weight=1.0, robust="cauchy", geo_ref_depth_m=1.5),
+    ],
+    ids=["photometric", "geometric", "cauchy-disparity"],
+)
+@pytest.mark.parametrize("scale", [1, 2])
+def test_the_compiled_terms_are_the_tensor_paths(frameset, settings, scale):
+    """At poses off by ~1 cm / 0.5 deg (points inside and beyond the gate, some off the
+    image): the same points seen and associated (a point on a threshold may flip), the
+    costs per point to float32 rounding, and every pair's cost sum, H and g within 1e-5
+    of the tensors' (the compiled sums are float64 over float32 terms, the tensors'
+    float32 products)."""
+    d, T = frameset
+    level = Level(d.rgb, d.depth_m, d.K.float(), scale, 1)
+    pairs = frame_pairs(7, "all")
+    T = _moved(T, seed=scale, size=0.02)
+    gate = 0.05
+    ref = _system(level, T, pairs, settings, gate, compiled=False)
+    got = _system(level, T, pairs, settings, gate, compiled=True)
+    n = got.vis.numel()
+    assert got.vis.shape == ref.vis.shape and got.cost_pts.shape == ref.cost_pts.shape
+    assert int(ref.vis.sum()) > n // 4
+    assert int((ref.cost_pts > 0).sum()) > int(ref.inliers.sum())  # some seen beyond the gate
+    flips = got.vis != ref.vis
+    assert int(flips.sum()) <= max(2, n // 10_000)
+    assert int((got.inliers - ref.inliers).abs().max()) <= 2
+    same = ~flips & (got.cost_pts - ref.cost_pts).abs().le(1e-4 * (1 + ref.cost_pts.abs()))
+    assert float(same.float().mean()) > 0.9995
+    # the sums, on the pairs without a point on a threshold: against the same terms in
+    # float64 (the tensor path on float64 frames), the compiled float64 sums are at
+    # least as close as the tensors' float32 products (which cancel to ~1e-4 in g)
+    exact = _system(
+        Level(d.rgb.double(), d.depth_m.double(), d.K.double(), scale, 1), T, pairs, settings, gate, compiled=False
+    )
+    steady = ~flips.any(1) & (got.inliers == ref.inliers) & (exact.inliers == ref.inliers)
+    assert int(steady.sum()) >= len(pairs) // 2
+    assert torch.allclose(got.pair_cost[steady], exact.pair_cost[steady], rtol=1e-5)
+    assert torch.allclose(got.pair_cost, ref.pair_cost, rtol=1e-3)
+    for name in ("H_rel", "g_rel"):
+        a, b, x = (getattr(sys_, name)[steady] for sys_ in (got, ref, exact))
+        assert a.dtype == torch.float64
+        scale_x = float(x.abs().max())
+        assert float((a - x).abs().max()) <= max(2 * float((b - x).abs().max()), 1e-6 * scale_x), name
+        assert float((a - x).abs().max()) <= 1e-4 * scale_x, name
+
+
+def test_the_compiled_terms_take_the_cpu_only(frameset):
+    d, _ = frameset
+    level = Level(d.rgb, d.depth_m, d.K.float(), 2, 1)
+    kw = dict(
+        geo_scale_m=0.01, geo_ref_depth_m=0.0, gate=0.05, photo_weight=0.3, photo_scale=0.03, huber=True,
+        gate_cost=0.5, linearise=True,
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="CPU"):
+        pair_terms(
+            level.points.to("meta"), level.gray, level.valid, channels_last(level.maps), level.K,
+            torch.eye(4)[None].expand(1, 4, 4), torch.tensor([[0, 1]]), **kw,
+        )  # fmt: skip
+    with pytest.raises(ValueError, match="10 channels"):
+        channels_last(level.maps[:, :7])
+
+
+@pytest.mark.skipif(not KITCHEN.is_dir(), reason="../shared/data/7scenes-kitchen is absent")
+def test_the_compiled_refinement_is_the_tensor_paths_on_a_real_frame_set():
+    """A real Kinect frame set (7-Scenes, 256x256) refined from its KinectFusion poses
+    moved by ~1 cm / 0.5 deg, with the build's settings and with the ``fast`` preset's:
+    the compiled terms and the tensors reach the same poses within 1 um and 1 urad."""
+    torch.set_num_threads(1)
+    scene = open_source_scene({"kind": "sevenscenes", "root": str(KITCHEN)}, "7scenes-kitchen")
+    offsets = list(FrameSetSettings().offsets)
+    d = load_frameset(scene, [30 + o for o in offsets], (256, 256), True, torch.device("cpu"))
+    T0 = _moved(torch.cat([torch.eye(4, dtype=torch.float64)[None], poses_from_source(d)]), seed=7, size=0.02)
+    fast = replace(RefineSettings(), iters=(8, 5, 3), point_stride=(1, 2, 4), geo_ref_depth_m=1.5, photo_weight=1.0)
+    for settings in (RefineSettings(), fast):
+        out = [
+            refine_poses_many([RefineSet(d.rgb, d.depth_m, T0, offsets)], d.K.float(), settings, compiled=c)[0]
+            for c in (False, True)
+        ]
+        a, b = (o.T_f_to_t for o in out)
+        assert float((a[:, :3, 3] - b[:, :3, 3]).abs().max()) < 1e-6
+        assert float((a[:, :3, :3] - b[:, :3, :3]).abs().max()) < 1e-6
+        assert float((a[1:, :3, 3] - T0[1:, :3, 3]).abs().max()) > 1e-3  # the refinement moved them
