@@ -79,7 +79,10 @@ def test_the_compiled_terms_are_the_tensor_paths(frameset, settings, scale):
     steady = ~flips.any(1) & (got.inliers == ref.inliers) & (exact.inliers == ref.inliers)
     assert int(steady.sum()) >= len(pairs) // 2
     assert torch.allclose(got.pair_cost[steady], exact.pair_cost[steady], rtol=1e-5)
-    assert torch.allclose(got.pair_cost, ref.pair_cost, rtol=1e-3)
+    # elsewhere a point on the gate moves its pair's cost by at most the gate's cost per term
+    on_gate = (got.inliers - ref.inliers).abs() + flips.sum(1)
+    gate_cost = float(ref.cost_pts.max())
+    assert bool(((got.pair_cost - ref.pair_cost).abs() <= 1e-5 * ref.pair_cost + 2 * gate_cost * on_gate).all())
     for name in ("H_rel", "g_rel"):
         a, b, x = (getattr(sys_, name)[steady] for sys_ in (got, ref, exact))
         assert a.dtype == torch.float64

@@ -85,36 +85,33 @@ def _warp(points, src_valid, b, start, m, pose, cam, h, w, pq):  # pragma: no co
 
 
 @numba.njit(inline="always")
-def _sample(maps, base, h, w, m, pq, smp):  # pragma: no cover (compiled)
+def _sample(maps, base, h, w, m, pq, taps, tap_w, smp):  # pragma: no cover (compiled)
     """The maps' channels, bilinearly at (u, v) where ON, as grid_sample samples them
-    (align_corners=False: pixel centres at integers; zero padding), into smp (10, m);
-    elsewhere only the normal validity, 0. A gather: not vectorised."""
+    (align_corners=False: pixel centres at integers; a tap off the image weighs 0, as its
+    zero padding), into smp (10, m); where not ON, zeros. First each point's four taps
+    (offsets, weights; vectorised, no branch), then the gather."""
+    f32 = np.float32
     for i in range(m):
-        if not pq[_ON, i] > 0:
-            smp[9, i] = 0.0
-            continue
-        u, v = pq[4, i], pq[5, i]
+        on = pq[_ON, i] > 0
+        u = pq[4, i] if on else f32(0.0)
+        v = pq[5, i] if on else f32(0.0)
         x0, y0 = int(u + 1.0) - 1, int(v + 1.0) - 1  # floor (u, v > -1)
         ax, ay = u - x0, v - y0
-        w00, w01, w10, w11 = (1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay
-        # a tap off the image weighs 0: the 2x2 window moves inside, with its weights
-        if x0 < 0:
-            x0, w00, w10, w01, w11 = 0, w01, w11, 0.0, 0.0
-        elif x0 >= w - 1:
-            x0, w01, w11, w00, w10 = w - 2, w00, w10, 0.0, 0.0
-        if y0 < 0:
-            y0, w00, w01, w10, w11 = 0, w10, w11, 0.0, 0.0
-        elif y0 >= h - 1:
-            y0, w10, w11, w00, w01 = h - 2, w00, w01, 0.0, 0.0
-        o00 = base + (y0 * w + x0) * _CHANNELS  # the top-left tap; the others follow
-        o10 = o00 + w * _CHANNELS
+        in_x0, in_x1, in_y0, in_y1 = x0 >= 0, x0 + 1 < w, y0 >= 0, y0 + 1 < h
+        xa, xb, ya, yb = max(x0, 0), min(x0 + 1, w - 1), max(y0, 0), min(y0 + 1, h - 1)
+        tap_w[0, i] = (1 - ax) * (1 - ay) if on & in_x0 & in_y0 else f32(0.0)
+        tap_w[1, i] = ax * (1 - ay) if on & in_x1 & in_y0 else f32(0.0)
+        tap_w[2, i] = (1 - ax) * ay if on & in_x0 & in_y1 else f32(0.0)
+        tap_w[3, i] = ax * ay if on & in_x1 & in_y1 else f32(0.0)
+        taps[0, i] = base + (ya * w + xa) * _CHANNELS
+        taps[1, i] = base + (ya * w + xb) * _CHANNELS
+        taps[2, i] = base + (yb * w + xa) * _CHANNELS
+        taps[3, i] = base + (yb * w + xb) * _CHANNELS
+    for i in range(m):
+        o0, o1, o2, o3 = taps[0, i], taps[1, i], taps[2, i], taps[3, i]
+        w0, w1, w2, w3 = tap_w[0, i], tap_w[1, i], tap_w[2, i], tap_w[3, i]
         for c in range(_CHANNELS):
-            smp[c, i] = (
-                w00 * maps[o00 + c]
-                + w01 * maps[o00 + _CHANNELS + c]
-                + w10 * maps[o10 + c]
-                + w11 * maps[o10 + _CHANNELS + c]
-            )
+            smp[c, i] = w0 * maps[o0 + c] + w1 * maps[o1 + c] + w2 * maps[o2 + c] + w3 * maps[o3 + c]
 
 
 @numba.njit(inline="always")
@@ -205,6 +202,8 @@ def _pair_terms_kernel(
     gate_cost = f32(scales[4])
     n_pairs, N = pairs.shape[0], points.shape[2]
     pq = np.empty((7, _CHUNK), np.float32)
+    taps = np.empty((4, _CHUNK), np.int64)  # the bilinear taps' offsets into maps
+    tap_w = np.empty((4, _CHUNK), np.float32)  # and their weights
     smp = np.empty((_CHANNELS, _CHUNK), np.float32)
     res = np.empty((6, _CHUNK), np.float32)
     jw = np.zeros((16, _CHUNK), np.float32)  # the photometric rows stay 0 without the term
@@ -218,7 +217,7 @@ def _pair_terms_kernel(
             m = min(_CHUNK, N - start)
             stop = start + m
             _warp(points, src_valid, b, start, m, T_ab[p], cam32, h, w, pq)
-            _sample(maps, base, h, w, m, pq, smp)
+            _sample(maps, base, h, w, m, pq, taps, tap_w, smp)
             _geometric(pq, smp, m, ref_inv, gate, geo_scale, res)
             _robust(res, m, huber)
             cost += _costs(res, m, gate_cost, cost_pts[p, start:stop], vis[p, start:stop], jw, _WG)
