@@ -478,30 +478,6 @@ def test_the_compiled_rasteriser_finds_the_tensor_paths_candidates():
     assert pg.grad is not None and pg.grad[0, got.point].abs().sum(1).gt(0).all()
 
 
-def test_the_compiled_leave_one_out_keeps_the_tensor_paths_candidates():
-    """``without_frame`` in one compiled pass against the tensor path, bit for bit: every
-    frame left out in turn, strides 1 and 2, with the noise law's sigmas given or not, on
-    the whole image and on blocks of rows (pixel ids counted from a block's first pixel),
-    float32 and float64; with gradients wanted only the tensor path runs."""
-    p, nrm, valid, K, frame, sigma = _two_layer_cloud(11)
-    for dtype in (torch.float32, torch.float64):
-        kw = dict(valid=valid, normals_cam=nrm.to(dtype), sigma_m=sigma.to(dtype), frame=frame, src_hw=(32, 32))
-        for rows in (None, 5):
-            for c in rasterise_blocks(p.to(dtype), K.to(dtype), (16, 16), RenderSettings(), block_rows=rows, **kw):
-                for left_out in range(4):
-                    for stride in (1, 2):
-                        for sig in (None, 1.5 * sigma.to(dtype)):
-                            a = c.without_frame(left_out, stride=stride, sigma_m=sig, compiled=True)
-                            b = c.without_frame(left_out, stride=stride, sigma_m=sig, compiled=False)
-                            _same_candidates(a, b)
-                            assert a.pixel.numel() < c.pixel.numel() or c.pixel.numel() == 0
-    grad = rasterise_gt(p.float().requires_grad_(True), K.float(), (16, 16), valid=valid, frame=frame)
-    with pytest.raises(ValueError, match="without gradients"):
-        grad.without_frame(0, compiled=True)
-    plain = grad._replace(ox=grad.ox.detach(), oy=grad.oy.detach(), d2=grad.d2.detach(), iz=grad.iz.detach())
-    _same_candidates(grad.without_frame(0), plain.without_frame(0, compiled=True))  # the tensor path ran
-
-
 def test_the_compiled_plane_fit_is_the_tensor_one_to_rounding():
     """The CPU's compiled plane fit of each pixel's chosen surface against the tensors'
     (the path of a GPU and of gradients): the same valid pixels and counts, depth, weight

@@ -122,9 +122,7 @@ class RenderCandidates(NamedTuple):
         picked = {k: getattr(self, k).index_select(0, index) for k in names}
         return self._replace(**picked, frame=None if self.frame is None else self.frame.index_select(0, index))
 
-    def without_frame(
-        self, frame: int, *, stride: int = 1, sigma_m: torch.Tensor | None = None, compiled: bool | None = None
-    ) -> RenderCandidates:
+    def without_frame(self, frame: int, *, stride: int = 1, sigma_m: torch.Tensor | None = None) -> RenderCandidates:
         """The candidates of every frame but ``frame`` (the leave-target-out render's).
 
         Args:
@@ -133,8 +131,6 @@ class RenderCandidates(NamedTuple):
             sigma_m: (B, N) the points' depth sigmas in metres for these candidates
                 (e.g. the noise law estimated without the left-out frame), or None
                 (keep their sigmas).
-            compiled: in one compiled pass (:func:`_kept`; default: on the CPU without
-                gradients; the same candidates and values as the tensor path).
         """
         if self.frame is None:
             raise ValueError("without_frame needs candidates with frame ids (render with frame=...)")
@@ -143,17 +139,6 @@ class RenderCandidates(NamedTuple):
             raise ValueError(
                 f"sigma_m must hold one sigma per point ({self.iz_point.numel()}), got {tuple(sigma_m.shape)}"
             )
-        fields = (self.ox, self.oy, self.d2, self.iz)
-        can = self.pixel.device.type == "cpu" and not any(t.requires_grad for t in fields)
-        if compiled and not can:
-            raise ValueError("the compiled without_frame takes CPU candidates without gradients")
-        if compiled is None:
-            compiled = can
-        if compiled:
-            s_point = None
-            if sigma_m is not None:
-                s_point = _inverse_depth_std(sigma_m.detach().reshape(-1).to(self.iz_point.dtype), self.iz_point)
-            return self._others_compiled(frame, stride, s_point)
         with torch.no_grad():
             keep = self.frame != frame
             if stride > 1:
@@ -166,44 +151,6 @@ class RenderCandidates(NamedTuple):
                 s_point = _inverse_depth_std(sigma_m.detach().reshape(-1).to(self.iz_point.dtype), self.iz_point)
                 out = out._replace(s=s_point.index_select(0, out.point))
         return out
-
-    def _others_compiled(self, frame: int, stride: int, s_point: torch.Tensor | None) -> RenderCandidates:
-        """:meth:`without_frame` in one compiled pass over the candidates (:func:`_kept`;
-        the CPU without gradients): the same candidates in the same order, the same values."""
-        b, h, w = self.size
-        arrays = [
-            t.contiguous().numpy()
-            for t in (self.pixel, self.point, self.frame, self.ox, self.oy, self.d2, self.iz, self.s)
-        ]
-        s_of = s_point.contiguous().numpy() if s_point is not None else np.empty(0, arrays[7].dtype)
-        out = [np.empty_like(a) for a in arrays]
-        n = _kept(*arrays, s_of, frame, self.first_pixel, h, w, stride, *out)
-        pixel, point, fr, ox, oy, d2, iz, s_ = (torch.from_numpy(a[:n]) for a in out)
-        return self._replace(pixel=pixel, point=point, frame=fr, ox=ox, oy=oy, d2=d2, iz=iz, s=s_)
-
-
-@numba.njit(cache=True, nogil=True)
-def _kept(
-    pixel, point, frame, ox, oy, d2, iz, s, s_point, left_out, first_pixel, h, w, stride,
-    pixel_o, point_o, frame_o, ox_o, oy_o, d2_o, iz_o, s_o,
-):  # fmt: skip  # pragma: no cover (compiled)
-    """The candidates of every frame but ``left_out`` on the pixels of every ``stride``-th
-    row and column (pixel ids from ``first_pixel``, images h x w), written in order into
-    the ``_o`` arrays, their s from ``s_point`` (per point) when it is not empty. Returns
-    how many."""
-    k = 0
-    for i in range(pixel.shape[0]):
-        if frame[i] == left_out:
-            continue
-        if stride > 1:
-            p = pixel[i] + first_pixel
-            if (p % w) % stride != 0 or ((p // w) % h) % stride != 0:
-                continue
-        pixel_o[k], point_o[k], frame_o[k] = pixel[i], point[i], frame[i]
-        ox_o[k], oy_o[k], d2_o[k], iz_o[k] = ox[i], oy[i], d2[i], iz[i]
-        s_o[k] = s_point[point[i]] if s_point.shape[0] > 0 else s[i]
-        k += 1
-    return k
 
 
 def _inverse_depth_std(sigma_m: torch.Tensor, iz: torch.Tensor) -> torch.Tensor:
