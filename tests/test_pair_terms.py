@@ -96,7 +96,7 @@ def test_the_compiled_terms_take_the_cpu_only(frameset):
     level = Level(d.rgb, d.depth_m, d.K.float(), 2, 1)
     kw = dict(
         geo_scale_m=0.01, geo_ref_depth_m=0.0, gate=0.05, photo_weight=0.3, photo_scale=0.03, huber=True,
-        gate_cost=0.5, linearise=True,
+        gate_cost=0.5,
     )  # fmt: skip
     with pytest.raises(ValueError, match="CPU"):
         pair_terms(

@@ -579,7 +579,7 @@ def _system_compiled(
         level.points, level.gray, level.valid, _maps_hwc(level), level.K, T_ab, pairs,
         geo_scale_m=s.geo_scale_m, geo_ref_depth_m=s.geo_ref_depth_m, gate=gate,
         photo_weight=s.photo_weight, photo_scale=s.photo_scale, huber=s.robust == "huber",
-        gate_cost=_gate_cost(gate, s), linearise=True,
+        gate_cost=_gate_cost(gate, s),
     )  # fmt: skip
     return _System(t.pair_cost, t.inliers, Tinv, t.cost_pts, t.vis, lambda: (t.H_rel, t.g_rel))
 
