@@ -237,14 +237,23 @@ KITCHEN = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
 @pytest.mark.skipif(not KITCHEN.is_dir(), reason="../shared/data/7scenes-kitchen is absent")
 def test_the_compiled_renderer_is_the_tensor_path_on_a_real_frame_set():
     """On a real Kinect frame set (7-Scenes, 640x480 to 256x256, KinectFusion poses) the
-    CPU's compiled cells give the tensor path's candidates bit for bit, block by block,
-    and the compiled plane fit the tensors' GT to float32 rounding (under 5 um)."""
+    CPU's compiled cloud is the tensors' to a float32 rounding with the same normals
+    kept, its compiled cells give the tensor path's candidates bit for bit, block by
+    block, and the compiled plane fit the tensors' GT to float32 rounding (under 5 um)."""
     torch.set_num_threads(1)
     scene = open_source_scene({"kind": "sevenscenes", "root": str(KITCHEN)}, "7scenes-kitchen")
     d = load_frameset(scene, [30 + o for o in FrameSetSettings().offsets], (256, 256), True, torch.device("cpu"))
     g = frame_geometry(d.depth_m, d.K[None].expand(7, 3, 3), src_hw=d.src_hw)
     T = torch.cat([torch.eye(4, dtype=torch.float64)[None], poses_from_source(d)])
     cloud = cloud_from_geometry(g, T)
+    tensor_cloud = cloud_from_geometry(g, T, compiled=False)
+    for name in ("valid", "frame", "sigma_m"):
+        assert torch.equal(getattr(cloud, name), getattr(tensor_cloud, name)), name
+    ok = cloud.valid[0]
+    assert torch.allclose(cloud.points[0, ok], tensor_cloud.points[0, ok], rtol=3e-7, atol=1e-7)
+    assert torch.equal(cloud.normals.abs().sum(-1) > 0, tensor_cloud.normals.abs().sum(-1) > 0)
+    assert torch.allclose(cloud.normals, tensor_cloud.normals, atol=3e-7)
+    assert 0.5 < float((cloud.normals.abs().sum(-1) > 0).float().mean()) < 1.0
     kw = dict(valid=cloud.valid, normals_cam=cloud.normals, sigma_m=cloud.sigma_m, frame=cloud.frame, src_hw=d.src_hw)
     K = d.K[None].float()
     got = rasterise_blocks(cloud.points, K, (256, 256), RenderSettings(), block_rows=32, compiled=True, **kw)

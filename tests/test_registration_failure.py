@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-import depthgt.registration as registration
+import depthgt.registration.overfit as overfit
 from depthgt.errors import ConfigError
 from depthgt.gt import store
 from depthgt.gt.build import FrameSetOutputs, process_frameset
@@ -64,7 +64,7 @@ def _fake_registration(T_true: torch.Tensor, bad: set[int]):
 @pytest.mark.parametrize("on_failure", ["drop_neighbours", "exclude"])
 def test_failed_neighbours_are_dropped_or_the_set_excluded(scene_and_truth, tmp_path, monkeypatch, on_failure):
     scene, members, data, T_true = scene_and_truth
-    monkeypatch.setattr(registration.overfit, "register_overfit", _fake_registration(T_true, {-6, 6}))
+    monkeypatch.setattr(overfit, "register_overfit", _fake_registration(T_true, {-6, 6}))
     settings = settings_from_config(
         {"device": "cpu", "registration": {"method": "overfit", "preset": "fast", "on_failure": on_failure}}
     )

@@ -22,6 +22,7 @@ from depthgt.gt.render import (
     resampled_positions,
     splat_soft,
 )
+from depthgt.gt.render.agreement import frame_agreement
 from depthgt.gt.render.compositor import _choose_surfaces
 from depthgt.gt.render.rasteriser import rasterise_blocks
 from depthgt.settings import RenderSettings
@@ -966,6 +967,24 @@ def test_render_gt_keeps_a_frame_where_it_agrees():
         p, K, (h, w), settings=replace(tiles, min_whole_frame_agreement=0.0), frame=frame, target_frame=0
     )
     assert float((floorless.depth[0, 0] - truth).abs().max()) < 0.01
+
+
+def test_the_compiled_frame_agreement_counts_as_the_tensors():
+    """The CPU's compiled scans and counts of the frame agreement against the tensor path
+    (a GPU's) on a scene where a frame is off in a region and another everywhere: the
+    same bad (frame, tile) slots, shares and diagnostic counts, per tile and per frame,
+    in one block and in blocks of 8 rows."""
+    p, frame, K, truth = _plane_seen_with_offsets([0.0, 0.0, 0.15, 0.15], lambda u, v: u >= 16)
+    h, w = truth.shape
+    tiles = RenderSettings(noise_sigma_1m=0.0012, agreement_tile_px=8, min_whole_frame_agreement=0.5)
+    for st in (tiles, replace(tiles, agreement_tile_px=0)):
+        for rows in (None, 8):
+            blocks = rasterise_blocks(p, K, (h, w), st, frame=frame, block_rows=rows)
+            bad, share, diag = frame_agreement(blocks, st, 0, compiled=True)
+            want = frame_agreement(blocks, st, 0, compiled=False)
+            assert torch.equal(bad, want[0]) and bool(bad.any())
+            assert torch.equal(share.nan_to_num(-1), want[1].nan_to_num(-1))
+            assert torch.equal(diag, want[2]) and float(diag[:, 2].sum()) < float(diag[:, 0].sum())
 
 
 def test_render_gt_agreement_ignores_target_edges():

@@ -40,19 +40,9 @@ def agreement_slot(
     :func:`frame_agreement`: ((image * J + frame) * tiles + tile), from a per-pixel
     table (one gather, no integer division per sample). ``pixel``, ``fr``: (C,) long;
     ``size``: (B, H, W); ``n_frames``: J."""
-    b, h, w = size
-    hw, n_fr = (h, w), n_frames
-    ty, tx = _tile_grid(hw, tile_px)
-    n_t = ty * tx
-    img = torch.arange(b, device=pixel.device)[:, None, None]
-    if tile_px <= 0:
-        tile = torch.zeros(1, h, w, dtype=torch.long, device=pixel.device)
-    else:
-        tile = (torch.arange(h, device=pixel.device)[:, None] // tile_px) * tx + torch.arange(w, device=pixel.device)[
-            None
-        ] // tile_px
-    table = (img * (n_fr * n_t) + tile).reshape(-1)  # per pixel of the B images: image and tile part
-    return table.index_select(0, pixel) + fr * n_t
+    ty, tx = _tile_grid(size[1:], tile_px)
+    table = _slot_table(size, n_frames, tile_px, pixel.device)  # per pixel of the B images: image and tile part
+    return table.index_select(0, pixel) + fr * (ty * tx)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -86,6 +76,61 @@ def _near_samples(
             agree[m] = abs(iz[i] - iz_t[p]) <= tol
             m += 1
     return p_out[:m].copy(), f_out[:m].copy(), agree[:m].copy()
+
+
+@numba.njit(cache=True, nogil=True)
+def _count_comparisons(pixel, frame, agree, table, n_t, h_w, n_fr, n_slots, n_pix):  # pragma: no cover
+    """The comparisons of :func:`_near_samples` counted in one pass: per (image, frame)
+    compared and agreeing (B*J,), per (image, frame, tile) the same (``n_slots``; ``table``
+    (n_pix,) the image-and-tile part of :func:`agreement_slot`, ``n_t`` tiles per
+    frame), per pixel compared and disagreeing (n_pix,); the bincounts of the tensor
+    path, in int64."""
+    n_img = n_pix // h_w
+    cmp_f = np.zeros(n_img * n_fr, np.int64)
+    ok_f = np.zeros(n_img * n_fr, np.int64)
+    cmp_t = np.zeros(n_slots, np.int64)
+    ok_t = np.zeros(n_slots, np.int64)
+    seen = np.zeros(n_pix, np.int64)
+    differ = np.zeros(n_pix, np.int64)
+    for i in range(pixel.shape[0]):
+        p, f = pixel[i], frame[i]
+        fs = (p // h_w) * n_fr + f
+        ts = table[p] + f * n_t
+        cmp_f[fs] += 1
+        cmp_t[ts] += 1
+        seen[p] += 1
+        if agree[i]:
+            ok_f[fs] += 1
+            ok_t[ts] += 1
+        else:
+            differ[p] += 1
+    return cmp_f, ok_f, cmp_t, ok_t, seen, differ
+
+
+@numba.njit(cache=True, nogil=True)
+def _count_kept(pixel, frame, table, n_t, bad, n_pix):  # pragma: no cover (compiled)
+    """Per pixel (n_pix,) int64 the comparisons whose (image, frame, tile) slot is not
+    ``bad`` (the diagnostic's third count)."""
+    kept = np.zeros(n_pix, np.int64)
+    for i in range(pixel.shape[0]):
+        p = pixel[i]
+        if not bad[table[p] + frame[i] * n_t]:
+            kept[p] += 1
+    return kept
+
+
+def _slot_table(size: tuple[int, int, int], n_frames: int, tile_px: int, device: torch.device) -> torch.Tensor:
+    """(B*H*W,) long: each pixel's image-and-tile part of :func:`agreement_slot`."""
+    b, h, w = size
+    ty, tx = _tile_grid((h, w), tile_px)
+    img = torch.arange(b, device=device)[:, None, None]
+    if tile_px <= 0:
+        tile = torch.zeros(1, h, w, dtype=torch.long, device=device)
+    else:
+        tile = (torch.arange(h, device=device)[:, None] // tile_px) * tx + torch.arange(w, device=device)[
+            None
+        ] // tile_px
+    return (img * (n_frames * ty * tx) + tile).reshape(-1)
 
 
 def _target_depth(
@@ -207,22 +252,29 @@ def frame_agreement(
         tol = st.gap_sigmas * math.sqrt(2.0) * s_t.reshape(b, 1, h, w) + st.gap_slope_rel * img * (2 * r)
         judge &= ((hi - lo) <= tol).reshape(-1)
     p, f, agree = _near_comparisons(blocks, st, target_frame, judge, iz_t, s_t, compiled=compiled)
-    slot = torch.div(p, h_w, rounding_mode="floor") * n_fr + f
-    n_cmp = torch.bincount(slot, minlength=b * n_fr).reshape(b, n_fr)
-    n_ok = torch.bincount(slot[agree], minlength=b * n_fr).reshape(b, n_fr)
+    ty, tx = _tile_grid(hw, st.agreement_tile_px)
+    n_slots = b * n_fr * ty * tx
+    if compiled:  # the counts in one pass over the comparisons (the same integers)
+        table = _slot_table(c.size, n_fr, st.agreement_tile_px, p.device)
+        n_cmp, n_ok, cmp_t, ok_t, seen, differ = (
+            torch.from_numpy(a)
+            for a in _count_comparisons(
+                p.numpy(), f.numpy(), agree.numpy(), table.numpy(), ty * tx, h_w, n_fr, n_slots, n_pix
+            )
+        )
+        n_cmp, n_ok = n_cmp.reshape(b, n_fr), n_ok.reshape(b, n_fr)
+    else:
+        slot = torch.div(p, h_w, rounding_mode="floor") * n_fr + f
+        n_cmp = torch.bincount(slot, minlength=b * n_fr).reshape(b, n_fr)
+        n_ok = torch.bincount(slot[agree], minlength=b * n_fr).reshape(b, n_fr)
+        tslot = agreement_slot(p, f, size=c.size, n_frames=n_fr, tile_px=st.agreement_tile_px)
+        cmp_t, ok_t = torch.bincount(tslot, minlength=n_slots), torch.bincount(tslot[agree], minlength=n_slots)
     share = torch.where(
         n_cmp >= _MIN_COMPARED, n_ok / n_cmp.clamp_min(1), torch.full_like(n_cmp, float("nan"), dtype=torch.float32)
     )
     bad = share < st.min_frame_agreement  # (NaN: not judged)
     if st.agreement_tile_px > 0:
-        ty, tx = _tile_grid(hw, st.agreement_tile_px)
-        tslot = agreement_slot(p, f, size=c.size, n_frames=n_fr, tile_px=st.agreement_tile_px)
-        counts = torch.stack(
-            [
-                torch.bincount(tslot, minlength=b * n_fr * ty * tx),
-                torch.bincount(tslot[agree], minlength=b * n_fr * ty * tx),
-            ]
-        ).to(torch.float32)
+        counts = torch.stack([cmp_t, ok_t]).to(torch.float32)
         # comparisons pooled over each tile's 3x3 neighbourhood (sums: average x 9)
         pooled = (
             F.avg_pool2d(counts.reshape(2 * b * n_fr, 1, ty, tx), 3, stride=1, padding=1, count_include_pad=True) * 9
@@ -231,12 +283,18 @@ def frame_agreement(
         judged = n_cmp_t >= _MIN_TILE_COMPARED
         bad_t = torch.where(judged, n_ok_t < st.min_frame_agreement * n_cmp_t, bad[..., None, None])
         bad = bad_t | (share < st.min_whole_frame_agreement)[..., None, None]
-    kept = ~bad.reshape(-1)[agreement_slot(p, f, size=c.size, n_frames=n_fr, tile_px=st.agreement_tile_px)]
-    diag = torch.stack(
-        [
-            torch.bincount(p, minlength=n_pix),
-            torch.bincount(p[~agree], minlength=n_pix),
-            torch.bincount(p[kept], minlength=n_pix),
-        ]
-    ).to(torch.float32)
+    if compiled:
+        kept = torch.from_numpy(
+            _count_kept(p.numpy(), f.numpy(), table.numpy(), ty * tx, bad.reshape(-1).contiguous().numpy(), n_pix)
+        )
+        diag = torch.stack([seen, differ, kept]).to(torch.float32)
+    else:
+        kept = ~bad.reshape(-1)[tslot]
+        diag = torch.stack(
+            [
+                torch.bincount(p, minlength=n_pix),
+                torch.bincount(p[~agree], minlength=n_pix),
+                torch.bincount(p[kept], minlength=n_pix),
+            ]
+        ).to(torch.float32)
     return bad.reshape(-1), share.to(torch.float32), diag.reshape(3, b, h, w).transpose(0, 1)

@@ -10,9 +10,12 @@ set -- its noise estimate, the poses, the normals kept -- is put together per se
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
+import numba
+import numpy as np
 import torch
 from kornia.geometry.depth import depth_to_normals
 from kornia.geometry.linalg import transform_points
@@ -175,12 +178,43 @@ class TargetCloud(NamedTuple):
     sigma_m: torch.Tensor
 
 
+@numba.njit(cache=True, nogil=True)
+def _moved_frames(points, normals, edge, edge_max, T):  # pragma: no cover (compiled)
+    """The points (J, N, 3) moved by ``T`` (J, 4, 4) and their normals rotated, set to
+    zero where the edge score (J, N) exceeds ``edge_max`` or a component is not finite,
+    in one pass (:func:`cloud_from_geometry`'s tensors: a homogeneous batched product
+    and five (J, N) planes for the mask). The products are summed in order, the
+    tensors' BLAS in its own order: the points agree to a float32 rounding."""
+    j_n, n = points.shape[0], points.shape[1]
+    pts = np.empty_like(points)
+    nrm = np.empty_like(normals)
+    zero = normals.dtype.type(0.0)
+    for j in range(j_n):
+        r00, r01, r02, t0 = T[j, 0, 0], T[j, 0, 1], T[j, 0, 2], T[j, 0, 3]
+        r10, r11, r12, t1 = T[j, 1, 0], T[j, 1, 1], T[j, 1, 2], T[j, 1, 3]
+        r20, r21, r22, t2 = T[j, 2, 0], T[j, 2, 1], T[j, 2, 2], T[j, 2, 3]
+        for i in range(n):
+            x, y, z = points[j, i, 0], points[j, i, 1], points[j, i, 2]
+            pts[j, i, 0] = r00 * x + r01 * y + r02 * z + t0
+            pts[j, i, 1] = r10 * x + r11 * y + r12 * z + t1
+            pts[j, i, 2] = r20 * x + r21 * y + r22 * z + t2
+            a, b, c = normals[j, i, 0], normals[j, i, 1], normals[j, i, 2]
+            if edge[j, i] <= edge_max and math.isfinite(a) and math.isfinite(b) and math.isfinite(c):
+                nrm[j, i, 0] = r00 * a + r01 * b + r02 * c
+                nrm[j, i, 1] = r10 * a + r11 * b + r12 * c
+                nrm[j, i, 2] = r20 * a + r21 * b + r22 * c
+            else:
+                nrm[j, i, 0] = nrm[j, i, 1] = nrm[j, i, 2] = zero
+    return pts, nrm
+
+
 def cloud_from_geometry(
     geom: FrameGeometry,
     T_j_to_t: torch.Tensor,
     *,
     noise_sigma_1m: float | None = None,
     noise_sigma_abs_m: float = RenderSettings.noise_sigma_abs_m,
+    compiled: bool | None = None,
 ) -> TargetCloud:
     """The frames of ``geom`` moved into the target camera by ``T_j_to_t`` (J, 4, 4).
 
@@ -190,16 +224,37 @@ def cloud_from_geometry(
     have none at any slant, so grazing surfaces keep their normals while edges lose
     them). Each point's sigma is the z^2 law with the sensor's sigma at 1 m,
     ``noise_sigma_1m`` or, None, estimated from these frames (:func:`noise_sigma_1m_of`).
+    ``compiled``: the points and normals moved in one compiled pass (:func:`_moved_frames`;
+    default: CPU tensors, no gradients wanted) or as tensors (a GPU's path, gradients);
+    the same cloud to a float32 rounding.
     """
     j = geom.points.shape[0]
     check_shape(T_j_to_t, "J 4 4", "T_j_to_t", {"J": j})
     dtype = geom.points.dtype
     T = T_j_to_t.to(dtype)
-    pts = transform_points(T, geom.points)  # (J, HW, 3)
     sigma_1m = noise_sigma_1m_of(geom.residuals) if noise_sigma_1m is None else float(noise_sigma_1m)
-    flat = (geom.edge <= _EDGE_SIGMAS * sigma_1m)[..., None] & torch.isfinite(geom.normals).all(dim=-1, keepdim=True)
-    nrm = torch.where(flat, geom.normals, torch.zeros_like(geom.normals))
-    nrm = nrm @ T[:, :3, :3].transpose(1, 2)  # rotate into the target camera
+    on_cpu = geom.points.device.type == "cpu"
+    if compiled is None:
+        grads = torch.is_grad_enabled() and any(t.requires_grad for t in (T, geom.points, geom.normals))
+        compiled = on_cpu and not grads
+    elif compiled and not on_cpu:
+        raise ValueError(f"the compiled cloud takes CPU tensors, got {geom.points.device.type}")
+    if compiled:
+        pts, nrm = (
+            torch.from_numpy(a)
+            for a in _moved_frames(
+                *(t.detach().contiguous().numpy() for t in (geom.points, geom.normals.to(dtype), geom.edge)),
+                float(_EDGE_SIGMAS * sigma_1m),
+                T.detach().contiguous().numpy(),
+            )
+        )
+    else:
+        pts = transform_points(T, geom.points)  # (J, HW, 3)
+        flat = (geom.edge <= _EDGE_SIGMAS * sigma_1m)[..., None] & torch.isfinite(geom.normals).all(
+            dim=-1, keepdim=True
+        )
+        nrm = torch.where(flat, geom.normals, torch.zeros_like(geom.normals))
+        nrm = nrm @ T[:, :3, :3].transpose(1, 2)  # rotate into the target camera
     valid = geom.depth > 0
     sigma = depth_sigma_m(geom.depth, sigma_1m, noise_sigma_abs_m)  # each point's own sensor depth
     frame = torch.arange(j, device=pts.device)[:, None].expand(j, geom.depth.shape[1])
