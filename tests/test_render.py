@@ -543,6 +543,15 @@ def test_leave_one_frame_out_is_the_compositor_over_fewer_candidates():
             else:  # the weights' common scale (the kept samples' median sigma) differs: float rounding
                 assert torch.allclose(got[on], want[on], rtol=1e-12, atol=0)
         assert (left.depth > 0).sum() > 0.5 * on.sum()
+        # the compositor's own leave-out (the CPU's compiled path skips the candidates as
+        # it reads them; the tensors' copies them out): the same render
+        for compiled in (None, False):
+            own = composite_gt(
+                cands, st, with_sigma=False, leave_out=0, stride=stride, sigma_m=other_sigma, compiled=compiled
+            )
+            assert torch.equal(own.count, left.count) and torch.equal(own.depth > 0, left.depth > 0)
+            assert torch.allclose(own.depth, left.depth, rtol=1e-12, atol=0)
+            assert torch.allclose(own.weight_sum, left.weight_sum, rtol=1e-12, atol=0)
     # its own sigmas matter: the weights move with them
     same_sigma = composite_gt(cands.without_frame(0), st, with_sigma=False)
     assert not torch.equal(same_sigma.depth, composite_gt(cands.without_frame(0, sigma_m=other_sigma**0.9), st).depth)
@@ -550,6 +559,11 @@ def test_leave_one_frame_out_is_the_compositor_over_fewer_candidates():
         rasterise_gt(p, K, (16, 16), st).without_frame(0)
     with pytest.raises(ValueError, match="one sigma per point"):
         cands.without_frame(0, sigma_m=sigma[:, :10])
+    for compiled in (None, False):
+        with pytest.raises(ValueError, match="one sigma per point"):
+            composite_gt(cands, st, leave_out=0, sigma_m=sigma[:, :10], compiled=compiled)
+    with pytest.raises(ValueError, match="frame ids"):
+        composite_gt(rasterise_gt(p, K, (16, 16), st), st, leave_out=0)
     empty = composite_gt(rasterise_gt(p[:, :0], K, (16, 16), st, frame=frame[:, :0]).without_frame(0), st)
     assert not empty.depth.any() and empty.agreement.shape == (1, 0)
 

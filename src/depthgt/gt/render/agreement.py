@@ -13,7 +13,7 @@ from depthgt.depth_ops import window_max
 from depthgt.gt.render.rasteriser import HIT_PX, RenderCandidates
 from depthgt.gt.render.settings import RenderSettings
 
-__all__ = ["frame_agreement", "agreement_slot"]
+__all__ = ["frame_agreement", "agreement_slot", "slot_table"]
 
 #: frame agreement: samples within this of a target sample are compared with it (px);
 #: a frame is judged on at least this many comparisons
@@ -41,7 +41,7 @@ def agreement_slot(
     table (one gather, no integer division per sample). ``pixel``, ``fr``: (C,) long;
     ``size``: (B, H, W); ``n_frames``: J."""
     ty, tx = _tile_grid(size[1:], tile_px)
-    table = _slot_table(size, n_frames, tile_px, pixel.device)  # per pixel of the B images: image and tile part
+    table = slot_table(size, n_frames, tile_px, pixel.device)  # per pixel of the B images: image and tile part
     return table.index_select(0, pixel) + fr * (ty * tx)
 
 
@@ -119,7 +119,7 @@ def _count_kept(pixel, frame, table, n_t, bad, n_pix):  # pragma: no cover (comp
     return kept
 
 
-def _slot_table(size: tuple[int, int, int], n_frames: int, tile_px: int, device: torch.device) -> torch.Tensor:
+def slot_table(size: tuple[int, int, int], n_frames: int, tile_px: int, device: torch.device) -> torch.Tensor:
     """(B*H*W,) long: each pixel's image-and-tile part of :func:`agreement_slot`."""
     b, h, w = size
     ty, tx = _tile_grid((h, w), tile_px)
@@ -255,7 +255,7 @@ def frame_agreement(
     ty, tx = _tile_grid(hw, st.agreement_tile_px)
     n_slots = b * n_fr * ty * tx
     if compiled:  # the counts in one pass over the comparisons (the same integers)
-        table = _slot_table(c.size, n_fr, st.agreement_tile_px, p.device)
+        table = slot_table(c.size, n_fr, st.agreement_tile_px, p.device)
         n_cmp, n_ok, cmp_t, ok_t, seen, differ = (
             torch.from_numpy(a)
             for a in _count_comparisons(

@@ -25,8 +25,9 @@ import numba
 import numpy as np
 import torch
 
-from depthgt.gt.render.agreement import agreement_slot, frame_agreement
-from depthgt.gt.render.rasteriser import HIT_PX, RenderCandidates, rasterise_gt
+from depthgt.gt.render.agreement import agreement_slot, frame_agreement, slot_table
+from depthgt.gt.render.pixelwise import composite_pixels
+from depthgt.gt.render.rasteriser import HIT_PX, RenderCandidates, inverse_depth_std, rasterise_gt
 from depthgt.gt.render.settings import RenderSettings
 from depthgt.rasterise import rank_in_pixel
 
@@ -741,6 +742,80 @@ def _composite_block(
     return at(est.depth), at(est.weight_sum), at(est.count), sigma
 
 
+def _pixelwise_block(
+    c: RenderCandidates,
+    st: RenderSettings,
+    *,
+    target_frame: int | None,
+    with_sigma: bool,
+    bad: torch.Tensor | None,
+    table: torch.Tensor | None,
+    n_tiles: int,
+    leave_out: int | None,
+    stride: int,
+    s_point: torch.Tensor | None,
+) -> tuple[torch.Tensor, ...] | None:
+    """:func:`_composite_block`'s result for one block by the compiled pixel-by-pixel
+    compositor (:func:`~depthgt.gt.render.pixelwise.composite_pixels`), skipping the
+    candidates in ``bad`` agreement slots (``table``: each pixel's image-and-tile part),
+    of frame ``leave_out`` and off the pixels of every ``stride``-th row and column, with
+    the points' inverse-depth stds ``s_point`` instead of the candidates' (None: theirs);
+    None when a chosen surface keeps more than ``m`` samples."""
+    b, h, w = c.size
+    n_pix = c.pixels
+    if c.pixel.numel() == 0:
+        zeros = torch.zeros(n_pix, dtype=c.iz.dtype)
+        return zeros, zeros.clone(), torch.zeros(n_pix, dtype=torch.long), zeros.clone()
+    real = c.iz.detach().numpy().dtype.type  # a Python number meets a tensor in its dtype
+    empty_i, empty_b = np.zeros(0, np.int64), np.zeros(0, np.bool_)
+    grad = c.grad if c.grad is not None else torch.zeros(c.iz_point.numel(), 2, dtype=c.iz.dtype)
+    n_frames = c.n_frames or int(c.frame.max()) + 1
+    none = np.zeros(0, c.iz.detach().numpy().dtype)
+    # the weights vectorised (SIMD exp) where every candidate is read; the
+    # leave-target-out render reads a quarter of them, with other stds: weighed there
+    w_sp, wt = (none, none) if s_point is not None else (t.numpy() for t in _weights(c.d2.detach(), c.s, st))
+    depth, wsum, count, sigma, capped = composite_pixels(
+        *(t.detach().numpy() for t in (c.pixel, c.point, c.ox, c.oy, c.d2, c.iz, c.s, c.frame)),
+        grad.detach().to(c.iz.dtype).contiguous().numpy(),
+        s_point.numpy() if s_point is not None else none,
+        w_sp,
+        wt,
+        n_pix,
+        (
+            -1 if leave_out is None else int(leave_out),
+            -1 if target_frame is None else int(target_frame),
+            int(stride),
+            int(c.first_pixel),
+            h,
+            w,
+            n_frames,
+            n_tiles,
+        ),
+        (empty_b, empty_i) if bad is None else (bad.numpy(), table.numpy()),
+        (real(st.gap_sigmas), real(st.gap_slope_rel)),
+        (real(st.edge_vote), real(st.edge_vote_slack_px), 1 if st.edge_vote > 0 else 0),
+        (
+            real(st.edge_margin_px),
+            real(st.ambiguous_px),
+            real(HIT_PX**2),
+            real(1 if st.drop_ambiguous else 0),
+            real(1 if st.extend_uncovered else 0),
+            real(1 if st.target_resolves_ambiguous else 0),
+        ),
+        (real(st.radius_px**2), real(_S_REF), int(st.m), int(st.min_frames)),
+        (
+            float(st.slope_prior),
+            int(st.min_points),
+            _SIGMA_SCALE,
+            1 if (with_sigma or st.max_sigma_m is not None) else 0,
+            -1.0 if st.max_sigma_m is None else float(st.max_sigma_m),
+        ),
+    )
+    if capped:
+        return None
+    return tuple(torch.from_numpy(a) for a in (depth, wsum, count, sigma))
+
+
 def composite_gt(
     cands: RenderCandidates | list[RenderCandidates],
     settings: RenderSettings = RenderSettings(),
@@ -749,6 +824,9 @@ def composite_gt(
     with_sigma: bool = True,
     block_rows: int | None = BLOCK_ROWS,
     compiled: bool | None = None,
+    leave_out: int | None = None,
+    stride: int = 1,
+    sigma_m: torch.Tensor | None = None,
 ) -> GTRender:
     """Steps 2-5 of :func:`render_gt` on the rasteriser's candidates (one record, or the
     blocks of :func:`~depthgt.gt.render.rasteriser.rasterise_blocks` covering every
@@ -764,7 +842,16 @@ def composite_gt(
     rounding.
 
     The leave-target-out render is this compositor over the same candidates without the
-    target's (:meth:`RenderCandidates.without_frame`), no ``target_frame``.
+    target's: ``leave_out`` the target's frame id, ``stride`` (the pixels of every
+    stride-th row and column only, the others empty) and ``sigma_m`` (B, N) the points'
+    depth sigmas for it (None: the candidates'), no ``target_frame``; the same result as
+    compositing :meth:`RenderCandidates.without_frame` (which the tensor path does; the
+    compiled one skips those candidates as it reads them).
+
+    On the CPU (``compiled``, plane "fit", frame ids below 64, no gradients wanted) each
+    block is composited pixel by pixel, compiled
+    (:func:`~depthgt.gt.render.pixelwise.composite_pixels`; a block where a surface keeps
+    more than ``m`` samples goes the tensors' way); the same GT to float32 rounding.
     """
     st = settings
     if isinstance(cands, RenderCandidates):
@@ -772,14 +859,63 @@ def composite_gt(
     first = cands[0]
     b, h, w = first.size
     dev, dt = first.iz_point.device, first.iz_point.dtype
+    if leave_out is not None and first.frame is None:
+        raise ValueError("leave_out needs candidates with frame ids (render with frame=...)")
+    grads = torch.is_grad_enabled() and any(
+        t is not None and t.requires_grad for c in cands for t in (c.ox, c.oy, c.d2, c.iz, c.s, c.grad)
+    )
+    n_frames = first.n_frames or max(
+        (int(c.frame.max()) + 1 for c in cands if c.frame is not None and c.frame.numel()), default=0
+    )
+    pixelwise = (
+        compiled is not False
+        and dev.type == "cpu"
+        and st.plane == "fit"
+        and first.frame is not None
+        and n_frames <= 64
+        and not grads
+    )
+    s_point = None
+    if pixelwise and sigma_m is not None:
+        if sigma_m.numel() != first.iz_point.numel():
+            raise ValueError(
+                f"sigma_m must hold one sigma per point ({first.iz_point.numel()}), got {tuple(sigma_m.shape)}"
+            )
+        s_point = inverse_depth_std(sigma_m.detach().reshape(-1).to(dt), first.iz_point).contiguous()
+    elif leave_out is not None:
+        cands = [c.without_frame(leave_out, stride=stride, sigma_m=sigma_m) for c in cands]
+        leave_out, stride = None, 1
     agreement = torch.full((b, first.n_frames), float("nan"), device=dev)
     disagreement = bad = None
     if first.frame is not None and target_frame is not None and any(c.pixel.numel() for c in cands):
         with torch.no_grad():
             bad, agreement, disagreement = frame_agreement(cands, st, target_frame, compiled=compiled)
             bad = bad if bool(bad.any()) else None
+    table = n_tiles = None
+    if pixelwise and bad is not None:
+        table = slot_table(first.size, first.n_frames, st.agreement_tile_px, dev)
+        n_tiles = bad.numel() // (b * first.n_frames)
     parts = []
     for blk in cands:
+        if pixelwise:
+            with torch.no_grad():
+                out = _pixelwise_block(
+                    blk,
+                    st,
+                    target_frame=target_frame,
+                    with_sigma=with_sigma,
+                    bad=bad,
+                    table=table,
+                    n_tiles=n_tiles or 1,
+                    leave_out=leave_out,
+                    stride=stride,
+                    s_point=s_point,
+                )
+            if out is not None:
+                parts.append(out)
+                continue
+            if leave_out is not None:  # the tensors' way: the candidates without the frame, copied
+                blk = blk.without_frame(leave_out, stride=stride, sigma_m=sigma_m)
         if bad is not None:  # a frame (or a region of it) that disagrees with the target stays out
             with torch.no_grad():
                 pixel = blk.pixel + blk.first_pixel if blk.first_pixel else blk.pixel

@@ -273,8 +273,8 @@ def _fuse_one(
     # the leave-target-out render: the same compositor over the same candidates minus the
     # target's, with the noise law as fusing the neighbours alone estimates it
     lo_sigma = _lto_sigma(one.geometry, st)
-    neighbours = [blk.without_frame(0, stride=stride, sigma_m=lo_sigma) for blk in blocks]
-    return Fusion(gt, tuple(members), left, composite_gt(neighbours, st, with_sigma=False), stride)
+    left_out = composite_gt(blocks, st, with_sigma=False, leave_out=0, stride=stride, sigma_m=lo_sigma)
+    return Fusion(gt, tuple(members), left, left_out, stride)
 
 
 def _fuse_together(
@@ -329,7 +329,7 @@ def _fuse_together(
         lo_sigma = None
         if st.noise_sigma_1m is None:
             lo_sigma = torch.cat([s if s is not None else torch.ones_like(sigma[:1]) for s in lo])
-        lto = composite_gt([b.without_frame(0, stride=stride, sigma_m=lo_sigma) for b in blocks], st, with_sigma=False)
+        lto = composite_gt(blocks, st, with_sigma=False, leave_out=0, stride=stride, sigma_m=lo_sigma)
     out = []
     for k, one in enumerate(sets):
         j = len(one.members)

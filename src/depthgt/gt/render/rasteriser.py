@@ -148,12 +148,12 @@ class RenderCandidates(NamedTuple):
                 keep &= on_grid.index_select(0, self.pixel)
             out = self.select(keep.nonzero().squeeze(1))
             if sigma_m is not None:
-                s_point = _inverse_depth_std(sigma_m.detach().reshape(-1).to(self.iz_point.dtype), self.iz_point)
+                s_point = inverse_depth_std(sigma_m.detach().reshape(-1).to(self.iz_point.dtype), self.iz_point)
                 out = out._replace(s=s_point.index_select(0, out.point))
         return out
 
 
-def _inverse_depth_std(sigma_m: torch.Tensor, iz: torch.Tensor) -> torch.Tensor:
+def inverse_depth_std(sigma_m: torch.Tensor, iz: torch.Tensor) -> torch.Tensor:
     """(N,) std in inverse depth s = sigma_z / z^2 = sigma_z iz^2 (floored at 1e-12) of
     depth stds ``sigma_m`` (N,) metres at inverse depths ``iz`` (N,) 1/m."""
     return (sigma_m * iz**2).clamp_min(1e-12)
@@ -362,7 +362,7 @@ def _project(
                 sz = depth_sigma_m(z_f.detach(), sig_1m, st.noise_sigma_abs_m)
             else:
                 sz = sigma_m.detach().reshape(-1).to(dt)
-            s_all = _inverse_depth_std(sz, iz_all.detach())
+            s_all = inverse_depth_std(sz, iz_all.detach())
             u, v = uv_f[:, 0].detach(), uv_f[:, 1].detach()
             ok = valid.reshape(-1) & (z_f.detach() > st.min_depth_m) & torch.isfinite(u) & torch.isfinite(v)
             ok &= (u > float(gu[0]) - r) & (u < float(gu[-1]) + r) & (v > float(gv[0]) - r) & (v < float(gv[-1]) + r)
