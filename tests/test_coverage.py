@@ -291,6 +291,28 @@ def test_selection_parts():
     assert choose_views(torch.zeros(3, 5, dtype=torch.bool), 2, 1) == []
 
 
+KITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "7scenes-kitchen"
+
+
+@pytest.mark.skipif(not KITCHEN.is_dir(), reason="../shared/data/7scenes-kitchen is absent")
+def test_the_compiled_fill_maps_are_the_tensors():
+    """On real Kinect frames (7-Scenes, 256x256, KinectFusion poses, candidates up to 20
+    frames away) the CPU's compiled fill maps mark the tensor path's pixels, but for a
+    point whose rounded pixel flips with the rotation's summation order (2 of ~160k)."""
+    from depthgt.jobs.common import open_source_scene
+    from depthgt.registration import load_frameset
+
+    scene = open_source_scene({"kind": "sevenscenes", "root": str(KITCHEN)}, "7scenes-kitchen")
+    d = load_frameset(scene, [30, 10, 14, 18, 42, 46, 50], (256, 256), True, torch.device("cpu"))
+    T = torch.linalg.inv(d.T_world_cam[:1]) @ d.T_world_cam[1:]
+    empty = torch.zeros(256, 256, dtype=torch.bool)
+    empty[::3] = True  # a third of the rows, as if the core had left them empty
+    empty[:, 100:160] = True
+    got = fill_maps(d.depth_m[1:], d.K, T, empty)
+    want = fill_maps(d.depth_m[1:], d.K, T, empty, compiled=False)
+    assert int(want.sum()) > 100_000 and int((got != want).sum()) <= 1e-4 * int(want.sum())
+
+
 def test_coverage_settings_name_their_key():
     for key, value in (
         ("selection", "best"),

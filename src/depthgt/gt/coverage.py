@@ -33,8 +33,10 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba
 import numpy as np
 import torch
+from kornia.geometry.depth import unproject_meshgrid
 from kornia.geometry.liegroup import Se3
 
 from depthgt import geometry
@@ -81,7 +83,42 @@ def view_limits(T_c_to_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return baseline, angle
 
 
-def fill_maps(depth_m: torch.Tensor, K: torch.Tensor, T_c_to_t: torch.Tensor, empty: torch.Tensor) -> torch.Tensor:
+@numba.njit(cache=True, nogil=True)
+def _landing(depth, grid, K, T, empty, eps):  # pragma: no cover (compiled)
+    """:func:`fill_maps` in one compiled pass over the candidates' pixels: each valid
+    point (``grid`` (H, W, 3) kornia's unprojection grid times its depth) moved by ``T``
+    (C, 4, 4), projected with ``K`` and rounded to its nearest pixel, marks that pixel
+    when ``empty``. The tensors' float operations in their order, but for the rotation's
+    products, which BLAS sums in its own order (a point off by a float rounding)."""
+    c_n, h, w = depth.shape
+    hit = np.zeros((c_n, h * w), np.bool_)
+    k00, k01, k02, k11, k12 = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+    half = depth.dtype.type(0.5)
+    for c in range(c_n):
+        r00, r01, r02, t0 = T[c, 0, 0], T[c, 0, 1], T[c, 0, 2], T[c, 0, 3]
+        r10, r11, r12, t1 = T[c, 1, 0], T[c, 1, 1], T[c, 1, 2], T[c, 1, 3]
+        r20, r21, r22, t2 = T[c, 2, 0], T[c, 2, 1], T[c, 2, 2], T[c, 2, 3]
+        for y in range(h):
+            for x in range(w):
+                z = depth[c, y, x]
+                if not z > 0:
+                    continue
+                px, py, pz = grid[y, x, 0] * z, grid[y, x, 1] * z, grid[y, x, 2] * z
+                zt = (px * r20 + py * r21 + pz * r22) + t2
+                if not zt > eps:  # behind the camera (the tensors' uv = -inf)
+                    continue
+                xt = (px * r00 + py * r01 + pz * r02) + t0
+                yt = (px * r10 + py * r11 + pz * r12) + t1
+                u = math.floor(k00 * xt / zt + k01 * yt / zt + k02 + half)
+                v = math.floor(k11 * yt / zt + k12 + half)
+                if 0 <= u < w and 0 <= v < h and empty[int(v), int(u)]:
+                    hit[c, int(v) * w + int(u)] = True
+    return hit
+
+
+def fill_maps(
+    depth_m: torch.Tensor, K: torch.Tensor, T_c_to_t: torch.Tensor, empty: torch.Tensor, *, compiled: bool | None = None
+) -> torch.Tensor:
     """Which of the target's empty pixels each candidate's valid depth lands on.
 
     Args:
@@ -90,6 +127,8 @@ def fill_maps(depth_m: torch.Tensor, K: torch.Tensor, T_c_to_t: torch.Tensor, em
         K: (3, 3) the frame set's one camera (every frame's intrinsics) at (H, W).
         T_c_to_t: (C, 4, 4) poses of the candidates in the target camera.
         empty: (H, W) bool, the target's pixels without GT.
+        compiled: one compiled pass (:func:`_landing`; default on the CPU) or the
+            tensors (a GPU's path); the same maps up to a point at a rounding edge.
 
     Returns:
         (C, H*W) bool: pixel p of the target is empty and some valid point of candidate c
@@ -101,6 +140,19 @@ def fill_maps(depth_m: torch.Tensor, K: torch.Tensor, T_c_to_t: torch.Tensor, em
     check_shape(K, "3 3", "fill_maps: K (the frame set's one camera)")
     c, h, w = sizes["C"], sizes["H"], sizes["W"]
     dt = depth_m.dtype
+    if compiled is None:
+        compiled = depth_m.device.type == "cpu"
+    elif compiled and depth_m.device.type != "cpu":
+        raise ValueError(f"the compiled fill maps take CPU tensors, got {depth_m.device.type}")
+    if compiled and c > 0:
+        # ~6x faster than the tensors' dozen (C, H*W) planes: 0.10-0.14 s against 17-25 ms
+        # per frame set of 25-34 candidates on TUM
+        grid = unproject_meshgrid(h, w, K.to(dt)[None], False, depth_m.device, dt)[0]
+        hit = _landing(
+            *(t.contiguous().numpy() for t in (depth_m[:, 0], grid, K.to(dt), T_c_to_t.to(dt), empty)),
+            depth_m.detach().numpy().dtype.type(1e-6),  # the tensors' eps, in their precision
+        )
+        return torch.from_numpy(hit)
     Kb = K.to(dt)[None].expand(c, 3, 3)
     pts = geometry.backproject(depth_m, Kb)
     T = T_c_to_t.to(dt)
