@@ -568,6 +568,27 @@ def test_leave_one_frame_out_is_the_compositor_over_fewer_candidates():
     assert not empty.depth.any() and empty.agreement.shape == (1, 0)
 
 
+def test_the_compositor_renders_the_wanted_pixels_only():
+    """``pixels``: the wanted pixels get the full render's GT (compiled and tensors, with
+    the agreement judging every pixel), the others stay empty; a wrong mask is refused."""
+    p, nrm, valid, K, frame, sigma = _two_layer_cloud(7)
+    st = RenderSettings(radius_px=1.3, min_points=2)
+    cands = rasterise_gt(p, K, (16, 16), st, valid=valid, normals_cam=nrm, sigma_m=sigma, frame=frame, src_hw=(32, 32))
+    wanted = torch.zeros(1, 16, 16, dtype=torch.bool)
+    wanted[:, 3:9, 2:14] = True
+    for compiled in (None, False):
+        full = composite_gt(cands, st, target_frame=0, compiled=compiled)
+        part = composite_gt(cands, st, target_frame=0, compiled=compiled, pixels=wanted)
+        m = wanted[:, None]
+        for name in ("depth", "weight_sum", "count", "sigma"):
+            got, want = getattr(part, name), getattr(full, name)
+            assert torch.equal(got[m], want[m]) and not got[~m].any(), (name, compiled)
+        assert int((part.depth > 0).sum()) > 40
+        assert torch.equal(part.agreement.nan_to_num(-1), full.agreement.nan_to_num(-1))
+    with pytest.raises(ValueError, match="pixels must be a"):
+        composite_gt(cands, st, pixels=wanted[0])
+
+
 def test_front_to_back_sorts_by_decreasing_inverse_depth_exactly():
     """The bit-pattern sort equals a stable float sort, ties in index order, in each float type."""
     from depthgt.rasterise import front_to_back

@@ -333,9 +333,9 @@ class CoverageResult:
             and ``leave_target_out_added`` (that check only where the core's neighbours
             alone left the target empty: the added views' own accuracy).
         T_j_to_t: offset -> (4, 4) pose of each added view that entered the render.
-        full: the render of the core with the added views everywhere (its ``left_out``
-            on real data), before it is taken where the core has no GT; None when no
-            view was added.
+        full: the render of the core with the added views at the pixels the core left
+            empty (the only ones it is taken at; its frame agreement and, on real data,
+            its ``left_out`` over every pixel); None when no view was added.
     """
 
     render: Fusion
@@ -558,6 +558,7 @@ def add_coverage_views(
         members=members,
         leave_target_out=data.truth_m is None,
         geometry=_geometry(data, usable_depth[picked]),
+        pixels=empty,  # only the core's empty pixels take its GT (the agreement sees all)
     )
     share = full.gt.agreement[0].cpu().numpy() if full.gt.agreement.numel() else np.full(len(members), np.nan)
     filled = empty & (full.gt.depth[0, 0] > 0)

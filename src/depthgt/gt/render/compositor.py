@@ -754,13 +754,15 @@ def _pixelwise_block(
     leave_out: int | None,
     stride: int,
     s_point: torch.Tensor | None,
+    wanted: torch.Tensor | None,
 ) -> tuple[torch.Tensor, ...] | None:
     """:func:`_composite_block`'s result for one block by the compiled pixel-by-pixel
     compositor (:func:`~depthgt.gt.render.pixelwise.composite_pixels`), skipping the
     candidates in ``bad`` agreement slots (``table``: each pixel's image-and-tile part),
     of frame ``leave_out`` and off the pixels of every ``stride``-th row and column, with
-    the points' inverse-depth stds ``s_point`` instead of the candidates' (None: theirs);
-    None when a chosen surface keeps more than ``m`` samples."""
+    the points' inverse-depth stds ``s_point`` instead of the candidates' (None: theirs),
+    at the ``wanted`` pixels (B*H*W,) only (None: all); None when a chosen surface keeps
+    more than ``m`` samples."""
     b, h, w = c.size
     n_pix = c.pixels
     if c.pixel.numel() == 0:
@@ -792,6 +794,7 @@ def _pixelwise_block(
             n_tiles,
         ),
         (empty_b, empty_i) if bad is None else (bad.numpy(), table.numpy()),
+        empty_b if wanted is None else wanted.numpy(),
         (real(st.gap_sigmas), real(st.gap_slope_rel)),
         (real(st.edge_vote), real(st.edge_vote_slack_px), 1 if st.edge_vote > 0 else 0),
         (
@@ -827,6 +830,7 @@ def composite_gt(
     leave_out: int | None = None,
     stride: int = 1,
     sigma_m: torch.Tensor | None = None,
+    pixels: torch.Tensor | None = None,
 ) -> GTRender:
     """Steps 2-5 of :func:`render_gt` on the rasteriser's candidates (one record, or the
     blocks of :func:`~depthgt.gt.render.rasteriser.rasterise_blocks` covering every
@@ -847,6 +851,10 @@ def composite_gt(
     depth sigmas for it (None: the candidates'), no ``target_frame``; the same result as
     compositing :meth:`RenderCandidates.without_frame` (which the tensor path does; the
     compiled one skips those candidates as it reads them).
+
+    ``pixels``: (B, H, W) bool, the pixels whose GT is wanted (None: all); the others are
+    left empty (the compiled path skips them; the frame agreement still judges every
+    pixel).
 
     On the CPU (``compiled``, plane "fit", frame ids below 64, no gradients wanted) each
     block is composited pixel by pixel, compiled
@@ -891,6 +899,11 @@ def composite_gt(
         with torch.no_grad():
             bad, agreement, disagreement = frame_agreement(cands, st, target_frame, compiled=compiled)
             bad = bad if bool(bad.any()) else None
+    wanted = None
+    if pixels is not None:
+        if tuple(pixels.shape) != (b, h, w) or pixels.dtype != torch.bool:
+            raise ValueError(f"pixels must be a ({b}, {h}, {w}) bool mask, got {tuple(pixels.shape)} {pixels.dtype}")
+        wanted = pixels.reshape(-1).contiguous()
     table = n_tiles = None
     if pixelwise and bad is not None:
         table = slot_table(first.size, first.n_frames, st.agreement_tile_px, dev)
@@ -910,6 +923,7 @@ def composite_gt(
                     leave_out=leave_out,
                     stride=stride,
                     s_point=s_point,
+                    wanted=wanted,
                 )
             if out is not None:
                 parts.append(out)
@@ -929,6 +943,8 @@ def composite_gt(
             )
         )
     depth, wsum, count, sigma = (parts[0][i] if len(parts) == 1 else torch.cat([p[i] for p in parts]) for i in range(4))
+    if wanted is not None:  # the tensors' path composited every pixel: the unwanted left empty
+        depth, wsum, count, sigma = (torch.where(wanted, v, torch.zeros_like(v)) for v in (depth, wsum, count, sigma))
     return GTRender(
         depth.reshape(b, 1, h, w).to(dt),
         wsum.reshape(b, 1, h, w),

@@ -100,6 +100,7 @@ def fuse(
     leave_target_out: bool = False,
     normals: torch.Tensor | None = None,
     geometry: FrameGeometry | None = None,
+    pixels: torch.Tensor | None = None,
 ) -> Fusion:
     """Render the aligned members into the target view (paper eq. 5).
 
@@ -120,6 +121,9 @@ def fuse(
         geometry: the :class:`~depthgt.gt.render.cloud.FrameGeometry` of all F members'
             raw depth when the caller has it, for the raw depth (no ``depth_m``); else
             taken from the batch job's frame cache (``data.cache``) or computed here.
+        pixels: (H, W) bool, the target's pixels whose GT is wanted (None: all; the
+            others are left empty, :func:`~depthgt.gt.render.compositor.composite_gt`);
+            the frame agreement and the leave-target-out render see every pixel.
     """
     one = set_geometry(data, T_j_to_t, members, depth_m=depth_m, normals=normals, geometry=geometry)
     return fuse_sets(
@@ -129,6 +133,7 @@ def fuse(
         settings,
         src_hw=data.src_hw,
         leave_target_out=leave_target_out,
+        pixels=pixels,
     )[0]
 
 
@@ -203,6 +208,7 @@ def fuse_sets(
     leave_target_out: bool = False,
     together: bool | None = None,
     rows: int | None = BLOCK_ROWS,
+    pixels: torch.Tensor | None = None,
 ) -> list[Fusion]:
     """The :class:`Fusion` of each frame set of ``sets`` (one scene's: the intrinsics
     ``K`` (3, 3) at ``size_hw``, source size ``src_hw``).
@@ -210,13 +216,16 @@ def fuse_sets(
     ``together``: render the sets as one batch, their images stacked, in one pass of the
     rasteriser and the compositor (what keeps a GPU busy); default: on a GPU. Otherwise
     (the CPU) set by set, each in blocks of ``rows`` pixel rows (cache-sized). Both give
-    the same renders up to the rounding of the batched products."""
+    the same renders up to the rounding of the batched products. ``pixels``: (H, W) bool,
+    of one set, the pixels whose GT is wanted (:func:`fuse`)."""
     dev = sets[0].geometry.points.device
     if together is None:
         together = dev.type != "cpu"
+    if pixels is not None and len(sets) != 1:
+        raise ValueError(f"pixels masks one frame set's render, got {len(sets)} sets")
     if not together or len(sets) == 1 or any(not s.members or s.members[0] != 0 for s in sets):
         return [
-            _fuse_one(s, K, size_hw, settings, src_hw, leave_target_out, rows if dev.type == "cpu" else None)
+            _fuse_one(s, K, size_hw, settings, src_hw, leave_target_out, rows if dev.type == "cpu" else None, pixels)
             for s in sets
         ]
     return _fuse_together(sets, K, size_hw, settings, src_hw, leave_target_out)
@@ -247,6 +256,7 @@ def _fuse_one(
     src_hw: tuple[int, int] | None,
     leave_target_out: bool,
     rows: int | None,
+    pixels: torch.Tensor | None = None,
 ) -> Fusion:
     members = one.members
     cloud = cloud_from_geometry(
@@ -265,7 +275,9 @@ def _fuse_one(
         src_hw=src_hw,
         block_rows=rows,
     )
-    gt = composite_gt(blocks, st, target_frame=0 if with_target else None)
+    gt = composite_gt(
+        blocks, st, target_frame=0 if with_target else None, pixels=None if pixels is None else pixels[None]
+    )
     left = _left_whole(gt.agreement[0], members, st)
     stride = st.leave_target_out_stride
     if not (with_target and leave_target_out and len(members) > 1):

@@ -244,6 +244,7 @@ def composite_pixels(
     n_pix,
     leave_out,
     where,
+    wanted,
     gaps,
     vote,
     rule,
@@ -265,7 +266,8 @@ def composite_pixels(
     pixels rendered (1: all), the block's first pixel, image height and width, frames
     J, the agreement's tiles per frame; where: (bad (slots,) bool, table (B*H*W,)
     int64) the frame agreement's bad (image, frame, tile) slots and each pixel's
-    image-and-tile part (empty: nothing left out). gaps: gap_sigmas, gap_slope_rel;
+    image-and-tile part (empty: nothing left out); wanted: (B*H*W,) bool the pixels to
+    composite (empty: all; the others stay empty). gaps: gap_sigmas, gap_slope_rel;
     vote: edge_vote, edge_vote_slack_px, whether to vote; rule: edge_margin_px,
     ambiguous_px, HIT_PX^2, drop_ambiguous, extend_uncovered, target_resolves_ambiguous
     (all in the candidates' precision); weights: R^2, s_ref, m, min_frames;
@@ -280,6 +282,7 @@ def composite_pixels(
     r2, s_ref, m_cap, min_frames = weights
     hit2 = rule[2]
     has_bad = bad.shape[0] > 0
+    every = wanted.shape[0] == 0
     alt = s_point.shape[0] > 0
     given_w = w_spatial.shape[0] > 0
     real = iz.dtype.type
@@ -309,6 +312,9 @@ def composite_pixels(
         j = i + 1
         while j < n and pixel[j] == p:
             j += 1
+        if not every and not wanted[first_pixel + p]:
+            i = j
+            continue
         if stride > 1:
             q_img = (first_pixel + p) % (h * w)
             if (q_img // w) % stride != 0 or (q_img % w) % stride != 0:
