@@ -17,11 +17,9 @@ from typing import NamedTuple
 import numba
 import numpy as np
 import torch
-from kornia.geometry.depth import depth_to_normals
 from kornia.geometry.linalg import transform_points
 
-from depthgt.depth_ops import window_max
-from depthgt.device import plain_cpu_convolutions
+from depthgt.depth_ops import depth_normals, window_max
 from depthgt.framecache import FrameCache
 from depthgt.geometry import backproject
 from depthgt.gt.render.settings import RenderSettings
@@ -83,8 +81,8 @@ class FrameGeometry(NamedTuple):
     """What the renderer needs of J frames, each on its own (no frame set yet).
 
     points: (J, H*W, 3) metres in each frame's own camera, row-major, at the source
-        pixels' positions; normals: (J, H*W, 3) kornia's normals there (non-finite
-        where undefined); edge: (J, H*W) float64 edge scores (:func:`_edge_scores`);
+        pixels' positions; normals: (J, H*W, 3) their normals (kornia's definition,
+        :func:`depthgt.depth_ops.depth_normals`; non-finite where undefined); edge: (J, H*W) float64 edge scores (:func:`_edge_scores`);
     depth: (J, H*W) metres, 0 = invalid; residuals: per frame, the sorted |second
         differences| of inverse depth where defined (float64, CPU; the noise estimate
         of any set of frames, :func:`depthgt.noise_law.noise_sigma_1m_of`).
@@ -139,7 +137,7 @@ def frame_geometry(
             (in output pixel units) instead of at the output pixel centre, which puts
             the points on the surface (it matters on slanted surfaces and at edges).
         normal_max_jump_rel: the normals' edge test (:func:`cloud_from_geometry`).
-        normals: (J, 3, H, W) :func:`kornia.geometry.depth.depth_to_normals` of
+        normals: (J, 3, H, W) :func:`depthgt.depth_ops.depth_normals` of
             ``depth_m`` and ``K`` when the caller has them (the registration's
             refinement computes the same), else computed here.
     """
@@ -148,8 +146,7 @@ def frame_geometry(
     K = K.to(depth_m.dtype)
     points = backproject(depth_m, K) if src_hw is None else _backproject_resampled(depth_m, K, src_hw)
     if normals is None:
-        with plain_cpu_convolutions():  # 3x3 filters: ~3x faster than oneDNN's on one thread
-            normals = depth_to_normals(depth_m, K)  # (J, 3, H, W)
+        normals = depth_normals(depth_m, K)  # (J, 3, H, W); kornia's to float rounding, half its time
     else:
         check_shape(normals, "J 3 H W", "normals", sizes)
     res = second_difference_residuals(depth_m, src_hw)

@@ -115,7 +115,7 @@ def fuse(
             as fusing ``members`` without the target, at the pixels of every
             ``settings.leave_target_out_stride``-th row and column, sharing the clouds,
             the projection and the sort with the GT render.
-        normals: (F, 3, H, W) kornia's ``depth_to_normals`` of all F members' raw depth
+        normals: (F, 3, H, W) :func:`depthgt.depth_ops.depth_normals` of all F members' raw depth
             when the caller has them (the registration's refinement computed them); used
             for the raw depth (no ``depth_m``) when they match it in shape and dtype.
         geometry: the :class:`~depthgt.gt.render.cloud.FrameGeometry` of all F members'
