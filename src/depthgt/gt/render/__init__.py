@@ -8,7 +8,8 @@
 * :mod:`~depthgt.gt.render.agreement`: frames, or regions of them, that disagree with
   the target's own depth;
 * :mod:`~depthgt.gt.render.compositor`: candidates -> surfaces, visibility, a weighted
-  plane per pixel and the confidence (:func:`composite_gt` -> :class:`GTRender`);
+  plane per pixel and the confidence (:func:`composite_gt` -> :class:`GTRender`); on
+  the CPU pixel by pixel, compiled (:mod:`~depthgt.gt.render.pixelwise`);
 * :mod:`~depthgt.gt.render.fusion`: the one entry the build runs, :func:`fuse` (cloud ->
   rasterise -> composite -> leave-target-out -> :class:`Fusion`).
 

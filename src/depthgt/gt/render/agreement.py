@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 
 from depthgt.depth_ops import window_max
+from depthgt.gt.render.pixelwise import hypot
 from depthgt.gt.render.rasteriser import HIT_PX, RenderCandidates
 from depthgt.gt.render.settings import RenderSettings
 
@@ -70,7 +71,7 @@ def _near_samples(
     for i in range(n):
         p = pixel[i]
         if frame[i] != target and d2[i] <= near2 and judge[p]:
-            tol = gap_sigmas * math.hypot(s[i], s_t[p]) + gap_slope_rel * iz[i] * math.sqrt(d2[i])
+            tol = gap_sigmas * hypot(s[i], s_t[p]) + gap_slope_rel * iz[i] * math.sqrt(d2[i])
             p_out[m] = p
             f_out[m] = frame[i]
             agree[m] = abs(iz[i] - iz_t[p]) <= tol

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from depthgt.gt.render.agreement import agreement_slot, frame_agreement, slot_table
-from depthgt.gt.render.pixelwise import composite_pixels
+from depthgt.gt.render.pixelwise import composite_pixels, hypot
 from depthgt.gt.render.rasteriser import HIT_PX, RenderCandidates, inverse_depth_std, rasterise_gt
 from depthgt.gt.render.settings import RenderSettings
 from depthgt.rasterise import rank_in_pixel
@@ -182,8 +182,8 @@ def _cluster_runs(pixel, iz, s, ox, oy, frame, gap_sigmas, gap_slope_rel):  # pr
     for i in range(n):
         new = i == 0 or pixel[i] != pixel[i - 1]
         if not new:
-            apart = math.hypot(ox[i] - ox[i - 1], oy[i] - oy[i - 1])
-            tol = gap_sigmas * math.hypot(s[i - 1], s[i]) + gap_slope_rel * iz[i - 1] * apart
+            apart = hypot(ox[i] - ox[i - 1], oy[i] - oy[i - 1])
+            tol = gap_sigmas * hypot(s[i - 1], s[i]) + gap_slope_rel * iz[i - 1] * apart
             new = (iz[i - 1] - iz[i]) > tol
         if new:
             k += 1

