@@ -543,6 +543,38 @@ def _cells_sorted(u, v, x0, y0, off, ids, pr: _Projected, g_lo: int, g_hi: int, 
     return pixel.long(), slot.index_select(0, order), col.index_select(0, order), row.index_select(0, order).add_(g_lo)
 
 
+@numba.njit(cache=True, nogil=True)
+def _entry_records(ids, uv, iz, s, frame, n, h, g_lo, multi, r, shift):  # pragma: no cover (compiled)
+    """What :func:`_block_cells` and :func:`_cell_values` read of the entries ``ids`` (P,),
+    in one pass over them: their projections u, v (P,), footprints' first column and row
+    (:func:`~depthgt.rasterise._footprint`'s float arithmetic) and that row within the
+    block (``multi``: images stacked, ``n`` points and ``h`` rows each; ``g_lo`` the
+    block's first row), ``reals`` (P, 4) u, v, iz, s and ``ints`` (P, 2) the point and
+    its frame (``frame`` empty: 0). The tensors took ten gathers, two stacks and the
+    footprints' planes for it."""
+    p_n = ids.shape[0]
+    u = np.empty(p_n, uv.dtype)
+    v = np.empty(p_n, uv.dtype)
+    x0 = np.empty(p_n, np.int64)
+    y0 = np.empty(p_n, np.int64)
+    yb = np.empty(p_n, np.int64)
+    reals = np.empty((p_n, 4), uv.dtype)
+    ints = np.zeros((p_n, 2), np.int64)
+    with_frame = frame.shape[0] > 0
+    for k in range(p_n):
+        e = ids[k]
+        uu, vv = uv[e, 0], uv[e, 1]
+        u[k], v[k] = uu, vv
+        x0[k] = math.ceil(uu - r - shift)
+        y0[k] = math.ceil(vv - r - shift)
+        yb[k] = y0[k] + (e // n) * h - g_lo if multi else y0[k] - g_lo
+        reals[k, 0], reals[k, 1], reals[k, 2], reals[k, 3] = uu, vv, iz[e], s[e]
+        ints[k, 0] = e
+        if with_frame:
+            ints[k, 1] = frame[e]
+    return u, v, x0, y0, yb, reals, ints
+
+
 def _rasterise_block(pr: _Projected, k: int, radius_px: float, *, compiled: bool) -> RenderCandidates:
     """The candidates of block ``k`` (its pixels counted from the block's first), its
     cells found by :func:`_block_cells` (``compiled``, CPU tensors) or as tensors
@@ -553,16 +585,35 @@ def _rasterise_block(pr: _Projected, k: int, radius_px: float, *, compiled: bool
     g_lo, g_hi = k * pr.rows, min((k + 1) * pr.rows, b * h)  # the block's rows of the stacked images
     n_pix = (g_hi - g_lo) * w
     n = pr.uv.shape[0] // b
+    grads = torch.is_grad_enabled() and (pr.uv.requires_grad or pr.iz.requires_grad)
     with torch.no_grad():
         ids = pr.entries[pr.edges[k] : pr.edges[k + 1]]
-        u = pr.uv[:, 0].detach().index_select(0, ids)
-        v = pr.uv[:, 1].detach().index_select(0, ids)
-        x0, y0, off = _footprint(u, v, r, shift)
+        real = pr.uv.detach().numpy().dtype.type if compiled else None  # the tensors' precision
+        if compiled and not grads:
+            u, v, x0, y0, yb, reals, ints = (
+                torch.from_numpy(a)
+                for a in _entry_records(
+                    ids.numpy(),
+                    *(t.detach().contiguous().numpy() for t in (pr.uv, pr.iz, pr.s)),
+                    pr.frame.numpy() if pr.frame is not None else np.zeros(0, np.int64),
+                    n,
+                    h,
+                    g_lo,
+                    b > 1,
+                    real(r),
+                    real(shift),
+                )
+            )
+            off = torch.arange(int(math.floor(2 * (r + shift))) + 1)  # as _footprint's
+        else:
+            u = pr.uv[:, 0].detach().index_select(0, ids)
+            v = pr.uv[:, 1].detach().index_select(0, ids)
+            x0, y0, off = _footprint(u, v, r, shift)
+            if compiled:
+                yb = y0 + (torch.div(ids, n, rounding_mode="floor") * h - g_lo) if b > 1 else y0 - g_lo
         if compiled:
             if n_pix >= 2**31:  # the kernel's pixel indices are int32
                 raise ValueError(f"too many pixels for one rasterisation: {n_pix}")
-            yb = y0 + (torch.div(ids, n, rounding_mode="floor") * h - g_lo) if b > 1 else y0 - g_lo
-            real = u.numpy().dtype.type  # the constants in the points' precision, as the tensors compare them
             starts, entry = _block_cells(
                 *(t.numpy() for t in (u, v, x0, y0, yb, gu, gv)),
                 real(r * r),
@@ -572,18 +623,14 @@ def _rasterise_block(pr: _Projected, k: int, radius_px: float, *, compiled: bool
                 w,
                 g_hi - g_lo,
             )
-    grads = torch.is_grad_enabled() and (pr.uv.requires_grad or pr.iz.requires_grad)
-    frame_of = None if pr.frame is None else pr.frame.index_select(0, ids)
     if compiled and not grads:
-        frames = frame_of if frame_of is not None else torch.zeros_like(ids)
-        reals = torch.stack([u, v, pr.iz.index_select(0, ids), pr.s.index_select(0, ids)], 1)
-        ints = torch.stack([ids, frames], 1)
         pixel, point, ox, oy, d2, iz, s, frame = (
             torch.from_numpy(a)
             for a in _cell_values(starts, entry, reals.numpy(), ints.numpy(), gu.numpy(), gv.numpy(), g_lo, h, w)
         )
         frame = None if pr.frame is None else frame
     else:
+        frame_of = None if pr.frame is None else pr.frame.index_select(0, ids)
         with torch.no_grad():
             if compiled:
                 slot = torch.from_numpy(entry).long()
