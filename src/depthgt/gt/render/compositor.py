@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from depthgt.gt.render.agreement import agreement_slot, frame_agreement, slot_table
-from depthgt.gt.render.pixelwise import composite_pixels, hypot
+from depthgt.gt.render.pixelwise import composite_pixels, confidence, hypot, plane_slopes
 from depthgt.gt.render.rasteriser import HIT_PX, RenderCandidates, inverse_depth_std, rasterise_gt
 from depthgt.gt.render.settings import RenderSettings
 from depthgt.rasterise import rank_in_pixel
@@ -599,12 +599,7 @@ def _plane_fit_chosen(
             cxz += wt * cxo * diz
             cyz += wt * cyo * diz
         cxx, cyy, cxy, cxz, cyz = cxx / sw_safe, cyy / sw_safe, cxy / sw_safe, cxz / sw_safe, cyz / sw_safe
-        a11, a22 = cxx + lam, cyy + lam
-        v1, v2 = cxz + lam * (s_gx / sw_safe), cyz + lam * (s_gy / sw_safe)
-        det = a11 * a22 - cxy * cxy
-        slope_x = slope_y = 0.0
-        if det > 1e-12:
-            slope_x, slope_y = (a22 * v1 - cxy * v2) / det, (a11 * v2 - cxy * v1) / det
+        slope_x, slope_y = plane_slopes(cxx, cyy, cxy, cxz, cyz, lam, s_gx / sw_safe, s_gy / sw_safe)
         iz_hat = mean_iz - slope_x * mean_x - slope_y * mean_y  # the plane at the sample position
         good = has and n >= min_points and iz_hat > 0
         d = 1.0 / iz_hat if good else 0.0
@@ -617,14 +612,9 @@ def _plane_fit_chosen(
                 model += wt * s[i] * s[i]
                 res2 += wt * resid * resid
             model, res2 = model / sw_safe, res2 / sw_safe
-            b11, b22 = cxx + lam + 1e-6, cyy + lam + 1e-6
-            det = max(b11 * b22 - cxy * cxy, 1e-12)
-            extrap = (b22 * mean_x * mean_x - 2 * cxy * mean_x * mean_y + b11 * mean_y * mean_y) / det
-            var_iz = (model + res2) / max(np.float64(support[k]), 1.0) * (1.0 + extrap)
-            z2 = d * d
-            sigma2 = sigma_scale * sigma_scale * z2 * z2 * var_iz
-            if ambiguous[px]:
-                sigma2 += (0.5 * z2 * step_iz[px]) ** 2
+            sigma2 = confidence(
+                model, res2, cxx, cyy, cxy, lam, mean_x, mean_y, support[k], d, ambiguous[px], step_iz[px], sigma_scale
+            )
             sg = math.sqrt(sigma2) if good else 0.0
             if max_sigma >= 0 and not sg <= max_sigma:
                 d = 0.0
@@ -860,6 +850,10 @@ def composite_gt(
     block is composited pixel by pixel, compiled
     (:func:`~depthgt.gt.render.pixelwise.composite_pixels`; a block where a surface keeps
     more than ``m`` samples goes the tensors' way); the same GT to float32 rounding.
+
+    Long because it routes each block to the compiled compositor or the tensors with the
+    agreement's bad regions, the leave-out and the pixel mask, which both paths take
+    differently; every step is a function of its own.
     """
     st = settings
     if isinstance(cands, RenderCandidates):

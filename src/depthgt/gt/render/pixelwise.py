@@ -209,12 +209,7 @@ def _fit(q_lo, q_hi, lx, ly, lz, lw, lwt, sv, lp, grad, support, step_iz, ambigu
     cxy = s_xy / sw_safe - mean_x * mean_y
     cxz = s_xz / sw_safe - mean_x * mean_z
     cyz = s_yz / sw_safe - mean_y * mean_z
-    a11, a22 = cxx + lam, cyy + lam
-    v1, v2 = cxz + lam * (s_gx / sw_safe), cyz + lam * (s_gy / sw_safe)
-    det = a11 * a22 - cxy * cxy
-    slope_x = slope_y = 0.0
-    if det > 1e-12:
-        slope_x, slope_y = (a22 * v1 - cxy * v2) / det, (a11 * v2 - cxy * v1) / det
+    slope_x, slope_y = plane_slopes(cxx, cyy, cxy, cxz, cyz, lam, s_gx / sw_safe, s_gy / sw_safe)
     c0 = mean_z - slope_x * mean_x - slope_y * mean_y  # the plane at the sample position, less z0
     iz_hat = z0 + c0
     good = has and n >= min_points and iz_hat > 0
@@ -236,18 +231,71 @@ def _fit(q_lo, q_hi, lx, ly, lz, lw, lwt, sv, lp, grad, support, step_iz, ambigu
             + 2.0 * slope_x * slope_y * s_xy
         ) / sw_safe
         res2 = max(res2, 0.0)
-        b11, b22 = cxx + lam + 1e-6, cyy + lam + 1e-6
-        det = max(b11 * b22 - cxy * cxy, 1e-12)
-        extrap = (b22 * mean_x * mean_x - 2 * cxy * mean_x * mean_y + b11 * mean_y * mean_y) / det
-        var_iz = (model + res2) / max(np.float64(support), 1.0) * (1.0 + extrap)
-        z2 = d * d
-        sigma2 = sigma_scale * sigma_scale * z2 * z2 * var_iz
-        if ambiguous:
-            sigma2 += (0.5 * z2 * step_iz) ** 2
+        sigma2 = confidence(
+            model, res2, cxx, cyy, cxy, lam, mean_x, mean_y, support, d, ambiguous, step_iz, sigma_scale
+        )
         sg = math.sqrt(sigma2) if good else 0.0
         if max_sigma >= 0 and not sg <= max_sigma:
             d = 0.0
     return d, wsum, sg
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _buffers(cap, like):  # pragma: no cover (compiled)
+    """A pixel's buffers for ``cap`` candidates: offsets, inverse depths, d2, stds and
+    the two weights (``like``'s dtype), points and frames; per cluster its first and end
+    candidate, support, frames' bit mask, whether it qualifies and holds the target's
+    own sample; and the candidates' positions 0..cap-1."""
+    real = like.dtype
+    return (
+        np.empty(cap, real),
+        np.empty(cap, real),
+        np.empty(cap, real),
+        np.empty(cap, real),
+        np.empty(cap, real),
+        np.empty(cap, real),
+        np.empty(cap, real),
+        np.empty(cap, np.int64),
+        np.empty(cap, np.int64),
+        np.empty(cap, np.int64),
+        np.empty(cap, np.int64),
+        np.empty(cap, np.int64),
+        np.empty(cap, np.uint64),
+        np.empty(cap, np.bool_),
+        np.empty(cap, np.bool_),
+        np.arange(cap),
+    )
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def plane_slopes(cxx, cyy, cxy, cxz, cyz, lam, mean_gx, mean_gy):  # pragma: no cover (compiled)
+    """The slopes (x, y) of the weighted plane in inverse depth from the samples'
+    centred second moments, with the normals' prior ``lam`` towards their mean tangent
+    slopes (0, 0 where the system is singular)."""
+    a11, a22 = cxx + lam, cyy + lam
+    v1, v2 = cxz + lam * mean_gx, cyz + lam * mean_gy
+    det = a11 * a22 - cxy * cxy
+    if det > 1e-12:
+        return (a22 * v1 - cxy * v2) / det, (a11 * v2 - cxy * v1) / det
+    return 0.0, 0.0
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def confidence(
+    model, res2, cxx, cyy, cxy, lam, mean_x, mean_y, support, d, ambiguous, step_iz, sigma_scale
+):  # pragma: no cover
+    """sigma^2 of a pixel's depth ``d`` (render_gt's step 5): the mean model variance and
+    the fit's residual over the distinct frames, times one plus the extrapolation to the
+    sample position, plus half the step to the surface behind on an ambiguous pixel."""
+    b11, b22 = cxx + lam + 1e-6, cyy + lam + 1e-6
+    det = max(b11 * b22 - cxy * cxy, 1e-12)
+    extrap = (b22 * mean_x * mean_x - 2 * cxy * mean_x * mean_y + b11 * mean_y * mean_y) / det
+    var_iz = (model + res2) / max(np.float64(support), 1.0) * (1.0 + extrap)
+    z2 = d * d
+    sigma2 = sigma_scale * sigma_scale * z2 * z2 * var_iz
+    if ambiguous:
+        sigma2 += (0.5 * z2 * step_iz) ** 2
+    return sigma2
 
 
 @numba.njit(cache=True, nogil=True)
@@ -314,18 +362,7 @@ def composite_pixels(
     count = np.zeros(n_pix, np.int64)
     sigma = np.zeros(n_pix, iz.dtype)
     cap = 64
-    lx, ly, lz, ld, sv = (
-        np.empty(cap, iz.dtype),
-        np.empty(cap, iz.dtype),
-        np.empty(cap, iz.dtype),
-        np.empty(cap, iz.dtype),
-        np.empty(cap, iz.dtype),
-    )
-    lw, lwt = np.empty(cap, iz.dtype), np.empty(cap, iz.dtype)
-    lp, lf = np.empty(cap, np.int64), np.empty(cap, np.int64)
-    cl_lo, cl_hi, support = np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap, np.int64)
-    masks, qualified, own = np.empty(cap, np.uint64), np.empty(cap, np.bool_), np.empty(cap, np.bool_)
-    idx = np.arange(cap)
+    lx, ly, lz, ld, sv, lw, lwt, lp, lf, cl_lo, cl_hi, support, masks, qualified, own, idx = _buffers(cap, iz)
     r_frame = np.empty(64, iz.dtype)
     capped = False
     n = pixel.shape[0]
@@ -345,18 +382,7 @@ def composite_pixels(
                 continue
         if j - i > cap:
             cap = 2 * (j - i)
-            lx, ly, lz, ld, sv = (
-                np.empty(cap, iz.dtype),
-                np.empty(cap, iz.dtype),
-                np.empty(cap, iz.dtype),
-                np.empty(cap, iz.dtype),
-                np.empty(cap, iz.dtype),
-            )
-            lw, lwt = np.empty(cap, iz.dtype), np.empty(cap, iz.dtype)
-            lp, lf = np.empty(cap, np.int64), np.empty(cap, np.int64)
-            cl_lo, cl_hi, support = np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap, np.int64)
-            masks, qualified, own = np.empty(cap, np.uint64), np.empty(cap, np.bool_), np.empty(cap, np.bool_)
-            idx = np.arange(cap)
+            lx, ly, lz, ld, sv, lw, lwt, lp, lf, cl_lo, cl_hi, support, masks, qualified, own, idx = _buffers(cap, iz)
         # the pixel's candidates, less those left out, into the buffers; its clusters
         row = table[first_pixel + p] if has_bad else 0
         m = 0

@@ -578,7 +578,10 @@ def _entry_records(ids, uv, iz, s, frame, n, h, g_lo, multi, r, shift):  # pragm
 def _rasterise_block(pr: _Projected, k: int, radius_px: float, *, compiled: bool) -> RenderCandidates:
     """The candidates of block ``k`` (its pixels counted from the block's first), its
     cells found by :func:`_block_cells` (``compiled``, CPU tensors) or as tensors
-    (:func:`_cells_sorted`); the same candidates."""
+    (:func:`_cells_sorted`); the same candidates.
+
+    Long because the CPU's compiled path and the tensors' (a GPU's, and wherever
+    gradients are wanted) share the block's entries and its result record side by side."""
     b, h, w = pr.size
     gu, gv, shift = pr.grid
     r = float(radius_px)
