@@ -763,9 +763,11 @@ def _pixelwise_block(
     grad = c.grad if c.grad is not None else torch.zeros(c.iz_point.numel(), 2, dtype=c.iz.dtype)
     n_frames = c.n_frames or int(c.frame.max()) + 1
     none = np.zeros(0, c.iz.detach().numpy().dtype)
-    # the weights vectorised (SIMD exp) where every candidate is read; the
-    # leave-target-out render reads a quarter of them, with other stds: weighed there
-    w_sp, wt = (none, none) if s_point is not None else (t.numpy() for t in _weights(c.d2.detach(), c.s, st))
+    # the weights vectorised (torch's SIMD exp), the leave-target-out render's with its
+    # own stds: the float operations of the tensor compositor over the same candidates,
+    # so that it is the render of the neighbours alone to the bit
+    s_c = c.s if s_point is None else s_point.index_select(0, c.point)
+    w_sp, wt = (t.numpy() for t in _weights(c.d2.detach(), s_c, st))
     depth, wsum, count, sigma, capped = composite_pixels(
         *(t.detach().numpy() for t in (c.pixel, c.point, c.ox, c.oy, c.d2, c.iz, c.s, c.frame)),
         grad.detach().to(c.iz.dtype).contiguous().numpy(),
@@ -795,7 +797,7 @@ def _pixelwise_block(
             real(1 if st.extend_uncovered else 0),
             real(1 if st.target_resolves_ambiguous else 0),
         ),
-        (real(st.radius_px**2), real(_S_REF), int(st.m), int(st.min_frames)),
+        (int(st.m), int(st.min_frames)),
         (
             float(st.slope_prior),
             int(st.min_points),

@@ -319,7 +319,7 @@ def composite_pixels(
     gaps,
     vote,
     rule,
-    weights,
+    limits,
     fit,
 ):  # pragma: no cover (compiled)
     """Depth, weight sum, count and sigma (n_pix,) of a block's pixels, composited one
@@ -331,7 +331,8 @@ def composite_pixels(
     ``grad`` (N, 2) the points' tangent-plane gradients (zero rows: none); ``s_point``
     (N,) the points' std in inverse depth to use instead of ``s`` (empty: ``s``);
     ``w_spatial``, ``w_inv`` (C,) the candidates' weights exp(-d2 / R^2) and that times
-    (s_ref / s)^2, vectorised by the caller (empty: computed here, with ``s_point``).
+    (s_ref / s)^2 (with ``s_point``'s stds where given), vectorised by the caller: the
+    tensor compositor's float operations.
 
     leave_out (int64): frame left out (-1: none), target frame (-1: none), stride of the
     pixels rendered (1: all), the block's first pixel, image height and width, frames
@@ -341,7 +342,7 @@ def composite_pixels(
     composite (empty: all; the others stay empty). gaps: gap_sigmas, gap_slope_rel;
     vote: edge_vote, edge_vote_slack_px, whether to vote; rule: edge_margin_px,
     ambiguous_px, HIT_PX^2, drop_ambiguous, extend_uncovered, target_resolves_ambiguous
-    (all in the candidates' precision); weights: R^2, s_ref, m, min_frames;
+    (all in the candidates' precision); limits: m, min_frames;
     fit: slope_prior, min_points, sigma_scale, need_sigma, max_sigma_m (< 0: none).
 
     Long because the pixel loop gathers and clusters into a dozen buffers and hands
@@ -350,12 +351,11 @@ def composite_pixels(
     skip, target, stride, first_pixel, h, w, n_frames, n_t = leave_out
     bad, table = where
     gap_sigmas, gap_slope_rel = gaps
-    r2, s_ref, m_cap, min_frames = weights
+    m_cap, min_frames = limits
     hit2 = rule[2]
     has_bad = bad.shape[0] > 0
     every = wanted.shape[0] == 0
     alt = s_point.shape[0] > 0
-    given_w = w_spatial.shape[0] > 0
     real = iz.dtype.type
     depth = np.zeros(n_pix, iz.dtype)
     weight_sum = np.zeros(n_pix, iz.dtype)
@@ -409,8 +409,7 @@ def composite_pixels(
             if f == target and d2[k] <= hit2:
                 own[n_cl - 1] = True  # the target's own sample at the position
             lx[m], ly[m], lz[m], ld[m], sv[m], lp[m], lf[m] = x, y, z, d2[k], sk, point[k], f
-            if given_w:
-                lw[m], lwt[m] = w_spatial[k], w_inv[k]
+            lw[m], lwt[m] = w_spatial[k], w_inv[k]
             m += 1
         if m == 0:
             i = j
@@ -452,11 +451,6 @@ def composite_pixels(
             capped = True
             i = j
             continue
-        if not given_w:  # the tensors' weights, in the candidates' precision
-            for q in range(q_lo, q_hi):
-                lw[q] = np.exp(-ld[q] / r2)
-                r = s_ref / sv[q]
-                lwt[q] = lw[q] * (r * r)
         d, wsum, sg = _fit(q_lo, q_hi, lx, ly, lz, lw, lwt, sv, lp, grad, support[chosen], step, ambiguous, fit)
         depth[p] = d
         weight_sum[p] = wsum
