@@ -63,25 +63,24 @@ def _popcount(x):  # pragma: no cover (compiled)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _cluster_stats(lo, hi, idx, ox, oy, iz, d2):  # pragma: no cover (compiled)
-    """Mean offset (x, y), mean inverse depth and smallest d2 of the candidates
-    ``idx[lo:hi]``, in their precision (the tensors' sums and divisions)."""
+def _cluster_stats(lo, hi, ox, oy, iz, d2):  # pragma: no cover (compiled)
+    """Mean offset (x, y), mean inverse depth and smallest d2 of the pixel's buffered
+    candidates ``[lo, hi)``, in their precision (the tensors' sums and divisions)."""
     zero = ox.dtype.type(0.0)
     sx = sy = sz = zero
     dmin = ox.dtype.type(np.inf)
     for q in range(lo, hi):
-        k = idx[q]
-        sx += ox[k]
-        sy += oy[k]
-        sz += iz[k]
-        dmin = min(dmin, d2[k])
+        sx += ox[q]
+        sy += oy[q]
+        sz += iz[q]
+        dmin = min(dmin, d2[q])
     cnt = ox.dtype.type(hi - lo)
     return sx / cnt, sy / cnt, sz / cnt, dmin
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _reach(lo, hi, idx, ox, oy, frame, mx, my, later_frames, n_frames, consts, r_frame):  # pragma: no cover
-    """How far the cluster ``idx[lo:hi]`` reaches beyond the sample position, opposite
+def _reach(lo, hi, ox, oy, frame, mx, my, later_frames, n_frames, consts, r_frame):  # pragma: no cover
+    """How far the buffered cluster ``[lo, hi)`` reaches beyond the sample position, opposite
     its centroid (+inf when centred), with the edge vote: the reach of the
     ceil(edge_vote x voters)-th farthest frame plus the slack, voters the frames seen on
     this cluster or behind it (``later_frames``, a bit mask). ``r_frame``: (J,) scratch."""
@@ -97,11 +96,10 @@ def _reach(lo, hi, idx, ox, oy, frame, mx, my, later_frames, n_frames, consts, r
     for f in range(n_frames):
         r_frame[f] = real(-np.inf)
     for q in range(lo, hi):
-        k = idx[q]
-        t = ox[k] * ex + oy[k] * ey
+        t = ox[q] * ex + oy[q] * ey
         t_min = min(t_min, t)
         if use_vote:
-            r_frame[frame[k]] = max(r_frame[frame[k]], -t)
+            r_frame[frame[q]] = max(r_frame[frame[q]], -t)
     if centred:
         return real(np.inf)
     reach = -t_min
@@ -116,7 +114,7 @@ def _reach(lo, hi, idx, ox, oy, frame, mx, my, later_frames, n_frames, consts, r
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _choose(
-    n_cl, cl_lo, cl_hi, support, masks, qualified, own_cl, idx, ox, oy, iz, d2, frame, n_frames, vote, rule, r_frame
+    n_cl, cl_lo, cl_hi, masks, qualified, own_cl, ox, oy, iz, d2, frame, n_frames, vote, rule, r_frame
 ):  # pragma: no cover
     """The visible cluster of one pixel (the rule of
     :func:`~depthgt.gt.render.compositor._choose_among`): (chosen or -1, ambiguous,
@@ -136,25 +134,23 @@ def _choose(
         if qualified[c]:
             behind = c
             break
+    has_b = behind >= 0
+    mx_f, my_f, iz_f, dn_f = _cluster_stats(cl_lo[front], cl_hi[front], ox, oy, iz, d2)
+    mx_b = my_b = iz_b = dn_b = zero
+    if has_b:
+        mx_b, my_b, iz_b, dn_b = _cluster_stats(cl_lo[behind], cl_hi[behind], ox, oy, iz, d2)
     later = np.uint64(0)  # frames on each cluster or behind it, from the back
     reach_f = reach_b = zero
-    for c in range(n_cl - 1, -1, -1):
+    for c in range(n_cl - 1, front - 1, -1):
         later |= masks[c]
-        if c == front or c == behind:
-            mx, my, _, _ = _cluster_stats(cl_lo[c], cl_hi[c], idx, ox, oy, iz, d2)
-            r = _reach(cl_lo[c], cl_hi[c], idx, ox, oy, frame, mx, my, later, n_frames, vote, r_frame)
-            if c == front:
-                reach_f = r
-            else:
-                reach_b = r
-    _, _, iz_f, dn_f = _cluster_stats(cl_lo[front], cl_hi[front], idx, ox, oy, iz, d2)
+        if c == behind:
+            reach_b = _reach(cl_lo[c], cl_hi[c], ox, oy, frame, mx_b, my_b, later, n_frames, vote, r_frame)
+    reach_f = _reach(cl_lo[front], cl_hi[front], ox, oy, frame, mx_f, my_f, later, n_frames, vote, r_frame)
     hit_f = dn_f <= hit2
     cov_f = reach_f >= margin or hit_f
-    has_b = behind >= 0
     take_b = False
     step = zero
     if has_b:
-        _, _, iz_b, dn_b = _cluster_stats(cl_lo[behind], cl_hi[behind], idx, ox, oy, iz, d2)
         cov_b = reach_b >= margin or dn_b <= hit2
         take_b = (not cov_f) and (cov_b or dn_b < dn_f)
         step = abs(iz_f - iz_b)
@@ -245,7 +241,7 @@ def _buffers(cap, like):  # pragma: no cover (compiled)
     """A pixel's buffers for ``cap`` candidates: offsets, inverse depths, d2, stds and
     the two weights (``like``'s dtype), points and frames; per cluster its first and end
     candidate, support, frames' bit mask, whether it qualifies and holds the target's
-    own sample; and the candidates' positions 0..cap-1."""
+    own sample."""
     real = like.dtype
     return (
         np.empty(cap, real),
@@ -263,7 +259,6 @@ def _buffers(cap, like):  # pragma: no cover (compiled)
         np.empty(cap, np.uint64),
         np.empty(cap, np.bool_),
         np.empty(cap, np.bool_),
-        np.arange(cap),
     )
 
 
@@ -362,7 +357,7 @@ def composite_pixels(
     count = np.zeros(n_pix, np.int64)
     sigma = np.zeros(n_pix, iz.dtype)
     cap = 64
-    lx, ly, lz, ld, sv, lw, lwt, lp, lf, cl_lo, cl_hi, support, masks, qualified, own, idx = _buffers(cap, iz)
+    lx, ly, lz, ld, sv, lw, lwt, lp, lf, cl_lo, cl_hi, support, masks, qualified, own = _buffers(cap, iz)
     r_frame = np.empty(64, iz.dtype)
     capped = False
     n = pixel.shape[0]
@@ -382,7 +377,7 @@ def composite_pixels(
                 continue
         if j - i > cap:
             cap = 2 * (j - i)
-            lx, ly, lz, ld, sv, lw, lwt, lp, lf, cl_lo, cl_hi, support, masks, qualified, own, idx = _buffers(cap, iz)
+            lx, ly, lz, ld, sv, lw, lwt, lp, lf, cl_lo, cl_hi, support, masks, qualified, own = _buffers(cap, iz)
         # the pixel's candidates, less those left out, into the buffers; its clusters
         row = table[first_pixel + p] if has_bad else 0
         m = 0
@@ -428,11 +423,9 @@ def composite_pixels(
                 n_cl,
                 cl_lo,
                 cl_hi,
-                support,
                 masks,
                 qualified,
                 own_cl,
-                idx,
                 lx,
                 ly,
                 lz,
