@@ -82,7 +82,8 @@ class FrameGeometry(NamedTuple):
 
     points: (J, H*W, 3) metres in each frame's own camera, row-major, at the source
         pixels' positions; normals: (J, H*W, 3) their normals (kornia's definition,
-        :func:`depthgt.depth_ops.depth_normals`; non-finite where undefined); edge: (J, H*W) float64 edge scores (:func:`_edge_scores`);
+        :func:`depthgt.depth_ops.depth_normals`; non-finite where undefined); edge: (J,
+        H*W) float64 edge scores (:func:`_edge_scores`);
     depth: (J, H*W) metres, 0 = invalid; residuals: per frame, the sorted |second
         differences| of inverse depth where defined (float64, CPU; the noise estimate
         of any set of frames, :func:`depthgt.noise_law.noise_sigma_1m_of`).
