@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from depthgt.gt.render.agreement import agreement_slot, frame_agreement, slot_table
-from depthgt.gt.render.pixelwise import composite_pixels, confidence, hypot, plane_slopes
+from depthgt.gt.render.pixelwise import composite_pixels, confidence, hypot, plane_slopes, rendered_candidates
 from depthgt.gt.render.rasteriser import HIT_PX, RenderCandidates, inverse_depth_std, rasterise_gt
 from depthgt.gt.render.settings import RenderSettings
 from depthgt.rasterise import rank_in_pixel
@@ -766,8 +766,17 @@ def _pixelwise_block(
     # the weights vectorised (torch's SIMD exp), the leave-target-out render's with its
     # own stds: the float operations of the tensor compositor over the same candidates,
     # so that it is the render of the neighbours alone to the bit
-    s_c = c.s if s_point is None else s_point.index_select(0, c.point)
-    w_sp, wt = (t.numpy() for t in _weights(c.d2.detach(), s_c, st))
+    # (a render of some pixels only: the weights of their candidates only, compact)
+    compact = stride > 1 or wanted is not None
+    wanted_np = empty_b if wanted is None else wanted.numpy()
+    d2, s_c = c.d2.detach(), c.s
+    if compact:
+        sel = torch.from_numpy(rendered_candidates(c.pixel.numpy(), int(c.first_pixel), wanted_np, int(stride), h, w))
+        d2 = d2.index_select(0, sel)
+        s_c = s_c.index_select(0, sel) if s_point is None else s_point.index_select(0, c.point.index_select(0, sel))
+    elif s_point is not None:
+        s_c = s_point.index_select(0, c.point)
+    w_sp, wt = (t.numpy() for t in _weights(d2, s_c, st))
     depth, wsum, count, sigma, capped = composite_pixels(
         *(t.detach().numpy() for t in (c.pixel, c.point, c.ox, c.oy, c.d2, c.iz, c.s, c.frame)),
         grad.detach().to(c.iz.dtype).contiguous().numpy(),
@@ -784,9 +793,10 @@ def _pixelwise_block(
             w,
             n_frames,
             n_tiles,
+            1 if compact else 0,
         ),
         (empty_b, empty_i) if bad is None else (bad.numpy(), table.numpy()),
-        empty_b if wanted is None else wanted.numpy(),
+        wanted_np,
         (real(st.gap_sigmas), real(st.gap_slope_rel)),
         (real(st.edge_vote), real(st.edge_vote_slack_px), 1 if st.edge_vote > 0 else 0),
         (

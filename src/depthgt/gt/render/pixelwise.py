@@ -28,7 +28,7 @@ import numpy as np
 from numba import types
 from numba.extending import overload
 
-__all__ = ["composite_pixels", "hypot"]
+__all__ = ["composite_pixels", "hypot", "rendered_candidates"]
 
 
 def hypot(a, b):
@@ -293,6 +293,41 @@ def confidence(
     return sigma2
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _rendered(p, first_pixel, wanted, stride, h, w):  # pragma: no cover (compiled)
+    """Whether the block's pixel ``p`` is composited: among the ``wanted`` (B*H*W,)
+    (empty: all) and on every ``stride``-th row and column of its image."""
+    if wanted.shape[0] > 0 and not wanted[first_pixel + p]:
+        return False
+    if stride > 1:
+        q_img = (first_pixel + p) % (h * w)
+        return (q_img // w) % stride == 0 and (q_img % w) % stride == 0
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def rendered_candidates(pixel, first_pixel, wanted, stride, h, w):  # pragma: no cover (compiled)
+    """(C',) int64 the candidates of the pixels :func:`composite_pixels` composites
+    (``pixel`` (C,) sorted, within the block from ``first_pixel``; ``wanted``, ``stride``,
+    ``h``, ``w`` as there), in order: the weights of a leave-target-out render (a quarter
+    of the pixels at stride 2) or of chosen pixels are computed for these only."""
+    n = pixel.shape[0]
+    out = np.empty(n, np.int64)
+    m = 0
+    i = 0
+    while i < n:
+        p = pixel[i]
+        j = i + 1
+        while j < n and pixel[j] == p:
+            j += 1
+        if _rendered(p, first_pixel, wanted, stride, h, w):
+            for k in range(i, j):
+                out[m] = k
+                m += 1
+        i = j
+    return out[:m]
+
+
 @numba.njit(cache=True, nogil=True)
 def composite_pixels(
     pixel,
@@ -327,11 +362,12 @@ def composite_pixels(
     (N,) the points' std in inverse depth to use instead of ``s`` (empty: ``s``);
     ``w_spatial``, ``w_inv`` (C,) the candidates' weights exp(-d2 / R^2) and that times
     (s_ref / s)^2 (with ``s_point``'s stds where given), vectorised by the caller: the
-    tensor compositor's float operations.
+    tensor compositor's float operations; with ``compact`` those of the composited
+    pixels' candidates only (:func:`rendered_candidates`), in order.
 
     leave_out (int64): frame left out (-1: none), target frame (-1: none), stride of the
     pixels rendered (1: all), the block's first pixel, image height and width, frames
-    J, the agreement's tiles per frame; where: (bad (slots,) bool, table (B*H*W,)
+    J, the agreement's tiles per frame, whether the weights are compact; where: (bad (slots,) bool, table (B*H*W,)
     int64) the frame agreement's bad (image, frame, tile) slots and each pixel's
     image-and-tile part (empty: nothing left out); wanted: (B*H*W,) bool the pixels to
     composite (empty: all; the others stay empty). gaps: gap_sigmas, gap_slope_rel;
@@ -343,13 +379,12 @@ def composite_pixels(
     Long because the pixel loop gathers and clusters into a dozen buffers and hands
     them on; the choice and the fit are their own functions.
     """
-    skip, target, stride, first_pixel, h, w, n_frames, n_t = leave_out
+    skip, target, stride, first_pixel, h, w, n_frames, n_t, compact = leave_out
     bad, table = where
     gap_sigmas, gap_slope_rel = gaps
     m_cap, min_frames = limits
     hit2 = rule[2]
     has_bad = bad.shape[0] > 0
-    every = wanted.shape[0] == 0
     alt = s_point.shape[0] > 0
     real = iz.dtype.type
     depth = np.zeros(n_pix, iz.dtype)
@@ -362,19 +397,17 @@ def composite_pixels(
     capped = False
     n = pixel.shape[0]
     i = 0
+    q = 0  # the candidates of the pixels composited before this one
     while i < n:
         p = pixel[i]
         j = i + 1
         while j < n and pixel[j] == p:
             j += 1
-        if not every and not wanted[first_pixel + p]:
+        if not _rendered(p, first_pixel, wanted, stride, h, w):
             i = j
             continue
-        if stride > 1:
-            q_img = (first_pixel + p) % (h * w)
-            if (q_img // w) % stride != 0 or (q_img % w) % stride != 0:
-                i = j
-                continue
+        at_w = q - i if compact else 0  # the weights of candidate k: w_spatial[k + at_w]
+        q += j - i
         if j - i > cap:
             cap = 2 * (j - i)
             lx, ly, lz, ld, sv, lw, lwt, lp, lf, cl_lo, cl_hi, support, masks, qualified, own = _buffers(cap, iz)
@@ -404,7 +437,7 @@ def composite_pixels(
             if f == target and d2[k] <= hit2:
                 own[n_cl - 1] = True  # the target's own sample at the position
             lx[m], ly[m], lz[m], ld[m], sv[m], lp[m], lf[m] = x, y, z, d2[k], sk, point[k], f
-            lw[m], lwt[m] = w_spatial[k], w_inv[k]
+            lw[m], lwt[m] = w_spatial[k + at_w], w_inv[k + at_w]
             m += 1
         if m == 0:
             i = j

@@ -264,7 +264,8 @@ class _Projected(NamedTuple):
     None; grad: (B*N, 2) or None (:func:`_inverse_depth_planes`); entries: the visible
     points' indices, block by block, front to back within a block; edges: the blocks'
     offsets into ``entries``; grid: the sample positions (columns (W,), rows (H,)) and
-    their largest shift from the pixel centres; rows: pixel rows per block.
+    their largest shift from the pixel centres; rows: pixel rows per block; visible:
+    (B*N,) bool the points visible within the radius of the image.
     """
 
     uv: torch.Tensor
@@ -278,6 +279,7 @@ class _Projected(NamedTuple):
     rows: int
     size: tuple[int, int, int]
     n_frames: int
+    visible: torch.Tensor
 
 
 def _sample_grid(size_hw, src_hw, device, dtype) -> tuple[torch.Tensor, torch.Tensor, float]:
@@ -339,7 +341,9 @@ def _project(
     """Project the points, order the visible ones front to back and group them by the
     blocks of ``block_rows`` pixel rows they reach (None: one block). ``compiled``: the
     projection, sigmas, visibility and planes in one compiled pass
-    (:func:`_points_in_view`; CPU tensors with sigmas and no gradients), the same values."""
+    (:func:`_points_in_view`; CPU tensors with sigmas and no gradients) and the visible
+    points put front to back by a compiled radix sort (:func:`_visible_front_to_back`;
+    one block), the same values and order."""
     b, n = points_cam.shape[:2]
     h, w = int(size_hw[0]), int(size_hw[1])
     dev, dt = points_cam.device, points_cam.dtype
@@ -370,9 +374,14 @@ def _project(
             grad = _inverse_depth_planes(points_cam, normals_cam, K, st)
     with torch.no_grad():
         v = uv_f[:, 1].detach()
-        pid = ok.nonzero().squeeze(1)
-        pid = pid.index_select(0, front_to_back(iz_all.detach().index_select(0, pid)))  # front first
         rows = b * h if block_rows is None else max(1, int(block_rows))
+        bits = {torch.float32: np.uint32, torch.float64: np.uint64}.get(iz_all.dtype)
+        if compiled and bits is not None and rows >= b * h:
+            iz_bits = iz_all.detach().contiguous().numpy().view(bits)
+            pid = torch.from_numpy(_visible_front_to_back(ok.contiguous().numpy(), iz_bits, np.iinfo(bits).max))
+        else:
+            pid = ok.nonzero().squeeze(1)
+            pid = pid.index_select(0, front_to_back(iz_all.detach().index_select(0, pid)))  # front first
         if rows >= b * h:
             entries, edges = pid, [0, pid.numel()]
         else:
@@ -397,116 +406,159 @@ def _project(
             edges = [0, *torch.cumsum(counts, 0).tolist()]
     n_frames = 0 if frame is None or frame.numel() == 0 else int(frame.max()) + 1
     fr = None if frame is None else frame.reshape(-1)
-    return _Projected(uv_f, iz_all, s_all, fr, grad, entries, edges, (gu, gv, shift), rows, (b, h, w), n_frames)
+    grid = (gu, gv, shift)
+    return _Projected(uv_f, iz_all, s_all, fr, grad, entries, edges, grid, rows, (b, h, w), n_frames, ok)
 
 
 @numba.njit(cache=True, nogil=True)
-def _cell_distances(k, u, v, x0, y0, yb, gu, gv, far, h, w, n_rows, dx2, dy2):  # pragma: no cover
-    """The squared distances per column (``dx2``) and row (``dy2``) of entry ``k``'s
-    footprint (:func:`_block_cells`), ``far`` added outside the image or the block."""
-    zero = dx2.dtype.type(0.0)
-    for j in range(dx2.shape[0]):
-        c = x0 + j
-        d = gu[min(max(c, 0), w - 1)] - u[k]
-        dx2[j] = d * d + (far if (c < 0 or c >= w) else zero)
-        rr = y0 + j
-        d = gv[min(max(rr, 0), h - 1)] - v[k]
-        dy2[j] = d * d + (far if (rr < 0 or rr >= h or yb + j < 0 or yb + j >= n_rows) else zero)
-
-
-@numba.njit(cache=True, nogil=True)
-def _block_cells(u, v, x_first, y_first, yb_first, gu, gv, r2, far, span, h, w, n_rows):  # pragma: no cover
-    """Every (entry, pixel) pair of a block whose sample position lies strictly within
-    the radius of the entry's projection, by pixel and, within a pixel, in entry order:
-    ``starts`` (n_rows W + 1,) int64, the first pair of each pixel of the block, and
-    ``entry`` (C,) int32, the entry of each pair.
-
-    u, v (P,): the entries' projections; x_first, y_first (P,) int64: the first column
-    and row of each entry's footprint in its image, yb_first the same row within the
-    block (may be negative); gu (W,), gv (H,): the sample positions; r2, far: the squared
-    radius and the squared distance of a cell outside the image or the block (in the
-    points' precision); span: the footprint's side; h, w: the image; n_rows: the block's
-    rows.
-
-    The same cells, in the same order, as :func:`_cells_sorted` (the same arithmetic),
-    by a counting sort on the pixels: written by hand because no library rasterises
-    every point within a radius into a pixel-sorted candidate list on the CPU
-    (PyTorch3D's points rasteriser keeps the K nearest in depth and builds from source
-    only), and as tensors the footprint test, its nonzero and the stable sort of ~2 M
-    candidates per frame set took two thirds of the rasteriser.
-    """
-    n_pix = n_rows * w
-    n_entries = u.shape[0]
-    starts = np.zeros(n_pix + 1, np.int64)
-    dx2 = np.empty(span, u.dtype)
-    dy2 = np.empty(span, u.dtype)
-    # pass 1: each entry's cells (their pixels, in order; pages never written are never
-    # touched) and the candidates per pixel
-    cells = np.empty(n_entries * span * span, np.int32)
-    n_cells = np.empty(n_entries, np.int32)
+def _visible_front_to_back(ok, bits, top):  # pragma: no cover (compiled)
+    """(V,) int64 the visible points (``ok`` (P,) bool) front first: by the bit patterns
+    ``bits`` (P,) of their inverse depths (unsigned, of the floats' width: positive
+    floats order as their bits) decreasing, equal ones in index order; ``top`` the bits'
+    largest value. :func:`~depthgt.rasterise.front_to_back`'s order of the visible
+    points, by an LSD radix sort of bytes that skips the bytes every key shares: no
+    library sorts float keys with their indices by radix on the CPU (torch sorts them by
+    comparison; its integer sort of the same keys, with the ``nonzero`` and gathers
+    around it, took 12 against 8 ms per 7-Scenes set)."""
+    n_all = ok.shape[0]
+    n_digits = bits.itemsize
     m = 0
-    for k in range(n_entries):
-        x0, yb = x_first[k], yb_first[k]
-        _cell_distances(k, u, v, x0, y_first[k], yb, gu, gv, far, h, w, n_rows, dx2, dy2)
-        first = m
+    for i in range(n_all):
+        m += 1 if ok[i] else 0
+    keys = np.empty(m, bits.dtype)
+    ids = np.empty(m, np.int64)
+    j = 0
+    for i in range(n_all):
+        if ok[i]:
+            keys[j] = top - bits[i]  # ascending keys: decreasing inverse depth
+            ids[j] = i
+            j += 1
+    keys2 = np.empty(m, bits.dtype)
+    ids2 = np.empty(m, np.int64)
+    hist = np.zeros((n_digits, 257), np.int64)
+    for j in range(m):
+        k = keys[j]
+        for d in range(n_digits):
+            hist[d, ((k >> (8 * d)) & 255) + 1] += 1
+    for d in range(n_digits):
+        if m == 0 or hist[d, ((keys[0] >> (8 * d)) & 255) + 1] == m:
+            continue  # every key has this byte
+        at = hist[d]
+        for q in range(256):
+            at[q + 1] += at[q]
+        for j in range(m):  # stable: equal bytes keep their order
+            k = keys[j]
+            q = (k >> (8 * d)) & 255
+            t = at[q]
+            keys2[t] = k
+            ids2[t] = ids[j]
+            at[q] = t + 1
+        keys, keys2 = keys2, keys
+        ids, ids2 = ids2, ids
+    return ids
+
+
+@numba.njit(cache=True, nogil=True)
+def _front_first_cells(uv, ok, order, gu, gv, r, shift, r2, far, span, b, n, h, w):  # pragma: no cover
+    """Every (point, pixel) pair whose sample position lies strictly within the radius of
+    the point's projection, by pixel and, within a pixel, front first: ``starts`` (B H W
+    + 1,) int64, the first pair of each pixel, and ``point`` (C,) int64, each pair's point.
+
+    uv (P, 2): the projections (P = B N, ``n`` points per image); ok (P,) bool: the
+    visible ones; order (V,): those front first (:func:`_visible_front_to_back`); gu (W,),
+    gv (H,): the sample positions; r, shift: the radius and the largest shift of a sample
+    position from its pixel centre; r2, far: the squared radius and the squared distance
+    of a cell outside the image (in the points' precision); span: the footprint's side
+    (:func:`~depthgt.rasterise._footprint`'s window, its float arithmetic).
+
+    The same cells, in the same order, as :func:`_cells_sorted` (the same arithmetic), by
+    a counting sort on the pixels in two passes: the cells found point by point in index
+    order (a point's neighbours in memory are its neighbours in the image, so the
+    counters stay in the cache), then each point's cells put into their pixels' next
+    slots front first. Written by hand because no library rasterises every point within
+    a radius into a pixel-sorted candidate list on the CPU (PyTorch3D's points
+    rasteriser keeps the K nearest in depth and builds from source only), and as tensors
+    the footprint test, its nonzero and the stable sort of ~2 M candidates per frame set
+    took two thirds of the rasteriser.
+    """
+    n_all = uv.shape[0]
+    n_pix = b * h * w
+    starts = np.zeros(n_pix + 1, np.int64)
+    dx2 = np.empty(span, uv.dtype)
+    dy2 = np.empty(span, uv.dtype)
+    cells = np.empty(order.shape[0] * span * span, np.int32)
+    first = np.empty(n_all + 1, np.int64)  # each point's cells: cells[first[i]:first[i + 1]]
+    zero = uv.dtype.type(0.0)
+    m = 0
+    for i in range(n_all):
+        first[i] = m
+        if not ok[i]:
+            continue
+        u, v = uv[i, 0], uv[i, 1]
+        x0 = math.ceil(u - r - shift)
+        y0 = math.ceil(v - r - shift)
+        for j in range(span):  # the squared distances per column and row
+            c = x0 + j
+            d = gu[min(max(c, 0), w - 1)] - u
+            dx2[j] = d * d + (far if (c < 0 or c >= w) else zero)
+            c = y0 + j
+            d = gv[min(max(c, 0), h - 1)] - v
+            dy2[j] = d * d + (far if (c < 0 or c >= h) else zero)
+        corner = ((i // n) * h + y0) * w + x0
         for jy in range(span):
             for jx in range(span):
                 if dy2[jy] + dx2[jx] < r2:
-                    p = (yb + jy) * w + x0 + jx
+                    p = corner + jy * w + jx
                     cells[m] = p
                     m += 1
                     starts[p + 1] += 1
-        n_cells[k] = m - first
-    for i in range(n_pix):
-        starts[i + 1] += starts[i]
-    entry = np.empty(starts[n_pix], np.int32)
+    first[n_all] = m
+    for p in range(n_pix):
+        starts[p + 1] += starts[p]
+    point = np.empty(starts[n_pix], np.int64)
     at = starts[:-1].copy()  # the next free slot of each pixel
-    m = 0
-    for k in range(n_entries):  # pass 2: each entry into its pixels' next slots
-        for _ in range(n_cells[k]):
-            p = cells[m]
-            m += 1
-            entry[at[p]] = k
+    for k in range(order.shape[0]):
+        i = order[k]
+        for q in range(first[i], first[i + 1]):
+            p = cells[q]
+            point[at[p]] = i
             at[p] += 1
-    return starts, entry
+    return starts, point
 
 
 @numba.njit(cache=True, nogil=True)
-def _cell_values(starts, entry, reals, ints, gu, gv, g_lo, h, w):  # pragma: no cover
-    """The candidates of :func:`_block_cells`' pairs in one pass over the block's pixels
-    (row by row, so no division): pixel within the block, point, ox, oy (the projection
-    minus the sample position), d2 = ox^2 + oy^2, iz, s and frame, as the tensor path
-    computes them from the same values. Per entry, ``reals`` (P, 4) holds u, v, iz, s and
-    ``ints`` (P, 2) the point and its frame (one cache line each for a candidate's
-    reads); g_lo: the block's first row of the stacked images."""
-    n = entry.shape[0]
+def _cell_values(starts, point, uv, iz, s, frame, gu, gv, h, w):  # pragma: no cover (compiled)
+    """The candidates of :func:`_front_first_cells`' pairs in one pass over the pixels
+    (row by row, so no division): pixel, ox, oy (the projection minus the sample
+    position), d2 = ox^2 + oy^2, iz, s and frame (``frame`` empty: 0), as the tensor path
+    computes them from the same values; the points' values read by point, so that a
+    pixel's reads stay near the last pixel's."""
+    n = point.shape[0]
     pixel = np.empty(n, np.int64)
-    point = np.empty(n, np.int64)
-    frame = np.empty(n, np.int64)
-    ox = np.empty(n, reals.dtype)
-    oy = np.empty(n, reals.dtype)
-    d2 = np.empty(n, reals.dtype)
-    iz = np.empty(n, reals.dtype)
-    s = np.empty(n, reals.dtype)
-    n_rows = (starts.shape[0] - 1) // w
-    for rb in range(n_rows):
-        y = gv[(g_lo + rb) % h]
+    fr = np.empty(n, np.int64)
+    ox = np.empty(n, uv.dtype)
+    oy = np.empty(n, uv.dtype)
+    d2 = np.empty(n, uv.dtype)
+    izc = np.empty(n, uv.dtype)
+    sc = np.empty(n, uv.dtype)
+    with_frame = frame.shape[0] > 0
+    for row in range((starts.shape[0] - 1) // w):
+        y = gv[row % h]
         for c in range(w):
-            p = rb * w + c
+            p = row * w + c
             x = gu[c]
             for i in range(starts[p], starts[p + 1]):
-                e = entry[i]
+                e = point[i]
                 pixel[i] = p
-                point[i] = ints[e, 0]
-                frame[i] = ints[e, 1]
-                dx = reals[e, 0] - x
-                dy = reals[e, 1] - y
+                fr[i] = frame[e] if with_frame else 0
+                dx = uv[e, 0] - x
+                dy = uv[e, 1] - y
                 ox[i] = dx
                 oy[i] = dy
                 d2[i] = dx * dx + dy * dy
-                iz[i] = reals[e, 2]
-                s[i] = reals[e, 3]
-    return pixel, point, ox, oy, d2, iz, s, frame
+                izc[i] = iz[e]
+                sc[i] = s[e]
+    return pixel, ox, oy, d2, izc, sc, fr
 
 
 def _cells_sorted(u, v, x0, y0, off, ids, pr: _Projected, g_lo: int, g_hi: int, r: float):
@@ -543,133 +595,109 @@ def _cells_sorted(u, v, x0, y0, off, ids, pr: _Projected, g_lo: int, g_hi: int, 
     return pixel.long(), slot.index_select(0, order), col.index_select(0, order), row.index_select(0, order).add_(g_lo)
 
 
-@numba.njit(cache=True, nogil=True)
-def _entry_records(ids, uv, iz, s, frame, n, h, g_lo, multi, r, shift):  # pragma: no cover (compiled)
-    """What :func:`_block_cells` and :func:`_cell_values` read of the entries ``ids`` (P,),
-    in one pass over them: their projections u, v (P,), footprints' first column and row
-    (:func:`~depthgt.rasterise._footprint`'s float arithmetic) and that row within the
-    block (``multi``: images stacked, ``n`` points and ``h`` rows each; ``g_lo`` the
-    block's first row), ``reals`` (P, 4) u, v, iz, s and ``ints`` (P, 2) the point and
-    its frame (``frame`` empty: 0). The tensors took ten gathers, two stacks and the
-    footprints' planes for it."""
-    p_n = ids.shape[0]
-    u = np.empty(p_n, uv.dtype)
-    v = np.empty(p_n, uv.dtype)
-    x0 = np.empty(p_n, np.int64)
-    y0 = np.empty(p_n, np.int64)
-    yb = np.empty(p_n, np.int64)
-    reals = np.empty((p_n, 4), uv.dtype)
-    ints = np.zeros((p_n, 2), np.int64)
-    with_frame = frame.shape[0] > 0
-    for k in range(p_n):
-        e = ids[k]
-        uu, vv = uv[e, 0], uv[e, 1]
-        u[k], v[k] = uu, vv
-        x0[k] = math.ceil(uu - r - shift)
-        y0[k] = math.ceil(vv - r - shift)
-        yb[k] = y0[k] + (e // n) * h - g_lo if multi else y0[k] - g_lo
-        reals[k, 0], reals[k, 1], reals[k, 2], reals[k, 3] = uu, vv, iz[e], s[e]
-        ints[k, 0] = e
-        if with_frame:
-            ints[k, 1] = frame[e]
-    return u, v, x0, y0, yb, reals, ints
-
-
-def _rasterise_block(pr: _Projected, k: int, radius_px: float, *, compiled: bool) -> RenderCandidates:
-    """The candidates of block ``k`` (its pixels counted from the block's first), its
-    cells found by :func:`_block_cells` (``compiled``, CPU tensors) or as tensors
-    (:func:`_cells_sorted`); the same candidates.
-
-    Long because the CPU's compiled path and the tensors' (a GPU's, and wherever
-    gradients are wanted) share the block's entries and its result record side by side."""
-    b, h, w = pr.size
-    gu, gv, shift = pr.grid
-    r = float(radius_px)
-    g_lo, g_hi = k * pr.rows, min((k + 1) * pr.rows, b * h)  # the block's rows of the stacked images
-    n_pix = (g_hi - g_lo) * w
-    n = pr.uv.shape[0] // b
-    grads = torch.is_grad_enabled() and (pr.uv.requires_grad or pr.iz.requires_grad)
-    with torch.no_grad():
-        ids = pr.entries[pr.edges[k] : pr.edges[k + 1]]
-        real = pr.uv.detach().numpy().dtype.type if compiled else None  # the tensors' precision
-        if compiled and not grads:
-            u, v, x0, y0, yb, reals, ints = (
-                torch.from_numpy(a)
-                for a in _entry_records(
-                    ids.numpy(),
-                    *(t.detach().contiguous().numpy() for t in (pr.uv, pr.iz, pr.s)),
-                    pr.frame.numpy() if pr.frame is not None else np.zeros(0, np.int64),
-                    n,
-                    h,
-                    g_lo,
-                    b > 1,
-                    real(r),
-                    real(shift),
-                )
-            )
-            off = torch.arange(int(math.floor(2 * (r + shift))) + 1)  # as _footprint's
-        else:
-            u = pr.uv[:, 0].detach().index_select(0, ids)
-            v = pr.uv[:, 1].detach().index_select(0, ids)
-            x0, y0, off = _footprint(u, v, r, shift)
-            if compiled:
-                yb = y0 + (torch.div(ids, n, rounding_mode="floor") * h - g_lo) if b > 1 else y0 - g_lo
-        if compiled:
-            if n_pix >= 2**31:  # the kernel's pixel indices are int32
-                raise ValueError(f"too many pixels for one rasterisation: {n_pix}")
-            starts, entry = _block_cells(
-                *(t.numpy() for t in (u, v, x0, y0, yb, gu, gv)),
-                real(r * r),
-                real(4.0 * r * r + 1.0),
-                off.numel(),
-                h,
-                w,
-                g_hi - g_lo,
-            )
-    if compiled and not grads:
-        pixel, point, ox, oy, d2, iz, s, frame = (
-            torch.from_numpy(a)
-            for a in _cell_values(starts, entry, reals.numpy(), ints.numpy(), gu.numpy(), gv.numpy(), g_lo, h, w)
-        )
-        frame = None if pr.frame is None else frame
-    else:
-        frame_of = None if pr.frame is None else pr.frame.index_select(0, ids)
-        with torch.no_grad():
-            if compiled:
-                slot = torch.from_numpy(entry).long()
-                pixel = torch.repeat_interleave(torch.arange(n_pix), torch.from_numpy(np.diff(starts)))
-                col = pixel % w
-                row = torch.div(pixel, w, rounding_mode="floor") + g_lo
-            else:
-                pixel, slot, col, row = _cells_sorted(u, v, x0, y0, off, ids, pr, g_lo, g_hi, r)
-            if b > 1:
-                row = row % h
-            point = ids.index_select(0, slot)
-        # projection minus sample position, px (differentiable): the block's projections,
-        # then each candidate's from them (small arrays, in the cache)
-        uv_b = pr.uv.index_select(0, ids)
-        ox = uv_b[:, 0].index_select(0, slot) - gu.index_select(0, col)
-        oy = uv_b[:, 1].index_select(0, slot) - gv.index_select(0, row)
-        d2 = ox * ox + oy * oy
-        iz = pr.iz.index_select(0, ids).index_select(0, slot)
-        s = pr.s.index_select(0, ids).index_select(0, slot)
-        frame = None if frame_of is None else frame_of.index_select(0, slot)
+def _candidates(pr: _Projected, pixel, point, col, row, n_pix: int, first_pixel: int) -> RenderCandidates:
+    """The candidates (pixel within the block, point, column and row of each, sorted)
+    with their offsets, inverse depths, sigmas and frames as tensors (differentiable)."""
+    gu, gv, _ = pr.grid
+    # projection minus sample position, px (differentiable)
+    ox = pr.uv[:, 0].index_select(0, point) - gu.index_select(0, col)
+    oy = pr.uv[:, 1].index_select(0, point) - gv.index_select(0, row)
     return RenderCandidates(
         pixel,
         point,
         ox,
         oy,
-        d2,
-        iz=iz,
-        s=s,
-        frame=frame,
+        ox * ox + oy * oy,
+        iz=pr.iz.index_select(0, point),
+        s=pr.s.index_select(0, point),
+        frame=None if pr.frame is None else pr.frame.index_select(0, point),
         grad=pr.grad,
         iz_point=pr.iz.detach(),
         size=pr.size,
         n_frames=pr.n_frames,
-        first_pixel=g_lo * w,
+        first_pixel=first_pixel,
         n_pixels=n_pix,
     )
+
+
+def _rasterise_block(pr: _Projected, k: int, radius_px: float) -> RenderCandidates:
+    """The candidates of block ``k`` (its pixels counted from the block's first), its
+    cells found as tensors (:func:`_cells_sorted`: a GPU's path, and the reference)."""
+    b, h, w = pr.size
+    r = float(radius_px)
+    g_lo, g_hi = k * pr.rows, min((k + 1) * pr.rows, b * h)  # the block's rows of the stacked images
+    with torch.no_grad():
+        ids = pr.entries[pr.edges[k] : pr.edges[k + 1]]
+        u = pr.uv[:, 0].detach().index_select(0, ids)
+        v = pr.uv[:, 1].detach().index_select(0, ids)
+        x0, y0, off = _footprint(u, v, r, pr.grid[2])
+        pixel, slot, col, row = _cells_sorted(u, v, x0, y0, off, ids, pr, g_lo, g_hi, r)
+        if b > 1:
+            row = row % h
+        point = ids.index_select(0, slot)
+    return _candidates(pr, pixel, point, col, row, (g_hi - g_lo) * w, g_lo * w)
+
+
+def _rasterise_compiled(pr: _Projected, radius_px: float) -> RenderCandidates:
+    """The candidates of every pixel, their cells found by :func:`_front_first_cells`
+    (CPU tensors; the tensor path's candidates), their values by :func:`_cell_values`
+    (with gradients wanted: as tensors)."""
+    b, h, w = pr.size
+    gu, gv, shift = pr.grid
+    r = float(radius_px)
+    n_pix = b * h * w
+    if n_pix >= 2**31:  # the kernel's cells are int32
+        raise ValueError(f"too many pixels for one rasterisation: {n_pix}")
+    uv = pr.uv.detach().contiguous().numpy()
+    real = uv.dtype.type  # the tensors' precision
+    starts, point = _front_first_cells(
+        uv,
+        pr.visible.numpy(),
+        pr.entries.numpy(),
+        gu.numpy(),
+        gv.numpy(),
+        real(r),
+        real(shift),
+        real(r * r),
+        real(4.0 * r * r + 1.0),
+        int(math.floor(2 * (r + shift))) + 1,  # as _footprint's
+        b,
+        pr.uv.shape[0] // b,
+        h,
+        w,
+    )
+    if not (torch.is_grad_enabled() and (pr.uv.requires_grad or pr.iz.requires_grad)):
+        values = _cell_values(
+            starts,
+            point,
+            uv,
+            *(t.detach().contiguous().numpy() for t in (pr.iz, pr.s)),
+            pr.frame.numpy() if pr.frame is not None else np.zeros(0, np.int64),
+            gu.numpy(),
+            gv.numpy(),
+            h,
+            w,
+        )
+        pixel, ox, oy, d2, iz, s, frame = (torch.from_numpy(a) for a in values)
+        return RenderCandidates(
+            pixel,
+            torch.from_numpy(point),
+            ox,
+            oy,
+            d2,
+            iz=iz,
+            s=s,
+            frame=None if pr.frame is None else frame,
+            grad=pr.grad,
+            iz_point=pr.iz.detach(),
+            size=pr.size,
+            n_frames=pr.n_frames,
+        )
+    with torch.no_grad():
+        pixel = torch.repeat_interleave(torch.arange(n_pix), torch.from_numpy(np.diff(starts)))
+        col = pixel % w
+        row = torch.div(pixel, w, rounding_mode="floor") % h
+    return _candidates(pr, pixel, torch.from_numpy(point), col, row, None, 0)
 
 
 def _check(points_cam, K, size_hw, valid, normals_cam, sigma_m, frame) -> torch.Tensor:
@@ -710,9 +738,9 @@ def rasterise_blocks(
         # every pixel at once (:func:`_block_cells`' counting sort needs no blocks: 12 %
         # faster on 7-Scenes than block by block), then cut into blocks (views)
         pr = _project(points_cam, K, size_hw, settings, valid, normals_cam, sigma_m, frame, src_hw, None, True)
-        return _rasterise_block(pr, 0, settings.radius_px, compiled=True)._replace(n_pixels=None).blocks(block_rows)
+        return _rasterise_compiled(pr, settings.radius_px).blocks(block_rows)
     pr = _project(points_cam, K, size_hw, settings, valid, normals_cam, sigma_m, frame, src_hw, block_rows)
-    return [_rasterise_block(pr, k, settings.radius_px, compiled=False) for k in range(len(pr.edges) - 1)]
+    return [_rasterise_block(pr, k, settings.radius_px) for k in range(len(pr.edges) - 1)]
 
 
 def rasterise_gt(
