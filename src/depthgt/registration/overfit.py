@@ -23,6 +23,7 @@ from functools import cached_property
 import torch
 import torch.nn.functional as F
 
+from depthgt.framecache import FrameCache
 from depthgt.geometry import backproject
 from depthgt.metric_vocabulary import pose_delta
 from depthgt.registration.checks import check_neighbours, set_status
@@ -245,13 +246,23 @@ def _pair_table(T_ba: torch.Tensor, pairs: torch.Tensor, Fn: int) -> dict[tuple[
 # --------------------------------------------------------------------------- chaining
 
 
-def _chain(fs: _Frameset, T_init: torch.Tensor, table, offsets, s: RegistrationSettings, extra=None, maps_of=None):
+def _chain(
+    fs: _Frameset,
+    T_init: torch.Tensor,
+    table,
+    offsets,
+    s: RegistrationSettings,
+    extra=None,
+    maps_of=None,
+    frames: tuple[FrameCache | None, tuple[int, ...] | None] = (None, None),
+):
     """Choose per neighbour between the direct estimate and compositions through nearer
     neighbours (and an external initial guess) by their alignment cost into the target
-    (robust point-to-plane + photometric cost at half resolution)."""
+    (robust point-to-plane + photometric cost at half resolution). ``frames``: the batch
+    job's frame cache and the members' positions (each frame's maps once per batch)."""
     Fn = len(offsets)
     rs = s.refine_settings
-    level = Level(fs.rgb, fs.depth, fs.K, 2, 1, maps_of)
+    level = Level(fs.rgb, fs.depth, fs.K, 2, 1, maps_of, *frames)
     cands, owners, labels = [], [], []
     for j in range(1, Fn):
         options = [("direct", T_init[j]), ("identity", torch.eye(4, dtype=T_init.dtype, device=T_init.device))]
@@ -400,10 +411,13 @@ def _beyond_the_paper(
     offsets: list[int],
     s: RegistrationSettings,
     extra: torch.Tensor | None,
+    frames: tuple[FrameCache | None, tuple[int, ...] | None] = (None, None),
 ) -> tuple[torch.Tensor, RefineResult | None, dict, dict[str, float]]:
     """The steps beyond the paper on its poses ``T_paper`` (F, 4, 4): the chaining of far
     neighbours through nearer ones (``s.chaining``, or an initial guess ``extra``) and the
-    joint SE(3) refinement (``s.refine``).
+    joint SE(3) refinement (``s.refine``). ``frames``: the batch job's
+    :class:`~depthgt.framecache.FrameCache` and the members' positions, or Nones: what
+    depends on a frame alone (its pyramid, its noise residuals) is computed once per batch.
 
     Returns:
         T (F, 4, 4) the final poses, the refinement's
@@ -418,14 +432,14 @@ def _beyond_the_paper(
         t0 = time.perf_counter()
         with torch.no_grad():
             table = _pair_table(T_ba, fs.pairs, len(offsets)) if s.chaining else {}
-            T, choice = _chain(fs, T, table, offsets, s, extra, maps_of)
+            T, choice = _chain(fs, T, table, offsets, s, extra, maps_of, frames)
         diagnostics["chaining"] = choice
         timings["chaining"] = time.perf_counter() - t0
     refined = None
     if s.refine:
         t0 = time.perf_counter()
         with torch.no_grad():
-            refined = refine_poses(fs.rgb, fs.depth, fs.K, T, s.refine_settings, offsets, maps_of)
+            refined = refine_poses(fs.rgb, fs.depth, fs.K, T, s.refine_settings, offsets, maps_of, *frames)
         T = refined.T_f_to_t
         diagnostics.update(refined.diagnostics())
         timings["refine"] = time.perf_counter() - t0
@@ -442,6 +456,8 @@ def register_frameset(
     init_T_j_to_t: torch.Tensor | None = None,
     seed: int = 0,
     render_fn: Callable | None = None,
+    cache: FrameCache | None = None,
+    positions: tuple[int, ...] | None = None,
 ) -> RegistrationResult:
     """Register the neighbours of a local frame set to its target (frame 0).
 
@@ -462,6 +478,8 @@ def register_frameset(
             of the chaining step.
         seed: seed of the initialisation, candidate draw and random subsets.
         render_fn: differentiable splatting (default :func:`depthgt.splatting.splat_soft`).
+        cache, positions: the batch job's :class:`~depthgt.framecache.FrameCache` and the
+            frames' positions: per-frame maps and noise residuals once per batch.
 
     Returns:
         :class:`RegistrationResult`; the device of the computation is that of ``rgb``.
@@ -488,7 +506,7 @@ def register_frameset(
     extra = None
     if init_T_j_to_t is not None:
         extra = torch.cat([torch.eye(4, dtype=torch.float64)[None], init_T_j_to_t.to(torch.float64).cpu()]).to(dev)
-    T, refined, notes, seconds = _beyond_the_paper(fs, T_paper, T_ba, offsets, s, extra)
+    T, refined, notes, seconds = _beyond_the_paper(fs, T_paper, T_ba, offsets, s, extra, (cache, positions))
     diagnostics.update(notes)
     timings.update(seconds)
     statuses, reasons = check_neighbours(T, n_corr, refined, s.checks)
@@ -520,7 +538,17 @@ def register_overfit(
 ) -> RegistrationResult:
     """:func:`register_frameset` of the members of one frame set (the source's poses,
     if any, are not used; :class:`~depthgt.registration.frameset.Registration`)."""
-    return register_frameset(data.rgb, data.depth_m, data.K, offsets, settings, encoder_state=encoder_state, seed=seed)
+    return register_frameset(
+        data.rgb,
+        data.depth_m,
+        data.K,
+        offsets,
+        settings,
+        encoder_state=encoder_state,
+        seed=seed,
+        cache=data.cache,
+        positions=data.positions,
+    )
 
 
 def pretrain_encoder(

@@ -732,6 +732,26 @@ def _composite_block(
     return at(est.depth), at(est.weight_sum), at(est.count), sigma
 
 
+def _pixelwise_weights(
+    c: RenderCandidates, st: RenderSettings, s_point: torch.Tensor | None, wanted: np.ndarray | None, stride: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_weights` of the candidates :func:`_pixelwise_block` composites, with the
+    points' stds ``s_point`` where given: all of them (``wanted`` None), or compactly
+    those of the ``wanted`` pixels (empty: all) on every ``stride``-th row and column
+    (:func:`~depthgt.gt.render.pixelwise.rendered_candidates`; a leave-target-out render
+    at stride 2 needs a quarter). Vectorised (torch's SIMD ``exp``, the same value at any
+    position of an array): the tensor compositor's float operations."""
+    d2, s_c = c.d2.detach(), c.s
+    if wanted is not None:
+        b, h, w = c.size
+        sel = torch.from_numpy(rendered_candidates(c.pixel.numpy(), int(c.first_pixel), wanted, int(stride), h, w))
+        d2 = d2.index_select(0, sel)
+        s_c = s_c.index_select(0, sel) if s_point is None else s_point.index_select(0, c.point.index_select(0, sel))
+    elif s_point is not None:
+        s_c = s_point.index_select(0, c.point)
+    return tuple(t.numpy() for t in _weights(d2, s_c, st))
+
+
 def _pixelwise_block(
     c: RenderCandidates,
     st: RenderSettings,
@@ -766,17 +786,9 @@ def _pixelwise_block(
     # the weights vectorised (torch's SIMD exp), the leave-target-out render's with its
     # own stds: the float operations of the tensor compositor over the same candidates,
     # so that it is the render of the neighbours alone to the bit
-    # (a render of some pixels only: the weights of their candidates only, compact)
     compact = stride > 1 or wanted is not None
     wanted_np = empty_b if wanted is None else wanted.numpy()
-    d2, s_c = c.d2.detach(), c.s
-    if compact:
-        sel = torch.from_numpy(rendered_candidates(c.pixel.numpy(), int(c.first_pixel), wanted_np, int(stride), h, w))
-        d2 = d2.index_select(0, sel)
-        s_c = s_c.index_select(0, sel) if s_point is None else s_point.index_select(0, c.point.index_select(0, sel))
-    elif s_point is not None:
-        s_c = s_point.index_select(0, c.point)
-    w_sp, wt = (t.numpy() for t in _weights(d2, s_c, st))
+    w_sp, wt = _pixelwise_weights(c, st, s_point, wanted_np if compact else None, stride)
     depth, wsum, count, sigma, capped = composite_pixels(
         *(t.detach().numpy() for t in (c.pixel, c.point, c.ox, c.oy, c.d2, c.iz, c.s, c.frame)),
         grad.detach().to(c.iz.dtype).contiguous().numpy(),

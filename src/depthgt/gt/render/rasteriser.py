@@ -325,6 +325,34 @@ def _project_compiled(points_cam, K, st: RenderSettings, valid, normals_cam, sig
     return tuple(torch.from_numpy(a) for a in out)
 
 
+def _by_blocks(pid, v, bnh: tuple[int, int, int], rows: int, r: float, shift: float) -> tuple[torch.Tensor, list[int]]:
+    """The visible points ``pid`` (front first) as entries of the blocks of ``rows`` pixel
+    rows of the stacked images (B images of N points and H rows each, ``bnh``) that
+    they reach, front first within a block, and the blocks' offsets into them; ``v``
+    (B*N,) the points' rows."""
+    b, n, h = bnh
+    # every point in the blocks of its first and last candidate row (a point
+    # reaches at most span rows: two blocks), front first within a block
+    span = int(math.floor(2 * (r + shift))) + 1
+    y0 = torch.ceil(v.index_select(0, pid) - r - shift).long()
+    img = torch.div(pid, n, rounding_mode="floor") * h if b > 1 else 0
+    k0 = torch.div(y0.clamp(0, h - 1) + img, rows, rounding_mode="floor")
+    k1 = torch.div((y0 + span - 1).clamp(0, h - 1) + img, rows, rounding_mode="floor")
+    twice = k1 != k0
+    reps = 1 + twice.to(torch.long)
+    entries = torch.repeat_interleave(pid, reps)
+    block = torch.repeat_interleave(k0, reps)
+    second = torch.cumsum(reps, 0) - 1  # the second entry of a point in two blocks
+    block[second[twice]] = k1[twice]
+    key = block.to(torch.int16 if block.numel() == 0 or int(block.max()) < 2**15 else torch.int32)
+    order = torch.sort(key, stable=True).indices
+    entries = entries.index_select(0, order)
+    n_blocks = -(-(b * h) // rows)
+    counts = torch.bincount(block, minlength=n_blocks)
+    edges = [0, *torch.cumsum(counts, 0).tolist()]
+    return entries, edges
+
+
 def _project(
     points_cam: torch.Tensor,
     K: torch.Tensor,
@@ -385,25 +413,7 @@ def _project(
         if rows >= b * h:
             entries, edges = pid, [0, pid.numel()]
         else:
-            # every point in the blocks of its first and last candidate row (a point
-            # reaches at most span rows: two blocks), front first within a block
-            span = int(math.floor(2 * (r + shift))) + 1
-            y0 = torch.ceil(v.index_select(0, pid) - r - shift).long()
-            img = torch.div(pid, n, rounding_mode="floor") * h if b > 1 else 0
-            k0 = torch.div(y0.clamp(0, h - 1) + img, rows, rounding_mode="floor")
-            k1 = torch.div((y0 + span - 1).clamp(0, h - 1) + img, rows, rounding_mode="floor")
-            twice = k1 != k0
-            reps = 1 + twice.to(torch.long)
-            entries = torch.repeat_interleave(pid, reps)
-            block = torch.repeat_interleave(k0, reps)
-            second = torch.cumsum(reps, 0) - 1  # the second entry of a point in two blocks
-            block[second[twice]] = k1[twice]
-            key = block.to(torch.int16 if block.numel() == 0 or int(block.max()) < 2**15 else torch.int32)
-            order = torch.sort(key, stable=True).indices
-            entries = entries.index_select(0, order)
-            n_blocks = -(-(b * h) // rows)
-            counts = torch.bincount(block, minlength=n_blocks)
-            edges = [0, *torch.cumsum(counts, 0).tolist()]
+            entries, edges = _by_blocks(pid, v, (b, n, h), rows, r, shift)
     n_frames = 0 if frame is None or frame.numel() == 0 else int(frame.max()) + 1
     fr = None if frame is None else frame.reshape(-1)
     grid = (gu, gv, shift)
