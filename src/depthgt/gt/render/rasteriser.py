@@ -572,7 +572,7 @@ def _cell_values(starts, point, uv, iz, s, frame, gu, gv, h, w):  # pragma: no c
 
 
 def _cells_sorted(u, v, x0, y0, off, ids, pr: _Projected, g_lo: int, g_hi: int, r: float):
-    """:func:`_block_cells` as tensors (a GPU's path): (pixel within the block, entry,
+    """:func:`_front_first_cells` as tensors (a GPU's path): (pixel within the block, entry,
     column, row of the stacked images) of every cell of the block's entries within ``r``,
     sorted by pixel and, within a pixel, in entry order."""
     b, h, w = pr.size
@@ -736,7 +736,7 @@ def rasterise_blocks(
     """Step 1 of :func:`~depthgt.gt.render.compositor.render_gt` in blocks of
     ``block_rows`` pixel rows of the stacked images (None: one block): each block's
     candidates with their inverse depths, sigmas and frames, sorted by pixel and front
-    first. ``compiled``: the CPU's compiled cells (:func:`_block_cells`; default on the
+    first. ``compiled``: the CPU's compiled cells (:func:`_front_first_cells`; default on the
     CPU) or the tensor path (a GPU's); the same candidates. Other args: as
     :func:`rasterise_gt`."""
     valid = _check(points_cam, K, size_hw, valid, normals_cam, sigma_m, frame)
@@ -745,7 +745,7 @@ def rasterise_blocks(
     elif compiled and points_cam.device.type != "cpu":
         raise ValueError(f"the compiled rasteriser takes CPU tensors, got {points_cam.device.type}")
     if compiled:
-        # every pixel at once (:func:`_block_cells`' counting sort needs no blocks: 12 %
+        # every pixel at once (:func:`_front_first_cells`' counting sort needs no blocks: 12 %
         # faster on 7-Scenes than block by block), then cut into blocks (views)
         pr = _project(points_cam, K, size_hw, settings, valid, normals_cam, sigma_m, frame, src_hw, None, True)
         return _rasterise_compiled(pr, settings.radius_px).blocks(block_rows)
