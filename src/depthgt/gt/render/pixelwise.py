@@ -321,6 +321,22 @@ def _past_off_rows(pixel, i, first_pixel, stride, h, w):  # pragma: no cover (co
     return i + np.searchsorted(pixel[i:], nxt - first_pixel)
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _run(pixel, i, first_pixel, wanted, stride, h, w):  # pragma: no cover (compiled)
+    """The next pixel's run of candidates from ``i`` on, past the rows a render at
+    ``stride`` leaves out: its first and its end, and whether the pixel is composited
+    (:func:`_rendered`); (C, C, False) past the last."""
+    n = pixel.shape[0]
+    i = _past_off_rows(pixel, i, first_pixel, stride, h, w)
+    if i >= n:
+        return n, n, False
+    p = pixel[i]
+    j = i + 1
+    while j < n and pixel[j] == p:
+        j += 1
+    return i, j, _rendered(p, first_pixel, wanted, stride, h, w)
+
+
 @numba.njit(cache=True, nogil=True)
 def rendered_candidates(pixel, first_pixel, wanted, stride, h, w):  # pragma: no cover (compiled)
     """(C',) int64 the candidates of the pixels :func:`composite_pixels` composites
@@ -332,14 +348,8 @@ def rendered_candidates(pixel, first_pixel, wanted, stride, h, w):  # pragma: no
     m = 0
     i = 0
     while i < n:
-        i = _past_off_rows(pixel, i, first_pixel, stride, h, w)
-        if i >= n:
-            break
-        p = pixel[i]
-        j = i + 1
-        while j < n and pixel[j] == p:
-            j += 1
-        if _rendered(p, first_pixel, wanted, stride, h, w):
+        i, j, composited = _run(pixel, i, first_pixel, wanted, stride, h, w)
+        if composited:
             for k in range(i, j):
                 out[m] = k
                 m += 1
@@ -418,16 +428,11 @@ def composite_pixels(
     i = 0
     q = 0  # the candidates of the pixels composited before this one
     while i < n:
-        i = _past_off_rows(pixel, i, first_pixel, stride, h, w)
-        if i >= n:
-            break
-        p = pixel[i]
-        j = i + 1
-        while j < n and pixel[j] == p:
-            j += 1
-        if not _rendered(p, first_pixel, wanted, stride, h, w):
+        i, j, composited = _run(pixel, i, first_pixel, wanted, stride, h, w)
+        if not composited:
             i = j
             continue
+        p = pixel[i]
         at_w = q - i if compact else 0  # the weights of candidate k: w_spatial[k + at_w]
         q += j - i
         if j - i > cap:
