@@ -436,6 +436,28 @@ def test_bf16_encoder_matches_fp32_features():
     assert cos.min() > 0.99, cos.min()
 
 
+def test_the_encoder_at_a_stride_gives_each_pixel_its_cells_feature():
+    """``encoder_stride`` 2: the encoder sees the image averaged over 2 x 2 cells (the last
+    row and column of cells partial on an odd size) and every pixel of a cell gets the
+    cell's feature, exactly as encoding the averaged image at the cells."""
+    import torch.nn.functional as F
+
+    enc = build_encoder(1, 8, 8, seed=0).train()  # batch statistics, as the fast preset runs
+    gen = torch.Generator().manual_seed(0)
+    rgb = torch.rand(2, 3, 31, 30, generator=gen)
+    every = torch.arange(31 * 30).expand(2, -1)
+    f = encode_at(enc, rgb, every, "fp32", stride=2)
+    cells = F.avg_pool2d(rgb, 2, ceil_mode=True, count_include_pad=False)
+    assert cells.shape[-2:] == (16, 15)
+    assert torch.allclose(cells[0, :, -1, -1], rgb[0, :, 30, 28:30].mean(-1))  # a partial cell: its 2 pixels
+    y, x = every // 30, every % 30
+    want = encode_at(enc, cells, (y // 2) * 15 + x // 2, "fp32")
+    assert f.shape == (2, 31 * 30, 8) and torch.equal(f, want)
+    assert torch.equal(f[:, 0], f[:, 31]) and not torch.equal(f[:, 0], f[:, 2])  # (0, 0) and (1, 1) share a cell
+    with pytest.raises(ConfigError, match="registration.encoder_stride"):
+        registration_settings({"encoder_stride": 0})
+
+
 # ----------------------------------------------------------------------------- the frame set
 
 

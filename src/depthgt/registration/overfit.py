@@ -139,14 +139,22 @@ def autocast_dtype(device: torch.device | str, precision: str) -> torch.dtype | 
 
 
 def encode_at(
-    encoder: torch.nn.Module, rgb: torch.Tensor, index: torch.Tensor, precision: str = "fp32"
+    encoder: torch.nn.Module, rgb: torch.Tensor, index: torch.Tensor, precision: str = "fp32", stride: int = 1
 ) -> torch.Tensor:
     """Unit-length float32 features (B, N, C) of the pixels ``index`` (B, N) (flat,
     row-major) of ``rgb`` (B, 3, H, W), with the encoder's convolutions in the dtype
     :func:`autocast_dtype` picks (channels-last memory on CPU, the fast layout of
-    oneDNN's convolutions). Only the chosen pixels are gathered (in the map's own
-    layout, without a copy of the whole map) and normalised."""
+    oneDNN's convolutions). With ``stride`` > 1 the encoder sees ``rgb`` averaged over
+    cells of ``stride`` x ``stride`` pixels (the last row and column of cells partial
+    where H or W is not a multiple) and a pixel takes its cell's feature. Only the
+    chosen pixels are gathered (in the map's own layout, without a copy of the whole
+    map) and normalised."""
     dt = autocast_dtype(rgb.device, precision)
+    W = rgb.shape[-1]
+    if stride > 1:
+        rgb = F.avg_pool2d(rgb, stride, ceil_mode=True, count_include_pad=False)
+        w_cells = rgb.shape[-1]
+        index = (index // W // stride) * w_cells + (index % W) // stride
     if rgb.device.type == "cpu":
         rgb = rgb.contiguous(memory_format=torch.channels_last)
     with torch.autocast(rgb.device.type, dtype=dt or torch.float32, enabled=dt is not None):
@@ -171,7 +179,7 @@ def frameset_loss(
         and a dict of the mean loss terms.
     """
     Fn = fs.rgb.shape[0]
-    f = encode_at(encoder, fs.rgb, fs.cand_idx, s.encoder.precision)  # (F, n, C)
+    f = encode_at(encoder, fs.rgb, fs.cand_idx, s.encoder.precision, s.encoder.encoder_stride)  # (F, n, C)
     Kb = fs.K.expand(Fn, 3, 3).to(fs.depth.dtype)
     pts = candidate_points(fs.depth, Kb, fs.cand_idx)
     a, b = fs.pairs[:, 0], fs.pairs[:, 1]

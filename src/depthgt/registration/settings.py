@@ -111,11 +111,14 @@ class PretrainSettings:
 @section("registration")
 class EncoderSettings:
     """The overfit registration's RGB encoder (config keys ``registration.n_blocks``,
-    ``channels``, ``feat_dim``, ``precision``).
+    ``channels``, ``feat_dim``, ``encoder_stride``, ``precision``).
 
     Attributes:
-        n_blocks: ResNet-18 BasicBlocks at full resolution; channels: their width;
-            feat_dim: the dimension of the output features.
+        n_blocks: ResNet-18 BasicBlocks at the encoder's resolution; channels: their
+            width; feat_dim: the dimension of the output features.
+        encoder_stride: the encoder runs on the RGB image averaged over cells of this
+            many pixels a side (1: every pixel, the paper's); a candidate pixel takes its
+            cell's feature. The encoder's cost falls with its square.
         precision: of the encoder's convolutions, "fp32", "bf16" (autocast; the
             features are normalised, matched and aligned in float32/64) or "auto" (bf16
             on CUDA devices that support it and on CPUs with native bf16 instructions,
@@ -125,10 +128,11 @@ class EncoderSettings:
     n_blocks: int = 2
     channels: int = 64
     feat_dim: int = 32
+    encoder_stride: int = 1
     precision: Literal["fp32", "bf16", "auto"] = "fp32"
 
     def __post_init__(self):
-        for key in ("n_blocks", "channels", "feat_dim"):
+        for key in ("n_blocks", "channels", "feat_dim", "encoder_stride"):
             require(getattr(self, key) >= 1, f"registration.{key}", f"must be >= 1, got {getattr(self, key)}")
 
 
@@ -273,6 +277,7 @@ REGISTRATION_KEYS = (
     "n_blocks",
     "channels",
     "feat_dim",
+    "encoder_stride",
     "n_candidates",
     "top_k",
     "knn_block",
@@ -437,14 +442,16 @@ REGISTRATION_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {"precision": "auto"},
     # The paper without the beyond-the-paper steps (for the with/without comparison).
     "paper_only": {"chaining": False, "refine": False, "precision": "auto"},
-    # CPU-friendly: one pass of a small encoder (pretrained weights when given) for the
-    # correspondence initialisation, no overfit iterations, then chaining and a
-    # sparser refinement, its point-to-plane scale growing as z^2 beyond 1.5 m and a
-    # stronger photometric term (chosen on bench_gt_protocol.py's tuning sets: pose
-    # error vs the source's poses and GT error; docs/decisions.md "The fast preset's refinement").
+    # CPU-friendly: one pass of a small encoder (pretrained weights when given) on
+    # 2 x 2 cells for the correspondence initialisation, no overfit iterations, then
+    # chaining and a sparser refinement, its point-to-plane scale growing as z^2 beyond
+    # 1.5 m and a stronger photometric term (chosen on bench_gt_protocol.py's tuning
+    # sets: pose error vs the source's poses and GT error; docs/decisions.md "The fast
+    # preset's refinement" and "The fast preset's encoder on 2 x 2 cells").
     "fast": {
         "n_blocks": 1,
         "channels": 32,
+        "encoder_stride": 2,
         "n_candidates": 1024,
         "iterations": 0,
         "render_stride": 2,
