@@ -625,6 +625,43 @@ def test_the_compiled_radix_sort_puts_the_visible_points_front_to_back():
                 assert np.array_equal(got, want.numpy()), (dtype, spread, n)
 
 
+def test_the_gap_bound_never_passes_a_step_the_tolerance_fails():
+    """``within_gap_bound`` (the surfaces' and the frame agreement's shortcut past the
+    square roots) says "within" only where the full float32 tolerance agrees, in both
+    forms (a new surface: step > tol; agreement: |step| <= tol), on steps at, below and
+    above the bound, equal, zero, NaN and infinite stds, and inverse depths <= 0, NaN or
+    infinite; and it decides a good share of the steps inside the tolerance."""
+    import numba
+
+    from depthgt.gt.render.pixelwise import hypot, within_gap_bound
+
+    @numba.njit
+    def both(step, sa, sb, iz, dx, dy, gs, gsr):
+        within = within_gap_bound(step, sa, sb, iz, gs, gsr)
+        tol = gs * hypot(sa, sb) + gsr * iz * hypot(dx, dy)
+        return within, step > tol, abs(step) <= tol
+
+    rng = np.random.default_rng(3)
+    n = 4000
+    f32 = np.float32
+    sa = (10.0 ** rng.uniform(-6, 0, n)).astype(f32)
+    sb = np.where(rng.random(n) < 0.3, sa, 10.0 ** rng.uniform(-6, 0, n)).astype(f32)
+    sb[::17], sa[::23], sb[::29], sa[::31] = 0, np.nan, np.inf, -sa[::31]
+    bound = f32(4.0) * ((np.abs(sa) + np.abs(sb)) * f32(0.5))
+    step = (bound * rng.choice([0.0, 0.5, 1.0, 1.0, 1.2, 1.5], n) * rng.choice([-1.0, 1.0], n)).astype(f32)
+    iz = rng.uniform(0.1, 2.0, n).astype(f32)
+    iz[::13], iz[::19], iz[::37] = -0.5, np.inf, np.nan
+    d = rng.uniform(-1, 1, (n, 2)).astype(f32)
+    decided = inside = 0
+    for gs, gsr in ((4.0, 0.02), (4.0, 0.0), (0.0, 0.02), (4.0, -0.02)):
+        for i in range(n):
+            within, beyond, agrees = both(step[i], sa[i], sb[i], iz[i], d[i, 0], d[i, 1], f32(gs), f32(gsr))
+            assert not within or (not beyond and agrees), (i, gs, gsr, step[i], sa[i], sb[i], iz[i])
+            decided += within
+            inside += agrees
+    assert decided > 0.4 * inside, (decided, inside)
+
+
 def test_cells_inside_unravels_as_nonzero():
     """The float64 unravelling of the flat nonzero gives nonzero's (slot, row, column) for
     every window size, including the last cells of many points."""

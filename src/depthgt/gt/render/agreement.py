@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 
 from depthgt.depth_ops import window_max
-from depthgt.gt.render.pixelwise import hypot
+from depthgt.gt.render.pixelwise import hypot, within_gap_bound
 from depthgt.gt.render.rasteriser import HIT_PX, RenderCandidates
 from depthgt.gt.render.settings import RenderSettings
 
@@ -71,10 +71,14 @@ def _near_samples(
     for i in range(n):
         p = pixel[i]
         if frame[i] != target and d2[i] <= near2 and judge[p]:
-            tol = gap_sigmas * hypot(s[i], s_t[p]) + gap_slope_rel * iz[i] * math.sqrt(d2[i])
+            step = iz[i] - iz_t[p]
+            ok = within_gap_bound(step, s[i], s_t[p], iz[i], gap_sigmas, gap_slope_rel)
+            if not ok:
+                tol = gap_sigmas * hypot(s[i], s_t[p]) + gap_slope_rel * iz[i] * math.sqrt(d2[i])
+                ok = abs(step) <= tol
             p_out[m] = p
             f_out[m] = frame[i]
-            agree[m] = abs(iz[i] - iz_t[p]) <= tol
+            agree[m] = ok
             m += 1
     return p_out[:m].copy(), f_out[:m].copy(), agree[:m].copy()
 

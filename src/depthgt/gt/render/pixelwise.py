@@ -28,7 +28,7 @@ import numpy as np
 from numba import types
 from numba.extending import overload
 
-__all__ = ["composite_pixels", "hypot", "rendered_candidates"]
+__all__ = ["composite_pixels", "hypot", "rendered_candidates", "within_gap_bound"]
 
 
 def hypot(a, b):
@@ -50,6 +50,22 @@ def _hypot(a, b):  # pragma: no cover (compiled)
 
         return f32
     return lambda a, b: math.hypot(a, b)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def within_gap_bound(step, s_a, s_b, iz_a, gap_sigmas, gap_slope_rel):  # pragma: no cover (compiled)
+    """True when the inverse-depth ``step`` between two samples is within the gap
+    tolerance ``gap_sigmas * hypot(s_a, s_b) + gap_slope_rel * iz_a * apart`` (apart >= 0)
+    by a bound that needs neither square root: |step| <= gap_sigmas * (|s_a| + |s_b|) / 2.
+    The mean of the two stds is at most hypot(s_a, s_b) / sqrt(2), so the bound stays
+    ~29 % below the tolerance's first term whatever the rounding, and the second term is
+    >= 0 (or +inf) for gap_slope_rel >= 0 and 0 <= iz_a < inf (checked here). False
+    where it cannot tell (a NaN, a step beyond the bound): the caller then computes the
+    tolerance. The same decisions to the bit, and most samples of one surface skip both
+    square roots."""
+    if not (gap_sigmas >= 0 and gap_slope_rel >= 0 and iz_a >= 0 and iz_a < np.inf):
+        return False
+    return abs(step) <= gap_sigmas * ((abs(s_a) + abs(s_b)) * 0.5)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -449,7 +465,7 @@ def composite_pixels(
             sk = s_point[point[k]] if alt else s[k]
             x, y, z = ox[k], oy[k], iz[k]
             new = m == 0
-            if not new:
+            if not new and not within_gap_bound(lz[m - 1] - z, sv[m - 1], sk, lz[m - 1], gap_sigmas, gap_slope_rel):
                 apart = hypot(x - lx[m - 1], y - ly[m - 1])
                 tol = gap_sigmas * hypot(sv[m - 1], sk) + gap_slope_rel * lz[m - 1] * apart
                 new = (lz[m - 1] - z) > tol
