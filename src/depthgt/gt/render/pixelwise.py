@@ -413,9 +413,10 @@ def composite_pixels(
     leave_out (int64): frame left out (-1: none), target frame (-1: none), stride of the
     pixels rendered (1: all), the block's first pixel, image height and width, frames
     J, the agreement's tiles per frame, whether the weights are compact; where: (bad
-    (slots,) bool, table (B*H*W,) int64) the frame agreement's bad (image, frame, tile) slots and each pixel's
-    image-and-tile part (empty: nothing left out); wanted: (B*H*W,) bool the pixels to
-    composite (empty: all; the others stay empty). gaps: gap_sigmas, gap_slope_rel;
+    (slots,) bool, table (B*H*W,) int64) the frame agreement's bad (image, frame, tile)
+    slots and each pixel's image-and-tile part (empty: nothing left out); wanted:
+    (B*H*W,) bool the pixels to composite (empty: all; the others stay empty). gaps:
+    gap_sigmas, gap_slope_rel;
     vote: edge_vote, edge_vote_slack_px, whether to vote; rule: edge_margin_px,
     ambiguous_px, HIT_PX^2, drop_ambiguous, extend_uncovered, target_resolves_ambiguous
     (all in the candidates' precision); limits: m, min_frames;
