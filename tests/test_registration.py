@@ -12,7 +12,7 @@ import torch
 
 from depthgt.errors import ConfigError
 from depthgt.eval.metrics import pose_errors
-from depthgt.registration.correspondences import find_correspondences, sample_candidates
+from depthgt.registration.correspondences import find_correspondences, knn2_both, sample_candidates
 from depthgt.registration.encoder import build_encoder, candidate_points
 from depthgt.registration.overfit import encode_at, register_frameset
 from depthgt.registration.procrustes import procrustes_random_subsets, weighted_procrustes
@@ -155,6 +155,41 @@ def test_gradients_reach_the_encoder_through_the_weights():
     grads = [p.grad for p in enc.parameters() if p.requires_grad]
     assert all(g is not None for g in grads)
     assert sum(float(g.abs().sum()) for g in grads) > 0
+
+
+def test_the_compiled_two_nearest_are_topks_both_ways():
+    """The CPU's one pass over each pair's similarities finds topk's two nearest along
+    its rows and along its columns, for every valid candidate: with invalid candidates
+    and groups of pairs cut at max_block. Where two candidates are equally near
+    (candidates of one encoder cell share a feature) either is a nearest: there the
+    values agree, and the indices wherever the top three values differ."""
+    gen = torch.Generator().manual_seed(5)
+    P, N, M, C = 5, 70, 90, 8
+    f_a = torch.nn.functional.normalize(torch.randn(P, N, C, generator=gen), dim=-1)
+    f_b = torch.nn.functional.normalize(torch.randn(P, M, C, generator=gen), dim=-1)
+    f_b[:, 40:60] = f_b[:, 10:30]  # exact ties: each candidate 10-29 has a twin 30 later
+    f_a[:, 50:65] = f_a[:, 5:20]
+    mask_a = torch.rand(P, N, generator=gen) > 0.1
+    mask_b = torch.rand(P, M, generator=gen) > 0.1
+    mask_a[0] = True  # one pair without invalid candidates
+    mask_b[0] = True
+    sim = (f_a @ f_b.transpose(1, 2)).masked_fill(~(mask_a[:, :, None] & mask_b[:, None, :]), -4.0)
+    for s_, valid in ((sim, mask_a), (sim.transpose(1, 2).contiguous(), mask_b)):
+        top3 = s_.topk(3, dim=2).values
+        distinct = (top3[..., 0] > top3[..., 1]) & (top3[..., 1] > top3[..., 2]) & valid
+        assert int(distinct.sum()) > 0 and int((~distinct & valid).sum()) > 0  # both kinds present
+    for block in (N * M, 2 * N * M, 1 << 25):
+        ab, ba = knn2_both(f_a, f_b, mask_a, mask_b, max_block=block, compiled=True)
+        assert ab.dtype == torch.int64 and ab.shape == (P, N, 2) and ba.shape == (P, M, 2)
+        for s_, nn, valid in ((sim, ab, mask_a), (sim.transpose(1, 2).contiguous(), ba, mask_b)):
+            ref = s_.topk(3, dim=2)
+            assert torch.equal(s_.gather(2, nn)[valid], ref.values[..., :2][valid])  # the two largest
+            v = ref.values
+            distinct = (v[..., 0] > v[..., 1]) & (v[..., 1] > v[..., 2]) & valid
+            assert torch.equal(nn[distinct], ref.indices[..., :2][distinct])
+    # the tensor path (GPU): valid candidates first there too
+    ab_t, ba_t = knn2_both(f_a, f_b, mask_a, mask_b, compiled=False)
+    assert bool(mask_b.gather(1, ab_t[..., 0])[mask_a].all()) and bool(mask_a.gather(1, ba_t[..., 0])[mask_b].all())
 
 
 def test_weight_gradient_matches_finite_differences():
