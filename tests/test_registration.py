@@ -192,6 +192,23 @@ def test_the_compiled_two_nearest_are_topks_both_ways():
     assert bool(mask_b.gather(1, ab_t[..., 0])[mask_a].all()) and bool(mask_a.gather(1, ba_t[..., 0])[mask_b].all())
 
 
+def test_the_median_depth_is_torchs_median_of_the_valid_depths():
+    """The refinement's median depth: torch.median's lower middle value of the valid
+    depths (odd and even counts, float32 and float64), 1 m without any."""
+    from depthgt.registration.refine import _median_depth
+
+    gen = torch.Generator().manual_seed(2)
+    counts = set()
+    for n, dtype in ((4097, torch.float32), (4096, torch.float32), (1001, torch.float64)):
+        d = 0.3 + 4.0 * torch.rand(1, 1, n, generator=gen, dtype=dtype)
+        d[..., ::7] = 0.0  # invalid
+        counts.add(int((d > 0).sum()) % 2)
+        m = _median_depth(d)
+        assert m.dtype == dtype and m.shape == () and torch.equal(m, d[d > 0].median())
+    assert counts == {0, 1}  # odd and even counts of valid depths
+    assert float(_median_depth(torch.zeros(1, 1, 4, 4))) == 1.0
+
+
 def test_weight_gradient_matches_finite_differences():
     gen = torch.Generator().manual_seed(3)
     p = torch.randn(1, 12, 3, generator=gen, dtype=torch.float64)

@@ -22,6 +22,7 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from kornia.filters import spatial_gradient
@@ -260,8 +261,16 @@ class Level:
 
 
 def _median_depth(d: torch.Tensor) -> torch.Tensor:
-    """The median valid depth of the depth maps ``d``, metres (1 without any)."""
-    return d[d > 0].median() if (d > 0).any() else torch.tensor(1.0)
+    """The median valid depth of the depth maps ``d``, metres (1 without any): the lower
+    of the two middle values, as ``torch.median``. On the CPU numpy's selection finds it
+    (3 against 16-33 ms for ``torch.median`` over a set's 7 x 256 x 256 depths)."""
+    v = d[d > 0]
+    if v.numel() == 0:
+        return torch.tensor(1.0)
+    if v.device.type != "cpu":
+        return v.median()
+    k = (v.numel() - 1) // 2
+    return torch.tensor(np.partition(v.numpy(), k)[k], dtype=v.dtype)
 
 
 #: an LM trial step smaller than this (metres of translation, radians of rotation, the
