@@ -190,6 +190,10 @@ def test_the_compiled_two_nearest_are_topks_both_ways():
     # the tensor path (GPU): valid candidates first there too
     ab_t, ba_t = knn2_both(f_a, f_b, mask_a, mask_b, compiled=False)
     assert bool(mask_b.gather(1, ab_t[..., 0])[mask_a].all()) and bool(mask_a.gather(1, ba_t[..., 0])[mask_b].all())
+    with pytest.raises(ValueError, match="float32 CPU features"):
+        knn2_both(f_a.double(), f_b.double(), mask_a, mask_b, compiled=True)
+    ab_64, _ = knn2_both(f_a.double(), f_b.double(), mask_a, mask_b)  # the default falls back to topk
+    assert ab_64.shape == (P, N, 2)
 
 
 def test_the_median_depth_is_torchs_median_of_the_valid_depths():
@@ -206,6 +210,8 @@ def test_the_median_depth_is_torchs_median_of_the_valid_depths():
         m = _median_depth(d)
         assert m.dtype == dtype and m.shape == () and torch.equal(m, d[d > 0].median())
     assert counts == {0, 1}  # odd and even counts of valid depths
+    d = (0.3 + 4.0 * torch.rand(1, 1, 999, generator=gen)).to(torch.bfloat16)
+    assert torch.equal(_median_depth(d), d.median())  # bfloat16: torch's own median
     assert float(_median_depth(torch.zeros(1, 1, 4, 4))) == 1.0
 
 

@@ -92,8 +92,14 @@ def knn2_both(
     # groups of at most max_block similarities, and (speed: the matrices stay in cache)
     # at most _CACHE_BLOCK unless a single pair is larger; the grouping changes no value
     g = max(1, min(max_block, _CACHE_BLOCK) // max(1, N * M))
+    can_compile = f_a.device.type == f_b.device.type == "cpu" and f_a.dtype == f_b.dtype == torch.float32
     if compiled is None:
-        compiled = f_a.device.type == "cpu" and f_a.dtype == f_b.dtype == torch.float32 and min(N, M) >= 2
+        compiled = can_compile and min(N, M) >= 2
+    elif compiled and not (can_compile and min(N, M) >= 2):
+        raise ValueError(
+            f"knn2_both: the compiled search needs float32 CPU features and N, M >= 2, got {f_a.dtype} / "
+            f"{f_b.dtype} on {f_a.device.type} / {f_b.device.type}, N={N}, M={M}"
+        )
     if compiled:
         nn_ab = np.empty((P, N, 2), np.int64)
         nn_ba = np.empty((P, M, 2), np.int64)
