@@ -30,13 +30,23 @@ ratio. A checkout older than the per-stage timings reports its total only.
 
 On a shared machine the CPU time of the same work moves by +-5 % from minute to minute;
 ``--repeats`` alternates the two checkouts and prints the spread of the per-pair ratios.
+
+Where a frame set's time goes, per function: ``--profile N`` runs cProfile over the
+measured sets (not the warm-up) and prints, per (recording, mode), the N functions with
+the most own time and the N depthgt functions with the most cumulative time, in ms per
+frame set. cProfile adds its own cost to every Python call (compiled kernels and C
+functions are one call each), so the stage totals printed with it run high; time without it.
+
+    python3 bench/bench_pipeline.py --data 7scenes tum --modes given --profile 25
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
 import os
+import pstats
 import resource
 import subprocess
 import sys
@@ -78,7 +88,17 @@ def sources(config: dict) -> dict[str, tuple[dict, str]]:
     }
 
 
-def run(source: dict, scene_name: str, mode: str, n: int, config: dict, selection: str | None = None) -> pd.DataFrame:
+def run(
+    source: dict,
+    scene_name: str,
+    mode: str,
+    n: int,
+    config: dict,
+    selection: str | None = None,
+    profiler: cProfile.Profile | None = None,
+) -> pd.DataFrame:
+    """The frame sets of ``n + 1`` consecutive targets, one row each (the first row is the
+    warm-up); ``profiler`` runs over the sets after it."""
     if selection is not None:
         config = {**config, "frameset": {**config.get("frameset", {}), "selection": selection}}
     settings = settings_from_config({**config, "registration": MODES[mode], "sources": [source]})
@@ -99,12 +119,18 @@ def run(source: dict, scene_name: str, mode: str, n: int, config: dict, selectio
         for t in range(fs.reach, min(len(scene) - fs.reach, fs.reach + n + 1)):  # consecutive targets, as a batch
             members = [t + o for o in fs.offsets]
             out = FrameSetOutputs.in_dir(Path(tmp) / f"{t:06d}")
+            measured = profiler is not None and len(rows) > 0  # the first set run is the warm-up
             c0 = time.process_time()
             try:
+                if measured:
+                    profiler.enable()
                 process_frameset(scene, source["name"], t, members, "train", out, settings, **shared)
             except FrameError as err:  # a frame without a pose etc.: the batch records it; here it is skipped
                 print(f"{source['name']} target {t}: skipped ({err})")
                 continue
+            finally:
+                if measured:
+                    profiler.disable()
             total = time.process_time() - c0
             cpu = json.loads(out.poses.read_text()).get("cpu_s", {})  # per stage (absent in older checkouts)
             rows.append(
@@ -134,6 +160,13 @@ def main(argv=None) -> None:
         choices=["window", "coverage"],
         help="frameset.selection, alternating per (recording, mode) and repeat (not with --against)",
     )
+    ap.add_argument(
+        "--profile",
+        type=int,
+        default=0,
+        metavar="N",
+        help="cProfile the measured sets; print the N functions with the most own and cumulative time per set",
+    )
     ap.add_argument("--src", help=argparse.SUPPRESS)  # internal: the library this process runs (see --against)
     ap.add_argument("--csv", help=argparse.SUPPRESS)  # internal: write the per-set rows here
     a = ap.parse_args(argv)
@@ -141,6 +174,8 @@ def main(argv=None) -> None:
         # the other checkout's process runs the window; the side by side would compare
         # coverage with the window
         ap.error("--selection does not go with --against: run each checkout with --src, one after the other")
+    if a.profile and a.against:
+        ap.error("--profile does not go with --against: cProfile's own cost would enter one side only")
     torch.set_num_threads(a.threads)
     config = yaml.safe_load(Path(a.config).read_text())
     config["device"] = "cpu"
@@ -152,15 +187,17 @@ def main(argv=None) -> None:
         keep_freed_memory()
     except ImportError:
         pass
-    frames, other = [], []
+    frames, other, profiles = [], [], []
     for data in a.data:
         source, scene = sources(config)[data]
         for mode in a.modes:
             for rep in range(a.repeats if a.against or a.selection else 1):
                 for selection in a.selection or [None]:
-                    frames.append(
-                        run(source, scene, mode, a.framesets, config, selection).iloc[1:].assign(rep=rep)
-                    )  # first: warm-up
+                    prof = cProfile.Profile() if a.profile else None
+                    rows = run(source, scene, mode, a.framesets, config, selection, prof)
+                    frames.append(rows.iloc[1:].assign(rep=rep))  # first: warm-up
+                    if prof is not None:
+                        profiles.append(((data, mode, selection or "window", rep), prof, len(rows) - 1))
                 if a.against:  # the other checkout right after, on the same frames (same machine load)
                     other.append(_run_other(Path(a.against), data, mode, a).assign(rep=rep))
     df = pd.concat(frames)
@@ -175,6 +212,9 @@ def main(argv=None) -> None:
     )
     print(df.groupby(["data", "mode", "selection"], sort=False)[stages].mean().to_markdown(floatfmt=".3f"))
     print(f"peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
+    for key, prof, n_sets in profiles:
+        print(f"\nprofile of {key[:3]} (repeat {key[3]}), {n_sets} sets: ms per frame set, with cProfile's own cost")
+        print(profile_table(prof, n_sets, a.profile))
     if a.against:
         base = pd.concat(other)
         side = pd.DataFrame(
@@ -195,6 +235,40 @@ def main(argv=None) -> None:
             f"({a.repeats} alternating run(s) of each, {a.framesets} frame sets per run)"
         )
         print(side.to_markdown(floatfmt=".3f"))
+
+
+def _name(key: tuple[str, int, str]) -> str:
+    """A profiled function's name: ``package/path.py:line function`` within depthgt, the
+    interpreter's own name for built-ins."""
+    path, line, func = key
+    if path == "~":
+        return func
+    parts = Path(path).parts
+    where = "/".join(parts[parts.index("depthgt") :]) if "depthgt" in parts else Path(path).name
+    return f"{where}:{line} {func}"
+
+
+def profile_table(prof: cProfile.Profile, n_sets: int, top: int) -> str:
+    """The ``top`` functions of ``prof`` with the most own time, then the ``top`` depthgt
+    functions with the most cumulative time, as ms (and calls) per frame set over ``n_sets``."""
+    st = pstats.Stats(prof).stats  # (file, line, function) -> (primitive calls, calls, own s, cumulative s, callers)
+    df = pd.DataFrame(
+        [
+            dict(function=_name(k), depthgt="depthgt" in Path(k[0]).parts, calls=v[1], own=v[2], cumulative=v[3])
+            for k, v in st.items()
+        ]
+    )
+    per = n_sets if n_sets > 0 else 1
+    df["calls"] = df["calls"] / per
+    df[["own", "cumulative"]] = df[["own", "cumulative"]] * 1000.0 / per
+    cols = ["function", "calls", "own", "cumulative"]
+    own = df.nlargest(top, "own")[cols].rename(columns={"own": "own ms", "cumulative": "cumulative ms"})
+    cum = df[df["depthgt"]].nlargest(top, "cumulative")[cols]
+    cum = cum.rename(columns={"own": "own ms", "cumulative": "cumulative ms"})
+    return (
+        f"most own time:\n{own.to_markdown(index=False, floatfmt='.1f')}\n"
+        f"depthgt's functions, most cumulative time:\n{cum.to_markdown(index=False, floatfmt='.1f')}"
+    )
 
 
 def _run_other(checkout: Path, data: str, mode: str, a: argparse.Namespace) -> pd.DataFrame:
