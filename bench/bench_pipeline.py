@@ -240,24 +240,39 @@ def main(argv=None) -> None:
         print(side.to_markdown(floatfmt=".3f"))
 
 
-def _name(key: tuple[str, int, str]) -> str:
-    """A profiled function's name: ``package/path.py:line function`` within depthgt, the
-    interpreter's own name for built-ins."""
+def _in_package(path: str, package: Path) -> bool:
+    """Whether a profiled file lies in the depthgt package at ``package`` (its folder), not
+    merely under a folder of that name (a checkout is often called depthgt too)."""
+    return path != "~" and Path(path).is_relative_to(package)
+
+
+def _name(key: tuple[str, int, str], package: Path) -> str:
+    """A profiled function's name: ``depthgt/path.py:line function`` within the package at
+    ``package``, the file's name elsewhere, the interpreter's own name for built-ins."""
     path, line, func = key
     if path == "~":
         return func
-    parts = Path(path).parts
-    where = "/".join(parts[parts.index("depthgt") :]) if "depthgt" in parts else Path(path).name
+    where = Path(path).relative_to(package.parent).as_posix() if _in_package(path, package) else Path(path).name
     return f"{where}:{line} {func}"
 
 
-def profile_table(prof: cProfile.Profile, n_sets: int, top: int) -> str:
-    """The ``top`` functions of ``prof`` with the most own time, then the ``top`` depthgt
-    functions with the most cumulative time, as ms (and calls) per frame set over ``n_sets``."""
+def profile_table(prof: cProfile.Profile, n_sets: int, top: int, package: Path | None = None) -> str:
+    """The ``top`` functions of ``prof`` with the most own time, then the ``top`` functions
+    of the depthgt package at ``package`` (default: the one imported) with the most
+    cumulative time, as ms (and calls) per frame set over ``n_sets``."""
+    import depthgt
+
+    package = Path(depthgt.__file__).parent if package is None else Path(package)
     st = pstats.Stats(prof).stats  # (file, line, function) -> (primitive calls, calls, own s, cumulative s, callers)
     df = pd.DataFrame(
         [
-            dict(function=_name(k), depthgt="depthgt" in Path(k[0]).parts, calls=v[1], own=v[2], cumulative=v[3])
+            dict(
+                function=_name(k, package),
+                depthgt=_in_package(k[0], package),
+                calls=v[1],
+                own=v[2],
+                cumulative=v[3],
+            )
             for k, v in st.items()
         ]
     )

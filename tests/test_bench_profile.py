@@ -54,6 +54,14 @@ def test_the_profile_shows_own_and_cumulative_ms_per_frame_set():
     assert sleep[0] == 1.0 and outer[0] == 1.0  # calls per set, not in all four
     assert 19.0 < sleep[1] < 60.0  # 20 ms per set, not 80
     assert outer[2] > outer[1] + sleep[1] - 1.0  # its cumulative time holds the sleep
-    assert not _rows(cumulative)  # only depthgt's functions there, and this test has none
-    assert bench._name(("~", 0, "<built-in method time.sleep>")) == "<built-in method time.sleep>"
-    assert bench._name(("/x/src/depthgt/gt/build.py", 7, "f")) == "depthgt/gt/build.py:7 f"
+    assert not _rows(cumulative)  # only the package's functions there, and this test has none
+    # a checkout called depthgt holds more than the package: only the package counts
+    pkg = Path("/x/depthgt/src/depthgt")
+    assert bench._name(("~", 0, "<built-in method time.sleep>"), pkg) == "<built-in method time.sleep>"
+    assert bench._name(("/x/depthgt/src/depthgt/gt/build.py", 7, "f"), pkg) == "depthgt/gt/build.py:7 f"
+    assert bench._name(("/x/depthgt/tests/test_x.py", 3, "g"), pkg) == "test_x.py:3 g"
+    assert not bench._in_package("/x/depthgt/tests/test_x.py", pkg)
+    # the test file of this very checkout, profiled against the package under it
+    here = Path(__file__).resolve()
+    mine = bench.profile_table(prof, n_sets=4, top=4, package=here.parents[1] / "src" / "depthgt")
+    assert not _rows(mine.split("depthgt's functions")[1])
