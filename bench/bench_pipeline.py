@@ -175,6 +175,8 @@ def main(argv=None) -> None:
         # the other checkout's process runs the window; the side by side would compare
         # coverage with the window
         ap.error("--selection does not go with --against: run each checkout with --src, one after the other")
+    if a.profile < 0:
+        ap.error(f"--profile takes the number of functions to print (0: no profile), got {a.profile}")
     if a.profile and a.against:
         ap.error("--profile does not go with --against: cProfile's own cost would enter one side only")
     torch.set_num_threads(a.threads)
