@@ -3,6 +3,7 @@ kornia's, push-pull without its data-dependent stop, the loss terms read in one 
 
 import math
 
+import pytest
 import torch
 import torch.nn.functional as F
 from kornia.geometry.depth import depth_to_normals
@@ -51,6 +52,30 @@ def test_depth_normals_match_kornia_values_and_gradients():
     (depth_to_normals(d1, K) * w).sum().backward()
     (depth_normals(d2, K) * w).sum().backward()
     torch.testing.assert_close(d2.grad, d1.grad, rtol=1e-4, atol=1e-4 * float(d1.grad.abs().max()))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_depth_normals_without_gradients_take_the_compiled_cross_with_the_same_values(dtype, monkeypatch):
+    depth, K = _surface()
+    depth = depth.to(dtype) * (
+        1 + 0.01 * torch.rand(depth.shape, generator=torch.Generator().manual_seed(2), dtype=dtype)
+    )
+    with_grad = depth_normals(depth.clone().requires_grad_(), K).detach()  # torch's cross kernel
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("torch.linalg.cross called without gradients")
+
+    monkeypatch.setattr(torch.linalg, "cross", refuse)
+    plain = depth_normals(depth, K)  # no gradient wanted: the compiled cross
+    with torch.no_grad():
+        assert torch.equal(depth_normals(depth.clone().requires_grad_(), K), plain)
+    assert plain.dtype == dtype and plain.shape == with_grad.shape
+    # the same products and differences (on an FMA machine to the bit); where the cross
+    # product is rounding noise (a hole's rim) its direction is noise: only the defined
+    # pixels are compared
+    full = (1.0 - F.max_pool2d(1.0 - (depth > 0).float(), 3, stride=1, padding=1) > 0.5).expand_as(plain)
+    torch.testing.assert_close(plain[full], with_grad[full], rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-12)
+    assert plain[0, :, 5, 6].abs().max() == 0  # a hole's point: 0, as torch's
 
 
 def test_depth_normals_of_a_tilted_plane():

@@ -220,6 +220,7 @@ def choose_views(fill: torch.Tensor, n_views: int, min_fill_px: int) -> list[tup
     >>> choose_views(torch.tensor([[1, 1, 0, 0], [1, 1, 1, 0], [0, 0, 0, 1]], dtype=torch.bool), 3, 1)
     [(1, 3), (2, 1)]
     """
+    fill = fill[:, fill.any(0)]  # the pixels some candidate fills: a few of the image's
     uncovered = torch.ones(fill.shape[1], dtype=torch.bool, device=fill.device)
     chosen: list[tuple[int, int]] = []
     for _ in range(n_views):  # a handful of views: one vectorised count per pick

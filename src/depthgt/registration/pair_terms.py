@@ -277,7 +277,8 @@ def _pair_terms_kernel(
 
 
 def channels_last(maps: torch.Tensor) -> np.ndarray:
-    """A level's maps (F, 10, h, w) as the kernel reads them: (F, h, w, 10) float32."""
+    """A level's maps (F, 10, h, w) as the kernel reads them: (F, h, w, 10) float32 (no
+    copy where the maps are float32 and channels last in memory)."""
     if maps.shape[1] != _CHANNELS:
         raise ValueError(f"pair_terms: the level's maps need {_CHANNELS} channels, got {maps.shape[1]}")
     return maps.permute(0, 2, 3, 1).to(torch.float32).contiguous().numpy()
