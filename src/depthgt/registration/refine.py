@@ -158,25 +158,32 @@ class LevelSettings:
 
 class _Maps(NamedTuple):
     """One scale's images of J frames (:func:`_level_maps`): intrinsics K (3, 3) at (h,
-    w); gray (J, 1, h, w); valid (J, 1, h, w) float; X (J, 3, h, w) points, metres;
-    maps (J, 10, h, w): X, normals, gray, its gradients, normal validity; depth (J, 1,
-    h, w) metres."""
+    w); maps (J, 10, h, w): points X (metres), normals, gray, its gradients, normal
+    validity; depth (J, 1, h, w) metres. The points and the gray are views of the maps,
+    so that the batch's frame cache keeps (and a set stacks) each value once."""
 
     K: torch.Tensor
-    gray: torch.Tensor
-    valid: torch.Tensor
-    X: torch.Tensor
     maps: torch.Tensor
     depth: torch.Tensor
 
+    @property
+    def X(self) -> torch.Tensor:
+        """(J, 3, h, w) the points, metres."""
+        return self.maps[:, 0:3]
+
+    @property
+    def gray(self) -> torch.Tensor:
+        """(J, 1, h, w) the gray image."""
+        return self.maps[:, 6:7]
+
     def take(self, k: int) -> _Maps:
-        return _Maps(self.K, *(t[k : k + 1] for t in self[1:]))
+        return _Maps(self.K, self.maps[k : k + 1], self.depth[k : k + 1])
 
     @staticmethod
     def stack(parts: list[_Maps]) -> _Maps:
         if len(parts) == 1:
             return parts[0]
-        return _Maps(parts[0].K, *(torch.cat([p[i] for p in parts]) for i in range(1, 6)))
+        return _Maps(parts[0].K, torch.cat([p.maps for p in parts]), torch.cat([p.depth for p in parts]))
 
 
 def _level_maps(rgb: torch.Tensor, depth_m: torch.Tensor, K: torch.Tensor, scale: int) -> _Maps:
@@ -202,7 +209,7 @@ def _level_maps(rgb: torch.Tensor, depth_m: torch.Tensor, K: torch.Tensor, scale
         # is then a view): a batch job computes a frame's maps once and reads them in up to
         # seven sets, where the copy had been made for each set's level (~13 ms per set)
         maps = maps.contiguous(memory_format=torch.channels_last)
-    return _Maps(Ks, gray, valid, X, maps, d)
+    return _Maps(Ks, maps, d)
 
 
 class Level:
@@ -258,7 +265,7 @@ class Level:
         idx = (ys[:, None] * w + xs[None, :]).reshape(-1)
         self.points = m.X.flatten(2)[:, :, idx].contiguous()  # (F, 3, N) planar
         self.gray = m.gray.flatten(2)[:, 0, idx]  # (F, N)
-        self.valid = m.valid.flatten(2)[:, 0, idx] > 0  # (F, N)
+        self.valid = m.depth.flatten(2)[:, 0, idx] > 0  # (F, N)
 
     @property
     def median_depth(self) -> torch.Tensor:
