@@ -78,6 +78,17 @@ def test_depth_normals_without_gradients_take_the_compiled_cross_with_the_same_v
     assert plain[0, :, 5, 6].abs().max() == 0  # a hole's point: 0, as torch's
 
 
+def test_depth_normals_of_bfloat16_depth_keep_torch_cross_kernel():
+    # numpy has no bfloat16: such depth takes torch's kernel, gradients or not
+    depth, K = _surface()
+    d16 = depth.to(torch.bfloat16)
+    n = depth_normals(d16, K)
+    assert n.dtype == torch.bfloat16 and n.shape == (2, 3, 24, 20)
+    full = (1.0 - F.max_pool2d(1.0 - (depth > 0).float(), 3, stride=1, padding=1) > 0.5).expand_as(n)
+    ref = depth_normals(d16.float(), K)
+    torch.testing.assert_close(n.float()[full], ref[full], rtol=0, atol=0.1)
+
+
 def test_depth_normals_of_a_tilted_plane():
     # z = a + b u in pixels: the points lie on a plane; its normal is (n_x, 0, n_z)
     H, W = 12, 16

@@ -13,6 +13,8 @@ Conventions: depth (B, 1, H, W) in metres, 0 = invalid; validity (B, 1, H, W) bo
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 
@@ -161,7 +163,8 @@ def depth_normals(depth_m: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     # same kernels give the same values where the normal is undefined (parallel
     # derivatives, e.g. a window with one point off a hole, where the cross product is
     # rounding noise), and a norm over a dim of 3 strided by H x W would be ~20x slower
-    if gx.device.type == "cpu" and not (torch.is_grad_enabled() and gx.requires_grad):
+    compiled = gx.device.type == "cpu" and gx.dtype in (torch.float32, torch.float64)  # (numpy has no bfloat16)
+    if compiled and not (torch.is_grad_enabled() and gx.requires_grad):
         cross = torch.empty((B, H, W, 3), dtype=gx.dtype)
         _compiled_cross()(gx.contiguous().numpy(), gy.contiguous().numpy(), cross.numpy())
     else:
@@ -182,9 +185,7 @@ def _cross_planes(a, b, out):  # pragma: no cover (compiled by _compiled_cross)
                 out[i, y, x, 2] = a0 * b1 - a1 * b0
 
 
-_CROSS = []
-
-
+@functools.cache
 def _compiled_cross():
     """:func:`_cross_planes` compiled (numba, imported on first use). For normals that
     need no gradient on the CPU: the renderer's and the refinement's, a training's target
@@ -196,11 +197,9 @@ def _compiled_cross():
     frames' normals (elsewhere they may differ by a rounding;
     ``tests/test_train_fast_paths.py`` holds them together). Written by hand: no library
     takes the cross product of two planar images without copying them first."""
-    if not _CROSS:
-        import numba
+    import numba
 
-        _CROSS.append(numba.njit(cache=True, nogil=True, fastmath={"contract"})(_cross_planes))
-    return _CROSS[0]
+    return numba.njit(cache=True, nogil=True, fastmath={"contract"})(_cross_planes)
 
 
 def window_max(x: torch.Tensor, window: int) -> torch.Tensor:
