@@ -67,9 +67,9 @@ _WG, _WRG, _WP, _WRP = 12, 13, 14, 15
 
 
 @numba.njit(inline="always")
-def _warp(points, src_valid, b, start, m, pose, cam, h, w, pq):  # pragma: no cover (compiled)
-    """b's points ``start`` .. ``start + m`` moved by ``pose`` (the 12 values of T_ab's
-    rows) and projected (vectorised) into pq."""
+def _warp(points, b, start, m, pose, cam, h, w, pq):  # pragma: no cover (compiled)
+    """b's valid points ``start`` .. ``start + m`` (:func:`_valid_first`) moved by
+    ``pose`` (the 12 values of T_ab's rows) and projected (vectorised) into pq."""
     fx, fy, cx, cy = cam
     for i in range(m):
         n = start + i
@@ -81,7 +81,7 @@ def _warp(points, src_valid, b, start, m, pose, cam, h, w, pq):  # pragma: no co
         u, v = fx * qx * zi + cx, fy * qy * zi + cy
         pq[0, i], pq[1, i], pq[2, i], pq[3, i], pq[4, i], pq[5, i] = qx, qy, qz, zi, u, v
         # beyond a pixel off the image grid_sample's taps are all padding (zeros)
-        on = src_valid[b, n] & (qz > 1e-3) & (u > -1.0) & (u < w) & (v > -1.0) & (v < h)
+        on = (qz > 1e-3) & (u > -1.0) & (u < w) & (v > -1.0) & (v < h)
         pq[_ON, i] = 1.0 if on else 0.0
 
 
@@ -183,6 +183,29 @@ def _costs(res, m, gate_cost, cost_out, vis_out, jw, w_row):  # pragma: no cover
     return total
 
 
+@numba.njit(inline="always")
+def _valid_first(points, src_gray, src_valid):  # pragma: no cover (compiled)
+    """Each frame's valid points and their gray values moved to the front, in their order
+    (F, 3, N), (F, N), with their columns (F, N) and counts (F,): the pairs' loops run
+    over valid points only (a Kinect frame's holes are 10-30 % of its points; evaluating
+    them cost as much as a valid point's terms). One pass, a small part of an evaluation."""
+    F, N = src_valid.shape
+    pts = np.empty((F, 3, N), np.float32)
+    gray = np.empty((F, N), np.float32)
+    cols = np.empty((F, N), np.int64)
+    count = np.zeros(F, np.int64)
+    for f in range(F):
+        k = 0
+        for n in range(N):
+            if src_valid[f, n]:
+                pts[f, 0, k], pts[f, 1, k], pts[f, 2, k] = points[f, 0, n], points[f, 1, n], points[f, 2, n]
+                gray[f, k] = src_gray[f, n]
+                cols[f, k] = n
+                k += 1
+        count[f] = k
+    return pts, gray, cols, count
+
+
 @numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
 def _pair_terms_kernel(
     points, src_gray, src_valid, maps, h, w, pairs, T_ab, cam, scales, photo, huber,
@@ -215,20 +238,27 @@ def _pair_terms_kernel(
     smp = np.empty((_CHANNELS, _CHUNK), np.float32)
     res = np.empty((6, _CHUNK), np.float32)
     jw = np.zeros((16, _CHUNK), np.float32)  # the photometric rows stay 0 without the term
+    c_chunk = np.empty(_CHUNK, np.float32)  # a term's costs and visibility before they
+    v_chunk = np.empty(_CHUNK, np.bool_)  # go to their points' columns
+    pts, gray, cols, count = _valid_first(points, src_gray, src_valid)
+    cost_pts[:] = 0.0  # an invalid point: no cost, not seen
+    vis[:] = False
     for p in range(n_pairs):
         a, b = pairs[p, 0], pairs[p, 1]
         base = a * h * w * _CHANNELS
         acc = np.zeros(27)  # H's upper triangle row by row (21), then g (6)
         cost = 0.0
         n_in = 0
-        for start in range(0, N, _CHUNK):
-            m = min(_CHUNK, N - start)
-            stop = start + m
-            _warp(points, src_valid, b, start, m, T_ab[p], cam32, h, w, pq)
+        for start in range(0, count[b], _CHUNK):
+            m = min(_CHUNK, count[b] - start)
+            _warp(pts, b, start, m, T_ab[p], cam32, h, w, pq)
             _sample(maps, base, h, w, m, pq, taps, tap_w, smp, photo)
             _geometric(pq, smp, m, ref_inv, gate, geo_scale, res)
             _robust(res, m, huber)
-            cost += _costs(res, m, gate_cost, cost_pts[p, start:stop], vis[p, start:stop], jw, _WG)
+            cost += _costs(res, m, gate_cost, c_chunk, v_chunk, jw, _WG)
+            for i in range(m):
+                cost_pts[p, cols[b, start + i]] = c_chunk[i]
+                vis[p, cols[b, start + i]] = v_chunk[i]
             for i in range(m):
                 n_in += 1 if res[_OK, i] > 0 else 0
             for i in range(m):  # (n, q x n) / scale: d r / d (v, w), a left twist of T_ab
@@ -242,10 +272,12 @@ def _pair_terms_kernel(
                 jw[5, i] = qx * n1 - qy * n0 if ok else f32(0.0)
             if photo:
                 for i in range(m):  # the intensity residuals (SEEN and OK are the geometric term's)
-                    res[_R, i] = (smp[6, i] - src_gray[b, start + i]) * wps
+                    res[_R, i] = (smp[6, i] - gray[b, start + i]) * wps
                 _robust(res, m, huber)
-                photo_cols = slice(N + start, N + stop)
-                cost += _costs(res, m, gate_cost, cost_pts[p, photo_cols], vis[p, photo_cols], jw, _WP)
+                cost += _costs(res, m, gate_cost, c_chunk, v_chunk, jw, _WP)
+                for i in range(m):
+                    cost_pts[p, N + cols[b, start + i]] = c_chunk[i]
+                    vis[p, N + cols[b, start + i]] = v_chunk[i]
                 for i in range(m):  # the image gradient chained with d(u, v)/dq of the projection
                     qx, qy, qz, zi, ok = pq[0, i], pq[1, i], pq[2, i], pq[3, i], res[_OK, i] > 0
                     gx, gy = smp[7, i] * fx * zi, smp[8, i] * fy * zi
