@@ -30,7 +30,8 @@ that window as the core, rendered exactly as with ``window``, and adds up to
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numba
@@ -43,11 +44,11 @@ from depthgt import geometry
 from depthgt.depth_ops import window_max
 from depthgt.errors import FrameError
 from depthgt.gt.render import Fusion, fuse, whole_frame_threshold
-from depthgt.gt.render.cloud import FrameGeometry, cached_geometry, frame_geometry
+from depthgt.gt.render.cloud import FrameGeometry, cached_geometry
 from depthgt.gt.render.settings import RenderSettings
 from depthgt.gt.settings import FrameSetSettings
 from depthgt.metric_vocabulary import depth_errors
-from depthgt.registration import Alignment, FrameSetData, load_frameset, photometric_for
+from depthgt.registration import Alignment, FrameSetData, load_depth, load_frameset, load_poses, photometric_for
 from depthgt.registration.local import refine_source_poses
 from depthgt.registration.methods import METHODS
 from depthgt.registration.settings import RegistrationSettings
@@ -387,34 +388,43 @@ def _register(
 
 
 def _without_mixed(
-    data: FrameSetData, positions: list[int], depth_m: torch.Tensor, fs: FrameSetSettings
+    data: FrameSetData,
+    positions: list[int],
+    depth_of: Callable[[list[int]], torch.Tensor],
+    fs: FrameSetSettings,
 ) -> torch.Tensor:
-    """``depth_m`` (C, 1, H, W) of the candidates at ``positions`` with their mixed samples
-    (:func:`mixed_samples`) set to 0, each frame's found once per batch job when the
-    frame set has the job's frame cache (a candidate serves the targets around it)."""
+    """The depth (C, 1, H, W) of the candidates at ``positions`` (``depth_of(positions)``,
+    raw) with their mixed samples (:func:`mixed_samples`) set to 0, each frame's found
+    (and its raw depth read) once per batch job when the frame set has the job's frame
+    cache (a candidate serves the targets around it)."""
     margin, jump = fs.coverage_mixed_margin_px, fs.coverage_mixed_jump_rel
     if data.cache is None or not positions:
+        depth_m = depth_of(positions)
         return depth_m.masked_fill(mixed_samples(depth_m, margin, jump), 0.0)
-    index = {p: i for i, p in enumerate(positions)}
 
     def compute(todo: list[int]) -> list[torch.Tensor]:
-        rows = depth_m[[index[p] for p in todo]]
+        rows = depth_of(todo)
         # each frame's own copy: a view would keep the whole batch of rows alive in the cache
         return [r.clone() for r in rows.masked_fill(mixed_samples(rows, margin, jump), 0.0).unbind(0)]
 
     return torch.stack(data.cache.get(f"coverage.without_mixed:{margin}:{jump}", positions, compute))
 
 
-def _geometry(data: FrameSetData, added_depth: torch.Tensor) -> FrameGeometry | None:
+def _geometry(
+    data: FrameSetData, positions: list[int], added_depth: torch.Tensor, fs: FrameSetSettings
+) -> FrameGeometry | None:
     """The :class:`~depthgt.gt.render.cloud.FrameGeometry` of the core's members and the
-    added views (``added_depth`` (V, 1, H, W), their mixed samples removed) in that
-    order: the core's from the batch job's frame cache (the window's render computed
-    them), the added views' here; None without a cache (:func:`fuse` computes all)."""
+    added views (at ``positions``, their depth ``added_depth`` (V, 1, H, W) without their
+    mixed samples, :func:`_without_mixed`) in that order, each frame's from the batch
+    job's frame cache (the core's computed by the window's render; an added view's by the
+    first frame set that adds it: a view serves several targets around it); None without a
+    cache (:func:`fuse` computes all)."""
     if data.cache is None or data.positions is None:
         return None
     core = cached_geometry(data.cache, data.positions, data.depth_m, data.K, src_hw=data.src_hw)
-    n = added_depth.shape[0]
-    return FrameGeometry.stack([core, frame_geometry(added_depth, data.K[None].expand(n, 3, 3), src_hw=data.src_hw)])
+    of = f"coverage.geometry:{fs.coverage_mixed_margin_px}:{fs.coverage_mixed_jump_rel}"
+    added = cached_geometry(data.cache, positions, added_depth, data.K, src_hw=data.src_hw, of=of)
+    return FrameGeometry.stack([core, added])
 
 
 def add_coverage_views(
@@ -465,10 +475,12 @@ def add_coverage_views(
         record["beyond_limits"] = 0
         return CoverageResult(keep(), record)
     dev = data.depth_m.device
-    cand = load_frameset(scene, [target, *usable], (h, w), need_poses=need_pose, device=dev)
+    cand = None  # with the source's poses, a candidate's images are read only as needed
     if need_pose:
-        T_c_to_t = torch.linalg.inv(cand.T_world_cam[:1]) @ cand.T_world_cam[1:]
+        T_world_cam = load_poses(scene, [target, *usable], dev)
+        T_c_to_t = torch.linalg.inv(T_world_cam[:1]) @ T_world_cam[1:]
     else:
+        cand = load_frameset(scene, [target, *usable], (h, w), need_poses=False, device=dev)
         if core_offsets is None or len(core_offsets) != data.depth_m.shape[0]:
             raise ValueError(f"coverage with registration.method {reg.method!r} needs the core's offsets")
         known = {0: torch.eye(4, dtype=torch.float64, device=dev)}
@@ -496,7 +508,14 @@ def add_coverage_views(
         return CoverageResult(keep(), record)
     # what a candidate within the limits fills with: its samples away from its own holes
     # and depth jumps
-    usable_depth = _without_mixed(data, [usable[i] for i in idx.tolist()], cand.depth_m[1:][idx], fs)
+    row = {p: k for k, p in enumerate(usable)}
+
+    def depth_of(positions: list[int]) -> torch.Tensor:
+        if cand is not None:
+            return cand.depth_m[[1 + row[p] for p in positions]]
+        return load_depth(scene, positions, (h, w), dev)
+
+    usable_depth = _without_mixed(data, [usable[i] for i in idx.tolist()], depth_of, fs)
     fill = fill_maps(usable_depth, data.K, T_c_to_t[idx], empty)
     picks = choose_views(fill, fs.coverage_views, fs.coverage_min_fill_px)
     if not picks:
@@ -505,20 +524,27 @@ def add_coverage_views(
     chosen = [int(idx[i]) for i in picked]  # positions in cand's neighbours
     offsets = [0, *(usable[c] - target for c in chosen)]
     sel = [0, *(c + 1 for c in chosen)]
-    added = FrameSetData(
-        cand.rgb[sel],
-        cand.depth_m[sel],
-        cand.K,
-        cand.T_world_cam[sel] if cand.T_world_cam is not None else None,
-        cand.truth_m[sel] if cand.truth_m is not None else None,
-        [cand.frame_ids[i] for i in sel],
-        cand.src_hw,
-        cand.colour_matches_depth,
-        # the raw frames at the frame set's size: their refinement pyramids and noise
-        # residuals come from (and stay in) the batch job's frame cache
-        positions=(target, *(usable[c] for c in chosen)) if data.cache is not None else None,
-        cache=data.cache,
-    )
+    # the raw frames at the frame set's size: their refinement pyramids and noise
+    # residuals come from (and stay in) the batch job's frame cache
+    positions = (target, *(usable[c] for c in chosen)) if data.cache is not None else None
+    if cand is None:
+        added = replace(
+            load_frameset(scene, [target, *(usable[c] for c in chosen)], (h, w), True, dev, cache=data.cache),
+            positions=positions,
+        )
+    else:
+        added = FrameSetData(
+            cand.rgb[sel],
+            cand.depth_m[sel],
+            cand.K,
+            cand.T_world_cam[sel] if cand.T_world_cam is not None else None,
+            cand.truth_m[sel] if cand.truth_m is not None else None,
+            [cand.frame_ids[i] for i in sel],
+            cand.src_hw,
+            cand.colour_matches_depth,
+            positions=positions,
+            cache=data.cache,
+        )
     T_added, status, reasons = _register(added, offsets, reg, T_c_to_t[chosen])
     views = [
         {
@@ -558,7 +584,7 @@ def add_coverage_views(
         render,
         members=members,
         leave_target_out=data.truth_m is None,
-        geometry=_geometry(data, usable_depth[picked]),
+        geometry=_geometry(data, [usable[c] for c in chosen], usable_depth[picked], fs),
         pixels=empty,  # only the core's empty pixels take its GT (the agreement sees all)
     )
     share = full.gt.agreement[0].cpu().numpy() if full.gt.agreement.numel() else np.full(len(members), np.nan)

@@ -23,7 +23,14 @@ from depthgt.lazy import lazy_names
 if TYPE_CHECKING:  # the package's names, each imported on first use (below)
     from depthgt.registration.align import Alignment, align, align_many, photometric_for
     from depthgt.registration.encoder import build_encoder
-    from depthgt.registration.frameset import FrameSetData, Registration, load_frameset, poses_from_source
+    from depthgt.registration.frameset import (
+        FrameSetData,
+        Registration,
+        load_depth,
+        load_frameset,
+        load_poses,
+        poses_from_source,
+    )
     from depthgt.registration.given import register_given
     from depthgt.registration.local import refine_source_poses, register_refine
     from depthgt.registration.methods import METHODS
@@ -36,7 +43,9 @@ __all__ = [
     "Alignment",
     "align",
     "align_many",
+    "load_depth",
     "load_frameset",
+    "load_poses",
     "photometric_for",
     "FrameSetData",
     "Registration",

@@ -18,7 +18,7 @@ from depthgt.registration.result import RegistrationResult
 from depthgt.registration.settings import RegistrationSettings
 from depthgt.sources.base import Scene, check_frame
 
-__all__ = ["FrameSetData", "Registration", "load_frameset", "poses_from_source"]
+__all__ = ["FrameSetData", "Registration", "load_depth", "load_frameset", "load_poses", "poses_from_source"]
 
 
 @dataclass
@@ -76,16 +76,12 @@ def load_frameset(
         FrameError: a member frame is unusable (the batch job checks the members
             before it builds a frame set, and records such a set as skipped).
     """
-    frames = []
-    for m in members:
-        where = f"{scene.name} frame {scene.frame_id(m)}"
-        frames.append(check_frame(scene.read(m), scene.image_size, where, need_pose=need_poses))
+    frames = _checked(scene, members, need_poses)
     size_hw = (int(size_hw[0]), int(size_hw[1]))
     same = tuple(scene.image_size) == size_hw
 
     def depth_at_size(arrays: list[np.ndarray]) -> torch.Tensor:
-        d = torch.from_numpy(np.stack(arrays))[:, None].to(device)
-        return d if same else geometry.resize_depth_nearest(d, size_hw)
+        return _depth_at_size(arrays, scene, size_hw, device)
 
     rgb = torch.from_numpy(np.stack([f.rgb for f in frames])).permute(0, 3, 1, 2).to(device).float() / 255.0
     truth = None
@@ -109,6 +105,38 @@ def load_frameset(
         positions=tuple(int(m) for m in members),
         cache=cache,
     )
+
+
+def load_depth(scene: Scene, members: list[int], size_hw: tuple[int, int], device: torch.device) -> torch.Tensor:
+    """The raw depth (F, 1, H, W) of the ``members`` at ``size_hw``, as
+    :func:`load_frameset` reads and resizes it, without their colour (coverage's
+    candidates: their colour is read for the few views added)."""
+    frames = _checked(scene, members, need_poses=False)
+    return _depth_at_size([f.depth_m for f in frames], scene, (int(size_hw[0]), int(size_hw[1])), device)
+
+
+def load_poses(scene: Scene, members: list[int], device: torch.device) -> torch.Tensor:
+    """The source's poses (F, 4, 4) of the ``members``, as :func:`load_frameset` reads
+    them, without their images (the frames checked as it checks them).
+
+    Raises:
+        FrameError: a member is unusable or has no usable pose."""
+    frames = _checked(scene, members, need_poses=True)
+    return torch.from_numpy(np.stack([f.T_world_cam for f in frames])).to(device)
+
+
+def _checked(scene: Scene, members: list[int], need_poses: bool) -> list:
+    return [
+        check_frame(scene.read(m), scene.image_size, f"{scene.name} frame {scene.frame_id(m)}", need_pose=need_poses)
+        for m in members
+    ]
+
+
+def _depth_at_size(
+    arrays: list[np.ndarray], scene: Scene, size_hw: tuple[int, int], device: torch.device
+) -> torch.Tensor:
+    d = torch.from_numpy(np.stack(arrays))[:, None].to(device)
+    return d if tuple(scene.image_size) == size_hw else geometry.resize_depth_nearest(d, size_hw)
 
 
 def poses_from_source(data: FrameSetData) -> torch.Tensor:

@@ -292,12 +292,15 @@ def cached_geometry(
     src_hw: tuple[int, int] | None = None,
     normal_max_jump_rel: float = 0.05,
     normals: torch.Tensor | None = None,
+    of: str = "render.geometry",
 ) -> FrameGeometry:
     """:func:`frame_geometry` of the frames at ``positions`` (their depth ``depth_m`` (F,
     1, H, W), ``K`` (3, 3) their one camera), each frame's computed once per batch job
     (``cache``: the job's :class:`~depthgt.framecache.FrameCache`), in that order;
     ``normals`` (F, 3, H, W) as :func:`frame_geometry` takes them (the refinement's),
-    used for the frames not yet in the cache."""
+    used for the frames not yet in the cache. ``of`` names the depth (the raw depth's
+    default; another name for another depth of the same frames, e.g. coverage's views
+    without their mixed samples)."""
     index = {p: i for i, p in enumerate(positions)}
 
     def compute(todo: list[int]) -> list[FrameGeometry]:
@@ -311,4 +314,4 @@ def cached_geometry(
         )
         return [g.take([k]) for k in range(len(rows))]
 
-    return FrameGeometry.stack(cache.get(f"render.geometry:{normal_max_jump_rel}", positions, compute))
+    return FrameGeometry.stack(cache.get(f"{of}:{normal_max_jump_rel}", positions, compute))
