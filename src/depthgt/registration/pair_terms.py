@@ -22,7 +22,7 @@ import numba
 import numpy as np
 import torch
 
-__all__ = ["PairTerms", "pair_terms", "costs_seen_by_both"]
+__all__ = ["PairTerms", "pair_terms", "costs_seen_by_both", "point_residuals"]
 
 #: the channels of the sampled maps (:class:`depthgt.registration.refine.Level`):
 #: X (3), normals (3), gray, its gradients (2), normal validity
@@ -390,6 +390,84 @@ def pair_terms(
         torch.from_numpy(H),
         torch.from_numpy(g),
     )
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
+def _residuals_kernel(
+    points, src_valid, maps, h, w, pairs, T_ab, cam, gate, ref_invs, r_geo, seen, ok,
+):  # fmt: skip  # pragma: no cover (compiled)
+    """Every point's point-to-plane residual (metres) into r_geo (P, N), whether it lands
+    on a surface into seen (P, N), and whether it is associated into ok (R, P, N), with
+    the gate growing beyond each reference depth of ``ref_invs`` (R,) (1 / metres; 0:
+    constant): the phases of :func:`_pair_terms_kernel`, the same arithmetic, over every
+    point (invalid ones: not seen)."""
+    f32 = np.float32
+    cam32 = (f32(cam[0]), f32(cam[1]), f32(cam[2]), f32(cam[3]))
+    n_pairs, N = pairs.shape[0], points.shape[2]
+    pq = np.empty((7, _CHUNK), np.float32)
+    taps = np.empty((4, _CHUNK), np.int64)
+    tap_w = np.empty((4, _CHUNK), np.float32)
+    smp = np.empty((_CHANNELS, _CHUNK), np.float32)
+    res = np.empty((6, _CHUNK), np.float32)
+    for p in range(n_pairs):
+        a, b = pairs[p, 0], pairs[p, 1]
+        for start in range(0, N, _CHUNK):
+            m = min(_CHUNK, N - start)
+            _warp(points, b, start, m, T_ab[p], cam32, h, w, pq)
+            for i in range(m):
+                pq[_ON, i] = pq[_ON, i] if src_valid[b, start + i] else f32(0.0)
+            _sample(maps, a * h * w * _CHANNELS, h, w, m, pq, taps, tap_w, smp, False)
+            for k in range(ref_invs.shape[0]):
+                # a robust scale of 1 (the residual unscaled), the gate with reference k
+                _geometric(pq, smp, m, f32(ref_invs[k]), f32(gate), f32(1.0), res)
+                for i in range(m):
+                    ok[k, p, start + i] = res[_OK, i] > 0
+            for i in range(m):
+                seen[p, start + i] = res[_SEEN, i] > 0
+            _geometric(pq, smp, m, f32(0.0), f32(gate), f32(1.0), res)
+            for i in range(m):
+                r_geo[p, start + i] = res[_R, i]
+
+
+def point_residuals(
+    points: torch.Tensor,
+    valid: torch.Tensor,
+    maps_hwc: np.ndarray,
+    K: torch.Tensor,
+    T_ab: torch.Tensor,
+    pairs: torch.Tensor,
+    gate: float,
+    ref_depths_m: list[float],
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The point-to-plane residuals behind the refinement's residual statistics
+    (:func:`depthgt.registration.refine.target_residual_stats`), compiled: for pair (a,
+    b) = ``pairs[p]`` b's ``points`` (F, 3, N) (``valid`` (F, N)) warped by ``T_ab`` (P,
+    4, 4) into a's maps (:func:`channels_last`) through ``K`` (3, 3). Returns r_geo (P, N)
+    float32 metres, seen (P, N) bool (on a surface of a) and ok (R, P, N) bool (seen and
+    within the association ``gate``, metres, grown as (z / ref)^2 beyond each of the R
+    ``ref_depths_m``, 0: constant), as the tensor path (``refine._residuals_lazy``) finds
+    them to float32 rounding. CPU tensors."""
+    if points.device.type != "cpu":
+        raise ValueError(f"point_residuals runs on the CPU; the points are on {points.device.type}")
+    n_pairs, N = pairs.shape[0], points.shape[2]
+    r_geo = np.empty((n_pairs, N), np.float32)
+    seen = np.empty((n_pairs, N), np.bool_)
+    ok = np.empty((len(ref_depths_m), n_pairs, N), np.bool_)
+    Kd = K.to(torch.float64)
+    _residuals_kernel(
+        points.to(torch.float32).contiguous().numpy(),
+        valid.contiguous().numpy(),
+        maps_hwc.reshape(-1),
+        maps_hwc.shape[1],
+        maps_hwc.shape[2],
+        pairs.to(torch.int64).contiguous().numpy(),
+        T_ab[:, :3, :4].to(torch.float32).reshape(-1, 12).contiguous().numpy(),
+        np.array([Kd[0, 0], Kd[1, 1], Kd[0, 2], Kd[1, 2]], np.float64),
+        float(gate),
+        np.array([1.0 / r if r > 0 else 0.0 for r in ref_depths_m], np.float64),
+        r_geo, seen, ok,
+    )  # fmt: skip
+    return torch.from_numpy(r_geo), torch.from_numpy(seen), torch.from_numpy(ok)
 
 
 @numba.njit(cache=True, nogil=True)

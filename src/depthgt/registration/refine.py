@@ -38,7 +38,7 @@ from depthgt.noise_law import (
     second_difference_residuals,
     sorted_residuals,
 )
-from depthgt.registration.pair_terms import channels_last, costs_seen_by_both, pair_terms
+from depthgt.registration.pair_terms import channels_last, costs_seen_by_both, pair_terms, point_residuals
 from depthgt.registration.settings import RefineSettings
 from depthgt.shapes import check_shape
 
@@ -756,6 +756,7 @@ def target_residual_stats(
     gate: float,
     n_frames: int,
     sigma_1m: float | None,
+    compiled: bool | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per frame (F,): the median |point-to-plane residual| (metres) of the associated
     points of the pairs (0, b), b's points in the target, and the median of the same
@@ -763,25 +764,40 @@ def target_residual_stats(
     (the z^2 law of :func:`depthgt.noise_law.estimate_noise_sigma_1m`; NaN without
     ``sigma_1m``), associated within max(``gate``, 4 sigma) and taken over every point
     seen on a surface of the target (one beyond the gate counts as infinitely off). 0 for
-    the target, NaN where nothing is associated / seen."""
+    the target, NaN where nothing is associated / seen. ``compiled``: the residuals from
+    :func:`~depthgt.registration.pair_terms.point_residuals` (default: float32 frames on
+    the CPU, as :func:`_system`) rather than the tensors; the same to float32 rounding."""
     T_ab = torch.linalg.inv(T[pairs[:, 0]]) @ T[pairs[:, 1]]
-    _, valid, vis, r_geo, _ = _residuals_lazy(level, T_ab, pairs, s, gate)
     n = level.valid.shape[1]
+    with_sigma = sigma_1m is not None and sigma_1m > 0
+    # with the noise: the same association with the gate widened to NOISE_GATE_SIGMAS
+    # sigma where that is wider (beyond ref the gate grows as (z / ref)^2, like the
+    # noise), so that a noisy sensor's far points stay associated ...
+    ref = math.sqrt(gate / (NOISE_GATE_SIGMAS * sigma_1m)) if with_sigma else 0.0
+    if compiled is None:
+        compiled = level.points.device.type == "cpu" and level.points.dtype == torch.float32
+    if compiled:
+        r_geo, vis, ok = point_residuals(
+            level.points, level.valid, _maps_hwc(level), level.K, T_ab, pairs, gate, [s.geo_ref_depth_m, ref]
+        )
+        valid, valid_ref = ok[0], ok[1]
+    else:
+        _, valid, vis, r_geo, _ = _residuals_lazy(level, T_ab, pairs, s, gate)
+        valid_ref = None
     r_geo = r_geo.abs().to(torch.float64)
     nan = torch.full_like(r_geo, float("nan"))
     med = torch.where(valid[:, :n], r_geo, nan).nanmedian(dim=1).values
     out = torch.zeros(n_frames, dtype=torch.float64, device=r_geo.device)
     out[pairs[:, 1]] = med
     out_sig = torch.zeros(n_frames, dtype=torch.float64, device=r_geo.device)
-    if sigma_1m is None or not sigma_1m > 0:
+    if not with_sigma:
         out_sig[pairs[:, 1]] = float("nan")
         return out, out_sig
-    # the same association with the gate widened to NOISE_GATE_SIGMAS sigma where that
-    # is wider (beyond ref the gate grows as (z / ref)^2, like the noise), so that a noisy
-    # sensor's far points stay associated ...
-    ref = math.sqrt(gate / (NOISE_GATE_SIGMAS * sigma_1m))
-    _, valid, vis, r_geo, _ = _residuals_lazy(level, T_ab, pairs, replace(s, geo_ref_depth_m=ref), gate)
-    r_geo = r_geo.abs().to(torch.float64)
+    if valid_ref is not None:
+        valid = valid_ref
+    else:
+        _, valid, vis, r_geo, _ = _residuals_lazy(level, T_ab, pairs, replace(s, geo_ref_depth_m=ref), gate)
+        r_geo = r_geo.abs().to(torch.float64)
     p = level.points[pairs[:, 1]].to(torch.float64)  # (P, 3, N)
     z = (T_ab[:, 2, :3, None] * p).sum(1) + T_ab[:, 2, 3, None]  # depth in the target camera
     sig = sigma_1m * z.clamp(min=0.1).square()
