@@ -443,11 +443,13 @@ def test_the_compiled_rasteriser_finds_the_tensor_paths_candidates():
     """The CPU's compiled cells (a counting sort by pixel) against the tensor path a GPU
     runs, bit for bit: float32 and float64 points, pixel centres and resampled sample
     positions, two radii, two images stacked, points off the image and behind the
-    camera, in blocks of rows and in one; with gradients wanted, the same values and the
-    gradients reach the points."""
+    camera, points at one depth (ties in a pixel), in blocks of rows and in one; with
+    gradients wanted, the same values and the gradients reach the points."""
     p64, nrm, valid, K, frame, sigma = _two_layer_cloud(7)
     p64 = p64.clone()
     p64[0, :40, 2] = -1.0  # behind the camera
+    p64[0, 100::4, 2] = float(p64[0, 99, 2])  # a quarter at one depth: ties within pixels
+    ties = 0
     for dtype in (torch.float32, torch.float64):
         p = p64.to(dtype)
         for radius, src_hw in ((1.3, (32, 32)), (2.0, None), (1.25, (37, 29))):
@@ -459,6 +461,9 @@ def test_the_compiled_rasteriser_finds_the_tensor_paths_candidates():
                 assert len(got) == len(want) and sum(c.pixel.numel() for c in got) > p.shape[1]
                 for a, b in zip(got, want):
                     _same_candidates(a, b)
+                    same = a.pixel[1:] == a.pixel[:-1]
+                    ties += int((same & (a.iz[1:] == a.iz[:-1])).sum())
+    assert ties > 100  # equal depths in a pixel keep the points' order, as the tensors' stable sort
     # two images stacked (the batched layout), and an empty cloud
     p2 = torch.cat([p64, p64.flip(1)]).float()
     kw2 = dict(valid=valid.expand(2, -1), frame=frame.expand(2, -1), src_hw=(32, 32))
