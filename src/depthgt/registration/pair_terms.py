@@ -323,6 +323,25 @@ def channels_last(maps: torch.Tensor) -> np.ndarray:
     return maps.permute(0, 2, 3, 1).to(torch.float32).contiguous().numpy()
 
 
+def _kernel_inputs(
+    name: str, points: torch.Tensor, maps_hwc: np.ndarray, K: torch.Tensor, T_ab: torch.Tensor, pairs: torch.Tensor
+) -> tuple:
+    """The kernels' common arguments: the flat maps, their (h, w), the pairs, the rows
+    of each relative pose (P, 12) and the camera (fx, fy, cx, cy); raises unless the
+    points are on the CPU."""
+    if points.device.type != "cpu":
+        raise ValueError(f"{name} runs on the CPU; the points are on {points.device.type}")
+    Kd = K.to(torch.float64)
+    return (
+        maps_hwc.reshape(-1),
+        maps_hwc.shape[1],
+        maps_hwc.shape[2],
+        pairs.to(torch.int64).contiguous().numpy(),
+        T_ab[:, :3, :4].to(torch.float32).reshape(-1, 12).contiguous().numpy(),
+        np.array([Kd[0, 0], Kd[1, 1], Kd[0, 2], Kd[1, 2]], np.float64),
+    )
+
+
 def pair_terms(
     points: torch.Tensor,
     gray: torch.Tensor,
@@ -347,8 +366,7 @@ def pair_terms(
     :class:`~depthgt.registration.refine.LevelSettings`' with the association ``gate``
     (metres) and its cost. The normal equations come with the costs: in this pass they
     add about a fifth to its time. CPU tensors."""
-    if points.device.type != "cpu":
-        raise ValueError(f"pair_terms runs on the CPU; the points are on {points.device.type}")
+    common = _kernel_inputs("pair_terms", points, maps_hwc, K, T_ab, pairs)
     n_pairs, N = pairs.shape[0], points.shape[2]
     photo = photo_weight > 0
     cols = 2 * N if photo else N
@@ -358,8 +376,6 @@ def pair_terms(
     inliers = np.empty(n_pairs, np.int64)
     H = np.empty((n_pairs, 6, 6), np.float64)
     g = np.empty((n_pairs, 6), np.float64)
-    Kd = K.to(torch.float64)
-    cam = np.array([Kd[0, 0], Kd[1, 1], Kd[0, 2], Kd[1, 2]], np.float64)
     scales = np.array(
         [
             geo_scale_m,
@@ -374,12 +390,7 @@ def pair_terms(
         points.to(torch.float32).contiguous().numpy(),
         gray.to(torch.float32).contiguous().numpy(),
         valid.contiguous().numpy(),
-        maps_hwc.reshape(-1),
-        maps_hwc.shape[1],
-        maps_hwc.shape[2],
-        pairs.to(torch.int64).contiguous().numpy(),
-        T_ab[:, :3, :4].to(torch.float32).reshape(-1, 12).contiguous().numpy(),
-        cam, scales, photo, huber,
+        *common, scales, photo, huber,
         cost_pts, vis, pair_cost, inliers, H, g,
     )  # fmt: skip
     return PairTerms(
@@ -447,22 +458,15 @@ def point_residuals(
     within the association ``gate``, metres, grown as (z / ref)^2 beyond each of the R
     ``ref_depths_m``, 0: constant), as the tensor path (``refine._residuals_lazy``) finds
     them to float32 rounding. CPU tensors."""
-    if points.device.type != "cpu":
-        raise ValueError(f"point_residuals runs on the CPU; the points are on {points.device.type}")
+    common = _kernel_inputs("point_residuals", points, maps_hwc, K, T_ab, pairs)
     n_pairs, N = pairs.shape[0], points.shape[2]
     r_geo = np.empty((n_pairs, N), np.float32)
     seen = np.empty((n_pairs, N), np.bool_)
     ok = np.empty((len(ref_depths_m), n_pairs, N), np.bool_)
-    Kd = K.to(torch.float64)
     _residuals_kernel(
         points.to(torch.float32).contiguous().numpy(),
         valid.contiguous().numpy(),
-        maps_hwc.reshape(-1),
-        maps_hwc.shape[1],
-        maps_hwc.shape[2],
-        pairs.to(torch.int64).contiguous().numpy(),
-        T_ab[:, :3, :4].to(torch.float32).reshape(-1, 12).contiguous().numpy(),
-        np.array([Kd[0, 0], Kd[1, 1], Kd[0, 2], Kd[1, 2]], np.float64),
+        *common,
         float(gate),
         np.array([1.0 / r if r > 0 else 0.0 for r in ref_depths_m], np.float64),
         r_geo, seen, ok,
