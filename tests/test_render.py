@@ -739,6 +739,37 @@ def test_noise_estimate_follows_the_sensor():
     assert estimate_noise_sigma_1m((1.0 / iz)[None, None]) < 1e-6
 
 
+def test_the_noise_law_of_any_frames_is_their_own_estimate():
+    """``noise_sigma_1m_of`` (the k-th of the frames' sorted residuals, a compiled
+    bisection on their bits) is exactly ``noise_sigma_1m_from`` of the same frames: every
+    subset of four noisy frames (one with a hole, one quantised so that residuals tie),
+    and the fallback below ``min_pixels``."""
+    from itertools import combinations
+
+    from depthgt.noise_law import (
+        KINECT_SIGMA_1M,
+        noise_sigma_1m_from,
+        noise_sigma_1m_of,
+        second_difference_residuals,
+        sorted_residuals,
+    )
+
+    g = torch.Generator().manual_seed(3)
+    v, u = torch.meshgrid(torch.arange(48.0), torch.arange(64.0), indexing="ij")
+    iz = 0.5 + 0.004 * u - 0.002 * v
+    depth = torch.stack([1.0 / (iz + s * torch.randn(iz.shape, generator=g)) for s in (0.001, 0.002, 0.003, 0.004)])
+    depth[1, 10:30, 5:40] = 0  # a hole
+    depth[2] = torch.round(depth[2] * 200) / 200  # quantised: equal residuals
+    res = second_difference_residuals(depth[:, None])
+    per_frame = sorted_residuals(res)
+    for n in range(1, 5):
+        for frames in combinations(range(4), n):
+            want = noise_sigma_1m_from(second_difference_residuals(depth[list(frames), None]))
+            assert noise_sigma_1m_of([per_frame[f] for f in frames]) == want, frames
+    assert noise_sigma_1m_of(per_frame[:1], min_pixels=10**6) == KINECT_SIGMA_1M
+    assert noise_sigma_1m_of([]) == KINECT_SIGMA_1M
+
+
 # ------------------------------------------------------------------ surfaces at grazing angles, far range, thin
 
 

@@ -1,10 +1,12 @@
 """The sensor noise law: the depth std of a disparity sensor grows as z^2
 (``sigma(z) = sqrt(sigma_abs^2 + (sigma_1m z^2)^2)``), and its coefficient estimated
-from a frame set's own depth. A leaf module (torch only) below the registration (the
-residual check in units of the noise) and the GT renderer (tolerances, confidence)."""
+from a frame set's own depth. A leaf module (torch; numba for one search, imported on
+first use) below the registration (the residual check in units of the noise) and the GT
+renderer (tolerances, confidence)."""
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import numpy as np
@@ -159,14 +161,37 @@ def noise_sigma_1m_of(residuals: list[torch.Tensor], min_pixels: int = 2000) -> 
     if n == 0 or n < min_pixels:
         return KINECT_SIGMA_1M
     k = max(1, int(round(0.6827 * n)))
-    # the smallest value with at least k residuals at or below it is the k-th smallest;
-    # the non-negative float64s order as their bit patterns
-    lo, hi = 0, int(max(a[-1] for a in arrays).view(np.int64))
+    # the non-negative float64s order as their bit patterns: the search runs on those
+    from numba.typed import List
+
+    bits = _compiled_kth()(List([a.view(np.int64) for a in arrays]), k)
+    return float(np.int64(bits).view(np.float64))
+
+
+def _kth_bits(arrays, k):  # pragma: no cover (compiled by _compiled_kth)
+    """The k-th smallest of the union of the sorted int64 ``arrays``: the smallest value
+    with at least k of them at or below it, by bisection on the values (each step one
+    binary search per array)."""
+    lo, hi = 0, 0
+    for a in arrays:
+        hi = max(hi, a[-1])
     while lo < hi:
-        mid = (lo + hi) // 2
-        value = np.int64(mid).view(np.float64)
-        if sum(int(np.searchsorted(a, value, side="right")) for a in arrays) >= k:
+        mid = lo + (hi - lo) // 2
+        at_or_below = 0
+        for a in arrays:
+            at_or_below += np.searchsorted(a, mid, side="right")
+        if at_or_below >= k:
             hi = mid
         else:
             lo = mid + 1
-    return float(np.int64(lo).view(np.float64))
+    return lo
+
+
+@functools.cache
+def _compiled_kth():
+    """:func:`_kth_bits` compiled (numba, imported on first use): the bisection's ~60
+    steps of a binary search per frame had cost ~3 ms of Python per call, several calls
+    per frame set (the renderer's and the refinement's noise law)."""
+    import numba
+
+    return numba.njit(cache=True, nogil=True)(_kth_bits)
