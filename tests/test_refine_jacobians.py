@@ -26,6 +26,7 @@ from depthgt.registration.refine import (
     adjoint,
     frame_pairs,
     normal_system,
+    se3_exp,
 )
 
 H = W = 32
@@ -197,6 +198,23 @@ def test_adjoint_matches_the_conjugated_exponential():
         lhs = T @ _exp(xi) @ torch.linalg.inv(T)
         assert torch.allclose(lhs, _exp(adjoint(T) @ xi), atol=1e-12)
         assert torch.allclose(Se3.exp(xi[None]).matrix()[0].to(torch.float64), _exp(xi), atol=1e-12)
+
+
+def test_the_refinements_exponential_is_kornias():
+    """``se3_exp`` (what refine_poses applies to each trial's step) is kornia's
+    ``Se3.exp(xi).matrix()`` to float64 rounding, for twists from 0.3 down to 1e-9 (the
+    small-angle range of kornia's series) and zero, each component on its own and all
+    together."""
+    g = torch.Generator().manual_seed(2)
+    for scale in (0.3, 1e-3, 1e-6, 1e-9, 0.0):
+        xi = (torch.rand(12, 6, generator=g, dtype=torch.float64) - 0.5) * 2 * scale
+        xi[:6] = torch.eye(6, dtype=torch.float64) * scale  # one component at a time
+        with torch.no_grad():
+            want = Se3.exp(xi).matrix().to(torch.float64)
+        got = se3_exp(xi)
+        assert got.dtype == torch.float64 and got.shape == (12, 4, 4)
+        assert float((got - want).abs().max()) <= 1e-15, scale
+        assert torch.equal(got[:, 3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64).expand(12, 4))
 
 
 @pytest.mark.parametrize("photo_weight", [0.0, 0.5])
