@@ -280,3 +280,44 @@ def test_the_compiled_renderer_is_the_tensor_path_on_a_real_frame_set():
     assert torch.equal(fit.disagreement, tensors.disagreement)  # the agreement's scans: the same
     assert (fit.depth - tensors.depth).abs().max() < 5e-6 and (fit.depth > 0).float().mean() > 0.5
     assert torch.allclose(fit.sigma, tensors.sigma, rtol=1e-4, atol=1e-9)
+
+
+def test_a_gpu_group_of_targets_apart_reads_each_frame_once(tmp_path, monkeypatch):
+    """A batch job on a GPU holds a group of frame sets before it builds them: its caches
+    keep every frame the group's sets cover, however far apart their targets are
+    (``target_step``), so each frame is read once (a GPU's group here on the CPU; with
+    2 x reach + 1 + the group frames kept, the group's first frames were read again)."""
+    from depthgt.gt import batch
+    from depthgt.jobs.gt import run_frameset_batch, run_scene_index
+    from depthgt.sources import synthetic
+
+    monkeypatch.setattr(batch, "resolve_device", lambda device: torch.device("cuda"))
+    monkeypatch.setattr(batch, "GPU_GROUP", 4)
+    source = {
+        "name": "syn",
+        "kind": "synthetic",
+        "scenes": ["room_000"],
+        "options": {"n_frames": 30, "width": 80, "height": 60},
+    }
+    config = {
+        "seed": 1,
+        "device": "cpu",
+        "resize": 32,
+        "sources": [source],
+        "frameset": {"neighbours": 1, "stride": 1, "target_step": 3, "batch_size": 32},
+        "patches": {"count": 1, "size": 16, "max_missing": 1.0},
+        "registration": {"method": "given"},
+    }
+    index = tmp_path / "index.parquet"
+    run_scene_index(source, "room_000", config, str(index), str(tmp_path / "index.json"))
+    reads = []
+    real_read = synthetic.SyntheticScene.read
+
+    def counting_read(self, i):
+        reads.append(i)
+        return real_read(self, i)
+
+    monkeypatch.setattr(synthetic.SyntheticScene, "read", counting_read)
+    records = run_frameset_batch(source, "room_000", 1, 28, config, str(index), str(tmp_path / "000001-000028.zip"))
+    assert sum(r["status"] == "ok" for r in records) >= 2 * batch.GPU_GROUP  # two groups at least
+    assert sorted(reads) == sorted(set(reads))  # each frame read once

@@ -107,6 +107,9 @@ def test_a_gpu_batch_declares_the_memory_of_its_group(extra):
     assert _frameset_mem_mb({**base, "device": "cuda", "resize": 512}) == cpu + math.ceil(15 * 448 * 512 * 512 / 1e6)
     wider = {**base, "device": "cuda", "frameset": {**extra.get("frameset", {}), "neighbours": 5}}
     assert _frameset_mem_mb(wider) == cpu + math.ceil(15 * (12 * 48 + 64) * 256 * 256 / 1e6)
+    # and with the targets apart: each set of the group brings target_step frames to the caches
+    apart = {**base, "device": "cuda", "frameset": {**extra.get("frameset", {}), "target_step": 4}}
+    assert _frameset_mem_mb(apart) == cpu + math.ceil(15 * (11 * 48 + 64) * 256 * 256 / 1e6)
 
 
 def test_the_frameset_rule_asks_for_the_groups_memory_on_a_gpu(tmp_path):

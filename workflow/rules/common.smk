@@ -161,9 +161,9 @@ def train_threads(wildcards):
 # On a GPU a batch builds GPU_GROUP (16) frame sets together, and the host holds the
 # group's frames and outputs: with device cuda or auto (a GPU wherever the job's node has
 # one) the memory is one set's plus the other 15 sets' frames and outputs, a bound from the
-# data's sizes (depthgt.gt.resources.group_host_mb: 2 x neighbours + 2 frames at 48 bytes
-# a pixel and the outputs at 64, 441 MB at 256x256 with 3 neighbours each side; given
-# on cuda: 2441 MB). Not measured: a GPU batch job's peak RSS, and the CUDA runtime's own
+# data's sizes (depthgt.gt.resources.group_host_mb: 2 x neighbours + 1 + target_step
+# frames at 48 bytes a pixel and the outputs at 64, 488 MB at 256x256 with 3 neighbours
+# each side and a target every 2 frames; given on cuda: 2488 MB). Not measured: a GPU batch job's peak RSS, and the CUDA runtime's own
 # host memory, which the one-set figure's headroom has to hold. device cpu: one set's.
 _JOB = SETTINGS.registration.job_cost
 FRAMESET_MEM_MB = frameset_mem_mb(SETTINGS)

@@ -36,12 +36,15 @@ log = logging.getLogger("depthgt")
 
 
 def frames_kept(settings: Settings) -> int:
-    """How many frames a batch job keeps at hand: those of a group of frame sets
-    (:data:`GPU_GROUP` on a GPU) and their reach (the coverage span with coverage)."""
+    """How many frames a batch job keeps at hand: the positions a group of frame sets
+    (:data:`GPU_GROUP` on a GPU, ``target_step`` apart) and their reach (the coverage span
+    with coverage) cover, and the next frame coming in. A group's first set is built
+    after its last set's members were read: with fewer frames kept its frames would be
+    read, resized and their geometry computed again."""
     fs = settings.frameset
     span = max(fs.reach, fs.coverage_span) if fs.selection == "coverage" else fs.reach
     group = GPU_GROUP if resolve_device(settings.device).type == "cuda" else 1
-    return 2 * span + 1 + group
+    return 2 * span + 1 + (group - 1) * fs.target_step + 1
 
 
 def _record(target: int, status: str, reason: str, members: list[int], split: str) -> dict[str, Any]:

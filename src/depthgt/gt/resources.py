@@ -58,8 +58,8 @@ def group_host_mb(settings: Settings) -> int:
     """Host memory (MB, 10^6 bytes) that a GPU group adds to a batch job over one frame
     set at a time: the other :data:`GPU_GROUP` - 1 frame sets of the group held together,
     each with its members' frames (:data:`FRAME_HOST_BYTES_PER_PX`, ``2 * neighbours + 1``
-    of them, and one more: the frame the batch's caches keep for each set of the group,
-    :func:`depthgt.gt.batch.frames_kept`) and its outputs (:data:`OUTPUT_HOST_BYTES_PER_PX`)
+    of them, and ``target_step`` more: the frames the batch's caches keep for each set of
+    the group, :func:`depthgt.gt.batch.frames_kept`) and its outputs (:data:`OUTPUT_HOST_BYTES_PER_PX`)
     at the working resolution. With ``frameset.selection: coverage`` a group's sets take
     their views one set at a time (depthgt.gt.build.process_framesets), from the frames the
     batch keeps anyway: the one-set figure holds them.
@@ -73,7 +73,7 @@ def group_host_mb(settings: Settings) -> int:
     441
     """
     h, w = settings.size_hw
-    frames = 2 * settings.frameset.neighbours + 1 + 1
+    frames = 2 * settings.frameset.neighbours + 1 + settings.frameset.target_step
     per_set = (frames * FRAME_HOST_BYTES_PER_PX + OUTPUT_HOST_BYTES_PER_PX) * h * w
     return math.ceil((GPU_GROUP - 1) * per_set / 1e6)
 
