@@ -321,3 +321,35 @@ def test_a_gpu_group_of_targets_apart_reads_each_frame_once(tmp_path, monkeypatc
     records = run_frameset_batch(source, "room_000", 1, 28, config, str(index), str(tmp_path / "000001-000028.zip"))
     assert sum(r["status"] == "ok" for r in records) >= 2 * batch.GPU_GROUP  # two groups at least
     assert sorted(reads) == sorted(set(reads))  # each frame read once
+
+
+def test_the_frame_cache_serves_threads_side_by_side():
+    """A GPU's batch job finishes its frame sets in a few threads, which may read the
+    batch's frame cache at once: every result is the frame's own and none of them
+    fails, while the threads evict each other's frames (the computations yield the
+    interpreter half way)."""
+    import threading
+    import time
+
+    cache = FrameCache(keep=2)
+    errors: list[BaseException] = []
+
+    def square(todo: list[int]) -> list[int]:
+        time.sleep(1e-4)  # another thread runs here
+        return [p * p for p in todo]
+
+    def work(seed: int) -> None:
+        g = torch.Generator().manual_seed(seed)
+        try:
+            for _ in range(150):
+                positions = torch.randint(0, 6, (3,), generator=g).tolist()
+                assert cache.get("square", positions, square) == [p * p for p in positions]
+        except BaseException as err:  # handed to the test's thread
+            errors.append(err)
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(6)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors[:3]

@@ -10,6 +10,7 @@ module (the standard library only): the registration and the GT renderer both us
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
@@ -26,6 +27,9 @@ class FrameCache:
         keep: how many frames to keep results for (a batch job keeps the frames of its
             frame sets' reach: twice the reach plus the frame coming in).
 
+    Safe to share between threads (a GPU's batch job finishes its sets in a few): a
+    call holds the cache until it returns, its computation included.
+
     >>> cache = FrameCache(keep=2)
     >>> calls = []
     >>> square = lambda todo: calls.append(todo) or [p * p for p in todo]
@@ -36,11 +40,16 @@ class FrameCache:
     def __init__(self, keep: int = 64) -> None:
         self._keep = max(1, int(keep))
         self._frames: OrderedDict[int, dict[str, Any]] = OrderedDict()
+        self._lock = threading.RLock()  # re-entrant: a computation may read other kinds
 
     def get(self, kind: str, positions: Sequence[int], compute: Callable[[list[int]], Sequence[T]]) -> list[T]:
         """The results of ``kind`` for the frames at ``positions``, in that order; those
         not kept yet come from one call ``compute(missing positions)``, which returns
         one result per position it is given."""
+        with self._lock:
+            return self._get(kind, positions, compute)
+
+    def _get(self, kind: str, positions: Sequence[int], compute: Callable[[list[int]], Sequence[T]]) -> list[T]:
         missing = [p for p in dict.fromkeys(positions) if kind not in self._frames.get(p, {})]
         if missing:
             results = list(compute(missing))
