@@ -69,6 +69,22 @@ TINY_ENHANCE = {
 }
 
 
+def count_synthetic_reads(monkeypatch) -> list[int]:
+    """The positions of every frame a synthetic scene reads from now on, in order (a list
+    filled in place): a test of a batch's frame caches asserts each is read once."""
+    from depthgt.sources import synthetic
+
+    reads: list[int] = []
+    real_read = synthetic.SyntheticScene.read
+
+    def counting_read(self, i):
+        reads.append(i)
+        return real_read(self, i)
+
+    monkeypatch.setattr(synthetic.SyntheticScene, "read", counting_read)
+    return reads
+
+
 def _snakemake_command(workdir: Path, *args: str) -> list[str]:
     return [
         sys.executable,

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import count_synthetic_reads
 
 from depthgt.framecache import FrameCache
 from depthgt.gt.render import fuse
@@ -289,7 +290,6 @@ def test_a_gpu_group_of_targets_apart_reads_each_frame_once(tmp_path, monkeypatc
     2 x reach + 1 + the group frames kept, the group's first frames were read again)."""
     from depthgt.gt import batch
     from depthgt.jobs.gt import run_frameset_batch, run_scene_index
-    from depthgt.sources import synthetic
 
     monkeypatch.setattr(batch, "resolve_device", lambda device: torch.device("cuda"))
     monkeypatch.setattr(batch, "GPU_GROUP", 4)
@@ -310,14 +310,7 @@ def test_a_gpu_group_of_targets_apart_reads_each_frame_once(tmp_path, monkeypatc
     }
     index = tmp_path / "index.parquet"
     run_scene_index(source, "room_000", config, str(index), str(tmp_path / "index.json"))
-    reads = []
-    real_read = synthetic.SyntheticScene.read
-
-    def counting_read(self, i):
-        reads.append(i)
-        return real_read(self, i)
-
-    monkeypatch.setattr(synthetic.SyntheticScene, "read", counting_read)
+    reads = count_synthetic_reads(monkeypatch)
     records = run_frameset_batch(source, "room_000", 1, 28, config, str(index), str(tmp_path / "000001-000028.zip"))
     assert sum(r["status"] == "ok" for r in records) >= 2 * batch.GPU_GROUP  # two groups at least
     assert sorted(reads) == sorted(set(reads))  # each frame read once

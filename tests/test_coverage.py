@@ -19,6 +19,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from conftest import count_synthetic_reads
 
 from depthgt import io
 from depthgt.errors import ConfigError
@@ -29,7 +30,6 @@ from depthgt.gt.planning import block_splits, coverage_candidates, enumerate_fra
 from depthgt.jobs.gt import run_frameset_batch, run_scene_index
 from depthgt.registration.overfit import RegistrationResult
 from depthgt.settings import FrameSetSettings, SplitSettings, settings_from_config
-from depthgt.sources import synthetic
 from depthgt.sources.base import Frame
 
 HW = (64, 64)
@@ -370,14 +370,7 @@ def test_batch_job_adds_views_of_the_targets_split_reading_each_frame_once(tmp_p
     run_scene_index(source, "room_000", config, str(tmp_path / "index.parquet"), str(tmp_path / "index.json"))
     table = pd.read_parquet(tmp_path / "index.parquet")
     tags = dict(zip(table["position"].astype(int), table["split"]))
-    reads = []
-    real_read = synthetic.SyntheticScene.read
-
-    def counting_read(self, i):
-        reads.append(i)
-        return real_read(self, i)
-
-    monkeypatch.setattr(synthetic.SyntheticScene, "read", counting_read)
+    reads = count_synthetic_reads(monkeypatch)
     last = 22 if method == "given" else 12  # the chain refines ~10 pairs per frame set: fewer targets
     shard = tmp_path / f"000001-{last:06d}.zip"
     records = run_frameset_batch(source, "room_000", 1, last, config, str(tmp_path / "index.parquet"), str(shard))

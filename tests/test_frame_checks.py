@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from conftest import commands_in_background, depthgt_command, early, make_workdir
+from conftest import commands_in_background, count_synthetic_reads, depthgt_command, early, make_workdir
 
 from depthgt.errors import FrameError
 from depthgt.gt import store
@@ -65,14 +65,7 @@ def test_a_batch_reads_each_frame_once(tmp_path, monkeypatch):
 
     source = dict(SYN, scenes=["room_000"])
     run_scene_index(source, "room_000", SMALL, str(tmp_path / "index.parquet"), str(tmp_path / "index.json"))
-    reads = []
-    real_read = synthetic.SyntheticScene.read
-
-    def counting_read(self, i):
-        reads.append(i)
-        return real_read(self, i)
-
-    monkeypatch.setattr(synthetic.SyntheticScene, "read", counting_read)
+    reads = count_synthetic_reads(monkeypatch)
     shard = tmp_path / "000003-000010.zip"
     records = run_frameset_batch(source, "room_000", 3, 10, SMALL, str(tmp_path / "index.parquet"), str(shard))
     assert [r["target"] for r in records] == list(range(3, 11)) and {r["status"] for r in records} == {"ok"}
