@@ -145,6 +145,30 @@ def test_coverage_fills_the_occluded_pixels_and_keeps_the_core(window, tmp_path)
     assert all(v["planned_fill_px"] >= 50 and v["reason"] == "" for v in added)
 
 
+def test_the_render_with_views_added_takes_the_cores_cells(tmp_path, monkeypatch):
+    """The render of the core's members and the views added finds the views' cells only
+    and takes the core render's (its points come first, with the same poses): the same
+    GT, statistics and records as finding them all."""
+    from depthgt.gt import coverage
+
+    real = coverage.fuse
+    priors = []
+
+    def recording(*args, **kw):
+        priors.append(kw.get("prior"))
+        return real(*args, **kw)
+
+    settings = _settings("coverage", coverage_max_angle_deg=20.0)
+    monkeypatch.setattr(coverage, "fuse", recording)
+    doc, gt, _ = _build(tmp_path, "taken", settings)
+    assert priors and all(p is not None and p.n_points == 7 * 64 * 64 for p in priors)
+    monkeypatch.setattr(coverage, "fuse", lambda *args, **kw: real(*args, **{**kw, "prior": None}))
+    doc_all, gt_all, _ = _build(tmp_path, "found", settings)
+    assert [v for v in doc["coverage"]["added"] if v["status"] == "ok"]
+    assert doc["coverage"] == doc_all["coverage"] and doc["statistics"] == doc_all["statistics"]
+    assert gt.keys() == gt_all.keys() and all(np.array_equal(gt[k], gt_all[k]) for k in gt)
+
+
 def test_views_beyond_the_angle_limit_are_not_added(window, tmp_path):
     wide, _, _ = _build(tmp_path, "wide", _settings("coverage", coverage_max_angle_deg=20.0))
     # (no hole margin: within 4 deg a view sees only a sliver of the shadow, next to its own)

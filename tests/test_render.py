@@ -484,6 +484,42 @@ def test_the_compiled_rasteriser_finds_the_tensor_paths_candidates():
     assert pg.grad is not None and pg.grad[0, got.point].abs().sum(1).gt(0).all()
 
 
+def test_a_render_with_points_added_takes_the_first_points_cells():
+    """A render whose cloud begins with an earlier render's points (the coverage step's
+    views added after the core's frames) finds only the new points' cells and merges
+    them into the earlier ones: the candidates of rasterising the whole cloud, bit for
+    bit, in float32 and float64, with new points at the same depths as earlier ones in
+    a pixel (ties keep the points' order: the earlier render's first) and new sigmas for
+    every point (the noise law moves with the views added)."""
+    p64, nrm, valid, K, frame, sigma = _two_layer_cloud(11)
+    n_first = 700
+    p64 = p64.clone()
+    p64[0, n_first::3, 2] = p64[0, : (p64.shape[1] - n_first + 2) // 3, 2]  # new points at earlier depths
+    ties = 0
+    for dtype in (torch.float32, torch.float64):
+        p = p64.to(dtype)
+        for radius, src_hw, rows in ((1.3, (32, 32), None), (2.0, None, 5)):
+            st = RenderSettings(radius_px=radius)
+            kw = dict(valid=valid, normals_cam=nrm.to(dtype), frame=frame, src_hw=src_hw)
+            first = rasterise_blocks(p[:, :n_first], K.to(dtype), (16, 16), st, sigma_m=sigma[:, :n_first].to(dtype),
+                                     **{**kw, "valid": valid[:, :n_first], "normals_cam": nrm[:, :n_first].to(dtype),
+                                        "frame": frame[:, :n_first]})  # fmt: skip
+            assert first[0].cells is not None and first[0].cells.n_points == n_first
+            later = dict(kw, sigma_m=(1.5 * sigma).to(dtype), block_rows=rows)
+            got = rasterise_blocks(p, K.to(dtype), (16, 16), st, prior=first[0].cells, **later)
+            want = rasterise_blocks(p, K.to(dtype), (16, 16), st, **later)
+            assert len(got) == len(want)
+            for a, b in zip(got, want):
+                _same_candidates(a, b)
+                same = (a.pixel[1:] == a.pixel[:-1]) & (a.iz[1:] == a.iz[:-1])
+                ties += int((same & (a.point[:-1] < n_first) & (a.point[1:] >= n_first)).sum())
+            assert np.array_equal(got[0].cells.starts, want[0].cells.starts)
+            assert np.array_equal(got[0].cells.point, want[0].cells.point)
+    assert ties > 20  # an earlier point and a new one at one depth in a pixel, the earlier first
+    with pytest.raises(ValueError, match="prior cells"):
+        rasterise_blocks(p64[:, :600], K, (16, 16), RenderSettings(), prior=first[0].cells, valid=valid[:, :600])
+
+
 def test_the_compiled_plane_fit_is_the_tensor_one_to_rounding():
     """The CPU's compiled plane fit of each pixel's chosen surface against the tensors'
     (the path of a GPU and of gradients): the same valid pixels and counts, depth, weight

@@ -578,6 +578,8 @@ def add_coverage_views(
     )
     T_both = torch.cat([alignment.T_j_to_t.to(torch.float64), T_added.to(alignment.T_j_to_t.device, torch.float64)])
     members = [*alignment.fused, *(n + k for k in ok)]
+    # the core's members come first, with the same poses: their cells are the core render's
+    same_core = core.cells is not None and tuple(members[: len(core.members)]) == tuple(core.members)
     full = fuse(
         both,
         T_both,
@@ -586,6 +588,7 @@ def add_coverage_views(
         leave_target_out=data.truth_m is None,
         geometry=_geometry(data, [usable[c] for c in chosen], usable_depth[picked], fs),
         pixels=empty,  # only the core's empty pixels take its GT (the agreement sees all)
+        prior=core.cells if same_core else None,
     )
     share = full.gt.agreement[0].cpu().numpy() if full.gt.agreement.numel() else np.full(len(members), np.nan)
     filled = empty & (full.gt.depth[0, 0] > 0)

@@ -25,7 +25,7 @@ from depthgt.gt.render.cloud import (
     frame_geometry,
 )
 from depthgt.gt.render.compositor import BLOCK_ROWS, GTRender, composite_gt
-from depthgt.gt.render.rasteriser import rasterise_blocks
+from depthgt.gt.render.rasteriser import Cells, rasterise_blocks
 from depthgt.gt.render.settings import RenderSettings
 from depthgt.noise_law import depth_sigma_m, noise_sigma_1m_of
 from depthgt.registration.frameset import FrameSetData
@@ -58,6 +58,10 @@ class Fusion(NamedTuple):
             ``lto_stride``-th row and column only (:meth:`on_lto_grid`). Its ``sigma``
             is zero unless ``max_sigma_m`` needs it.
         lto_stride: the stride of the pixels ``left_out`` was rendered at.
+        cells: the compiled rasteriser's cells of the members' points
+            (:class:`~depthgt.gt.render.rasteriser.Cells`; None on the tensor path): a
+            render of these members with more frames after them takes them (``prior`` of
+            :func:`fuse`).
     """
 
     gt: GTRender
@@ -65,6 +69,7 @@ class Fusion(NamedTuple):
     frames_left_out: tuple[int, ...]
     left_out: GTRender | None = None
     lto_stride: int = 1
+    cells: Cells | None = None
 
     def on_lto_grid(self, image):
         """The pixels of ``image`` (..., H, W) (tensor or array) where ``left_out`` was
@@ -101,6 +106,7 @@ def fuse(
     normals: torch.Tensor | None = None,
     geometry: FrameGeometry | None = None,
     pixels: torch.Tensor | None = None,
+    prior: Cells | None = None,
 ) -> Fusion:
     """Render the aligned members into the target view (paper eq. 5).
 
@@ -124,6 +130,9 @@ def fuse(
         pixels: (H, W) bool, the target's pixels whose GT is wanted (None: all; the
             others are left empty, :func:`~depthgt.gt.render.compositor.composite_gt`);
             the frame agreement and the leave-target-out render see every pixel.
+        prior: the :attr:`Fusion.cells` of a fusion of the first members of ``members``
+            with the same poses, geometry and settings (the coverage step's core): their
+            points' cells are taken, not found again (the same render).
     """
     one = set_geometry(data, T_j_to_t, members, depth_m=depth_m, normals=normals, geometry=geometry)
     return fuse_sets(
@@ -134,6 +143,7 @@ def fuse(
         src_hw=data.src_hw,
         leave_target_out=leave_target_out,
         pixels=pixels,
+        prior=prior,
     )[0]
 
 
@@ -209,6 +219,7 @@ def fuse_sets(
     together: bool | None = None,
     rows: int | None = BLOCK_ROWS,
     pixels: torch.Tensor | None = None,
+    prior: Cells | None = None,
 ) -> list[Fusion]:
     """The :class:`Fusion` of each frame set of ``sets`` (one scene's: the intrinsics
     ``K`` (3, 3) at ``size_hw``, source size ``src_hw``).
@@ -217,17 +228,16 @@ def fuse_sets(
     rasteriser and the compositor (what keeps a GPU busy); default: on a GPU. Otherwise
     (the CPU) set by set, each in blocks of ``rows`` pixel rows (cache-sized). Both give
     the same renders up to the rounding of the batched products. ``pixels``: (H, W) bool,
-    of one set, the pixels whose GT is wanted (:func:`fuse`)."""
+    of one set, the pixels whose GT is wanted (:func:`fuse`); ``prior``: of one set, the
+    cells of its first members' points (:func:`fuse`)."""
     dev = sets[0].geometry.points.device
     if together is None:
         together = dev.type != "cpu"
-    if pixels is not None and len(sets) != 1:
-        raise ValueError(f"pixels masks one frame set's render, got {len(sets)} sets")
+    if (pixels is not None or prior is not None) and len(sets) != 1:
+        raise ValueError(f"pixels and prior cells are one frame set's, got {len(sets)} sets")
     if not together or len(sets) == 1 or any(not s.members or s.members[0] != 0 for s in sets):
-        return [
-            _fuse_one(s, K, size_hw, settings, src_hw, leave_target_out, rows if dev.type == "cpu" else None, pixels)
-            for s in sets
-        ]
+        cpu_rows = rows if dev.type == "cpu" else None
+        return [_fuse_one(s, K, size_hw, settings, src_hw, leave_target_out, cpu_rows, pixels, prior) for s in sets]
     return _fuse_together(sets, K, size_hw, settings, src_hw, leave_target_out)
 
 
@@ -257,6 +267,7 @@ def _fuse_one(
     leave_target_out: bool,
     rows: int | None,
     pixels: torch.Tensor | None = None,
+    prior: Cells | None = None,
 ) -> Fusion:
     members = one.members
     cloud = cloud_from_geometry(
@@ -274,19 +285,21 @@ def _fuse_one(
         frame=cloud.frame,
         src_hw=src_hw,
         block_rows=rows,
+        prior=prior,
     )
     gt = composite_gt(
         blocks, st, target_frame=0 if with_target else None, pixels=None if pixels is None else pixels[None]
     )
     left = _left_whole(gt.agreement[0], members, st)
     stride = st.leave_target_out_stride
+    cells = blocks[0].cells
     if not (with_target and leave_target_out and len(members) > 1):
-        return Fusion(gt, tuple(members), left, None, stride)
+        return Fusion(gt, tuple(members), left, None, stride, cells)
     # the leave-target-out render: the same compositor over the same candidates minus the
     # target's, with the noise law as fusing the neighbours alone estimates it
     lo_sigma = _lto_sigma(one.geometry, st)
     left_out = composite_gt(blocks, st, with_sigma=False, leave_out=0, stride=stride, sigma_m=lo_sigma)
-    return Fusion(gt, tuple(members), left, left_out, stride)
+    return Fusion(gt, tuple(members), left, left_out, stride, cells)
 
 
 def _fuse_together(

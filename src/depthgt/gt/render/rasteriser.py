@@ -24,10 +24,23 @@ from depthgt.noise_law import KINECT_SIGMA_1M, depth_sigma_m
 from depthgt.rasterise import _cells_inside, _footprint, check_points, front_to_back, resampled_positions
 from depthgt.shapes import check_shape
 
-__all__ = ["HIT_PX", "RenderCandidates", "rasterise_blocks", "rasterise_gt"]
+__all__ = ["HIT_PX", "Cells", "RenderCandidates", "rasterise_blocks", "rasterise_gt"]
 
 #: a surface with a sample this close to a pixel's sample position covers it (px)
 HIT_PX = 0.05
+
+
+class Cells(NamedTuple):
+    """The compiled rasteriser's (point, pixel) pairs of one render (:func:`_front_first_cells`):
+    ``starts`` (B*H*W + 1,) int64 each pixel's first pair, ``point`` (C,) int64 each pair's
+    point, of a cloud whose first ``n_points`` points they cover. A later render of a
+    cloud that begins with the same points in the same camera (the coverage step's render
+    with views added) takes them (:func:`rasterise_blocks`' ``prior``) and finds the
+    cells of its new points only."""
+
+    starts: np.ndarray
+    point: np.ndarray
+    n_points: int
 
 
 class RenderCandidates(NamedTuple):
@@ -56,6 +69,8 @@ class RenderCandidates(NamedTuple):
             :attr:`GTRender.agreement`.
         first_pixel: the flat index of the block's first pixel (``pixel`` counts from
             it); n_pixels: the block's pixels (None: every pixel, B*H*W).
+        cells: the compiled rasteriser's :class:`Cells` of the whole render (every
+            block's), or None (the tensor path).
     """
 
     pixel: torch.Tensor
@@ -72,6 +87,7 @@ class RenderCandidates(NamedTuple):
     n_frames: int
     first_pixel: int = 0
     n_pixels: int | None = None
+    cells: Cells | None = None
 
     @property
     def pixels(self) -> int:
@@ -365,13 +381,15 @@ def _project(
     src_hw: tuple[int, int] | None,
     block_rows: int | None,
     compiled: bool = False,
+    sort_from: int = 0,
 ) -> _Projected:
     """Project the points, order the visible ones front to back and group them by the
     blocks of ``block_rows`` pixel rows they reach (None: one block). ``compiled``: the
     projection, sigmas, visibility and planes in one compiled pass
     (:func:`_points_in_view`; CPU tensors with sigmas and no gradients) and the visible
     points put front to back by a compiled radix sort (:func:`_visible_front_to_back`;
-    one block), the same values and order."""
+    one block), the same values and order; ``sort_from``: the compiled sort's entries
+    are the visible points from this index on only (the others' cells are known)."""
     b, n = points_cam.shape[:2]
     h, w = int(size_hw[0]), int(size_hw[1])
     dev, dt = points_cam.device, points_cam.dtype
@@ -406,7 +424,11 @@ def _project(
         bits = {torch.float32: np.uint32, torch.float64: np.uint64}.get(iz_all.dtype)
         if compiled and bits is not None and rows >= b * h:
             iz_bits = iz_all.detach().contiguous().numpy().view(bits)
-            pid = torch.from_numpy(_visible_front_to_back(ok.contiguous().numpy(), iz_bits, np.iinfo(bits).max))
+            to_sort = ok.contiguous().numpy()
+            if sort_from:
+                to_sort = to_sort.copy()
+                to_sort[:sort_from] = False
+            pid = torch.from_numpy(_visible_front_to_back(to_sort, iz_bits, np.iinfo(bits).max))
         else:
             pid = ok.nonzero().squeeze(1)
             pid = pid.index_select(0, front_to_back(iz_all.detach().index_select(0, pid)))  # front first
@@ -537,6 +559,42 @@ def _front_first_cells(uv, ok, order, gu, gv, r, shift, r2, far, span, b, n, h, 
 
 
 @numba.njit(cache=True, nogil=True)
+def _merged_cells(starts_a, point_a, starts_b, point_b, bits):  # pragma: no cover (compiled)
+    """The cells of two renders of one cloud's points merged pixel by pixel: ``a``'s
+    (:class:`Cells`) of its first points, ``b``'s of the others. Within a pixel front
+    first as :func:`_front_first_cells` orders them: by the bit patterns ``bits`` of the
+    points' inverse depths decreasing, equal ones in point order (a's points come
+    first). A pass over the pairs, in place of finding and sorting the first points'
+    cells again."""
+    n_pix = starts_a.shape[0] - 1
+    starts = np.empty(n_pix + 1, np.int64)
+    point = np.empty(point_a.shape[0] + point_b.shape[0], np.int64)
+    starts[0] = 0
+    m = 0
+    for p in range(n_pix):
+        i, i_end = starts_a[p], starts_a[p + 1]
+        j, j_end = starts_b[p], starts_b[p + 1]
+        while i < i_end and j < j_end:
+            if bits[point_b[j]] > bits[point_a[i]]:  # b's point in front
+                point[m] = point_b[j]
+                j += 1
+            else:
+                point[m] = point_a[i]
+                i += 1
+            m += 1
+        while i < i_end:
+            point[m] = point_a[i]
+            i += 1
+            m += 1
+        while j < j_end:
+            point[m] = point_b[j]
+            j += 1
+            m += 1
+        starts[p + 1] = m
+    return starts, point
+
+
+@numba.njit(cache=True, nogil=True)
 def _cell_values(starts, point, uv, iz, s, frame, gu, gv, h, w):  # pragma: no cover (compiled)
     """The candidates of :func:`_front_first_cells`' pairs in one pass over the pixels
     (row by row, so no division): pixel, ox, oy (the projection minus the sample
@@ -648,10 +706,11 @@ def _rasterise_block(pr: _Projected, k: int, radius_px: float) -> RenderCandidat
     return _candidates(pr, pixel, point, col, row, (g_hi - g_lo) * w, g_lo * w)
 
 
-def _rasterise_compiled(pr: _Projected, radius_px: float) -> RenderCandidates:
+def _rasterise_compiled(pr: _Projected, radius_px: float, prior: Cells | None = None) -> RenderCandidates:
     """The candidates of every pixel, their cells found by :func:`_front_first_cells`
     (CPU tensors; the tensor path's candidates), their values by :func:`_cell_values`
-    (with gradients wanted: as tensors)."""
+    (with gradients wanted: as tensors). ``prior``: the cells of the first points, known
+    (``pr.entries`` holds the others only): the others' cells are found and merged in."""
     b, h, w = pr.size
     gu, gv, shift = pr.grid
     r = float(radius_px)
@@ -660,9 +719,13 @@ def _rasterise_compiled(pr: _Projected, radius_px: float) -> RenderCandidates:
         raise ValueError(f"too many pixels for one rasterisation: {n_pix}")
     uv = pr.uv.detach().contiguous().numpy()
     real = uv.dtype.type  # the tensors' precision
+    visible = pr.visible.numpy()
+    if prior is not None:
+        visible = visible.copy()
+        visible[: prior.n_points] = False
     starts, point = _front_first_cells(
         uv,
-        pr.visible.numpy(),
+        visible,
         pr.entries.numpy(),
         gu.numpy(),
         gv.numpy(),
@@ -676,6 +739,11 @@ def _rasterise_compiled(pr: _Projected, radius_px: float) -> RenderCandidates:
         h,
         w,
     )
+    if prior is not None:
+        bits = {np.dtype(np.float32): np.uint32, np.dtype(np.float64): np.uint64}[uv.dtype]
+        iz_bits = pr.iz.detach().contiguous().numpy().view(bits)  # positive floats order as their bits
+        starts, point = _merged_cells(prior.starts, prior.point, starts, point, iz_bits)
+    cells = Cells(starts, point, pr.uv.shape[0])
     if not (torch.is_grad_enabled() and (pr.uv.requires_grad or pr.iz.requires_grad)):
         values = _cell_values(
             starts,
@@ -702,12 +770,13 @@ def _rasterise_compiled(pr: _Projected, radius_px: float) -> RenderCandidates:
             iz_point=pr.iz.detach(),
             size=pr.size,
             n_frames=pr.n_frames,
+            cells=cells,
         )
     with torch.no_grad():
         pixel = torch.repeat_interleave(torch.arange(n_pix), torch.from_numpy(np.diff(starts)))
         col = pixel % w
         row = torch.div(pixel, w, rounding_mode="floor") % h
-    return _candidates(pr, pixel, torch.from_numpy(point), col, row, None, 0)
+    return _candidates(pr, pixel, torch.from_numpy(point), col, row, None, 0)._replace(cells=cells)
 
 
 def _check(points_cam, K, size_hw, valid, normals_cam, sigma_m, frame) -> torch.Tensor:
@@ -732,23 +801,34 @@ def rasterise_blocks(
     src_hw: tuple[int, int] | None = None,
     block_rows: int | None = None,
     compiled: bool | None = None,
+    prior: Cells | None = None,
 ) -> list[RenderCandidates]:
     """Step 1 of :func:`~depthgt.gt.render.compositor.render_gt` in blocks of
     ``block_rows`` pixel rows of the stacked images (None: one block): each block's
     candidates with their inverse depths, sigmas and frames, sorted by pixel and front
     first. ``compiled``: the CPU's compiled cells (:func:`_front_first_cells`; default on the
-    CPU) or the tensor path (a GPU's); the same candidates. Other args: as
-    :func:`rasterise_gt`."""
+    CPU) or the tensor path (a GPU's); the same candidates. ``prior``: the compiled
+    cells (:attr:`RenderCandidates.cells`) of a render of these points' first
+    ``prior.n_points`` -- the same points in the same camera, at this size and radius --
+    so that only the others' cells are found (the compiled path; the tensor path
+    finds them all); the same candidates. Other args: as :func:`rasterise_gt`."""
     valid = _check(points_cam, K, size_hw, valid, normals_cam, sigma_m, frame)
     if compiled is None:
         compiled = points_cam.device.type == "cpu"
     elif compiled and points_cam.device.type != "cpu":
         raise ValueError(f"the compiled rasteriser takes CPU tensors, got {points_cam.device.type}")
     if compiled:
+        b, h, w = points_cam.shape[0], int(size_hw[0]), int(size_hw[1])
+        if prior is not None and (prior.starts.shape[0] != b * h * w + 1 or prior.n_points > valid.numel()):
+            raise ValueError(
+                f"prior cells of {prior.starts.shape[0] - 1} pixels and {prior.n_points} points do not fit "
+                f"a render of {b * h * w} pixels and {valid.numel()} points"
+            )
         # every pixel at once (:func:`_front_first_cells`' counting sort needs no blocks: 12 %
         # faster on 7-Scenes than block by block), then cut into blocks (views)
-        pr = _project(points_cam, K, size_hw, settings, valid, normals_cam, sigma_m, frame, src_hw, None, True)
-        return _rasterise_compiled(pr, settings.radius_px).blocks(block_rows)
+        first = 0 if prior is None else prior.n_points
+        pr = _project(points_cam, K, size_hw, settings, valid, normals_cam, sigma_m, frame, src_hw, None, True, first)
+        return _rasterise_compiled(pr, settings.radius_px, prior).blocks(block_rows)
     pr = _project(points_cam, K, size_hw, settings, valid, normals_cam, sigma_m, frame, src_hw, block_rows)
     return [_rasterise_block(pr, k, settings.radius_px) for k in range(len(pr.edges) - 1)]
 
