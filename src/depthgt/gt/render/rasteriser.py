@@ -133,10 +133,12 @@ class RenderCandidates(NamedTuple):
         return first._replace(**cat, pixel=pixel, frame=frame, first_pixel=0, n_pixels=None)
 
     def select(self, index: torch.Tensor) -> RenderCandidates:
-        """The candidates at ``index`` (C',) long (ascending keeps the sort)."""
+        """The candidates at ``index`` (C',) long (ascending keeps the sort); no
+        :attr:`cells` (those are the whole render's)."""
         names = ("pixel", "point", "ox", "oy", "d2", "iz", "s")
         picked = {k: getattr(self, k).index_select(0, index) for k in names}
-        return self._replace(**picked, frame=None if self.frame is None else self.frame.index_select(0, index))
+        frame = None if self.frame is None else self.frame.index_select(0, index)
+        return self._replace(**picked, frame=frame, cells=None)
 
     def without_frame(self, frame: int, *, stride: int = 1, sigma_m: torch.Tensor | None = None) -> RenderCandidates:
         """The candidates of every frame but ``frame`` (the leave-target-out render's).
