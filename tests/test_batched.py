@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import count_synthetic_reads
+from conftest import count_synthetic_reads, synthetic_source
 
 from depthgt.framecache import FrameCache
 from depthgt.gt.render import fuse
@@ -293,12 +293,7 @@ def test_a_gpu_group_of_targets_apart_reads_each_frame_once(tmp_path, monkeypatc
 
     monkeypatch.setattr(batch, "resolve_device", lambda device: torch.device("cuda"))
     monkeypatch.setattr(batch, "GPU_GROUP", 4)
-    source = {
-        "name": "syn",
-        "kind": "synthetic",
-        "scenes": ["room_000"],
-        "options": {"n_frames": 30, "width": 80, "height": 60},
-    }
+    source = synthetic_source("syn", ["room_000"], "train", 30, 80, 60)
     config = {
         "seed": 1,
         "device": "cpu",
