@@ -388,12 +388,13 @@ def tiny_report(folder: Path) -> Callable[[], Path]:
 
 @pytest.fixture(autouse=True)
 def _torch_threads(request):
-    """Torch's intra-op threads for each test: the module's ``TORCH_THREADS`` (default 2,
-    the machine's cores). A module-level ``torch.set_num_threads`` would hold for the whole
-    session from the last module collected; the modules whose in-process trainings ran
-    several-fold slower with two threads beside other work (test_slurm's runs, a build) ask
-    for one."""
+    """Torch's intra-op threads for each test: the module's ``TORCH_THREADS`` (default 1).
+    A module-level ``torch.set_num_threads`` would hold for the whole session from the last
+    module collected. One thread, because on the 2-core test machine the early runs'
+    workflows (:func:`early`) keep the other core busy for most of the session, and two
+    intra-op threads beside them ran tests 2-10x slower (test_batched: 141 s in a full
+    run, 37 s alone; under two busy processes 89 s with two threads, 40 s with one)."""
     if "torch" in sys.modules:
         module = getattr(request.node, "module", None)  # a doctest has none
-        sys.modules["torch"].set_num_threads(getattr(module, "TORCH_THREADS", 2))
+        sys.modules["torch"].set_num_threads(getattr(module, "TORCH_THREADS", 1))
     yield

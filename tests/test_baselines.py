@@ -12,8 +12,6 @@ from depthgt.enhance.baselines import BASELINES, box_fill, run_baseline
 from depthgt.enhance.learned import DDRNetDenoise, PartialConv2d, SDDUNet, ddrnet_loss, sdd_loss
 from depthgt.eval.metrics import depth_errors
 
-TORCH_THREADS = 1  # conftest._torch_threads: the test machine is shared; one thread is faster here
-
 
 def _plane(n=64, seed=0, noise=0.02, slope=(0.01, 0.005), z0=2.0):
     rng = np.random.default_rng(seed)

@@ -28,10 +28,10 @@ TARGETS = (6, 8, 9)
 
 @pytest.fixture(scope="module")
 def framesets():
-    """Three frame sets of a synthetic room (noisy depth, exact poses) at 96x128, read
-    through one frame cache as a batch job reads them."""
-    torch.set_num_threads(1)
-    scene = open_source_scene({"kind": "synthetic", "options": {"n_frames": 18, "seed": 1}}, "room_000")
+    """Three frame sets of a synthetic room (noisy depth, exact poses) rendered at 160x120
+    and read at 96x128 through one frame cache, as a batch job reads them."""
+    options = {"n_frames": 18, "seed": 1, "width": 160, "height": 120}
+    scene = open_source_scene({"kind": "synthetic", "options": options}, "room_000")
     offsets = FrameSetSettings().offsets
     cache = FrameCache(keep=16)
     return [

@@ -16,8 +16,6 @@ from depthgt.enhance.losses import (
     normal_l1,
 )
 
-TORCH_THREADS = 1  # conftest._torch_threads: shared test machine: one thread is faster here
-
 
 def _expected_params(cfg: LapDENConfig) -> int:
     c = cfg.channels

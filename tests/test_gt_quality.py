@@ -20,7 +20,6 @@ from depthgt.settings import FrameSetSettings, RenderSettings
 
 @pytest.fixture(scope="module")
 def framesets():
-    torch.set_num_threads(2)
     out = []
     offsets = FrameSetSettings().offsets
     for room, n in (("room_000", 48), ("room_100", 32)):  # a default training room, the former test room

@@ -20,8 +20,6 @@ from depthgt.eval.metrics import (
     to_long,
 )
 
-TORCH_THREADS = 1  # conftest._torch_threads
-
 PRED = np.array([[1.0, 2.0], [0.0, 4.0]], dtype=np.float32)
 REF = np.array([[1.0, 3.0], [2.0, 0.0]], dtype=np.float32)
 

@@ -14,8 +14,6 @@ from depthgt.errors import DepthGTError
 from depthgt.eval import predictions, tables
 from depthgt.eval.evaluate import evaluate_frames
 
-TORCH_THREADS = 1  # conftest._torch_threads
-
 
 def _frame(rng, n=32):
     yy, xx = np.mgrid[0:n, 0:n]

@@ -38,7 +38,6 @@ TARGET = 20
 def built(tmp_path_factory):
     """One kitchen frame set built as the batch job builds it (refined poses: the stored
     poses are not the source's), its settings and the scene at the working resolution."""
-    torch.set_num_threads(2)
     settings = settings_from_config({"device": "cpu", "registration": {"method": "refine"}})
     scene = ResizedScene(
         open_source_scene({"kind": "sevenscenes", "root": str(FIXTURE)}, "7scenes-kitchen"), settings.size_hw, keep=16

@@ -19,8 +19,6 @@ from depthgt.registration.procrustes import procrustes_random_subsets, weighted_
 from depthgt.registration.refine import adjoint, refine_poses
 from depthgt.settings import REGISTRATION_PRESETS, RefineSettings, RegistrationSettings, registration_settings
 
-TORCH_THREADS = 2  # conftest._torch_threads
-
 SEVEN = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
 
 

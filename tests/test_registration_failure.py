@@ -26,7 +26,6 @@ TARGET = 12
 
 @pytest.fixture(scope="module")
 def scene_and_truth():
-    torch.set_num_threads(2)
     scene = open_source_scene({"kind": "synthetic", "options": {"n_frames": 24, "seed": 0}}, "room_000")
     members = [TARGET + o for o in FrameSetSettings().offsets]
     data = load_frameset(scene, members, (256, 256), True, torch.device("cpu"))

@@ -27,10 +27,6 @@ from depthgt.gt.render.compositor import _choose_surfaces
 from depthgt.gt.render.rasteriser import rasterise_blocks
 from depthgt.settings import RenderSettings
 
-TORCH_THREADS = (
-    1  # conftest._torch_threads: on an oversubscribed 2-core machine, 2 intra-op threads ran these tests ~3x slower
-)
-
 
 def _K(b: int, f: float, cx: float, cy: float, dtype=torch.float64) -> torch.Tensor:
     return torch.tensor([[f, 0, cx], [0, f, cy], [0, 0, 1]], dtype=dtype).expand(b, 3, 3).clone()

@@ -19,8 +19,6 @@ from depthgt.synth.camera import look_at
 from depthgt.synth.noise import KinectNoise, kinect_noise
 from depthgt.synth.scene import Layout, Material, Primitive, raycast
 
-TORCH_THREADS = 2  # conftest._torch_threads
-
 FIXTURE = Path(__file__).resolve().parents[2] / "shared/data/7scenes-kitchen"
 SMALL = dict(width=160, height=120, n_frames=12)
 

@@ -12,8 +12,6 @@ from depthgt.depth_ops import depth_normals, valid_avg_pool, window_max
 from depthgt.enhance.lapden import push_pull_fill
 from depthgt.enhance.losses import LossConfig, lapden_loss, normal_l1
 
-TORCH_THREADS = 1  # conftest._torch_threads
-
 
 def _surface(B=2, H=24, W=20, seed=0, holes=True):
     """Smooth depth (1-4 m) with rectangular holes, and the (B, 3, 3) intrinsics."""
