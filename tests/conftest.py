@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -290,6 +291,9 @@ class EarlyRuns:
         self._tmp = tmp_path_factory
         self._jobs: dict[str, Callable[[], object]] = {}
         self._done: dict[str, tuple[bool, object]] = {}
+        self._t0 = time.monotonic()
+        #: (name, lane, start s, end s) of each finished run, seconds from the session's start
+        self.times: list[tuple[str, str, float, float]] = []
         self._cond = threading.Condition()
         lanes: dict[str, list[str]] = {}
         for name in names:
@@ -314,10 +318,12 @@ class EarlyRuns:
 
     def _run(self, names: list[str]) -> None:
         for name in names:
+            start = time.monotonic() - self._t0
             try:
                 out = (True, self._jobs[name]())
             except BaseException as e:  # handed to the fixture, which raises it
                 out = (False, e)
+            self.times.append((name, _DECLARED[name].lane, start, time.monotonic() - self._t0))
             with self._cond:
                 self._done[name] = out
                 self._cond.notify_all()
@@ -335,6 +341,10 @@ class EarlyRuns:
         if not ok:
             raise value
         return value
+
+    def running(self) -> bool:
+        """Whether a lane still has runs to finish."""
+        return any(thread.is_alive() for thread in self._threads)
 
     def stop(self) -> None:
         """Kills the workflow runs still going (a session ended early: their tests will not
@@ -366,8 +376,23 @@ def _early_runs(request, tmp_path_factory):
             if declared is not None and declared.module in ("conftest", module) and name not in names:
                 names.append(name)
     runs = EarlyRuns(tmp_path_factory, names)
+    _SESSION_RUNS[:] = [runs]
     yield runs
     runs.stop()
+
+
+#: the session's EarlyRuns, for the summary
+_SESSION_RUNS: list[EarlyRuns] = []
+
+
+def pytest_terminal_summary(terminalreporter) -> None:
+    """With ``--durations``: when each early run ran, from the session's start. A test
+    that waits for a run that ends late holds up the session; this says which."""
+    if not _SESSION_RUNS or terminalreporter.config.getoption("durations", None) is None:
+        return
+    terminalreporter.section("early runs (s from the session's start)")
+    for name, lane, start, end in sorted(_SESSION_RUNS[0].times, key=lambda t: t[2]):
+        terminalreporter.write_line(f"{start:7.1f} - {end:7.1f} ({end - start:6.1f})  {lane:9s} {name}")
 
 
 @early()
@@ -388,13 +413,14 @@ def tiny_report(folder: Path) -> Callable[[], Path]:
 
 @pytest.fixture(autouse=True)
 def _torch_threads(request):
-    """Torch's intra-op threads for each test: the module's ``TORCH_THREADS`` (default 1).
-    A module-level ``torch.set_num_threads`` would hold for the whole session from the last
-    module collected. One thread, because on the 2-core test machine the early runs'
-    workflows (:func:`early`) keep the other core busy for most of the session, and two
-    intra-op threads beside them ran tests 2-10x slower (test_batched: 141 s in a full
-    run, 37 s alone; under two busy processes 89 s with two threads, 40 s with one)."""
+    """Torch's intra-op threads for each test: the module's ``TORCH_THREADS`` if it sets
+    one; else one while an early run (:func:`early`) is still going and two (the test
+    machine's cores) after. A module-level ``torch.set_num_threads`` would hold for the
+    whole session from the last module collected. Beside a running workflow, two intra-op
+    threads ran tests 2-10x slower (test_batched under two busy processes: 89 s with two
+    threads, 40 s with one)."""
     if "torch" in sys.modules:
         module = getattr(request.node, "module", None)  # a doctest has none
-        sys.modules["torch"].set_num_threads(getattr(module, "TORCH_THREADS", 1))
+        busy = bool(_SESSION_RUNS) and _SESSION_RUNS[0].running()
+        sys.modules["torch"].set_num_threads(getattr(module, "TORCH_THREADS", 1 if busy else 2))
     yield
