@@ -375,6 +375,8 @@ def _early_runs(request, tmp_path_factory):
             declared = _DECLARED.get(name)
             if declared is not None and declared.module in ("conftest", module) and name not in names:
                 names.append(name)
+    if names:  # the workflow lane compiles the kernels first (compiled_kernels)
+        names.insert(0, "compiled_kernels")
     runs = EarlyRuns(tmp_path_factory, names)
     _SESSION_RUNS[:] = [runs]
     yield runs
@@ -393,6 +395,16 @@ def pytest_terminal_summary(terminalreporter) -> None:
     terminalreporter.section("early runs (s from the session's start)")
     for name, lane, start, end in sorted(_SESSION_RUNS[0].times, key=lambda t: t[2]):
         terminalreporter.write_line(f"{start:7.1f} - {end:7.1f} ({end - start:6.1f})  {lane:9s} {name}")
+
+
+@early()
+def compiled_kernels(folder: Path) -> Callable[[], list[subprocess.CompletedProcess]]:
+    """``tests/warm_kernels.py``: the numba kernels compiled into their on-disk cache,
+    first in the workflow lane whenever the session has early runs. In a fresh checkout
+    the jobs and tests that start side by side would each compile them (~45 s of CPU
+    apiece on the 2-core test machine); after it they load them. Its output is not
+    checked: a kernel it leaves out is compiled where it is first used, as without it."""
+    return commands_in_background([[sys.executable, str(REPO / "tests/warm_kernels.py"), str(folder)]])
 
 
 @early()
