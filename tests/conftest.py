@@ -116,7 +116,11 @@ def snakemake(workdir: Path, *args: str, check: bool = True, **kw) -> subprocess
 
 def planned_jobs(workdir: Path, *args: str) -> dict[str, int]:
     """rule -> number of jobs a dry run of ``args`` would run (Snakemake's job table)."""
-    text = snakemake(workdir, "-n", *args).stdout
+    return jobs_table(snakemake(workdir, "-n", *args).stdout)
+
+
+def jobs_table(text: str) -> dict[str, int]:
+    """rule -> number of jobs in a dry run's output ``text`` (Snakemake's job table)."""
     if "Nothing to be done" in text:
         return {}
     table = text[text.index("Job stats:") :]
@@ -328,6 +332,17 @@ class EarlyRuns:
                 self._done[name] = out
                 self._cond.notify_all()
 
+    def earlier(self, name: str):
+        """For a run: the result of ``name``, a run before it in its lane (raises if
+        ``name`` has not ended: waiting for a later run of the same lane would never end)."""
+        with self._cond:
+            if name not in self._done:
+                raise RuntimeError(f"the early run {name} has not ended: declare its tests first")
+            ok, value = self._done[name]
+        if not ok:
+            raise value
+        return value
+
     def value(self, name: str, timeout: float = 1800):
         """The result of ``name``'s run, waited for; a run no selected test asked for at
         the session's start (a fixture requested on the fly) runs here and now."""
@@ -385,6 +400,12 @@ def _early_runs(request, tmp_path_factory):
 
 #: the session's EarlyRuns, for the summary
 _SESSION_RUNS: list[EarlyRuns] = []
+
+
+def earlier_run(name: str):
+    """In an early run's ``run``: the result of the early run ``name`` before it in its
+    lane (:meth:`EarlyRuns.earlier`)."""
+    return _SESSION_RUNS[0].earlier(name)
 
 
 def pytest_terminal_summary(terminalreporter) -> None:

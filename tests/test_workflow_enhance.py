@@ -20,7 +20,18 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
-from conftest import TINY_ENHANCE, make_workdir, planned_jobs, snakemake
+from conftest import (
+    TINY_ENHANCE,
+    _failed,
+    _snakemake_command,
+    commands_in_background,
+    earlier_run,
+    early,
+    in_background,
+    jobs_table,
+    make_workdir,
+    snakemake,
+)
 
 from depthgt.gt import store
 
@@ -186,33 +197,53 @@ def test_depthgt_report_command(synthetic_only, tmp_path):
     assert out.stat().st_size > 10_000
 
 
-@pytest.mark.skipif(not FIXTURE.is_dir(), reason="../shared/data/7scenes-kitchen is absent")
-def test_table2_from_7scenes_fixture(tiny_report, tmp_path):
-    """The session's enhancement build (a copy) with the kitchen's first 20 frames added
-    as a test source and JF and LapDEN (trained for two steps) as methods: the kitchen's
-    frame sets, references and predictions, the model and the tables are what runs."""
-    kitchen = tmp_path / "first-20" / FIXTURE.name
+@early()
+def kitchen_tables(folder: Path):
+    """The session's enhancement build (``tiny_report``, a copy) with the kitchen's first 20
+    frames added as a test source and JF and LapDEN (trained for two steps) as methods:
+    LapDEN trained before the new test data comes, then a dry run of ``tables`` (its job
+    table) and the run. An early run after ``tiny_report`` in the workflow lane; returns
+    the working directory and the dry run's jobs (rule -> count)."""
+    if not FIXTURE.is_dir():
+        return lambda: None
+    kitchen = folder / "first-20" / FIXTURE.name
     kitchen.mkdir(parents=True)
     for f in FIXTURE.iterdir():
         if not f.name.startswith("frame-") or int(f.name[6:12]) < 20:
             (kitchen / f.name).symlink_to(f)
-    wd = tmp_path / "build"
-    shutil.copytree(tiny_report, wd, symlinks=True)
     cfg = copy.deepcopy(TINY)
     cfg["evaluation"]["methods"] = ["input", "rgf", "jf", "lapden"]
-    (wd / "config/config.yaml").write_text(yaml.safe_dump(cfg))
-    snakemake(wd, "results/models/lapden/best.pt")  # trained before the new test data comes
-    # one's own real recordings as a test source: their frame sets, the test manifest, the
-    # RDE and references they need, evaluation and tables run; no training, and no job
-    # that writes a training manifest (issue 42)
-    cfg["sources"].append(
+    # one's own real recordings as a test source
+    real = copy.deepcopy(cfg)
+    real["sources"].append(
         {"name": "kitchen", "kind": "sevenscenes", "root": str(kitchen), "scenes": "all", "split": "test"}
     )
-    (wd / "config/config.yaml").write_text(yaml.safe_dump(cfg))
-    jobs = planned_jobs(wd, "tables")
+    wd = folder / "build"
+
+    def run() -> tuple[Path, dict[str, int]]:
+        shutil.copytree(earlier_run("tiny_report"), wd, symlinks=True)
+        (wd / "config/config.yaml").write_text(yaml.safe_dump(cfg))
+        in_background(wd, "results/models/lapden/best.pt")()
+        (wd / "config/config.yaml").write_text(yaml.safe_dump(real))
+        (dry,) = commands_in_background([_snakemake_command(wd, "-n", "tables")])()
+        if dry.returncode != 0:
+            raise _failed(dry)
+        in_background(wd, "tables")()
+        return wd, jobs_table(dry.stdout)
+
+    return run
+
+
+@pytest.mark.skipif(not FIXTURE.is_dir(), reason="../shared/data/7scenes-kitchen is absent")
+def test_table2_from_7scenes_fixture(tiny_report, kitchen_tables):
+    """The kitchen's first 20 frames as a test source of the enhancement build
+    (``kitchen_tables``): the kitchen's frame sets, references and predictions, the model
+    and the tables are what runs."""
+    wd, jobs = kitchen_tables
+    # its frame sets, the test manifest, the RDE and references they need, evaluation and
+    # tables run; no training, and no job that writes a training manifest (issue 42)
     assert not {"train_model", "training_manifests", "rde_training_manifests"} & set(jobs), jobs
     assert jobs["frameset_batch"] >= 1 and jobs["dataset"] == 1 and jobs["rde_dataset"] == 1, jobs
-    snakemake(wd, "tables")
     t2 = _table(wd, "table2")
     # one block per reference: depthgt's GT, the neighbours-only render, the TSDF GT
     refs = ["depthgt GT", "neighbours only", "TSDF GT"]
