@@ -261,8 +261,9 @@ def early(*, lane: str = "workflow") -> Callable[[Callable[[Path], Callable[[], 
 
     ``NAME(folder)`` prepares the run's inputs in an empty folder, in the main thread, and
     returns ``run``: a function of no arguments that only runs subprocesses
-    (:func:`in_background`, :func:`commands_in_background`; nothing in-process runs in the background, since tests
-    monkeypatch the library). When a selected test uses NAME (also through another
+    (:func:`in_background`, :func:`commands_in_background`) and copies files, taking an
+    earlier run's result with :func:`earlier_run`; nothing of the library runs in the
+    background, since tests monkeypatch it in-process. When a selected test uses NAME (also through another
     fixture), the session prepares it at its start and calls ``run`` in the background
     thread of its ``lane``, the lane's runs one after another in the order the tests need
     them; the fixture waits for the result. A workflow run is mostly one job process at a
