@@ -391,8 +391,8 @@ def _early_runs(request, tmp_path_factory):
             declared = _DECLARED.get(name)
             if declared is not None and declared.module in ("conftest", module) and name not in names:
                 names.append(name)
-    if names:  # the workflow lane compiles the kernels first (compiled_kernels)
-        names.insert(0, "compiled_kernels")
+    if names:  # the workflow lane compiles the kernels first (compiled_kernels), once
+        names = ["compiled_kernels", *(n for n in names if n != "compiled_kernels")]
     runs = EarlyRuns(tmp_path_factory, names)
     _SESSION_RUNS[:] = [runs]
     yield runs
@@ -424,8 +424,8 @@ def compiled_kernels(folder: Path) -> Callable[[], list[subprocess.CompletedProc
     """``tests/warm_kernels.py``: the numba kernels compiled into their on-disk cache,
     first in the workflow lane whenever the session has early runs. In a fresh checkout
     the jobs and tests that start side by side would each compile them (~45 s of CPU
-    apiece on the 2-core test machine); after it they load them. Its output is not
-    checked: a kernel it leaves out is compiled where it is first used, as without it."""
+    apiece on the 2-core test machine); after it they load them. A kernel it leaves out is
+    compiled where it is first used, as without it; test_batched checks that it ran."""
     return commands_in_background([[sys.executable, str(REPO / "tests/warm_kernels.py"), str(folder)]])
 
 

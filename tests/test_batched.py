@@ -341,3 +341,15 @@ def test_the_frame_cache_serves_threads_side_by_side():
     for t in threads:
         t.join()
     assert not errors, errors[:3]
+
+
+def test_the_kernel_warm_up_builds_its_frame_set(compiled_kernels):
+    """The session's first early run (conftest ``compiled_kernels``, tests/warm_kernels.py)
+    builds its frame set: the kernels it compiles are those a batch job runs."""
+    import json
+
+    (proc,) = compiled_kernels
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    folder = Path(proc.args[-1]) / "frameset"
+    assert json.loads((folder / "frameset.json").read_text())["status"] == "ok"
+    assert (folder / "gt.exr").stat().st_size > 0

@@ -2,8 +2,8 @@
 synthetic frame set built as a batch job builds it (``refine`` poses, ``coverage``
 views, the frame cache). The test session runs this first in its workflow lane
 (conftest ``_early_runs``), so that the workflow jobs and the in-process tests that start
-beside each other load the kernels instead of each compiling them (~10 s apiece) in a
-fresh checkout.
+beside each other load the kernels instead of each compiling them (~45 s of CPU apiece)
+in a fresh checkout.
 
     python3 tests/warm_kernels.py OUT_DIR
 """
