@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import pickle
 import re
 import signal
 import subprocess
@@ -292,8 +293,9 @@ class EarlyRuns:
     """The early runs of one test session (:func:`early`): prepared at its start, run in
     one background thread per lane, their results handed to their fixtures."""
 
-    def __init__(self, tmp_path_factory, names: list[str]):
+    def __init__(self, tmp_path_factory, names: list[str], shared: _Shared | None = None):
         self._tmp = tmp_path_factory
+        self._shared = shared
         self._jobs: dict[str, Callable[[], object]] = {}
         self._done: dict[str, tuple[bool, object]] = {}
         self._t0 = time.monotonic()
@@ -305,21 +307,14 @@ class EarlyRuns:
             self._jobs[name] = self._prepared(name)
             lanes.setdefault(_DECLARED[name].lane, []).append(name)
         self._threads = [threading.Thread(target=self._run, args=(lane,), daemon=True) for lane in lanes.values()]
+        self._lanes_left = len(self._threads)
+        if shared is not None and not self._threads:
+            shared.lanes_ended(self.times)
         for thread in self._threads:
             thread.start()
 
     def _prepared(self, name: str) -> Callable[[], object]:
-        """The run of ``name``, prepared in a folder of its own; or a run that raises the
-        preparation's error (its tests fail, the session goes on)."""
-        try:
-            return _DECLARED[name].prepare(self._tmp.mktemp(name))
-        except Exception as e:
-            err = e
-
-            def failed():
-                raise err
-
-            return failed
+        return _prepared(self._tmp, name)
 
     def _run(self, names: list[str]) -> None:
         for name in names:
@@ -329,9 +324,16 @@ class EarlyRuns:
             except BaseException as e:  # handed to the fixture, which raises it
                 out = (False, e)
             self.times.append((name, _DECLARED[name].lane, start, time.monotonic() - self._t0))
+            if self._shared is not None:
+                self._shared.publish(name, out)
             with self._cond:
                 self._done[name] = out
                 self._cond.notify_all()
+        with self._cond:
+            self._lanes_left -= 1
+            last = self._lanes_left == 0
+        if last and self._shared is not None:
+            self._shared.lanes_ended(self.times)
 
     def earlier(self, name: str):
         """For a run: the result of ``name``, a run before it in its lane (raises if
@@ -364,7 +366,11 @@ class EarlyRuns:
 
     def stop(self) -> None:
         """Kills the workflow runs still going (a session ended early: their tests will not
-        read them), waits for the lanes, then stops the runs that have a ``stop()``."""
+        read them), waits for the lanes, then stops the runs that have a ``stop()``. Under
+        xdist it first waits for the other workers' sessions to end: their tests may still
+        read the runs (a cluster that a ``stop()`` shuts down, runs not yet finished)."""
+        if self._shared is not None:
+            self._shared.wait_for_workers()
         _STOP.set()
         for proc in list(_LIVE):
             try:
@@ -378,14 +384,156 @@ class EarlyRuns:
                 job.stop()
 
 
-@pytest.fixture(scope="session", autouse=True)
-def _early_runs(request, tmp_path_factory):
-    """At the session's start, the early fixtures (:func:`early`) that the selected tests
-    use, in the order the tests need them, each seen only by the tests of the module that
-    declares it (conftest's: every test)."""
+def _prepared(tmp_path_factory, name: str) -> Callable[[], object]:
+    """The run of ``name``, prepared in a folder of its own; or a run that raises the
+    preparation's error (its tests fail, the session goes on)."""
+    try:
+        return _DECLARED[name].prepare(tmp_path_factory.mktemp(name))
+    except Exception as e:
+        err = e
+
+        def failed():
+            raise err
+
+        return failed
+
+
+class _Shared:
+    """The early runs of a session spread over pytest-xdist workers: the first worker
+    (gw0, the owner) runs them in its lanes and writes each result, pickled, into a folder
+    beside the workers' temporary folders; the other workers read it from there. The owner
+    stops the runs (a cluster's ``stop()``) only once every other worker's session has
+    ended, or its process is gone."""
+
+    def __init__(self, folder: Path, worker: str):
+        self.folder, self.worker = folder, worker
+        self.owner = worker == "gw0"
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / f"started-{worker}").write_text(str(os.getpid()))
+
+    @classmethod
+    def of(cls, tmp_path_factory) -> _Shared | None:
+        """This worker's share; None outside xdist (one process runs everything)."""
+        worker = os.environ.get("PYTEST_XDIST_WORKER")
+        if not worker:
+            return None
+        # each worker's basetemp is a folder popen-gwN in the session's basetemp (xdist)
+        return cls(Path(tmp_path_factory.getbasetemp()).parent / "early", worker)
+
+    def _write(self, name: str, data: bytes) -> None:
+        part = self.folder / f"{name}.part"
+        part.write_bytes(data)
+        os.replace(part, self.folder / name)  # whole or not there: a reader never sees half
+
+    def publish(self, name: str, out: tuple[bool, object]) -> None:
+        try:
+            data = pickle.dumps(out)
+        except Exception as e:  # a result that cannot leave its process fails its tests elsewhere
+            why = f"the early run {name} ran in worker {self.worker}; its result cannot be passed on: {e!r}"
+            data = pickle.dumps((False, RuntimeError(why)))
+        self._write(f"{name}.pickle", data)
+
+    def result(self, name: str, timeout: float) -> tuple[bool, object] | None:
+        """The owner's result of ``name``, waited for; None after ``timeout`` seconds."""
+        path = self.folder / f"{name}.pickle"
+        deadline = time.monotonic() + timeout
+        while not path.exists():
+            if time.monotonic() > deadline:
+                return None
+            time.sleep(0.2)
+        try:
+            return pickle.loads(path.read_bytes())
+        except Exception as e:
+            return False, RuntimeError(f"the early run {name}'s result cannot be read in worker {self.worker}: {e!r}")
+
+    def lanes_ended(self, times: list[tuple[str, str, float, float]]) -> None:
+        self._write("times.json", json.dumps(times).encode())
+        self._write("lanes.ended", b"")
+
+    def lanes_running(self) -> bool:
+        return not (self.folder / "lanes.ended").exists()
+
+    def ended(self) -> None:
+        (self.folder / f"ended-{self.worker}").write_text("")
+
+    def wait_for_workers(self, timeout: float = 3600) -> None:
+        """Until every other worker that started has ended its session or died."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            waiting = []
+            for started in self.folder.glob("started-*"):
+                worker = started.name.removeprefix("started-")
+                if worker == self.worker or (self.folder / f"ended-{worker}").exists():
+                    continue
+                try:
+                    os.kill(int(started.read_text()), 0)
+                except (ProcessLookupError, ValueError):
+                    continue  # crashed: xdist reports it
+                waiting.append(worker)
+            if not waiting:
+                return
+            time.sleep(0.5)
+
+    @staticmethod
+    def times(config) -> list[tuple[str, str, float, float]]:
+        """In the xdist controller: the owner's record of when each run ran."""
+        factory = getattr(config, "_tmp_path_factory", None)  # pytest's tmp_path_factory (no public handle in hooks)
+        path = factory.getbasetemp() / "early" / "times.json" if factory is not None else None
+        return json.loads(path.read_text()) if path is not None and path.exists() else []
+
+
+class _RunsOfTheOwner:
+    """A worker's early runs when another worker (the owner, :class:`_Shared`) runs them:
+    their results read as they come. A run that no selected test asked for at the
+    session's start runs here, when a test asks for it (as in :meth:`EarlyRuns.value`)."""
+
+    times: list[tuple[str, str, float, float]] = []
+
+    def __init__(self, tmp_path_factory, names: list[str], shared: _Shared):
+        self._tmp, self._names, self._shared = tmp_path_factory, set(names), shared
+        self._here: dict[str, Callable[[], object]] = {}
+
+    def value(self, name: str, timeout: float = 1800):
+        if name not in self._names:
+            self._here.setdefault(name, _prepared(self._tmp, name))
+            return self._here[name]()
+        out = self._shared.result(name, timeout)
+        if out is None:
+            pytest.fail(f"the early run {name} did not end within {timeout} s (run by worker gw0)")
+        ok, value = out
+        if not ok:
+            raise value
+        return value
+
+    def earlier(self, name: str):
+        raise RuntimeError(f"the early run {name} runs in worker gw0: an early run's run() runs there")
+
+    def running(self) -> bool:
+        return self._shared.lanes_running()
+
+    def stop(self) -> None:
+        for job in self._here.values():
+            if hasattr(job, "stop"):
+                job.stop()
+        self._shared.ended()
+
+
+def _xdist_controller(config) -> bool:
+    """Whether this process hands tests to pytest-xdist workers (and runs none itself)."""
+    return not hasattr(config, "workerinput") and getattr(config.option, "dist", "no") != "no"
+
+
+def pytest_collection_finish(session) -> None:
+    """After collection, the early fixtures (:func:`early`) that the selected tests use,
+    in the order the tests need them, each seen only by the tests of the module that
+    declares it (conftest's: every test). In a hook, not a fixture: every xdist worker
+    takes part, also one that is handed no test."""
+    config = session.config
+    if config.option.collectonly or _xdist_controller(config):
+        return
     _STOP.clear()
     names = []
-    for item in request.session.items:
+    for item in session.items:
         module = getattr(getattr(item, "module", None), "__name__", None)  # doctests have none
         for name in getattr(item, "fixturenames", ()):
             declared = _DECLARED.get(name)
@@ -393,14 +541,30 @@ def _early_runs(request, tmp_path_factory):
                 names.append(name)
     if names:  # the workflow lane compiles the kernels first (compiled_kernels), once
         names = ["compiled_kernels", *(n for n in names if n != "compiled_kernels")]
-    runs = EarlyRuns(tmp_path_factory, names)
+    factory = config._tmp_path_factory  # the session's tmp_path_factory (no public handle in hooks)
+    shared = _Shared.of(factory)
+    if shared is None or shared.owner:
+        runs = EarlyRuns(factory, names, shared)
+    else:
+        runs = _RunsOfTheOwner(factory, names, shared)
     _SESSION_RUNS[:] = [runs]
-    yield runs
-    runs.stop()
 
 
-#: the session's EarlyRuns, for the summary
-_SESSION_RUNS: list[EarlyRuns] = []
+def pytest_sessionfinish(session) -> None:
+    if _SESSION_RUNS:
+        _SESSION_RUNS[0].stop()
+
+
+@pytest.fixture(scope="session")
+def _early_runs() -> EarlyRuns | _RunsOfTheOwner:
+    """The session's early runs (:func:`pytest_collection_finish`)."""
+    if not _SESSION_RUNS:
+        pytest.fail("no early runs in this session (started by pytest_collection_finish)")
+    return _SESSION_RUNS[0]
+
+
+#: the session's EarlyRuns (or, in an xdist worker that does not own them, _RunsOfTheOwner)
+_SESSION_RUNS: list[EarlyRuns | _RunsOfTheOwner] = []
 
 
 def earlier_run(name: str):
@@ -412,10 +576,14 @@ def earlier_run(name: str):
 def pytest_terminal_summary(terminalreporter) -> None:
     """With ``--durations``: when each early run ran, from the session's start. A test
     that waits for a run that ends late holds up the session; this says which."""
-    if not _SESSION_RUNS or terminalreporter.config.getoption("durations", None) is None:
+    config = terminalreporter.config
+    if config.getoption("durations", None) is None:
+        return
+    times = _SESSION_RUNS[0].times if _SESSION_RUNS else _Shared.times(config) if _xdist_controller(config) else []
+    if not times:
         return
     terminalreporter.section("early runs (s from the session's start)")
-    for name, lane, start, end in sorted(_SESSION_RUNS[0].times, key=lambda t: t[2]):
+    for name, lane, start, end in sorted(times, key=lambda t: t[2]):
         terminalreporter.write_line(f"{start:7.1f} - {end:7.1f} ({end - start:6.1f})  {lane:9s} {name}")
 
 
@@ -448,13 +616,15 @@ def tiny_report(folder: Path) -> Callable[[], Path]:
 @pytest.fixture(autouse=True)
 def _torch_threads(request):
     """Torch's intra-op threads for each test: the module's ``TORCH_THREADS`` if it sets
-    one; else one while an early run (:func:`early`) is still going and two (the test
-    machine's cores) after. A module-level ``torch.set_num_threads`` would hold for the
-    whole session from the last module collected. Beside a running workflow, two intra-op
-    threads ran tests 2-10x slower (test_batched under two busy processes: 89 s with two
-    threads, 40 s with one)."""
+    one; else one while an early run (:func:`early`) is still going and, after, the
+    machine's cores shared among the session's processes (two in one process on the
+    2-core test machine, one in each of two xdist workers). A module-level
+    ``torch.set_num_threads`` would hold for the whole session from the last module
+    collected. Beside a running workflow, two intra-op threads ran tests 2-10x slower
+    (test_batched under two busy processes: 89 s with two threads, 40 s with one)."""
     if "torch" in sys.modules:
         module = getattr(request.node, "module", None)  # a doctest has none
         busy = bool(_SESSION_RUNS) and _SESSION_RUNS[0].running()
-        sys.modules["torch"].set_num_threads(getattr(module, "TORCH_THREADS", 1 if busy else 2))
+        share = max(1, len(os.sched_getaffinity(0)) // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+        sys.modules["torch"].set_num_threads(getattr(module, "TORCH_THREADS", 1 if busy else share))
     yield

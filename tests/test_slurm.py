@@ -67,10 +67,16 @@ class SlurmRuns:
         }
         self.start: subprocess.CompletedProcess | None = None
         self.procs: dict[str, subprocess.Popen] = {}
+        #: each run's workdir and its output, once it has ended
+        self.results: dict[str, tuple[Path, subprocess.CompletedProcess]] = {}
+
+    def __getstate__(self) -> dict:
+        """Pickled (handed to another xdist worker, conftest._Shared) without the processes."""
+        return {k: v for k, v in self.__dict__.items() if k != "procs"}
 
     def __call__(self) -> SlurmRuns:
-        """Starts the cluster, then the three runs (not waited for: :func:`finished`) and
-        cancels the ``killed`` run's held job."""
+        """Starts the cluster, then the three runs, cancels the ``killed`` run's held job
+        and waits for the runs (:func:`finished`)."""
         self.start = subprocess.run(
             ["bash", str(SCRIPT), "start"], env=self.env, capture_output=True, text=True, timeout=900
         )
@@ -83,6 +89,9 @@ class SlurmRuns:
                 "cuda": snakemake_on_slurm(self.workdirs["cuda"], env, "framesets"),
             }
             self._cancel_held_job(env)
+            self.results = {
+                name: (self.workdirs[name], finished(proc, self.workdirs[name])) for name, proc in self.procs.items()
+            }
         return self
 
     def _cancel_held_job(self, env: dict[str, str]) -> None:
@@ -183,11 +192,8 @@ def finished(proc: subprocess.Popen, workdir: Path) -> subprocess.CompletedProce
 
 @pytest.fixture(scope="module")
 def runs(slurm_runs, slurm) -> dict[str, tuple[Path, subprocess.CompletedProcess]]:
-    """The runs of :class:`SlurmRuns`, waited for."""
-    return {
-        name: (slurm_runs.workdirs[name], finished(proc, slurm_runs.workdirs[name]))
-        for name, proc in slurm_runs.procs.items()
-    }
+    """The runs of :class:`SlurmRuns`, ended."""
+    return slurm_runs.results
 
 
 def submitted_jobs(log: str) -> list[dict]:

@@ -1,7 +1,7 @@
 """Compiles the library's numba kernels into their on-disk cache (``cache=True``): one
 synthetic frame set built as a batch job builds it (``refine`` poses, ``coverage``
 views, the frame cache). The test session runs this first in its workflow lane
-(conftest ``_early_runs``), so that the workflow jobs and the in-process tests that start
+(conftest ``pytest_collection_finish``), so that the workflow jobs and the in-process tests that start
 beside each other load the kernels instead of each compiling them (~45 s of CPU apiece)
 in a fresh checkout.
 
