@@ -250,14 +250,13 @@ class _Declared(NamedTuple):
     prepare: Callable[[Path], Callable[[], object]]
     module: str  # the declaring module: its tests see the fixture (every test for conftest)
     lane: str
-    first: bool
 
 
 #: the early fixtures, by name (a fixture's name is its function's)
 _DECLARED: dict[str, _Declared] = {}
 
 
-def early(*, lane: str = "workflow", first: bool = False) -> Callable[[Callable[[Path], Callable[[], object]]], object]:
+def early(*, lane: str = "workflow") -> Callable[[Callable[[Path], Callable[[], object]]], object]:
     """Declares an early run: ``@early()`` on ``def NAME(folder) -> run`` makes NAME a
     session fixture whose value is what ``run()`` returns.
 
@@ -267,9 +266,9 @@ def early(*, lane: str = "workflow", first: bool = False) -> Callable[[Callable[
     earlier run's result with :func:`earlier_run`; nothing of the library runs in the
     background, since tests monkeypatch it in-process. When a selected test uses NAME (also through another
     fixture), the session prepares it at its start and calls ``run`` in the background
-    thread of its ``lane``, the lane's runs one after another in the order the tests need
-    them, the ``first`` ones before the others (runs whose tests take long, so that they
-    do not wait for them at the session's end); the fixture waits for the result. A workflow run is mostly one job process at a
+    thread of its ``lane``, the lane's runs one after another in the order the tests
+    that need them are reached (:func:`_in_order_reached`); the fixture waits for the
+    result. A workflow run is mostly one job process at a
     time, so on 2 cores the ``workflow`` lane overlaps with the other tests; a run that
     mostly waits (a SLURM cluster's) takes a lane of its own. A ``run`` with a ``stop()``
     method has it called when the session ends. A failed preparation fails the fixture's
@@ -280,7 +279,7 @@ def early(*, lane: str = "workflow", first: bool = False) -> Callable[[Callable[
         known = _DECLARED.get(name)
         if known is not None and known.module != prepare.__module__:
             raise ValueError(f"two early fixtures named {name}: in {known.module} and {prepare.__module__}")
-        _DECLARED[name] = _Declared(prepare, prepare.__module__, lane, first)
+        _DECLARED[name] = _Declared(prepare, prepare.__module__, lane)
 
         def fixture(_early_runs: EarlyRuns):
             return _early_runs.value(name)
@@ -520,6 +519,28 @@ class _RunsOfTheOwner:
         self._shared.ended()
 
 
+def _in_order_reached(session) -> list[pytest.Item]:
+    """The selected tests in the order the session reaches them: with pytest-xdist's
+    ``loadfile`` the files with the most tests first (its default ``--loadscope-reorder``;
+    equal counts in collection order), else the collection order. The lanes start their
+    runs in this order, so that a run's tests find it finished rather than wait."""
+    dist, reorder = getattr(session.config, "workerinput", {}).get("depthgt_dist", ("no", False))
+    if dist != "loadfile" or not reorder:
+        return list(session.items)
+    files: dict[str, list[pytest.Item]] = {}
+    for item in session.items:
+        files.setdefault(item.nodeid.split("::")[0], []).append(item)
+    return [item for tests in sorted(files.values(), key=len, reverse=True) for item in tests]  # a stable sort
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node) -> None:
+    """pytest-xdist's hook, in the controller: tells each worker how the tests are handed
+    out (a worker's own options say ``--dist no``), for :func:`_in_order_reached`."""
+    option = node.config.option
+    node.workerinput["depthgt_dist"] = (option.dist, bool(getattr(option, "loadscopereorder", True)))
+
+
 def _xdist_controller(config) -> bool:
     """Whether this process hands tests to pytest-xdist workers (and runs none itself)."""
     return not hasattr(config, "workerinput") and getattr(config.option, "dist", "no") != "no"
@@ -535,13 +556,12 @@ def pytest_collection_finish(session) -> None:
         return
     _STOP.clear()
     names = []
-    for item in session.items:
+    for item in _in_order_reached(session):
         module = getattr(getattr(item, "module", None), "__name__", None)  # doctests have none
         for name in getattr(item, "fixturenames", ()):
             declared = _DECLARED.get(name)
             if declared is not None and declared.module in ("conftest", module) and name not in names:
                 names.append(name)
-    names.sort(key=lambda name: not _DECLARED[name].first)  # stable: in their order otherwise
     if names:  # the workflow lane compiles the kernels first (compiled_kernels), once
         names = ["compiled_kernels", *(n for n in names if n != "compiled_kernels")]
     factory = config._tmp_path_factory  # the session's tmp_path_factory (no public handle in hooks)
@@ -600,21 +620,19 @@ def compiled_kernels(folder: Path) -> Callable[[], list[subprocess.CompletedProc
     return commands_in_background([[sys.executable, str(REPO / "tests/warm_kernels.py"), str(folder)]])
 
 
-@early(first=True)
+@early()
 def tiny_build(folder: Path) -> Callable[[], Path]:
     """TINY built to the ``dataset`` target once per test session, shared by the test
     files that only read it (test_workflow, test_data, test_cli, test_profiles): a test
-    that changes a build works on a copy or a build of its own. An early run, before the
-    lane's others (``first``: its tests take minutes)."""
+    that changes a build works on a copy or a build of its own. An early run."""
     return in_background(make_workdir(folder, TINY), "dataset")
 
 
-@early(first=True)
+@early()
 def tiny_report(folder: Path) -> Callable[[], Path]:
     """TINY_ENHANCE built to the ``report`` target once per test session, shared by
     test_workflow_enhance (which reads it) and test_train_resume (which copies it). An
-    early run, before the lane's others but ``tiny_build`` (``first``: its tests take a
-    minute)."""
+    early run."""
     return in_background(make_workdir(folder, TINY_ENHANCE), "report")
 
 
