@@ -648,6 +648,9 @@ def _torch_threads(request):
     if "torch" in sys.modules:
         module = getattr(request.node, "module", None)  # a doctest has none
         busy = bool(_SESSION_RUNS) and _SESSION_RUNS[0].running()
-        share = max(1, len(os.sched_getaffinity(0)) // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+        cores = (
+            len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        )  # macOS: no affinity
+        share = max(1, cores // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
         sys.modules["torch"].set_num_threads(getattr(module, "TORCH_THREADS", 1 if busy else share))
     yield
