@@ -27,6 +27,7 @@ ratio. A checkout older than the per-stage timings reports its total only.
 
     python3 bench/bench_pipeline.py --modes given fast --against /tmp/base
     python3 bench/bench_pipeline.py --modes given fast --against /tmp/base --repeats 3   # alternating runs
+    python3 bench/bench_pipeline.py --modes refine --selection coverage --against /tmp/base --repeats 2
 
 On a shared machine the CPU time of the same work moves by +-5 % from minute to minute;
 ``--repeats`` alternates the two checkouts and prints the spread of the per-pair ratios.
@@ -159,7 +160,7 @@ def main(argv=None) -> None:
         nargs="+",
         default=None,
         choices=["window", "coverage"],
-        help="frameset.selection, alternating per (recording, mode) and repeat (not with --against)",
+        help="frameset.selection, alternating per (recording, mode) and repeat (one value with --against)",
     )
     ap.add_argument(
         "--profile",
@@ -171,10 +172,9 @@ def main(argv=None) -> None:
     ap.add_argument("--src", help=argparse.SUPPRESS)  # internal: the library this process runs (see --against)
     ap.add_argument("--csv", help=argparse.SUPPRESS)  # internal: write the per-set rows here
     a = ap.parse_args(argv)
-    if a.against and a.selection:
-        # the other checkout's process runs the window; the side by side would compare
-        # coverage with the window
-        ap.error("--selection does not go with --against: run each checkout with --src, one after the other")
+    if a.against and a.selection and len(a.selection) > 1:
+        # the side by side compares each checkout's sets of one selection
+        ap.error(f"--against takes one --selection (both checkouts run it), got {' '.join(a.selection)}")
     if a.profile < 0:
         ap.error(f"--profile takes the number of functions to print (0: no profile), got {a.profile}")
     if a.profile and a.against:
@@ -237,7 +237,8 @@ def main(argv=None) -> None:
             side["ratio min"], side["ratio max"] = per.min(), per.max()
         print(
             f"side by side, total CPU per frame set: this checkout vs {a.against}/src "
-            f"({a.repeats} alternating run(s) of each, {a.framesets} frame sets per run)"
+            f"({a.repeats} alternating run(s) of each, {a.framesets} frame sets per run, "
+            f"frameset.selection {a.selection[0] if a.selection else 'from the config'})"
         )
         print(side.to_markdown(floatfmt=".3f"))
 
@@ -314,6 +315,7 @@ def _run_other(checkout: Path, data: str, mode: str, a: argparse.Namespace) -> p
             str(checkout / "config/config.yaml"),
             "--csv",
             str(csv),
+            *(["--selection", *a.selection] if a.selection else []),
         ]
         env = {**os.environ, "PYTHONPATH": str(checkout / "src")}
         subprocess.run(cmd, check=True, env=env, cwd=str(checkout))

@@ -13,7 +13,7 @@ from kornia.geometry.liegroup import Se3
 
 from depthgt.jobs.common import open_source_scene
 from depthgt.registration import load_frameset, poses_from_source
-from depthgt.registration.pair_terms import channels_last, pair_terms
+from depthgt.registration.pair_terms import kernel_maps, pair_terms
 from depthgt.registration.refine import (
     Level,
     LevelSettings,
@@ -123,11 +123,13 @@ def test_the_compiled_terms_take_the_cpu_only(frameset):
     )  # fmt: skip
     with pytest.raises(ValueError, match="CPU"):
         pair_terms(
-            level.points.to("meta"), level.gray, level.valid, channels_last(level.maps), level.K,
+            level.points.to("meta"), level.gray, level.valid, kernel_maps(level.geo, level.photo), level.K,
             torch.eye(4)[None].expand(1, 4, 4), torch.tensor([[0, 1]]), **kw,
         )  # fmt: skip
-    with pytest.raises(ValueError, match="10 channels"):
-        channels_last(level.maps[:, :7])
+    with pytest.raises(ValueError, match="geo maps need 8 channels"):
+        kernel_maps(level.geo[:, :7], level.photo)
+    with pytest.raises(ValueError, match="differ in size"):
+        kernel_maps(level.geo, level.photo[:1])
 
 
 @pytest.mark.skipif(not KITCHEN.is_dir(), reason="../shared/data/7scenes-kitchen is absent")

@@ -294,8 +294,8 @@ def test_levels_of_one_frame_set_share_their_maps():
     first = Level(rgb, depth, K, 2, 1, maps_of)
     shared = Level(rgb, depth, K, 2, 2, maps_of)
     fresh = Level(rgb, depth, K, 2, 2)
-    assert shared.maps is first.maps and list(maps_of) == [2]
-    for name in ("maps", "points", "gray", "valid", "K", "median_depth"):
+    assert shared.geo is first.geo and shared.photo is first.photo and list(maps_of) == [2]
+    for name in ("geo", "photo", "points", "gray", "valid", "K", "median_depth"):
         assert torch.equal(getattr(shared, name), getattr(fresh, name)), name
     assert shared.hw == fresh.hw and first.points.shape[-1] == 4 * fresh.points.shape[-1]
 

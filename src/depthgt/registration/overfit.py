@@ -293,7 +293,8 @@ def _chain(
     level.points = torch.cat([level.points[:1], level.points[pairs[:, 1]]])
     level.gray = torch.cat([level.gray[:1], level.gray[pairs[:, 1]]])
     level.valid = torch.cat([level.valid[:1], level.valid[pairs[:, 1]]])
-    level.maps = torch.cat([level.maps[:1], level.maps[pairs[:, 1]]])
+    level.geo = torch.cat([level.geo[:1], level.geo[pairs[:, 1]]])
+    level.photo = torch.cat([level.photo[:1], level.photo[pairs[:, 1]]])
     ls = LevelSettings(rs.geo_scale_m[-1], rs.photo_scale, rs.photo_weight, rs.robust, rs.geo_ref_depth_m)
     # Mean cost per point that lands on a surface of the target, not the sum: a sum
     # charges points that leave the view and so favours the candidate of the largest

@@ -22,11 +22,18 @@ import numba
 import numpy as np
 import torch
 
-__all__ = ["PairTerms", "pair_terms", "costs_seen_by_both", "point_residuals"]
+__all__ = ["PairTerms", "pair_terms", "costs_seen_by_both", "kernel_maps", "point_residuals"]
 
-#: the channels of the sampled maps (:class:`depthgt.registration.refine.Level`):
-#: X (3), normals (3), gray, its gradients (2), normal validity
-_CHANNELS = 10
+#: the channels of a texel of the two maps the kernels sample (:class:`depthgt.registration.refine.Level`'s
+#: ``geo`` and ``photo``, channels last): X (3), normals (3), normal validity and a 0 (8 floats, 32 bytes);
+#: gray, its gradients (2) and a 0 (4 floats). The geometric term, a real recording's only one,
+#: reads the first alone: a tap's channels lie in one aligned half of a cache line, where one
+#: 40-byte texel of all ten crossed a line every second time (an evaluation 4-16 % faster
+#: without the photometric term, as fast with it; docs/decisions.md "The refinement's
+#: residuals compiled")
+_GEO, _PHOTO = 8, 4
+#: the sampled values (smp's rows): X (0-2), normals (3-5), gray (6), gx, gy (7, 8), validity (9)
+_SAMPLED = 10
 
 
 class PairTerms(NamedTuple):
@@ -86,13 +93,11 @@ def _warp(points, b, start, m, pose, cam, h, w, pq):  # pragma: no cover (compil
 
 
 @numba.njit(inline="always")
-def _sample(maps, base, h, w, m, pq, taps, tap_w, smp, photo):  # pragma: no cover (compiled)
-    """The maps' channels, bilinearly at (u, v) where ON, as grid_sample samples them
-    (align_corners=False: pixel centres at integers; a tap off the image weighs 0, as its
-    zero padding), into smp (10, m); where not ON, zeros. First each point's four taps
-    (offsets, weights; vectorised, no branch), then the gather: the gray and its
-    gradients (channels 6-8) only with the photometric term, as nothing else reads them
-    (without it, a real recording's default, an evaluation takes 12-16 % less time)."""
+def _taps(texel0, h, w, m, pq, taps, tap_w):  # pragma: no cover (compiled)
+    """Each point's four bilinear taps where ON, as grid_sample takes them (align_corners=False:
+    pixel centres at integers; a tap off the image weighs 0, as its zero padding): their
+    texels (``texel0`` + y w + x) into taps and their weights into tap_w (4, m); where not
+    ON, weights 0 (vectorised, no branch)."""
     f32 = np.float32
     for i in range(m):
         on = pq[_ON, i] > 0
@@ -106,20 +111,32 @@ def _sample(maps, base, h, w, m, pq, taps, tap_w, smp, photo):  # pragma: no cov
         tap_w[1, i] = ax * (1 - ay) if on & in_x1 & in_y0 else f32(0.0)
         tap_w[2, i] = (1 - ax) * ay if on & in_x0 & in_y1 else f32(0.0)
         tap_w[3, i] = ax * ay if on & in_x1 & in_y1 else f32(0.0)
-        taps[0, i] = base + (ya * w + xa) * _CHANNELS
-        taps[1, i] = base + (ya * w + xb) * _CHANNELS
-        taps[2, i] = base + (yb * w + xa) * _CHANNELS
-        taps[3, i] = base + (yb * w + xb) * _CHANNELS
+        taps[0, i] = texel0 + ya * w + xa
+        taps[1, i] = texel0 + ya * w + xb
+        taps[2, i] = texel0 + yb * w + xa
+        taps[3, i] = texel0 + yb * w + xb
+
+
+@numba.njit(inline="always")
+def _sample(geo, photo, texel0, h, w, m, pq, taps, tap_w, smp, with_photo):  # pragma: no cover (compiled)
+    """The maps' channels bilinearly at (u, v) where ON into smp (10, m) (X, normals,
+    gray, gx, gy, validity; zeros where not ON): the geometric texel's (``geo``) always,
+    the photometric one's (``photo``) only with the photometric term, as nothing else reads
+    them (without it, a real recording's default, an evaluation takes 12-16 % less time).
+    Each texel's channels written out (a loop over a tuple of channels ran ~5 % slower)."""
+    _taps(texel0, h, w, m, pq, taps, tap_w)
     for i in range(m):
-        o0, o1, o2, o3 = taps[0, i], taps[1, i], taps[2, i], taps[3, i]
+        o0, o1, o2, o3 = taps[0, i] * _GEO, taps[1, i] * _GEO, taps[2, i] * _GEO, taps[3, i] * _GEO
         w0, w1, w2, w3 = tap_w[0, i], tap_w[1, i], tap_w[2, i], tap_w[3, i]
         for c in range(6):
-            smp[c, i] = w0 * maps[o0 + c] + w1 * maps[o1 + c] + w2 * maps[o2 + c] + w3 * maps[o3 + c]
-        c = 9
-        smp[c, i] = w0 * maps[o0 + c] + w1 * maps[o1 + c] + w2 * maps[o2 + c] + w3 * maps[o3 + c]
-        if photo:
-            for c in range(6, 9):
-                smp[c, i] = w0 * maps[o0 + c] + w1 * maps[o1 + c] + w2 * maps[o2 + c] + w3 * maps[o3 + c]
+            smp[c, i] = w0 * geo[o0 + c] + w1 * geo[o1 + c] + w2 * geo[o2 + c] + w3 * geo[o3 + c]
+        smp[9, i] = w0 * geo[o0 + 6] + w1 * geo[o1 + 6] + w2 * geo[o2 + 6] + w3 * geo[o3 + 6]
+    if with_photo:
+        for i in range(m):
+            o0, o1, o2, o3 = taps[0, i] * _PHOTO, taps[1, i] * _PHOTO, taps[2, i] * _PHOTO, taps[3, i] * _PHOTO
+            w0, w1, w2, w3 = tap_w[0, i], tap_w[1, i], tap_w[2, i], tap_w[3, i]
+            for c in range(3):
+                smp[6 + c, i] = w0 * photo[o0 + c] + w1 * photo[o1 + c] + w2 * photo[o2 + c] + w3 * photo[o3 + c]
 
 
 @numba.njit(inline="always")
@@ -208,15 +225,16 @@ def _valid_first(points, src_gray, src_valid):  # pragma: no cover (compiled)
 
 @numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
 def _pair_terms_kernel(
-    points, src_gray, src_valid, maps, h, w, pairs, T_ab, cam, scales, photo, huber,
+    points, src_gray, src_valid, geo, photo_maps, h, w, pairs, T_ab, cam, scales, photo, huber,
     cost_pts, vis, pair_cost, inliers, H, g,
 ):  # fmt: skip  # pragma: no cover (compiled)
     """Long because a chunk's phases share its planes; each phase is a function or a
     short loop.
 
-    points (F, 3, N) float32; src_gray (F, N); src_valid (F, N) bool; maps: the flat
-    (F, h, w, 10) float32 maps (channels last: a tap's channels are one read); pairs
-    (P, 2) int64 (a, b): b's points into a's maps; T_ab (P, 12) float32, the rows of
+    points (F, 3, N) float32; src_gray (F, N); src_valid (F, N) bool; geo, photo_maps:
+    the flat (F, h, w, 8) and (F, h, w, 4) float32 maps (:func:`kernel_maps`; channels
+    last: a tap's channels are one read); pairs (P, 2) int64 (a, b): b's points into a's
+    maps; T_ab (P, 12) float32, the rows of
     each relative pose; cam (fx, fy, cx, cy); scales (geo_scale_m, 1 / geo_ref_depth_m
     or 0, gate, sqrt(photo_weight) / photo_scale, gate cost). Writes cost_pts, vis
     (P, C N), pair_cost, inliers (P,), H (P, 6, 6) and g (P, 6).
@@ -233,9 +251,9 @@ def _pair_terms_kernel(
     gate_cost = f32(scales[4])
     n_pairs, N = pairs.shape[0], points.shape[2]
     pq = np.empty((7, _CHUNK), np.float32)
-    taps = np.empty((4, _CHUNK), np.int64)  # the bilinear taps' offsets into maps
+    taps = np.empty((4, _CHUNK), np.int64)  # the bilinear taps' texels
     tap_w = np.empty((4, _CHUNK), np.float32)  # and their weights
-    smp = np.empty((_CHANNELS, _CHUNK), np.float32)
+    smp = np.empty((_SAMPLED, _CHUNK), np.float32)
     res = np.empty((6, _CHUNK), np.float32)
     jw = np.zeros((16, _CHUNK), np.float32)  # the photometric rows stay 0 without the term
     c_chunk = np.empty(_CHUNK, np.float32)  # a term's costs and visibility before they
@@ -245,14 +263,14 @@ def _pair_terms_kernel(
     vis[:] = False
     for p in range(n_pairs):
         a, b = pairs[p, 0], pairs[p, 1]
-        base = a * h * w * _CHANNELS
+        texel0 = a * h * w
         acc = np.zeros(27)  # H's upper triangle row by row (21), then g (6)
         cost = 0.0
         n_in = 0
         for start in range(0, count[b], _CHUNK):
             m = min(_CHUNK, count[b] - start)
             _warp(pts, b, start, m, T_ab[p], cam32, h, w, pq)
-            _sample(maps, base, h, w, m, pq, taps, tap_w, smp, photo)
+            _sample(geo, photo_maps, texel0, h, w, m, pq, taps, tap_w, smp, photo)
             _geometric(pq, smp, m, ref_inv, gate, geo_scale, res)
             _robust(res, m, huber)
             cost += _costs(res, m, gate_cost, c_chunk, v_chunk, jw, _WG)
@@ -315,27 +333,37 @@ def _pair_terms_kernel(
             g[p, r] = acc[21 + r]
 
 
-def channels_last(maps: torch.Tensor) -> np.ndarray:
-    """A level's maps (F, 10, h, w) as the kernel reads them: (F, h, w, 10) float32 (no
-    copy where the maps are float32 and channels last in memory)."""
-    if maps.shape[1] != _CHANNELS:
-        raise ValueError(f"pair_terms: the level's maps need {_CHANNELS} channels, got {maps.shape[1]}")
-    return maps.permute(0, 2, 3, 1).to(torch.float32).contiguous().numpy()
+def kernel_maps(geo: torch.Tensor, photo: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """A level's maps (:class:`~depthgt.registration.refine.Level`'s ``geo`` (F, 8, h, w)
+    and ``photo`` (F, 4, h, w)) as the kernels read them: (F, h, w, 8) and (F, h, w, 4)
+    float32 (no copy where the maps are float32 and channels last in memory)."""
+    for name, maps, channels in (("geo", geo, _GEO), ("photo", photo, _PHOTO)):
+        if maps.ndim != 4 or maps.shape[1] != channels:
+            raise ValueError(f"pair_terms: the level's {name} maps need {channels} channels, got {tuple(maps.shape)}")
+    if geo.shape[0] != photo.shape[0] or geo.shape[2:] != photo.shape[2:]:
+        raise ValueError(f"pair_terms: geo {tuple(geo.shape)} and photo {tuple(photo.shape)} maps differ in size")
+    return tuple(m.permute(0, 2, 3, 1).to(torch.float32).contiguous().numpy() for m in (geo, photo))
 
 
 def _kernel_inputs(
-    name: str, points: torch.Tensor, maps_hwc: np.ndarray, K: torch.Tensor, T_ab: torch.Tensor, pairs: torch.Tensor
+    name: str,
+    points: torch.Tensor,
+    maps_hwc: tuple[np.ndarray, np.ndarray],
+    K: torch.Tensor,
+    T_ab: torch.Tensor,
+    pairs: torch.Tensor,
 ) -> tuple:
-    """The kernels' common arguments: the flat maps, their (h, w), the pairs, the rows
+    """The kernels' common arguments: the two flat maps, their (h, w), the pairs, the rows
     of each relative pose (P, 12) and the camera (fx, fy, cx, cy); raises unless the
     points are on the CPU."""
     if points.device.type != "cpu":
         raise ValueError(f"{name} runs on the CPU; the points are on {points.device.type}")
     Kd = K.to(torch.float64)
     return (
-        maps_hwc.reshape(-1),
-        maps_hwc.shape[1],
-        maps_hwc.shape[2],
+        maps_hwc[0].reshape(-1),
+        maps_hwc[1].reshape(-1),
+        maps_hwc[0].shape[1],
+        maps_hwc[0].shape[2],
         pairs.to(torch.int64).contiguous().numpy(),
         T_ab[:, :3, :4].to(torch.float32).reshape(-1, 12).contiguous().numpy(),
         np.array([Kd[0, 0], Kd[1, 1], Kd[0, 2], Kd[1, 2]], np.float64),
@@ -346,7 +374,7 @@ def pair_terms(
     points: torch.Tensor,
     gray: torch.Tensor,
     valid: torch.Tensor,
-    maps_hwc: np.ndarray,
+    maps_hwc: tuple[np.ndarray, np.ndarray],
     K: torch.Tensor,
     T_ab: torch.Tensor,
     pairs: torch.Tensor,
@@ -361,7 +389,7 @@ def pair_terms(
 ) -> PairTerms:
     """Every pair's terms (:class:`PairTerms`) at the relative poses ``T_ab`` (P, 4, 4):
     pair (a, b) = ``pairs[p]`` takes b's ``points`` (F, 3, N) (with their ``gray`` and
-    ``valid`` (F, N)) into a's maps (``maps_hwc``, :func:`channels_last`) through the
+    ``valid`` (F, N)) into a's maps (``maps_hwc``, :func:`kernel_maps`) through the
     camera ``K`` (3, 3) of the maps' scale. The settings are
     :class:`~depthgt.registration.refine.LevelSettings`' with the association ``gate``
     (metres) and its cost. The normal equations come with the costs: in this pass they
@@ -405,7 +433,7 @@ def pair_terms(
 
 @numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
 def _residuals_kernel(
-    points, src_valid, maps, h, w, pairs, T_ab, cam, gate, ref_invs, r_geo, seen, ok,
+    points, src_valid, geo, photo_maps, h, w, pairs, T_ab, cam, gate, ref_invs, r_geo, seen, ok,
 ):  # fmt: skip  # pragma: no cover (compiled)
     """Every point's point-to-plane residual (metres) into r_geo (P, N), whether it lands
     on a surface into seen (P, N), and whether it is associated into ok (R, P, N), with
@@ -418,7 +446,7 @@ def _residuals_kernel(
     pq = np.empty((7, _CHUNK), np.float32)
     taps = np.empty((4, _CHUNK), np.int64)
     tap_w = np.empty((4, _CHUNK), np.float32)
-    smp = np.empty((_CHANNELS, _CHUNK), np.float32)
+    smp = np.empty((_SAMPLED, _CHUNK), np.float32)
     res = np.empty((6, _CHUNK), np.float32)
     for p in range(n_pairs):
         a, b = pairs[p, 0], pairs[p, 1]
@@ -427,7 +455,7 @@ def _residuals_kernel(
             _warp(points, b, start, m, T_ab[p], cam32, h, w, pq)
             for i in range(m):
                 pq[_ON, i] = pq[_ON, i] if src_valid[b, start + i] else f32(0.0)
-            _sample(maps, a * h * w * _CHANNELS, h, w, m, pq, taps, tap_w, smp, False)
+            _sample(geo, photo_maps, a * h * w, h, w, m, pq, taps, tap_w, smp, False)
             for k in range(ref_invs.shape[0]):
                 # a robust scale of 1 (the residual unscaled), the gate with reference k
                 _geometric(pq, smp, m, f32(ref_invs[k]), f32(gate), f32(1.0), res)
@@ -443,7 +471,7 @@ def _residuals_kernel(
 def point_residuals(
     points: torch.Tensor,
     valid: torch.Tensor,
-    maps_hwc: np.ndarray,
+    maps_hwc: tuple[np.ndarray, np.ndarray],
     K: torch.Tensor,
     T_ab: torch.Tensor,
     pairs: torch.Tensor,
@@ -453,7 +481,7 @@ def point_residuals(
     """The point-to-plane residuals behind the refinement's residual statistics
     (:func:`depthgt.registration.refine.target_residual_stats`), compiled: for pair (a,
     b) = ``pairs[p]`` b's ``points`` (F, 3, N) (``valid`` (F, N)) warped by ``T_ab`` (P,
-    4, 4) into a's maps (:func:`channels_last`) through ``K`` (3, 3). Returns r_geo (P, N)
+    4, 4) into a's maps (:func:`kernel_maps`) through ``K`` (3, 3). Returns r_geo (P, N)
     float32 metres, seen (P, N) bool (on a surface of a) and ok (R, P, N) bool (seen and
     within the association ``gate``, metres, grown as (z / ref)^2 beyond each of the R
     ``ref_depths_m``, 0: constant), as the tensor path (``refine._residuals_lazy``) finds

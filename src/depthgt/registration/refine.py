@@ -37,7 +37,7 @@ from depthgt.noise_law import (
     second_difference_residuals,
     sorted_residuals,
 )
-from depthgt.registration.pair_terms import channels_last, costs_seen_by_both, pair_terms, point_residuals
+from depthgt.registration.pair_terms import costs_seen_by_both, kernel_maps, pair_terms, point_residuals
 from depthgt.registration.settings import RefineSettings
 from depthgt.shapes import check_shape
 
@@ -157,32 +157,39 @@ class LevelSettings:
 
 class _Maps(NamedTuple):
     """One scale's images of J frames (:func:`_level_maps`): intrinsics K (3, 3) at (h,
-    w); maps (J, 10, h, w): points X (metres), normals, gray, its gradients, normal
-    validity; depth (J, 1, h, w) metres. The points and the gray are views of the maps,
-    so that the batch's frame cache keeps (and a set stacks) each value once."""
+    w); geo (J, 8, h, w): points X (metres), normals, normal validity and a 0; photo (J,
+    4, h, w): gray, its gradients and a 0; depth (J, 1, h, w) metres. The points, normals
+    and gray are views of the maps, so that the batch's frame cache keeps (and a set
+    stacks) each value once."""
 
     K: torch.Tensor
-    maps: torch.Tensor
+    geo: torch.Tensor
+    photo: torch.Tensor
     depth: torch.Tensor
 
     @property
     def X(self) -> torch.Tensor:
         """(J, 3, h, w) the points, metres."""
-        return self.maps[:, 0:3]
+        return self.geo[:, 0:3]
 
     @property
     def gray(self) -> torch.Tensor:
         """(J, 1, h, w) the gray image."""
-        return self.maps[:, 6:7]
+        return self.photo[:, 0:1]
 
     def take(self, k: int) -> _Maps:
-        return _Maps(self.K, self.maps[k : k + 1], self.depth[k : k + 1])
+        return _Maps(self.K, self.geo[k : k + 1], self.photo[k : k + 1], self.depth[k : k + 1])
 
     @staticmethod
     def stack(parts: list[_Maps]) -> _Maps:
         if len(parts) == 1:
             return parts[0]
-        return _Maps(parts[0].K, torch.cat([p.maps for p in parts]), torch.cat([p.depth for p in parts]))
+        return _Maps(
+            parts[0].K,
+            torch.cat([p.geo for p in parts]),
+            torch.cat([p.photo for p in parts]),
+            torch.cat([p.depth for p in parts]),
+        )
 
 
 def _level_maps(rgb: torch.Tensor, depth_m: torch.Tensor, K: torch.Tensor, scale: int) -> _Maps:
@@ -201,14 +208,16 @@ def _level_maps(rgb: torch.Tensor, depth_m: torch.Tensor, K: torch.Tensor, scale
     with plain_cpu_convolutions():  # 3x3 filters: ~3x faster than oneDNN's on one thread
         g = spatial_gradient(gray, mode="sobel", order=1, normalized=True)[:, 0]  # (F, 2, h, w) per pixel
     nvalid = _erode(valid)  # normals need all 3x3 neighbours valid
-    # channels: X(3) N(3) gray gx gy valid
-    maps = torch.cat([X, N, gray, g, nvalid], 1)
-    if maps.device.type == "cpu":
-        # channels last in memory, as the compiled terms read them (pair_terms.channels_last
+    # two maps, the geometric term's texel apart from the photometric one's
+    # (pair_terms._GEO, _PHOTO): X(3) N(3) valid 0, and gray gx gy 0
+    zero = torch.zeros_like(valid)
+    geo, photo = torch.cat([X, N, nvalid, zero], 1), torch.cat([gray, g, zero], 1)
+    if geo.device.type == "cpu":
+        # channels last in memory, as the compiled terms read them (pair_terms.kernel_maps
         # is then a view): a batch job computes a frame's maps once and reads them in up to
         # seven sets, where the copy had been made for each set's level (~13 ms per set)
-        maps = maps.contiguous(memory_format=torch.channels_last)
-    return _Maps(Ks, maps, d)
+        geo, photo = (m.contiguous(memory_format=torch.channels_last) for m in (geo, photo))
+    return _Maps(Ks, geo, photo, d)
 
 
 class Level:
@@ -225,8 +234,9 @@ class Level:
             the frames' positions: each frame's maps are computed once per batch.
 
     Attributes:
-        maps: (F, 10, h, w) points X (3, metres), normals (3), gray, gradients gx, gy and
-            normal validity, sampled at the warped positions.
+        geo: (F, 8, h, w) points X (3, metres), normals (3), normal validity and a 0;
+            photo: (F, 4, h, w) gray, its gradients gx, gy and a 0: the maps sampled at
+            the warped positions.
         points: (F, 3, N) source points (planar layout); gray (F, N); valid (F, N) bool.
         K: (3, 3) intrinsics at (h, w); hw: (h, w); median_depth: metres.
     """
@@ -257,7 +267,7 @@ class Level:
             m = _level_maps(rgb, depth_m, K, scale)
         if maps_of is not None:
             maps_of[scale] = m
-        self.K, self.maps, self._depth = m.K, m.maps, m.depth
+        self.K, self.geo, self.photo, self._depth = m.K, m.geo, m.photo, m.depth
         h, w = self.hw = tuple(m.depth.shape[-2:])
         ys = torch.arange(0, h, stride, device=m.X.device)
         xs = torch.arange(0, w, stride, device=m.X.device)
@@ -383,12 +393,10 @@ def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: Le
     grid = torch.empty(*u.shape, 2, dtype=u.dtype, device=u.device)
     torch.sub((u + 0.5) * (2.0 / w), 1, out=grid[..., 0])
     torch.sub((v + 0.5) * (2.0 / h), 1, out=grid[..., 1])
-    if s.photo_weight > 0:
-        smp = _sample_grouped(level.maps, grid, a)  # (G, 10, m, N)
-        nvalid = smp[:, 9]
-    else:  # X, N and normal validity only (each channel is sampled on its own: same values)
-        smp = _sample_grouped(_geometric_maps(level), grid, a)  # (G, 7, m, N)
-        nvalid = smp[:, 6]
+    # X, N and normal validity, with the photometric term its gray and gradients (each
+    # channel is sampled on its own: the same values either way)
+    smp = _sample_grouped(_tensor_maps(level, s.photo_weight > 0), grid, a)  # (G, 7 or 10, m, N)
+    nvalid = smp[:, 6]
     G, m = smp.shape[0], smp.shape[2]
 
     def grouped(x: torch.Tensor) -> torch.Tensor:  # (P, N) -> (G, m, N), a view
@@ -437,7 +445,7 @@ def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: Le
             return pairwise(scaled((*Nrm, *_cross(qv, Nrm)), inv_geo, N), 6, N)
 
         return pairwise(r_geo * inv_geo, N), pairwise(ok, N), pairwise(seen, N), pairwise(r_geo, N), jac_geo
-    r_ph = smp[:, 6] - grouped(level.gray.index_select(0, b))
+    r_ph = smp[:, 7] - grouped(level.gray.index_select(0, b))
     wp = math.sqrt(s.photo_weight)
     # geometric then photometric residuals side by side: (P, 2N), (P, 6, 2N)
     r = pairwise(scaled((r_geo,), inv_geo, 2 * N, out=scaled((r_ph,), wp / s.photo_scale, 2 * N, N)), 2 * N)
@@ -447,21 +455,23 @@ def _residuals_lazy(level: Level, T_ab: torch.Tensor, pairs: torch.Tensor, s: Le
     def jac() -> torch.Tensor:
         J = scaled((*Nrm, *_cross(qv, Nrm)), inv_geo, 2 * N)  # (G, m, 6, 2N), geometric half
         # d(u, v)/dq of the pinhole projection chained with the image gradient (gx, gy).
-        gx, gy = smp[:, 7] * fx * zi, smp[:, 8] * fy * zi
+        gx, gy = smp[:, 8] * fx * zi, smp[:, 9] * fy * zi
         ga = (gx, gy, -(gx * qx + gy * qy) * zi)
         return pairwise(scaled((*ga, *_cross(qv, ga)), wp / s.photo_scale, 2 * N, N, out=J), 6, 2 * N)
 
     return r, valid, vis, pairwise(r_geo, N), jac
 
 
-def _geometric_maps(level: Level) -> torch.Tensor:
-    """``level.maps`` without the photometric channels: X, N and validity (F, 7, h, w),
-    kept while ``level.maps`` is the same tensor."""
-    cached = getattr(level, "_geometric", None)
-    if cached is None or cached[0] is not level.maps:
-        keep = torch.tensor([0, 1, 2, 3, 4, 5, 9], device=level.maps.device)
-        cached = (level.maps, level.maps.index_select(1, keep))
-        level._geometric = cached
+def _tensor_maps(level: Level, photo: bool) -> torch.Tensor:
+    """The maps the tensor path samples: X, N and validity (F, 7, h, w), a view of
+    ``level.geo``; with ``photo`` then gray, gx, gy (F, 10, h, w), kept while
+    ``level.geo`` is the same tensor."""
+    if not photo:
+        return level.geo[:, :7]
+    cached = getattr(level, "_with_photo", None)
+    if cached is None or cached[0] is not level.geo:
+        cached = (level.geo, torch.cat([level.geo[:, :7], level.photo[:, :3]], 1))
+        level._with_photo = cached
     return cached[1]
 
 
@@ -605,11 +615,11 @@ def _system(
 
 
 def _maps_hwc(level: Level):
-    """``level.maps`` channels last, as the compiled terms read them (kept while
-    ``level.maps`` is the same tensor)."""
+    """``level.geo`` and ``level.photo`` channels last, as the compiled terms read them
+    (kept while ``level.geo`` is the same tensor)."""
     cached = getattr(level, "_hwc", None)
-    if cached is None or cached[0] is not level.maps:
-        cached = (level.maps, channels_last(level.maps))
+    if cached is None or cached[0] is not level.geo:
+        cached = (level.geo, kernel_maps(level.geo, level.photo))
         level._hwc = cached
     return cached[1]
 
@@ -932,7 +942,7 @@ def refine_poses_many(
         level = Level(rgb, depth, K, scale, stride, maps_of, cache, positions)
         if scale == 1:
             for b in range(n_sets):
-                outs[b].normals = level.maps[b * Fn : (b + 1) * Fn, 3:6]  # channels X(3) N(3) ...
+                outs[b].normals = level.geo[b * Fn : (b + 1) * Fn, 3:6]  # channels X(3) N(3) ...
         ls = LevelSettings(
             settings.geo_scale_m[li], settings.photo_scale, settings.photo_weight, settings.robust,
             settings.geo_ref_depth_m,
