@@ -90,7 +90,11 @@ def _landing(depth, grid, K, T, empty, eps):  # pragma: no cover (compiled)
     point (``grid`` (H, W, 3) kornia's unprojection grid times its depth) moved by ``T``
     (C, 4, 4), projected with ``K`` and rounded to its nearest pixel, marks that pixel
     when ``empty``. The tensors' float operations in their order, but for the rotation's
-    products, which BLAS sums in its own order (a point off by a float rounding)."""
+    products, which BLAS sums in its own order (a point off by a float rounding). Tried
+    and not kept (2026-11-29): each row's projections in a branch-free loop (numpy's
+    error model, so that it vectorises), then the marks: the same maps, no faster (30
+    candidates of 256x256 with 20 % holes: 35.3 against 36.7 ms in float32, 21.8 against
+    21.1 in float64)."""
     c_n, h, w = depth.shape
     hit = np.zeros((c_n, h * w), np.bool_)
     k00, k01, k02, k11, k12 = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
