@@ -234,10 +234,10 @@ def _pair_terms_kernel(
     points (F, 3, N) float32; src_gray (F, N); src_valid (F, N) bool; geo, photo_maps:
     the flat (F, h, w, 8) and (F, h, w, 4) float32 maps (:func:`kernel_maps`; channels
     last: a tap's channels are one read); pairs (P, 2) int64 (a, b): b's points into a's
-    maps; T_ab (P, 12) float32, the rows of
-    each relative pose; cam (fx, fy, cx, cy); scales (geo_scale_m, 1 / geo_ref_depth_m
-    or 0, gate, sqrt(photo_weight) / photo_scale, gate cost). Writes cost_pts, vis
-    (P, C N), pair_cost, inliers (P,), H (P, 6, 6) and g (P, 6).
+    maps; T_ab (P, 12) float32, the rows of each relative pose; cam (fx, fy, cx, cy);
+    scales (geo_scale_m, 1 / geo_ref_depth_m or 0, gate, sqrt(photo_weight) /
+    photo_scale, gate cost). Writes cost_pts, vis (P, C N), pair_cost, inliers (P,), H
+    (P, 6, 6) and g (P, 6).
 
     Each chunk of points runs in phases over small planes (warp, sample, residuals,
     costs, Jacobians, sums) rather than point by point: the element-wise phases
