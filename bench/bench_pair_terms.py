@@ -46,6 +46,28 @@ def _best(f, repeats: int) -> float:
     return min(times) * 1e3
 
 
+def _frameset_at_source_poses(source: dict, scene_name: str, target: int):
+    """One frame set of a shared recording at the build's offsets, 256x256, at its
+    source's poses: its data, the poses T (F, 4, 4), the build's refine settings and
+    their pairs."""
+    from depthgt.jobs.common import open_source_scene
+    from depthgt.registration import load_frameset, poses_from_source
+    from depthgt.registration.refine import frame_pairs
+    from depthgt.settings import FrameSetSettings, RefineSettings
+
+    if not Path(source["root"]).is_dir():
+        raise SystemExit(f"bench_pair_terms: {source['root']} is absent")
+    scene = open_source_scene(source, scene_name, need_poses=True)
+    offsets = list(FrameSetSettings().offsets)
+    d = load_frameset(scene, [target + o for o in offsets], (256, 256), True, torch.device("cpu"))
+    T = torch.cat([torch.eye(4, dtype=torch.float64)[None], poses_from_source(d)])
+    rs = RefineSettings()
+    return d, T, rs, frame_pairs(len(offsets), rs.pairs, offsets)
+
+
+KITCHEN = {"kind": "sevenscenes", "root": str(SHARED / "data/7scenes-kitchen")}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--target", type=int, default=30, help="the frame set's target frame")
@@ -56,20 +78,9 @@ def main() -> None:
     if args.against:
         against(Path(args.against), args.repeats)
         return
-    from depthgt.jobs.common import open_source_scene
-    from depthgt.registration import load_frameset, poses_from_source
-    from depthgt.registration.refine import Level, LevelSettings, _system, frame_pairs
-    from depthgt.settings import FrameSetSettings, RefineSettings
+    from depthgt.registration.refine import Level, LevelSettings, _system
 
-    root = SHARED / "data/7scenes-kitchen"
-    if not root.is_dir():
-        raise SystemExit(f"bench_pair_terms: {root} is absent")
-    scene = open_source_scene({"kind": "sevenscenes", "root": str(root)}, "7scenes-kitchen", need_poses=True)
-    offsets = list(FrameSetSettings().offsets)
-    d = load_frameset(scene, [args.target + o for o in offsets], (256, 256), True, torch.device("cpu"))
-    T = torch.cat([torch.eye(4, dtype=torch.float64)[None], poses_from_source(d)])
-    rs = RefineSettings()
-    pairs = frame_pairs(len(offsets), rs.pairs, offsets)
+    d, T, rs, pairs = _frameset_at_source_poses(KITCHEN, "7scenes-kitchen", args.target)
     rows = []
     for li, (scale, stride, gate) in enumerate(zip(rs.scales, rs.point_stride, rs.max_dist_m)):
         level = Level(d.rgb, d.depth_m, d.K.float(), scale, stride)
@@ -123,26 +134,16 @@ def against(checkout: Path, repeats: int) -> None:
     import numpy as np
 
     import depthgt.registration.pair_terms as this_kernel
-    from depthgt.jobs.common import open_source_scene
-    from depthgt.registration import load_frameset, poses_from_source
-    from depthgt.registration.refine import Level, LevelSettings, _gate_cost, frame_pairs
-    from depthgt.settings import FrameSetSettings, RefineSettings
+    from depthgt.registration.refine import Level, LevelSettings, _gate_cost
 
     other = _other_kernel(checkout)
     recordings = [
-        ("7-Scenes", {"kind": "sevenscenes", "root": str(SHARED / "data/7scenes-kitchen")}, "7scenes-kitchen", 30),
+        ("7-Scenes", KITCHEN, "7scenes-kitchen", 30),
         ("TUM", {"kind": "tum", "root": str(SHARED / "data/tum-fr1-xyz-0-239")}, ".", 60),
     ]
     rows = []
     for name, source, scene_name, target in recordings:
-        if not Path(source["root"]).is_dir():
-            raise SystemExit(f"bench_pair_terms: {source['root']} is absent")
-        scene = open_source_scene(source, scene_name, need_poses=True)
-        offsets = list(FrameSetSettings().offsets)
-        d = load_frameset(scene, [target + o for o in offsets], (256, 256), True, torch.device("cpu"))
-        T = torch.cat([torch.eye(4, dtype=torch.float64)[None], poses_from_source(d)])
-        rs = RefineSettings()
-        pairs = frame_pairs(len(offsets), rs.pairs, offsets)
+        d, T, rs, pairs = _frameset_at_source_poses(source, scene_name, target)
         T_ab = torch.linalg.inv(T)[pairs[:, 0]] @ T[pairs[:, 1]]
         for li, (scale, stride, gate) in enumerate(zip(rs.scales, rs.point_stride, rs.max_dist_m)):
             level = Level(d.rgb, d.depth_m, d.K.float(), scale, stride)
